@@ -1,0 +1,3 @@
+from icbtool.cli import main
+
+raise SystemExit(main())

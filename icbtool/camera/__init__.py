@@ -1,0 +1,9 @@
+"""Cameras: the one pinhole model (:class:`Camera`) and timed camera paths (:class:`CameraPath`).
+
+See :mod:`icbtool.camera.camera` for the conventions every module follows.
+"""
+
+from icbtool.camera.camera import Camera, look_at_pose, pose_from_forward
+from icbtool.camera.path import CameraPath
+
+__all__ = ["Camera", "CameraPath", "look_at_pose", "pose_from_forward"]

@@ -1,0 +1,548 @@
+"""The scene data model shared by the rasterizer, the path tracer and the cache.
+
+A :class:`Scene` is one merged triangle mesh (all geometry in world coordinates) with a material
+per face, plus analytic lights and an optional sky. Everything is linear RGB:
+
+* ``Material.albedo``: linear diffuse reflectance in [0, 1], multiplied by the texture if any.
+* ``Material.emission``: emitted radiance (W / (m^2 sr)), one-sided along the face normal.
+* ``Material.texture``: (h, w, 3) float32 *linear* albedo (sRGB files are decoded on load); its
+  texel (0, 0) is the top-left of the image file; uv (0, 0) is the bottom-left (OBJ/glTF-after-flip
+  convention), so ``row = (1 - v) * h``.
+
+Light units: a :class:`DirectionalLight` gives irradiance on a surface facing it (W/m^2); point and
+spot lights give radiant intensity (W/sr); an :class:`AreaLight` quad is emissive geometry (its
+radiance) and is also part of the mesh, so cameras see it and paths can hit it.
+
+Face winding is counter-clockwise seen from the front; the geometric normal is
+``cross(v1 - v0, v2 - v0)``. Shading normals (per vertex) are unit length.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    from icbtool.camera import Camera, CameraPath
+
+
+def _vec3(x: Any, name: str, nonneg: bool = False) -> np.ndarray:
+    a = np.asarray(x, dtype=np.float64).reshape(-1)
+    if a.shape == (1,):
+        a = np.repeat(a, 3)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be a finite 3-vector, got {x!r}")
+    if nonneg and np.any(a < 0):
+        raise ValueError(f"{name} must be >= 0, got {a.tolist()}")
+    a.setflags(write=False)
+    return a
+
+
+def _unit(x: Any, name: str) -> np.ndarray:
+    a = np.array(_vec3(x, name))
+    n = np.linalg.norm(a)
+    if n < 1e-12:
+        raise ValueError(f"{name} must be non-zero")
+    a = a / n
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class Material:
+    """A Lambertian material (optionally textured and/or emissive).
+
+    Attributes:
+        name: material name (from the file, or given).
+        albedo: (3,) linear diffuse reflectance in [0, 1] (multiplies the texture).
+        emission: (3,) emitted radiance, >= 0.
+        texture: optional (h, w, 3) float32 linear albedo texture in [0, 1].
+        texture_path: where the texture came from (for messages and hashing), if a file.
+    """
+
+    name: str
+    albedo: np.ndarray = field(default_factory=lambda: np.full(3, 0.8))
+    emission: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    texture: np.ndarray | None = None
+    texture_path: str | None = None
+
+    def __post_init__(self) -> None:
+        alb = _vec3(self.albedo, f"material '{self.name}' albedo", nonneg=True)
+        if np.any(alb > 1.0):
+            raise ValueError(
+                f"material '{self.name}' albedo must be in [0, 1] (energy conserving), "
+                f"got {alb.tolist()}"
+            )
+        object.__setattr__(self, "albedo", alb)
+        object.__setattr__(
+            self, "emission", _vec3(self.emission, f"material '{self.name}' emission", True)
+        )
+        if self.texture is not None:
+            t = np.asarray(self.texture, dtype=np.float32)
+            if t.ndim != 3 or t.shape[2] != 3 or t.shape[0] < 1 or t.shape[1] < 1:
+                raise ValueError(
+                    f"material '{self.name}' texture must be (h, w, 3), got {t.shape}"
+                )
+            if not np.all(np.isfinite(t)):
+                raise ValueError(f"material '{self.name}' texture has NaN/Inf texels")
+            t = np.clip(t, 0.0, 1.0)
+            t.setflags(write=False)
+            object.__setattr__(self, "texture", t)
+
+    @property
+    def is_emissive(self) -> bool:
+        return bool(np.any(self.emission > 0))
+
+    @property
+    def is_textured(self) -> bool:
+        return self.texture is not None
+
+
+@dataclass(frozen=True)
+class DirectionalLight:
+    """A distant light (the sun).
+
+    Attributes:
+        direction: (3,) unit direction the light travels (from the sun towards the scene).
+        irradiance: (3,) W/m^2 on a surface perpendicular to ``direction``.
+        name: label.
+    """
+
+    direction: np.ndarray
+    irradiance: np.ndarray
+    name: str = "sun"
+    kind: Literal["directional"] = "directional"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "direction", _unit(self.direction, f"{self.name}.direction"))
+        object.__setattr__(
+            self, "irradiance", _vec3(self.irradiance, f"{self.name}.irradiance", True)
+        )
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """An isotropic point light: ``intensity`` (3,) in W/sr at ``position`` (3,)."""
+
+    position: np.ndarray
+    intensity: np.ndarray
+    name: str = "point"
+    kind: Literal["point"] = "point"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "position", _vec3(self.position, f"{self.name}.position"))
+        object.__setattr__(self, "intensity", _vec3(self.intensity, f"{self.name}.intensity", True))
+
+
+@dataclass(frozen=True)
+class SpotLight:
+    """A spot light: ``intensity`` (W/sr) on its axis, full inside ``inner_deg``, smoothly
+    (smoothstep in cos) falling to zero at ``outer_deg`` (half-angles from the axis)."""
+
+    position: np.ndarray
+    direction: np.ndarray
+    intensity: np.ndarray
+    inner_deg: float = 20.0
+    outer_deg: float = 30.0
+    name: str = "spot"
+    kind: Literal["spot"] = "spot"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "position", _vec3(self.position, f"{self.name}.position"))
+        object.__setattr__(self, "direction", _unit(self.direction, f"{self.name}.direction"))
+        object.__setattr__(self, "intensity", _vec3(self.intensity, f"{self.name}.intensity", True))
+        if not (0.0 <= self.inner_deg < self.outer_deg <= 90.0):
+            raise ValueError(
+                f"{self.name}: need 0 <= inner_deg < outer_deg <= 90, "
+                f"got {self.inner_deg}, {self.outer_deg}"
+            )
+
+    def falloff(self, cos_angle: np.ndarray) -> np.ndarray:
+        """Angular falloff in [0, 1] for the cosine between the axis and the light-to-point ray."""
+        c_in = math.cos(math.radians(self.inner_deg))
+        c_out = math.cos(math.radians(self.outer_deg))
+        x = np.clip((np.asarray(cos_angle) - c_out) / (c_in - c_out), 0.0, 1.0)
+        return x * x * (3.0 - 2.0 * x)
+
+
+@dataclass(frozen=True)
+class AreaLight:
+    """An emissive parallelogram ``corner + s*edge_u + t*edge_v`` (s, t in [0, 1]).
+
+    It emits ``radiance`` on the side of ``normal = cross(edge_u, edge_v)`` (one-sided). Area
+    lights are also added to the scene mesh (two triangles with an emissive material).
+    """
+
+    corner: np.ndarray
+    edge_u: np.ndarray
+    edge_v: np.ndarray
+    radiance: np.ndarray
+    name: str = "area"
+    kind: Literal["area"] = "area"
+
+    def __post_init__(self) -> None:
+        for k in ("corner", "edge_u", "edge_v"):
+            object.__setattr__(self, k, _vec3(getattr(self, k), f"{self.name}.{k}"))
+        object.__setattr__(self, "radiance", _vec3(self.radiance, f"{self.name}.radiance", True))
+
+    @property
+    def normal(self) -> np.ndarray:
+        n = np.cross(self.edge_u, self.edge_v)
+        ln = np.linalg.norm(n)
+        return n / ln if ln > 0 else n
+
+    @property
+    def area(self) -> float:
+        return float(np.linalg.norm(np.cross(self.edge_u, self.edge_v)))
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """(4, 3) corners in counter-clockwise order seen from the emitting side."""
+        c, u, v = self.corner, self.edge_u, self.edge_v
+        return np.stack([c, c + u, c + u + v, c + v])
+
+
+@dataclass(frozen=True)
+class Sky:
+    """Environment radiance for rays that leave the scene.
+
+    ``kind='uniform'``: ``zenith`` everywhere. ``kind='gradient'``: a simple sky blending from
+    ``horizon`` (at the horizon) to ``zenith`` (straight up) with ``sqrt(cos)`` of the elevation,
+    and ``ground`` below the horizon. ``up`` is the world up axis.
+    """
+
+    zenith: np.ndarray
+    horizon: np.ndarray | None = None
+    ground: np.ndarray | None = None
+    kind: Literal["uniform", "gradient"] = "uniform"
+    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("uniform", "gradient"):
+            raise ValueError(f"sky kind must be 'uniform' or 'gradient', got {self.kind!r}")
+        object.__setattr__(self, "zenith", _vec3(self.zenith, "sky.zenith", True))
+        hz = self.zenith if self.horizon is None else self.horizon
+        object.__setattr__(self, "horizon", _vec3(hz, "sky.horizon", True))
+        gr = np.zeros(3) if self.ground is None else self.ground
+        object.__setattr__(self, "ground", _vec3(gr, "sky.ground", True))
+        object.__setattr__(self, "up", _unit(self.up, "sky.up"))
+
+    def radiance(self, directions: np.ndarray) -> np.ndarray:
+        """Radiance (..., 3) float32 arriving from the unit ``directions`` (..., 3)."""
+        d = np.asarray(directions)
+        if self.kind == "uniform":
+            return np.broadcast_to(self.zenith.astype(np.float32), d.shape).copy()
+        c = d @ self.up
+        w = np.sqrt(np.clip(c, 0.0, 1.0))[..., None]
+        sky = (1 - w) * self.horizon + w * self.zenith
+        out = np.where(c[..., None] >= 0, sky, self.ground)
+        return out.astype(np.float32)
+
+    @property
+    def max_radiance(self) -> float:
+        return float(max(self.zenith.max(), self.horizon.max(), self.ground.max()))
+
+
+Light = DirectionalLight | PointLight | SpotLight | AreaLight
+
+
+@dataclass(eq=False)
+class Scene:
+    """One merged triangle mesh with per-face materials, lights, sky and named camera paths.
+
+    Attributes:
+        name: scene name.
+        vertices: (V, 3) float32 world positions.
+        faces: (F, 3) int32 vertex indices (counter-clockwise = front).
+        normals: (V, 3) float32 unit shading normals.
+        uvs: (V, 2) float32 texture coordinates, or None when no material is textured.
+        face_material: (F,) int32 index into ``materials``.
+        materials: the materials.
+        lights: analytic and area lights (area lights are also in the mesh).
+        sky: environment radiance, or None (black).
+        paths: named camera paths (e.g. "train", "test").
+        default_camera: a good first view, or None.
+        up: (3,) world up axis.
+        source: where the scene came from (file path or "procedural:<name>").
+    """
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray
+    face_material: np.ndarray
+    materials: list[Material]
+    uvs: np.ndarray | None = None
+    lights: list[Light] = field(default_factory=list)
+    sky: Sky | None = None
+    paths: dict[str, CameraPath] = field(default_factory=dict)
+    default_camera: Camera | None = None
+    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+    source: str = ""
+    _cache: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        where = f"scene '{self.name}'" + (f" ({self.source})" if self.source else "")
+        v = np.ascontiguousarray(self.vertices, dtype=np.float32)
+        f = np.ascontiguousarray(self.faces)
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+            raise ValueError(f"{where}: vertices must be a non-empty (V, 3) array, got {v.shape}")
+        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+            raise ValueError(f"{where}: faces must be a non-empty (F, 3) array, got {f.shape}")
+        if not np.issubdtype(f.dtype, np.integer):
+            raise ValueError(f"{where}: faces must be integers, got {f.dtype}")
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"{where}: {int((~np.isfinite(v)).any(1).sum())} vertices are NaN/Inf")
+        if f.min() < 0 or f.max() >= len(v):
+            raise ValueError(
+                f"{where}: face indices out of range [0, {len(v) - 1}]: min {f.min()}, max {f.max()}"
+            )
+        f = f.astype(np.int32)
+        n = np.ascontiguousarray(self.normals, dtype=np.float32)
+        if n.shape != v.shape or not np.all(np.isfinite(n)):
+            raise ValueError(f"{where}: normals must be finite (V, 3) like vertices, got {n.shape}")
+        fm = np.ascontiguousarray(self.face_material, dtype=np.int32).reshape(-1)
+        if len(fm) != len(f):
+            raise ValueError(f"{where}: face_material has {len(fm)} entries for {len(f)} faces")
+        if len(self.materials) == 0 or fm.min() < 0 or fm.max() >= len(self.materials):
+            raise ValueError(f"{where}: face_material indices out of range of the materials")
+        if self.uvs is not None:
+            uv = np.ascontiguousarray(self.uvs, dtype=np.float32)
+            if uv.shape != (len(v), 2) or not np.all(np.isfinite(uv)):
+                raise ValueError(f"{where}: uvs must be finite (V, 2), got {uv.shape}")
+            self.uvs = uv
+        elif any(m.is_textured for m in self.materials):
+            raise ValueError(f"{where}: textured materials need uvs")
+        self.vertices, self.faces, self.normals, self.face_material = v, f, n, fm
+        self.up = np.array(_unit(self.up, f"{where} up"))
+        self.materials = list(self.materials)
+        self.lights = list(self.lights)
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float64 axis-aligned bounds [min, max]."""
+        return np.stack([self.vertices.min(0), self.vertices.max(0)]).astype(np.float64)
+
+    @property
+    def diagonal(self) -> float:
+        """Length of the bounding box diagonal."""
+        b = self.bounds
+        return float(np.linalg.norm(b[1] - b[0]))
+
+    @property
+    def n_triangles(self) -> int:
+        return len(self.faces)
+
+    @property
+    def has_textures(self) -> bool:
+        return any(m.is_textured for m in self.materials)
+
+    @property
+    def emissive_faces(self) -> np.ndarray:
+        """(E,) indices of faces with an emissive material."""
+        emissive = np.array([m.is_emissive for m in self.materials])
+        return np.flatnonzero(emissive[self.face_material])
+
+    @property
+    def face_normals(self) -> np.ndarray:
+        """(F, 3) float32 unit geometric normals (zero for degenerate faces)."""
+        if "face_normals" not in self._cache:
+            tri = self.vertices[self.faces].astype(np.float64)
+            n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            ln = np.linalg.norm(n, axis=1, keepdims=True)
+            self._cache["face_normals"] = np.where(ln > 0, n / np.maximum(ln, 1e-300), 0).astype(
+                np.float32
+            )
+        return self._cache["face_normals"]
+
+    @property
+    def face_areas(self) -> np.ndarray:
+        """(F,) float64 triangle areas."""
+        if "face_areas" not in self._cache:
+            tri = self.vertices[self.faces].astype(np.float64)
+            n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            self._cache["face_areas"] = 0.5 * np.linalg.norm(n, axis=1)
+        return self._cache["face_areas"]
+
+    def lights_of(self, kind: str) -> list[Light]:
+        """The lights of one kind: 'directional', 'point', 'spot' or 'area'."""
+        return [light for light in self.lights if light.kind == kind]
+
+    @property
+    def content_hash(self) -> str:
+        """SHA-256 (hex) of geometry, materials, lights and sky: equal hash, same rendering."""
+        if "hash" not in self._cache:
+            h = hashlib.sha256()
+            for a in (self.vertices, self.faces, self.normals, self.face_material):
+                h.update(np.ascontiguousarray(a).tobytes())
+            if self.uvs is not None:
+                h.update(self.uvs.tobytes())
+            for m in self.materials:
+                h.update(m.name.encode())
+                h.update(m.albedo.tobytes())
+                h.update(m.emission.tobytes())
+                if m.texture is not None:
+                    h.update(np.ascontiguousarray(m.texture).tobytes())
+            h.update(self.light_hash.encode())
+            self._cache["hash"] = h.hexdigest()
+        return self._cache["hash"]
+
+    @property
+    def light_hash(self) -> str:
+        """SHA-256 (hex, 16 chars) of the light setup (lights + sky) alone."""
+        h = hashlib.sha256()
+        for light in self.lights:
+            h.update(repr(_light_key(light)).encode())
+        if self.sky is not None:
+            h.update(repr(_light_key(self.sky)).encode())
+        return h.hexdigest()[:16]
+
+    def __repr__(self) -> str:
+        return (
+            f"Scene('{self.name}', {len(self.faces)} triangles, {len(self.materials)} materials, "
+            f"{len(self.lights)} lights, sky={'yes' if self.sky else 'no'}, "
+            f"paths={sorted(self.paths)})"
+        )
+
+
+def _light_key(obj: Any) -> tuple:
+    items = []
+    for k, v in sorted(vars(obj).items()):
+        if isinstance(v, np.ndarray):
+            v = tuple(np.round(v.astype(np.float64), 9).tolist())
+        items.append((k, v))
+    return (type(obj).__name__, tuple(items))
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) float32 area-weighted vertex normals; vertices used by no face get +up (0, 1, 0)."""
+    tri = vertices[faces].astype(np.float64)
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    vn = np.zeros((len(vertices), 3))
+    for k in range(3):
+        np.add.at(vn, faces[:, k], fn)
+    ln = np.linalg.norm(vn, axis=1, keepdims=True)
+    vn = np.where(ln > 1e-30, vn / np.maximum(ln, 1e-300), np.array([0.0, 1.0, 0.0]))
+    return vn.astype(np.float32)
+
+
+class SceneBuilder:
+    """Accumulates meshes, materials and lights, then builds one merged :class:`Scene`.
+
+    Example:
+        >>> b = SceneBuilder("demo")
+        >>> white = b.material("white", albedo=(0.8, 0.8, 0.8))
+        >>> b.add_quad((-1, 0, -1), (2, 0, 0), (0, 0, 2), white)  # doctest: +SKIP
+    """
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._materials: list[Material] = []
+        self._by_name: dict[str, int] = {}
+        self._parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, int]] = []
+        self.lights: list[Light] = []
+        self.sky: Sky | None = None
+
+    def material(self, name: str, **kwargs: Any) -> int:
+        """Add a :class:`Material` (or return the index of an existing one of that name)."""
+        if name in self._by_name:
+            return self._by_name[name]
+        return self.add_material(Material(name, **kwargs))
+
+    def add_material(self, material: Material) -> int:
+        name = material.name
+        while name in self._by_name:
+            name = name + "_"
+        if name != material.name:
+            material = Material(
+                name, material.albedo, material.emission, material.texture, material.texture_path
+            )
+        self._materials.append(material)
+        self._by_name[name] = len(self._materials) - 1
+        return len(self._materials) - 1
+
+    def add_mesh(
+        self,
+        vertices: Any,
+        faces: Any,
+        material: int,
+        normals: Any | None = None,
+        uvs: Any | None = None,
+    ) -> None:
+        """Add triangles (vertices (N, 3), faces (M, 3)) with one material index."""
+        v = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
+        f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+        n = vertex_normals(v, f) if normals is None else np.asarray(normals, np.float32)
+        uv = None if uvs is None else np.asarray(uvs, np.float32).reshape(-1, 2)
+        if not (0 <= material < len(self._materials)):
+            raise ValueError(f"unknown material index {material}")
+        self._parts.append((v, f, n, uv, material))
+
+    def add_quad(self, corner: Any, edge_u: Any, edge_v: Any, material: int) -> None:
+        """Add the parallelogram ``corner + s*edge_u + t*edge_v`` facing ``cross(edge_u, edge_v)``,
+        with flat normals and uvs (0,0)..(1,1)."""
+        c, u, v = (np.asarray(x, np.float64) for x in (corner, edge_u, edge_v))
+        verts = np.stack([c, c + u, c + u + v, c + v])
+        n = np.cross(u, v)
+        n = n / np.linalg.norm(n)
+        uvs = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
+        self.add_mesh(verts, [[0, 1, 2], [0, 2, 3]], material, np.tile(n, (4, 1)), uvs)
+
+    def add_box(self, center: Any, size: Any, material: int, rotation_y_deg: float = 0.0) -> None:
+        """Add a closed box (outward faces, flat normals) rotated about the y axis."""
+        c = np.asarray(center, np.float64)
+        hx, hy, hz = np.asarray(size, np.float64) / 2
+        a = math.radians(rotation_y_deg)
+        rot = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+        faces = [  # (corner, edge_u, edge_v) in the box frame, outward normals
+            ((-hx, -hy, hz), (2 * hx, 0, 0), (0, 2 * hy, 0)),
+            ((hx, -hy, -hz), (-2 * hx, 0, 0), (0, 2 * hy, 0)),
+            ((hx, -hy, hz), (0, 0, -2 * hz), (0, 2 * hy, 0)),
+            ((-hx, -hy, -hz), (0, 0, 2 * hz), (0, 2 * hy, 0)),
+            ((-hx, hy, hz), (2 * hx, 0, 0), (0, 0, -2 * hz)),
+            ((-hx, -hy, -hz), (2 * hx, 0, 0), (0, 0, 2 * hz)),
+        ]
+        for corner, eu, ev in faces:
+            self.add_quad(c + rot @ np.array(corner), rot @ np.array(eu), rot @ np.array(ev),
+                          material)
+
+    def add_area_light(self, light: AreaLight) -> None:
+        """Add an area light: its emissive quad goes into the mesh, the light into ``lights``."""
+        m = self.add_material(Material(f"emitter:{light.name}", albedo=np.zeros(3),
+                                       emission=light.radiance))
+        self.add_quad(light.corner, light.edge_u, light.edge_v, m)
+        self.lights.append(light)
+
+    def build(self, **kwargs: Any) -> Scene:
+        """Merge everything into a :class:`Scene` (``kwargs`` go to the Scene constructor)."""
+        if not self._parts:
+            raise ValueError(f"scene '{self.name}' is empty: no geometry was added")
+        offs = np.cumsum([0] + [len(p[0]) for p in self._parts])
+        any_uv = any(p[3] is not None for p in self._parts)
+        verts = np.concatenate([p[0] for p in self._parts])
+        faces = np.concatenate([p[1] + o for p, o in zip(self._parts, offs[:-1])])
+        normals = np.concatenate([p[2] for p in self._parts])
+        fm = np.concatenate([np.full(len(p[1]), p[4], np.int32) for p in self._parts])
+        uvs = None
+        if any_uv:
+            uvs = np.concatenate(
+                [p[3] if p[3] is not None else np.zeros((len(p[0]), 2), np.float32)
+                 for p in self._parts]
+            )
+        kwargs.setdefault("lights", self.lights)
+        kwargs.setdefault("sky", self.sky)
+        return Scene(
+            name=self.name,
+            vertices=verts,
+            faces=faces,
+            normals=normals,
+            face_material=fm,
+            materials=self._materials,
+            uvs=uvs,
+            **kwargs,
+        )
