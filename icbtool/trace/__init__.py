@@ -1,5 +1,25 @@
 """The cloud path tracer for GI maps (Embree via embreex, numpy wavefront).
 
 ``icb.trace.render_gi(scene, cam, spp=64)`` or ``icb.trace.render(scene, cam, TraceConfig(...))``.
-embreex is imported lazily by :mod:`icbtool.trace.embree`.
+embreex is imported lazily (by :class:`icbtool.trace.embree.EmbreeScene`), pyoidn only to denoise.
 """
+
+from icbtool.trace.tracer import (
+    HARD_MAX_DEPTH,
+    TraceConfig,
+    TraceResult,
+    TraceStats,
+    denoise,
+    render,
+    render_gi,
+)
+
+__all__ = [
+    "HARD_MAX_DEPTH",
+    "TraceConfig",
+    "TraceResult",
+    "TraceStats",
+    "denoise",
+    "render",
+    "render_gi",
+]
