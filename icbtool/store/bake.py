@@ -1,0 +1,272 @@
+"""Baking: render the CRT-buffers of every camera of a path into a store (resumable).
+
+For each client camera of the path: choose the cloud camera (``"same"``, or ``"prefetch"``: wider
+FOV, pulled back along -forward), skip it if the store already holds exactly that camera for this
+scene and light setup, else render G-buffers + DL (raster) and GI (path tracer) and ``put`` them.
+
+The tracer already uses both cores (two Embree threads); the raster runs in this process between
+traces (a few tens of ms against seconds of tracing), so the two are not overlapped.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from icbtool.camera import Camera, CameraPath
+from icbtool.store.record import CRTBuffer, RecordMeta
+
+
+@dataclass(frozen=True)
+class BakeConfig:
+    """How :func:`bake` renders a path."""
+
+    spp: int = 16
+    """Path-tracing samples per pixel of the GI maps."""
+    seed: int = 0
+    """Base seed; view k of the path is traced with seed ``seed + k`` (independent noise)."""
+    max_depth: int = 8
+    """Longest traced path (segments), as :class:`icbtool.trace.TraceConfig`."""
+    denoise: bool = False
+    """Denoise GI with OIDN (the stored GI is then the denoised one)."""
+    gbuffer: Literal["raster", "trace"] = "raster"
+    """Where DL and the G-buffers come from: the OpenGL rasterizer (the system's design), or a
+    primary Embree ray cast at pixel centres plus the tracer's direct light (no OpenGL needed)."""
+    cloud_camera: Literal["same", "prefetch"] = "same"
+    """The camera baked for a client camera: the same one, or a prefetch camera."""
+    fov_multiplier: float = 1.5
+    """Prefetch: the vertical FOV is multiplied by this (capped at ``max_fov_deg``)."""
+    pullback: float = 0.0
+    """Prefetch: the camera moves this far back along -forward (scene units)."""
+    max_fov_deg: float = 120.0
+    """Prefetch: FOV cap (a pinhole camera near 180 degrees is unusable)."""
+    resolution: tuple[int, int] | None = None
+    """(height, width) of the baked maps; None: the path's."""
+    stride: int = 1
+    """Bake every ``stride``-th camera of the path."""
+    limit: int | None = None
+    """Bake at most this many cameras (after ``stride``)."""
+    skip_existing: bool = True
+    """Resume: skip cameras already in the store (exact camera, same scene and light hashes)."""
+    progress: bool = True
+    """Show a tqdm progress bar."""
+    tags: dict[str, Any] = field(default_factory=dict)
+    """Extra tags on every record (the path name and camera index are always added)."""
+
+    def __post_init__(self) -> None:
+        for k in ("spp", "max_depth", "stride"):
+            v = getattr(self, k)
+            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"BakeConfig.{k} must be an integer >= 1, got {v!r}")
+        if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise ValueError(f"BakeConfig.seed must be an integer >= 0, got {self.seed!r}")
+        if self.gbuffer not in ("raster", "trace"):
+            raise ValueError(
+                f"BakeConfig.gbuffer must be 'raster' or 'trace', got {self.gbuffer!r}"
+            )
+        if self.cloud_camera not in ("same", "prefetch"):
+            raise ValueError(
+                f"BakeConfig.cloud_camera must be 'same' or 'prefetch', got {self.cloud_camera!r}"
+            )
+        if not (self.fov_multiplier >= 1.0 and math.isfinite(self.fov_multiplier)):
+            raise ValueError(f"BakeConfig.fov_multiplier must be >= 1, got {self.fov_multiplier}")
+        if not (self.pullback >= 0 and math.isfinite(self.pullback)):
+            raise ValueError(f"BakeConfig.pullback must be >= 0, got {self.pullback}")
+        if not (0 < self.max_fov_deg < 180):
+            raise ValueError(f"BakeConfig.max_fov_deg must be in (0, 180), got {self.max_fov_deg}")
+        if self.resolution is not None:
+            h, w = self.resolution
+            if int(h) != h or int(w) != w or h < 1 or w < 1:
+                raise ValueError(
+                    f"BakeConfig.resolution must be (height, width) > 0, got {self.resolution}"
+                )
+        if self.limit is not None and (int(self.limit) != self.limit or self.limit < 1):
+            raise ValueError(f"BakeConfig.limit must be None or >= 1, got {self.limit}")
+
+
+@dataclass
+class BakeReport:
+    """What :func:`bake` did.
+
+    Attributes:
+        rendered: record ids of the views rendered now, in path order.
+        skipped: path indices skipped because the store already had them.
+        seconds: wall time.
+        seconds_per_view: mean render time of the rendered views.
+    """
+
+    rendered: list[int]
+    skipped: list[int]
+    seconds: float
+    seconds_per_view: float
+
+
+def cloud_camera(client: Camera, config: BakeConfig) -> Camera:
+    """The cloud camera baked for ``client`` (see :attr:`BakeConfig.cloud_camera`).
+
+    ``"prefetch"`` here is the simple rule: same orientation and resolution, vertical FOV times
+    ``fov_multiplier`` (capped), centre moved ``pullback`` back along -forward. Pass
+    ``camera_fn=`` to :func:`bake` to use another rule (e.g. ``icbtool.prefetch.prefetch_camera``
+    with velocities).
+    """
+    if config.resolution is not None:
+        client = client.resized(*config.resolution)
+    if config.cloud_camera == "same":
+        return client
+    fov = min(client.fov_y_deg * config.fov_multiplier, config.max_fov_deg)
+    pose = np.array(client.world_from_cam)
+    pose[:3, 3] -= config.pullback * pose[:3, 2]
+    return client.with_fov(fov).with_pose(pose)
+
+
+def _trace_gbuffers(scene: Any, cam: Camera) -> dict[str, np.ndarray]:
+    """G-buffers from one primary ray per pixel centre (what a rasterizer would produce)."""
+    from icbtool.trace.embree import EmbreeScene
+
+    es = EmbreeScene.from_scene(scene)
+    o, d, dpd = cam.rays()
+    h, w = cam.height, cam.width
+    hits = es.intersect(o.reshape(-1, 3), d.reshape(-1, 3))
+    hit = hits.hit
+    t = np.where(hit, hits.t, 0.0).astype(np.float64)
+    pos = o.reshape(-1, 3) + t[:, None] * d.reshape(-1, 3)
+    f = scene.faces[np.maximum(hits.prim, 0)]
+    bu, bv = hits.u.astype(np.float64), hits.v.astype(np.float64)
+    n = (
+        (1 - bu - bv)[:, None] * scene.normals[f[:, 0]]
+        + bu[:, None] * scene.normals[f[:, 1]]
+        + bv[:, None] * scene.normals[f[:, 2]]
+    )
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    flip = np.sum(n * d.reshape(-1, 3), axis=1) > 0
+    n[flip] *= -1
+    m = hit[:, None]
+    pos, n = np.where(m, pos, 0.0), np.where(m, n, 0.0)
+    nv = n @ cam.world_from_cam[:3, :3]
+    depth = np.where(hit, t * dpd.reshape(-1), 0.0)
+    as32 = lambda a, c: a.reshape(h, w, c).astype(np.float32)  # noqa: E731
+    return {
+        "position": as32(pos, 3),
+        "normal_world": as32(n, 3),
+        "normal_view": as32(nv, 3),
+        "depth": as32(depth, 1),
+        "mask": as32(hit.astype(np.float32), 1),
+    }
+
+
+def bake(
+    scene: Any,
+    path: CameraPath | str,
+    store: Any,
+    config: BakeConfig | None = None,
+    camera_fn: Callable[[Camera, int], Camera] | None = None,
+) -> BakeReport:
+    """Render the CRT-buffers of every camera of ``path`` into ``store`` (resumable).
+
+    Args:
+        scene: an :class:`icbtool.scene.Scene`.
+        path: a :class:`CameraPath`, or the name of one of ``scene.paths``.
+        store: an open writable :class:`icbtool.store.Store`.
+        config: :class:`BakeConfig`.
+        camera_fn: optional ``(client_camera, index) -> cloud camera`` replacing
+            :func:`cloud_camera` (must be deterministic for resuming to work).
+
+    Returns:
+        :class:`BakeReport`.
+
+    Raises:
+        ValueError: unknown path name, bad config.
+    """
+    from icbtool import trace
+
+    cfg = config or BakeConfig()
+    if isinstance(path, str):
+        if path not in scene.paths:
+            raise ValueError(
+                f"scene '{scene.name}' has no camera path {path!r}; it has {sorted(scene.paths)}"
+            )
+        path = scene.paths[path]
+    indices = list(range(0, len(path), cfg.stride))
+    if cfg.limit is not None:
+        indices = indices[: cfg.limit]
+    sh, lh = scene.content_hash, scene.light_hash
+    store.register_scene(scene)
+    todo, skipped = [], []
+    for i in indices:
+        cam = camera_fn(path[i], i) if camera_fn is not None else cloud_camera(path[i], cfg)
+        if cfg.skip_existing and store.find_exact(cam, sh, lh) is not None:
+            skipped.append(i)
+        else:
+            todo.append((i, cam))
+    t0 = time.perf_counter()
+    rendered: list[int] = []
+    times: list[float] = []
+    with contextlib.ExitStack() as stack:
+        rasterizer = None
+        if cfg.gbuffer == "raster" and todo:
+            from icbtool import raster
+
+            rasterizer = raster.Rasterizer(scene, raster.RasterConfig())
+            if hasattr(rasterizer, "__enter__"):
+                rasterizer = stack.enter_context(rasterizer)
+        bar = None
+        if cfg.progress:
+            from tqdm import tqdm
+
+            bar = stack.enter_context(
+                tqdm(
+                    total=len(indices), initial=len(skipped), desc=f"bake {path.name}", unit="view"
+                )
+            )
+        for i, cam in todo:
+            t1 = time.perf_counter()
+            tcfg = trace.TraceConfig(
+                spp=cfg.spp, seed=cfg.seed + i, max_depth=cfg.max_depth, denoise=cfg.denoise
+            )
+            if rasterizer is not None:
+                rb = rasterizer.render(cam)
+                maps = {
+                    n: getattr(rb, n)
+                    for n in (
+                        "dl",
+                        "albedo",
+                        "normal_world",
+                        "normal_view",
+                        "depth",
+                        "position",
+                        "mask",
+                    )
+                }
+                tr = trace.render(scene, cam, tcfg)
+            else:
+                tr = trace.render(scene, cam, tcfg)
+                maps = _trace_gbuffers(scene, cam)
+                maps["dl"] = tr.direct
+                maps["albedo"] = tr.albedo
+            maps["gi"] = tr.gi
+            dt = time.perf_counter() - t1
+            meta = RecordMeta.for_scene(
+                scene,
+                spp=int(cfg.spp),
+                render_time_s=dt,
+                tags={
+                    **cfg.tags,
+                    "path": path.name,
+                    "index": i,
+                    "cloud_camera": cfg.cloud_camera if camera_fn is None else "custom",
+                },
+            )
+            rendered.append(store.put(CRTBuffer(camera=cam, meta=meta, **maps)))
+            times.append(dt)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(s_per_view=f"{dt:.2f}")
+    return BakeReport(
+        rendered, skipped, time.perf_counter() - t0, float(np.mean(times)) if times else 0.0
+    )
