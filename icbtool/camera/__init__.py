@@ -5,5 +5,14 @@ See :mod:`icbtool.camera.camera` for the conventions every module follows.
 
 from icbtool.camera.camera import Camera, look_at_pose, pose_from_forward
 from icbtool.camera.path import CameraPath
+from icbtool.camera.walk import CameraPlacementError, check_camera, random_walk
 
-__all__ = ["Camera", "CameraPath", "look_at_pose", "pose_from_forward"]
+__all__ = [
+    "Camera",
+    "CameraPath",
+    "CameraPlacementError",
+    "check_camera",
+    "look_at_pose",
+    "pose_from_forward",
+    "random_walk",
+]

@@ -4,6 +4,8 @@
 ``icb.scene.load("mesh.obj")`` (a bare mesh).
 """
 
+from icbtool.scene.description import SceneDescription, read_description
+from icbtool.scene.load import load, load_mesh
 from icbtool.scene.procedural import (
     PROCEDURAL,
     boxes_on_floor,
@@ -24,6 +26,7 @@ from icbtool.scene.types import (
     SpotLight,
     vertex_normals,
 )
+from icbtool.scene.validate import SceneError, SceneRepairWarning
 
 __all__ = [
     "PROCEDURAL",
@@ -41,5 +44,11 @@ __all__ = [
     "cornell_camera",
     "plane",
     "vertex_normals",
+    "load",
+    "load_mesh",
+    "read_description",
+    "SceneDescription",
+    "SceneError",
+    "SceneRepairWarning",
     "white_furnace",
 ]

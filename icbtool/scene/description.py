@@ -1,0 +1,437 @@
+"""Scene description files (TOML): a mesh plus lights, sky, camera intrinsics and named paths.
+
+Parsed with the standard library's ``tomllib``; every table accepts only the keys listed below,
+anything else is an error naming the key and the file. Relative paths are relative to the
+description file; ``${VAR}`` and ``${VAR:-default}`` expand environment variables.
+
+.. code-block:: toml
+
+    [scene]
+    name = "sponza"                     # default: the file stem
+    mesh = "${ICBTOOL_SPONZA:-../../../shared/scenes/sponza}/sponza_textured.obj"
+    scale = 1.0                         # file units -> metres
+    up_axis = "y"                       # the file's up axis: "y", "z" or "x" (rotated to +y)
+    translation = [0.0, 0.0, 0.0]       # after scaling
+    flip_v = false                      # uv origin at the image's top-left in this file
+    textures = true                     # decode texture images
+
+    [camera]                            # intrinsics of the default camera and of every path
+    fov_y_deg = 60.0
+    height = 256
+    width = 256
+
+    [[lights]]                          # any number; type: directional | point | spot | area
+    type = "directional"
+    direction = [0.4, -0.9, 0.15]       # the way the light travels
+    irradiance = [9.0, 8.5, 7.5]        # W/m^2
+    # point: position, intensity; spot: position, direction, intensity, inner_deg, outer_deg;
+    # area: corner, edge_u, edge_v, radiance (emits towards cross(edge_u, edge_v)); all: name
+
+    [sky]                               # optional; type: uniform (zenith) | gradient
+    type = "gradient"
+    zenith = [0.3, 0.45, 0.8]
+    horizon = [0.7, 0.75, 0.8]
+    ground = [0.2, 0.18, 0.15]
+
+    [default_camera]                    # optional; also fov_y_deg, height, width, up
+    eye = [-10.0, 1.8, 0.0]
+    target = [10.0, 4.0, 0.0]
+
+    [paths.train]                       # any number of named paths; type: flythrough | orbit |
+    type = "flythrough"                 #   random_walk; each may override fov_y_deg/height/width
+    waypoints = [[-10, 1.7, 0], [10, 1.7, 0]]
+    targets = [[0, 1.7, 0], [20, 1.7, 0]]   # optional
+    n = 150
+    speed = 1.4
+    # orbit: center, radius, height, n, duration_s, start_deg, sweep_deg, look_height, up
+    # random_walk: n, seed, speed, dt, height_range, clearance, lookahead, turn_rate_deg,
+    #   pitch_range_deg, max_floor_step, start (see icbtool.camera.walk.random_walk)
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from icbtool.scene.types import (
+    AreaLight,
+    DirectionalLight,
+    Light,
+    Material,
+    PointLight,
+    Scene,
+    Sky,
+    SpotLight,
+)
+from icbtool.scene.validate import SceneError, check_file
+
+_SCENE_KEYS = {"name", "mesh", "scale", "up_axis", "translation", "flip_v", "textures"}
+_CAMERA_KEYS = {"fov_y_deg", "height", "width"}
+_TOP_KEYS = {"scene", "camera", "lights", "sky", "default_camera", "paths"}
+_LIGHT_KEYS = {
+    "directional": ({"direction", "irradiance"}, {"name"}),
+    "point": ({"position", "intensity"}, {"name"}),
+    "spot": ({"position", "direction", "intensity"}, {"name", "inner_deg", "outer_deg"}),
+    "area": ({"corner", "edge_u", "edge_v", "radiance"}, {"name"}),
+}
+_SKY_KEYS = {"type", "zenith", "horizon", "ground", "up"}
+_DEFAULT_CAMERA_KEYS = {"eye", "target", "up"} | _CAMERA_KEYS
+_PATH_KEYS = {
+    "flythrough": ({"waypoints"}, {"targets", "n", "speed", "up"}),
+    "orbit": (
+        {"center", "radius", "height"},
+        {"n", "duration_s", "start_deg", "sweep_deg", "look_height", "up"},
+    ),
+    "random_walk": (
+        {"n", "seed"},
+        {
+            "speed",
+            "dt",
+            "height_range",
+            "clearance",
+            "lookahead",
+            "turn_rate_deg",
+            "pitch_range_deg",
+            "max_floor_step",
+            "start",
+        },
+    ),
+}
+#: Keyword arguments accepted by :meth:`SceneDescription.build`.
+BUILD_OVERRIDES = (
+    "name",
+    "mesh",
+    "scale",
+    "up_axis",
+    "translation",
+    "flip_v",
+    "textures",
+    "fov_y_deg",
+    "height",
+    "width",
+    "lights",
+    "sky",
+    "with_paths",
+)
+
+_ENV = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
+
+
+def expand_env(text: str, where: str) -> str:
+    """Expand ``${VAR}`` / ``${VAR:-default}`` (an empty variable counts as unset).
+
+    Raises:
+        SceneError: a variable without default is unset.
+    """
+
+    def sub(m: re.Match) -> str:
+        val = os.environ.get(m.group(1))
+        if val:
+            return val
+        if m.group(2) is not None:
+            return m.group(2)
+        raise SceneError(f"{where}: environment variable {m.group(1)} is not set (no default)")
+
+    return _ENV.sub(sub, text)
+
+
+def _check_keys(
+    table: Any, allowed: set[str], where: str, section: str, required: set[str] = frozenset()
+) -> dict:
+    if not isinstance(table, dict):
+        raise SceneError(f"{where}: [{section}] must be a table, got {type(table).__name__}")
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise SceneError(
+            f"{where}: unknown key(s) {unknown} in [{section}]; allowed: {sorted(allowed)}"
+        )
+    missing = sorted(required - set(table))
+    if missing:
+        raise SceneError(f"{where}: [{section}] is missing required key(s) {missing}")
+    return dict(table)
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Camera intrinsics of a description (centred, square pixels)."""
+
+    fov_y_deg: float = 60.0
+    """Vertical field of view in degrees, in (0, 180)."""
+    height: int = 256
+    """Image height in pixels."""
+    width: int = 256
+    """Image width in pixels."""
+
+    def __post_init__(self) -> None:
+        if not (0 < float(self.fov_y_deg) < 180):
+            raise ValueError(f"fov_y_deg must be in (0, 180), got {self.fov_y_deg}")
+        for k in ("height", "width"):
+            v = getattr(self, k)
+            if not isinstance(v, int) or isinstance(v, bool) or not (1 <= v <= 32768):
+                raise ValueError(f"{k} must be an integer in [1, 32768], got {v!r}")
+
+    def camera(self):
+        from icbtool.camera import Camera
+
+        return Camera.from_fov(self.fov_y_deg, self.height, self.width)
+
+
+@dataclass(frozen=True)
+class SceneDescription:
+    """A parsed scene description (see the module docstring for the file format)."""
+
+    path: Path
+    """The description file."""
+    name: str
+    """Scene name."""
+    mesh: Path
+    """The mesh file (absolute, environment variables expanded)."""
+    mesh_options: dict[str, Any]
+    """Keyword arguments for :func:`icbtool.scene.load.load_mesh` (scale, up_axis, ...)."""
+    intrinsics: Intrinsics = field(default_factory=Intrinsics)
+    """Intrinsics of the default camera and the paths."""
+    lights: tuple[Light, ...] = ()
+    """Lights (area lights are added to the mesh on build)."""
+    sky: Sky | None = None
+    """Environment radiance, or None (black)."""
+    default_camera: dict[str, Any] | None = None
+    """The [default_camera] table, or None."""
+    paths: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """The [paths.*] tables by name."""
+
+    def build(self, **overrides: Any) -> Scene:
+        """Load the mesh and assemble the Scene.
+
+        Args:
+            **overrides: replace description values: ``name``, ``mesh``, ``scale``, ``up_axis``,
+                ``translation``, ``flip_v``, ``textures`` (mesh), ``fov_y_deg``, ``height``,
+                ``width`` (intrinsics of the default camera and every path), ``lights``, ``sky``,
+                and ``with_paths=False`` to skip building the camera paths.
+
+        Raises:
+            TypeError: an unknown override.
+            SceneError, FileNotFoundError: as :func:`icbtool.scene.load`.
+        """
+        from icbtool.scene.load import load_mesh
+
+        unknown = sorted(set(overrides) - set(BUILD_OVERRIDES))
+        if unknown:
+            raise TypeError(
+                f"{self.path}: unknown override(s) {unknown}; allowed: {sorted(BUILD_OVERRIDES)}"
+            )
+        where = str(self.path)
+        mesh_kw = dict(self.mesh_options)
+        for k in ("scale", "up_axis", "translation", "flip_v", "textures"):
+            if k in overrides:
+                mesh_kw[k] = overrides[k]
+        mesh = Path(overrides.get("mesh", self.mesh))
+        if not mesh.exists():
+            raise FileNotFoundError(f"{where}: mesh file not found: {mesh}")
+        name = overrides.get("name", self.name)
+        scene = load_mesh(mesh, name=name, **mesh_kw)
+        lights = list(overrides.get("lights", self.lights))
+        scene = add_area_lights(scene, [lt for lt in lights if isinstance(lt, AreaLight)])
+        scene.lights = lights
+        scene.sky = overrides.get("sky", self.sky)
+        scene.source = where
+        scene._cache.clear()
+        try:
+            intr = Intrinsics(
+                float(overrides.get("fov_y_deg", self.intrinsics.fov_y_deg)),
+                overrides.get("height", self.intrinsics.height),
+                overrides.get("width", self.intrinsics.width),
+            )
+        except ValueError as e:
+            raise SceneError(f"{where}: bad camera override: {e}") from None
+        size_override = {k: overrides[k] for k in _CAMERA_KEYS if k in overrides}
+        if self.default_camera is not None:
+            scene.default_camera = _default_camera(self.default_camera, intr, size_override, where)
+        if overrides.get("with_paths", True):
+            for pname, spec in self.paths.items():
+                scene.paths[pname] = _build_path(scene, pname, spec, intr, size_override, where)
+        return scene
+
+
+def add_area_lights(scene: Scene, lights: list[AreaLight]) -> Scene:
+    """A new Scene with each area light's emissive quad appended to the mesh."""
+    if not lights:
+        return scene
+    v, f, n, fm = [scene.vertices], [scene.faces], [scene.normals], [scene.face_material]
+    uv = None if scene.uvs is None else [scene.uvs]
+    mats = list(scene.materials)
+    nv = len(scene.vertices)
+    for lt in lights:
+        mats.append(Material(f"emitter:{lt.name}", albedo=np.zeros(3), emission=lt.radiance))
+        v.append(lt.vertices.astype(np.float32))
+        f.append(np.array([[0, 1, 2], [0, 2, 3]]) + nv)
+        n.append(np.tile(lt.normal, (4, 1)).astype(np.float32))
+        fm.append(np.full(2, len(mats) - 1, np.int32))
+        if uv is not None:
+            uv.append(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32))
+        nv += 4
+    return Scene(
+        name=scene.name,
+        vertices=np.concatenate(v),
+        faces=np.concatenate(f),
+        normals=np.concatenate(n),
+        face_material=np.concatenate(fm),
+        materials=mats,
+        uvs=None if uv is None else np.concatenate(uv),
+        lights=list(scene.lights),
+        sky=scene.sky,
+        up=scene.up,
+        source=scene.source,
+    )
+
+
+def _intr_for(spec: dict, intr: Intrinsics, size_override: dict, where: str, what: str):
+    kw = {k: spec[k] for k in _CAMERA_KEYS if k in spec}
+    kw.update(size_override)  # build() overrides win over per-path values
+    try:
+        return Intrinsics(
+            float(kw.get("fov_y_deg", intr.fov_y_deg)),
+            kw.get("height", intr.height),
+            kw.get("width", intr.width),
+        ).camera()
+    except ValueError as e:
+        raise SceneError(f"{where}: {what}: {e}") from None
+
+
+def _default_camera(spec: dict, intr: Intrinsics, size_override: dict, where: str):
+    from icbtool.camera import look_at_pose
+
+    cam = _intr_for(spec, intr, size_override, where, "[default_camera]")
+    try:
+        pose = look_at_pose(spec["eye"], spec["target"], spec.get("up", (0.0, 1.0, 0.0)))
+    except (ValueError, TypeError) as e:
+        raise SceneError(f"{where}: [default_camera]: {e}") from None
+    return cam.with_pose(pose)
+
+
+def _build_path(scene: Scene, pname: str, spec: dict, intr, size_override: dict, where: str):
+    from icbtool.camera import CameraPath
+    from icbtool.camera.walk import random_walk
+
+    cam = _intr_for(spec, intr, size_override, where, f"[paths.{pname}]")
+    kind = spec["type"]
+    kw = {k: v for k, v in spec.items() if k not in _CAMERA_KEYS | {"type"}}
+    try:
+        if kind == "flythrough":
+            return CameraPath.flythrough(intrinsics=cam, name=pname, **kw)
+        if kind == "orbit":
+            return CameraPath.orbit(intrinsics=cam, name=pname, **kw)
+        for k in ("height_range", "pitch_range_deg"):
+            if k in kw:
+                kw[k] = tuple(kw[k])
+        return random_walk(scene, cam, name=pname, **kw)
+    except (ValueError, TypeError) as e:
+        raise SceneError(f"{where}: [paths.{pname}] ({kind}): {e}") from None
+
+
+def _light(spec: Any, i: int, where: str) -> Light:
+    if not isinstance(spec, dict) or "type" not in spec:
+        raise SceneError(f"{where}: [[lights]] entry {i} needs a 'type' ({sorted(_LIGHT_KEYS)})")
+    kind = spec["type"]
+    if kind not in _LIGHT_KEYS:
+        raise SceneError(
+            f"{where}: [[lights]] entry {i}: unknown type {kind!r}; one of {sorted(_LIGHT_KEYS)}"
+        )
+    req, opt = _LIGHT_KEYS[kind]
+    kw = _check_keys(spec, req | opt | {"type"}, where, f"lights {i} ({kind})", req)
+    kw.pop("type")
+    cls = {
+        "directional": DirectionalLight,
+        "point": PointLight,
+        "spot": SpotLight,
+        "area": AreaLight,
+    }[kind]
+    kw.setdefault("name", f"{kind}{i}")
+    try:
+        return cls(**kw)
+    except (ValueError, TypeError) as e:
+        raise SceneError(f"{where}: [[lights]] entry {i} ({kind}): {e}") from None
+
+
+def read_description(path: str | os.PathLike) -> SceneDescription:
+    """Parse and validate a scene description file (the mesh is not loaded yet).
+
+    Raises:
+        FileNotFoundError: no such file.
+        SceneError: TOML syntax error, unknown or missing keys, bad values (names the file).
+    """
+    p = check_file(path, (".toml",)).resolve()
+    where = str(p)
+    try:
+        doc = tomllib.loads(p.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise SceneError(f"{where}: not valid TOML: {e}") from None
+    _check_keys(doc, _TOP_KEYS, where, "top level", {"scene"})
+    sc = _check_keys(doc["scene"], _SCENE_KEYS, where, "scene", {"mesh"})
+    if not isinstance(sc["mesh"], str):
+        raise SceneError(f"{where}: [scene] mesh must be a string path")
+    mesh = Path(expand_env(sc["mesh"], where)).expanduser()
+    if not mesh.is_absolute():
+        mesh = (p.parent / mesh).resolve()
+    mesh_options = {
+        k: sc[k] for k in ("scale", "up_axis", "translation", "flip_v", "textures") if k in sc
+    }
+    try:
+        intr = Intrinsics(**_check_keys(doc.get("camera", {}), _CAMERA_KEYS, where, "camera"))
+    except (ValueError, TypeError) as e:
+        raise SceneError(f"{where}: [camera]: {e}") from None
+    raw_lights = doc.get("lights", [])
+    if not isinstance(raw_lights, list):
+        raise SceneError(f"{where}: 'lights' must be an array of tables ([[lights]])")
+    lights = tuple(_light(spec, i, where) for i, spec in enumerate(raw_lights))
+    sky = None
+    if "sky" in doc:
+        s = _check_keys(doc["sky"], _SKY_KEYS, where, "sky", {"zenith"})
+        try:
+            sky = Sky(
+                zenith=s["zenith"],
+                horizon=s.get("horizon"),
+                ground=s.get("ground"),
+                kind=s.get("type", "uniform"),
+                up=s.get("up", (0.0, 1.0, 0.0)),
+            )
+        except (ValueError, TypeError) as e:
+            raise SceneError(f"{where}: [sky]: {e}") from None
+    default_camera = None
+    if "default_camera" in doc:
+        default_camera = _check_keys(
+            doc["default_camera"],
+            _DEFAULT_CAMERA_KEYS,
+            where,
+            "default_camera",
+            {"eye", "target"},
+        )
+    paths = {}
+    for pname, spec in _check_keys(
+        doc.get("paths", {}), set(doc.get("paths", {})), where, "paths"
+    ).items():
+        if not isinstance(spec, dict) or spec.get("type") not in _PATH_KEYS:
+            raise SceneError(
+                f"{where}: [paths.{pname}] needs a 'type' in {sorted(_PATH_KEYS)}, got "
+                f"{spec.get('type') if isinstance(spec, dict) else spec!r}"
+            )
+        req, opt = _PATH_KEYS[spec["type"]]
+        paths[pname] = _check_keys(
+            spec, req | opt | _CAMERA_KEYS | {"type"}, where, f"paths.{pname}", req
+        )
+    return SceneDescription(
+        path=p,
+        name=sc.get("name", p.stem),
+        mesh=mesh,
+        mesh_options=mesh_options,
+        intrinsics=intr,
+        lights=lights,
+        sky=sky,
+        default_camera=default_camera,
+        paths=paths,
+    )
