@@ -391,3 +391,17 @@ def test_white_furnace_high_spp_tight():
     res = render(scene, cam, TraceConfig(spp=256, max_depth=-1, rr_depth=2))
     se = math.sqrt(res.variance[..., 0].sum()) / res.variance[..., 0].size
     assert abs(res.full.mean() - 5.0) < 5 * se + 1e-3
+
+
+def test_cli_trace_writes_outputs(tmp_path):
+    from icbtool.cli import main
+
+    rc = main(
+        ["trace", "plane", "--out", str(tmp_path), "--spp", "2", "--height", "8", "--width", "8"]
+    )
+    assert rc == 0
+    for k in ("gi", "direct", "full", "variance", "spp"):
+        assert (tmp_path / f"{k}.exr").is_file() and (tmp_path / f"{k}.png").is_file()
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["config"]["spp"] == 2 and summary["views"][0]["stats"]["passes"] == 1
+    assert main(["trace", "plane", "--out", str(tmp_path), "--camera", "path:nope"]) == 1

@@ -1,0 +1,121 @@
+"""``icbtool trace SCENE --out DIR``: path trace GI maps (EXR + PNG previews + summary JSON)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from dataclasses import asdict
+from pathlib import Path
+
+from icbtool.cli._common import add_scene_argument, load_scene, run_info, write_json
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "trace",
+        help="path trace GI / direct / full maps of a scene",
+        description="Path trace a scene (Embree) and write gi, direct, full, variance and spp "
+        "as EXR with PNG previews, plus summary.json (stats, config, run info).",
+    )
+    add_scene_argument(p)
+    p.add_argument("--out", required=True, type=Path, help="output directory")
+    p.add_argument(
+        "--camera",
+        default="default",
+        help="'default' (the scene's default camera) or path:NAME (a camera path)",
+    )
+    p.add_argument("--every", type=int, default=1, help="with path:NAME, trace every K-th camera")
+    p.add_argument("--spp", type=int, default=64, help="samples per pixel (budget)")
+    p.add_argument("--time-budget", type=float, default=None, help="seconds per view")
+    p.add_argument(
+        "--target-error",
+        type=float,
+        default=None,
+        help="stop at this mean relative standard error of the GI",
+    )
+    p.add_argument(
+        "--adaptive", action="store_true", help="adaptive sampling (needs --target-error)"
+    )
+    p.add_argument("--denoise", action="store_true", help="denoise gi with Open Image Denoise")
+    p.add_argument("--max-depth", type=int, default=8, help="max path depth (-1 = unbounded)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--height", type=int, default=None)
+    p.add_argument("--width", type=int, default=None)
+    p.set_defaults(func=run)
+
+
+def _cameras(scene, spec: str, every: int):
+    if every < 1:
+        raise ValueError(f"--every must be >= 1, got {every}")
+    if spec == "default":
+        if scene.default_camera is None:
+            raise ValueError(f"scene '{scene.name}' has no default camera: use --camera path:NAME")
+        return [("default", scene.default_camera)]
+    if spec.startswith("path:"):
+        name = spec[5:]
+        if name not in scene.paths:
+            raise ValueError(
+                f"scene '{scene.name}' has no camera path {name!r}: available {sorted(scene.paths)}"
+            )
+        cams = scene.paths[name].cameras()
+        return [(f"{name}_{i:04d}", c) for i, c in enumerate(cams) if i % every == 0]
+    raise ValueError(f"--camera must be 'default' or path:NAME, got {spec!r}")
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+    from tqdm import tqdm
+
+    from icbtool.imageio import preview, write_exr, write_png
+    from icbtool.trace import TraceConfig, render
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    cfg = TraceConfig(
+        spp=args.spp,
+        seed=args.seed,
+        max_depth=args.max_depth,
+        time_budget_s=args.time_budget,
+        target_error=args.target_error,
+        adaptive=args.adaptive,
+        denoise=args.denoise,
+        threads=args.threads,
+    )
+    scene = load_scene(args.scene)
+    cams = _cameras(scene, args.camera, args.every)
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    views = []
+    for name, cam in tqdm(cams, desc="trace", disable=len(cams) < 2):
+        if args.height or args.width:
+            cam = cam.resized(args.height or cam.height, args.width or cam.width)
+        res = render(scene, cam, cfg)
+        d = out / name if len(cams) > 1 else out
+        d.mkdir(parents=True, exist_ok=True)
+        for key in ("gi", "direct", "full", "variance"):
+            write_exr(d / f"{key}.exr", getattr(res, key))
+        write_exr(d / "spp.exr", res.spp[..., None].astype(np.float32))
+        exposure = None
+        from icbtool.imageio import auto_exposure
+
+        exposure = auto_exposure(res.full)
+        for key in ("gi", "direct", "full"):
+            write_png(d / f"{key}.png", preview(getattr(res, key), exposure=exposure))
+        write_png(d / "variance.png", preview(np.sqrt(res.variance)))
+        spp_img = (res.spp / max(res.spp.max(), 1))[..., None].astype(np.float32)
+        write_png(d / "spp.png", preview(np.repeat(spp_img, 3, -1), kind="position"))
+        views.append(
+            {"name": name, "camera": cam.to_dict(), "stats": asdict(res.stats), "dir": str(d)}
+        )
+    write_json(
+        out / "summary.json",
+        {
+            "scene": scene.name,
+            "source": scene.source,
+            "config": asdict(cfg),
+            "views": views,
+            "run_info": run_info(),
+        },
+    )
+    print(f"wrote {len(views)} view(s) to {out}")
+    return 0
