@@ -1,0 +1,175 @@
+"""Configuration and result types of the rasterizer (no OpenGL import here)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    from icbtool.camera import Camera
+
+#: Every buffer the rasterizer can produce, with its channel count.
+BUFFER_CHANNELS: dict[str, int] = {
+    "dl": 3,
+    "albedo": 3,
+    "normal_world": 3,
+    "normal_view": 3,
+    "depth": 1,
+    "position": 3,
+    "mask": 1,
+}
+BUFFER_NAMES: tuple[str, ...] = tuple(BUFFER_CHANNELS)
+
+#: How each buffer is previewed by :func:`icbtool.imageio.preview`.
+PREVIEW_KIND: dict[str, str] = {
+    "dl": "color",
+    "albedo": "color",
+    "normal_world": "normal",
+    "normal_view": "normal",
+    "depth": "depth",
+    "position": "position",
+    "mask": "mask",
+}
+
+
+def check_buffers(buffers: tuple[str, ...] | list[str] | str | None) -> tuple[str, ...]:
+    """Validate a buffer selection; None means all. Returns them in canonical order.
+
+    Raises:
+        ValueError: for an empty selection or an unknown name.
+    """
+    if buffers is None:
+        return BUFFER_NAMES
+    if isinstance(buffers, str):
+        buffers = [b.strip() for b in buffers.split(",") if b.strip()]
+    names = set(buffers)
+    unknown = sorted(names - set(BUFFER_NAMES))
+    if unknown:
+        raise ValueError(f"unknown raster buffer(s) {unknown}; choose from {list(BUFFER_NAMES)}")
+    if not names:
+        raise ValueError(f"no raster buffer requested; choose from {list(BUFFER_NAMES)}")
+    return tuple(b for b in BUFFER_NAMES if b in names)
+
+
+@dataclass(frozen=True)
+class RasterConfig:
+    """How :class:`icbtool.raster.Rasterizer` renders.
+
+    Attributes:
+        backend: OpenGL backend. "auto": $ICBTOOL_GL_BACKEND (read when the context is created)
+            if set, else the first that works of egl, osmesa (the error names each failure).
+        shadow_map_size: resolution (texels per side) of the shadow map of each directional light,
+            of each of the 6 cube faces of a point light and of each spot light.
+        area_shadow_map_size: resolution of the shadow map of each area-light sample point (area
+            shadows are soft, so a coarser map is enough).
+        area_samples: k: each area light's visibility is estimated from k x k stratified points
+            (cell centres, deterministic); its unshadowed irradiance is exact (polygon formula).
+        shadows: render shadows at all (False: lights are unoccluded; for debugging/speed).
+        pcf: filter shadow lookups with the hardware 2x2 bilinear comparison (soft 1-texel edge).
+        depth_bias_slope: glPolygonOffset factor in the shadow pass (slope-scaled depth bias).
+        depth_bias_units: glPolygonOffset units in the shadow pass (constant depth bias).
+        normal_offset: receiver offset along its geometric normal at shadow lookup, in shadow-map
+            texels (scaled by the sine of the light's incidence angle).
+        max_frustum_half_angle_deg: half-angle cap of the perspective shadow frusta of area-light
+            samples (and spot lights); receivers outside the frustum count as unshadowed.
+        texture_size: textured materials are resized to this square size (texels) to share one
+            GL_TEXTURE_2D_ARRAY (stored as sRGB8 of the linear texture, decoded by GL; mipmapped).
+        near: camera near plane (scene units); None: from the scene bounds and the camera.
+        far: camera far plane; None: from the scene bounds and the camera.
+        cache_shadow_maps: lights and geometry are fixed for a Rasterizer, so render the shadow
+            maps once (first frame that needs them) and reuse them; False: every frame.
+        depth_prepass: draw depth first, then shade each pixel once (GL_EQUAL): avoids shading
+            hidden fragments, which is what costs on a software rasterizer.
+    """
+
+    backend: Literal["auto", "osmesa", "egl"] = "auto"
+    shadow_map_size: int = 2048
+    area_shadow_map_size: int = 512
+    area_samples: int = 4
+    shadows: bool = True
+    pcf: bool = True
+    depth_bias_slope: float = 1.5
+    depth_bias_units: float = 2.0
+    normal_offset: float = 1.5
+    max_frustum_half_angle_deg: float = 80.0
+    texture_size: int = 512
+    near: float | None = None
+    far: float | None = None
+    cache_shadow_maps: bool = True
+    depth_prepass: bool = True
+
+    def __post_init__(self) -> None:
+        if self.backend not in ("auto", "osmesa", "egl"):
+            raise ValueError(
+                f"RasterConfig.backend must be 'auto', 'osmesa' or 'egl', got {self.backend!r}"
+            )
+        for name, lo, hi in (
+            ("shadow_map_size", 16, 16384),
+            ("area_shadow_map_size", 16, 16384),
+            ("area_samples", 1, 8),
+            ("texture_size", 1, 8192),
+        ):
+            v = getattr(self, name)
+            if not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+                raise ValueError(
+                    f"RasterConfig.{name} must be an integer in [{lo}, {hi}], got {v!r}"
+                )
+        for name in ("depth_bias_slope", "depth_bias_units", "normal_offset"):
+            v = float(getattr(self, name))
+            if not np.isfinite(v) or v < 0:
+                raise ValueError(f"RasterConfig.{name} must be finite and >= 0, got {v!r}")
+        if not 1.0 <= self.max_frustum_half_angle_deg <= 89.0:
+            raise ValueError(
+                "RasterConfig.max_frustum_half_angle_deg must be in [1, 89], got "
+                f"{self.max_frustum_half_angle_deg!r}"
+            )
+        if self.near is not None and not (np.isfinite(self.near) and self.near > 0):
+            raise ValueError(f"RasterConfig.near must be > 0 or None, got {self.near!r}")
+        if self.far is not None and not np.isfinite(self.far):
+            raise ValueError(f"RasterConfig.far must be finite or None, got {self.far!r}")
+        if self.near is not None and self.far is not None and not self.near < self.far:
+            raise ValueError(f"RasterConfig needs near < far, got {self.near} >= {self.far}")
+
+
+@dataclass(eq=False)
+class RasterBuffers:
+    """What one raster pass produced. Buffers not requested are None (mask is always there).
+
+    Attributes:
+        camera: the camera rendered.
+        mask: (H, W, 1) float32, 1 where a surface was hit, 0 for background.
+        dl: (H, W, 3) float32 direct lighting (emission seen + shadowed direct light; sky radiance
+            on background pixels).
+        albedo: (H, W, 3) float32 linear diffuse albedo (texture x factor); 0 on background.
+        normal_world: (H, W, 3) float32 unit shading normals, world space (facing the camera).
+        normal_view: (H, W, 3) float32 the same in camera space (OpenCV axes).
+        depth: (H, W, 1) float32 view-space z.
+        position: (H, W, 3) float32 world positions.
+        timings: milliseconds per stage ("shadow", "draw", "readback", "total", ...).
+    """
+
+    camera: Camera
+    mask: np.ndarray
+    dl: np.ndarray | None = None
+    albedo: np.ndarray | None = None
+    normal_world: np.ndarray | None = None
+    normal_view: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    position: np.ndarray | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(H, W) bool: pixels that hit a surface."""
+        return self.mask[..., 0] > 0.5
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The buffers present (not None), in canonical order."""
+        return tuple(n for n in BUFFER_NAMES if getattr(self, n) is not None)
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        """The present buffers by name."""
+        return {n: getattr(self, n) for n in self.names}

@@ -1,0 +1,764 @@
+"""The OpenGL rasterizer: float G-buffers and shadowed direct lighting in one draw call per pass.
+
+Design (see also the shaders in ``shaders/``):
+
+* The whole merged scene is one vertex array (positions, shading normals, uvs) drawn with one
+  ``glDrawElements``. Per-face data (geometric normal, material index) sits in a texture buffer
+  indexed by ``gl_PrimitiveID``; per-material data (albedo factor, texture layer, emission) in
+  another; textures in one mipmapped ``GL_TEXTURE_2D_ARRAY`` (resized to
+  :attr:`RasterConfig.texture_size`, stored as ``GL_SRGB8_ALPHA8`` of the linear texture
+  re-encoded, so GL decodes to linear before filtering).
+* Output: our own framebuffer with one ``GL_RGBA32F`` colour attachment per requested buffer
+  (``glDrawBuffers``) and a 32-bit float depth buffer, read back with ``glReadPixels(GL_FLOAT)``
+  and flipped upside down into icbtool's pixel convention (GL's window origin is bottom-left;
+  :meth:`Camera.gl_projection_matrix` makes the fragment centres icbtool's pixel centres).
+* Shadows: one depth map per directional light (orthographic, fitted to the scene bounds), six per
+  point light (cube faces), one per spot light, one per stratified sample point of each area light
+  (perspective); slope-scaled depth bias + normal offset; bilinear PCF. Lights and geometry are
+  fixed for a :class:`Rasterizer`, so the shadow maps are rendered on the first frame and reused.
+* A depth pre-pass, then one shading pass with ``GL_EQUAL``: every pixel is shaded once.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from icbtool.raster.config import (
+    BUFFER_CHANNELS,
+    RasterBuffers,
+    RasterConfig,
+    check_buffers,
+)
+from icbtool.raster.context import GLContext, create_context
+from icbtool.raster.shaders import with_defines
+
+if TYPE_CHECKING:  # pragma: no cover
+    from icbtool.camera import Camera
+    from icbtool.scene import Scene
+
+#: Shader #define names of the colour buffers (mask has no target: it is attachment 0's alpha).
+_LOC_NAME = {
+    "dl": "LOC_DL",
+    "albedo": "LOC_ALBEDO",
+    "normal_world": "LOC_NW",
+    "normal_view": "LOC_NV",
+    "depth": "LOC_DEPTH",
+    "position": "LOC_POS",
+}
+_MAX_TARGETS = 6
+
+
+class RasterError(RuntimeError):
+    """An OpenGL failure inside the rasterizer (shader compile/link, incomplete framebuffer)."""
+
+
+# --------------------------------------------------------------------------- matrices
+def _gl_look(eye: np.ndarray, forward: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(4, 4) OpenGL view matrix (camera looks down -z) at ``eye`` looking along ``forward``."""
+    z = -forward / np.linalg.norm(forward)
+    x = np.cross(up, z)
+    if np.linalg.norm(x) < 1e-6:  # forward parallel to up: pick another up
+        x = np.cross(np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0, 0, 1.0]), z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    m = np.eye(4)
+    m[0, :3], m[1, :3], m[2, :3] = x, y, z
+    m[:3, 3] = -m[:3, :3] @ eye
+    return m
+
+
+def _perspective(half_deg: float, near: float, far: float) -> np.ndarray:
+    f = 1.0 / math.tan(math.radians(half_deg))
+    p = np.zeros((4, 4))
+    p[0, 0] = p[1, 1] = f
+    p[2, 2] = -(far + near) / (far - near)
+    p[2, 3] = -2.0 * far * near / (far - near)
+    p[3, 2] = -1.0
+    return p
+
+
+def _ortho(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Orthographic projection of the GL view box [lo, hi] (x, y, and -z as distance)."""
+    p = np.eye(4)
+    p[0, 0] = 2.0 / (hi[0] - lo[0])
+    p[1, 1] = 2.0 / (hi[1] - lo[1])
+    p[2, 2] = -2.0 / (hi[2] - lo[2])
+    p[0, 3] = -(hi[0] + lo[0]) / (hi[0] - lo[0])
+    p[1, 3] = -(hi[1] + lo[1]) / (hi[1] - lo[1])
+    p[2, 3] = -(hi[2] + lo[2]) / (hi[2] - lo[2])
+    return p
+
+
+def _corners(bounds: np.ndarray) -> np.ndarray:
+    lo, hi = bounds
+    return np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
+
+
+def _bounds_pad(bounds: np.ndarray) -> np.ndarray:
+    """Scene bounds grown by 0.1 % of the diagonal (and at least 1e-6) on every side."""
+    pad = max(1e-3 * float(np.linalg.norm(bounds[1] - bounds[0])), 1e-6)
+    return np.stack([bounds[0] - pad, bounds[1] + pad])
+
+
+def directional_view(
+    direction: np.ndarray, bounds: np.ndarray, res: int
+) -> tuple[np.ndarray, float]:
+    """Shadow clip-from-world (orthographic, fitted to ``bounds``) and its texel size (world)."""
+    b = _bounds_pad(bounds)
+    centre = b.mean(0)
+    view = _gl_look(centre, np.asarray(direction, np.float64), np.array([0.0, 1.0, 0.0]))
+    c = _corners(b) @ view[:3, :3].T + view[:3, 3]
+    lo = np.array([c[:, 0].min(), c[:, 1].min(), (-c[:, 2]).min()])
+    hi = np.array([c[:, 0].max(), c[:, 1].max(), (-c[:, 2]).max()])
+    texel = max(hi[0] - lo[0], hi[1] - lo[1]) / res
+    return _ortho(lo, hi) @ view, float(texel)
+
+
+def perspective_view(
+    eye: np.ndarray,
+    forward: np.ndarray,
+    half_deg: float,
+    bounds: np.ndarray,
+    res: int,
+    up: np.ndarray | None = None,
+) -> tuple[np.ndarray, float]:
+    """Shadow clip-from-world (perspective) and its texel size at light-view depth 1."""
+    b = _bounds_pad(bounds)
+    far = float(np.linalg.norm(_corners(b) - eye, axis=1).max()) * 1.01 + 1e-6
+    near = max(1e-3 * float(np.linalg.norm(b[1] - b[0])), far * 1e-5)
+    near = min(near, 0.5 * far)
+    up = np.array([0.0, 1.0, 0.0]) if up is None else up
+    view = _gl_look(np.asarray(eye, np.float64), np.asarray(forward, np.float64), up)
+    texel = 2.0 * math.tan(math.radians(half_deg)) / res
+    return _perspective(half_deg, near, far) @ view, float(texel)
+
+
+_CUBE = [  # (forward, up) of the six point-light faces: +x -x +y -y +z -z
+    ((1, 0, 0), (0, 1, 0)),
+    ((-1, 0, 0), (0, 1, 0)),
+    ((0, 1, 0), (0, 0, 1)),
+    ((0, -1, 0), (0, 0, 1)),
+    ((0, 0, 1), (0, 1, 0)),
+    ((0, 0, -1), (0, 1, 0)),
+]
+
+
+def camera_near_far(
+    camera: Camera, bounds: np.ndarray, config: RasterConfig
+) -> tuple[float, float]:
+    """Near/far planes enclosing the scene bounds for ``camera`` (config values win if set)."""
+    b = _bounds_pad(bounds)
+    z = (_corners(b) - camera.position) @ camera.forward
+    far = float(z.max()) * 1.01 if config.far is None else float(config.far)
+    closest = np.clip(camera.position, b[0], b[1])
+    dist = float(np.linalg.norm(closest - camera.position))
+    if far <= 0:
+        far = 1.0
+    near = max(far * 1e-3, 0.5 * dist) if config.near is None else float(config.near)
+    if not near < far:
+        raise ValueError(f"camera near plane {near} is not before the far plane {far}")
+    return near, far
+
+
+# --------------------------------------------------------------------------- the rasterizer
+class Rasterizer:
+    """Renders :class:`RasterBuffers` of one scene for many cameras, reusing GL state and uploads.
+
+    Example:
+        >>> with Rasterizer(scene, RasterConfig(backend="osmesa")) as r:  # doctest: +SKIP
+        ...     for cam in path:
+        ...         buf = r.render(cam, buffers=("dl", "depth"))
+
+    Args:
+        scene: the scene (geometry, materials, lights, sky). It must not change while in use.
+        config: rendering options.
+
+    Raises:
+        GLBackendError: if no OpenGL context can be created (the message says what was tried).
+    """
+
+    def __init__(self, scene: Scene, config: RasterConfig | None = None) -> None:
+        self.scene = scene
+        self.config = RasterConfig() if config is None else config
+        if not isinstance(self.config, RasterConfig):
+            raise TypeError(f"config must be a RasterConfig, got {type(self.config).__name__}")
+        t0 = time.perf_counter()
+        self._ctx: GLContext | None = create_context(self.config.backend)
+        from OpenGL import GL
+
+        self._gl = GL
+        self._programs: dict[tuple, int] = {}
+        self._uniform_locs: dict[tuple[int, str], int] = {}
+        self._fbo: dict[tuple[int, int], tuple[int, list[int], int]] = {}
+        self._shadow_state: dict[str, Any] | None = None
+        self._has_tex = scene.has_textures
+        self._counts = {
+            k: len(scene.lights_of(k)) for k in ("directional", "point", "spot", "area")
+        }
+        self._upload()
+        self.setup_ms = 1e3 * (time.perf_counter() - t0)
+
+    # ------------------------------------------------------------------ lifecycle
+    @property
+    def backend(self) -> str:
+        """The OpenGL backend in use ("osmesa" or "egl")."""
+        return self._context.backend
+
+    @property
+    def _context(self) -> GLContext:
+        if self._ctx is None:
+            raise RuntimeError("this Rasterizer is closed")
+        return self._ctx
+
+    def close(self) -> None:
+        """Release the GL context (and with it every GL object). Idempotent."""
+        if self._ctx is not None:
+            self._ctx.close()
+            self._ctx = None
+
+    def __enter__(self) -> Rasterizer:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def __del__(self) -> None:  # best effort; use close() or a with block
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown: nothing sensible to do
+            pass
+
+    # ------------------------------------------------------------------ GL helpers
+    def _compile(self, vert: str, frag: str, defines: dict[str, object]) -> int:
+        GL = self._gl
+        key = (vert, frag, tuple(sorted(defines.items(), key=lambda kv: kv[0])))
+        if key in self._programs:
+            return self._programs[key]
+        shaders = []
+        for name, kind in ((vert, GL.GL_VERTEX_SHADER), (frag, GL.GL_FRAGMENT_SHADER)):
+            s = GL.glCreateShader(kind)
+            GL.glShaderSource(s, with_defines(name, defines))
+            GL.glCompileShader(s)
+            if not GL.glGetShaderiv(s, GL.GL_COMPILE_STATUS):
+                log = GL.glGetShaderInfoLog(s).decode(errors="replace")
+                raise RasterError(f"shader {name} failed to compile ({defines}):\n{log}")
+            shaders.append(s)
+        prog = GL.glCreateProgram()
+        for s in shaders:
+            GL.glAttachShader(prog, s)
+        GL.glLinkProgram(prog)
+        if not GL.glGetProgramiv(prog, GL.GL_LINK_STATUS):
+            log = GL.glGetProgramInfoLog(prog).decode(errors="replace")
+            raise RasterError(f"program {vert}+{frag} failed to link:\n{log}")
+        for s in shaders:
+            GL.glDeleteShader(s)
+        self._programs[key] = prog
+        return prog
+
+    def _loc(self, prog: int, name: str) -> int:
+        key = (prog, name)
+        if key not in self._uniform_locs:
+            self._uniform_locs[key] = self._gl.glGetUniformLocation(prog, name)
+        return self._uniform_locs[key]
+
+    def _set(self, prog: int, name: str, value: Any, kind: str) -> None:
+        """Set uniform ``name`` (kind: 'i', 'f', 'v2', 'v3', 'v4', 'm3', 'm4'; arrays allowed)."""
+        GL = self._gl
+        loc = self._loc(prog, name)
+        if loc < 0:
+            return  # optimised away
+        if kind == "i":
+            GL.glUniform1i(loc, int(value))
+            return
+        a = np.ascontiguousarray(value, dtype=np.float32)
+        if kind == "f":
+            GL.glUniform1fv(loc, a.size, a)
+        elif kind == "v2":
+            GL.glUniform2fv(loc, a.size // 2, a)
+        elif kind == "v3":
+            GL.glUniform3fv(loc, a.size // 3, a)
+        elif kind == "v4":
+            GL.glUniform4fv(loc, a.size // 4, a)
+        elif kind == "m3":
+            GL.glUniformMatrix3fv(loc, a.size // 9, GL.GL_TRUE, a)
+        elif kind == "m4":
+            GL.glUniformMatrix4fv(loc, a.size // 16, GL.GL_TRUE, a)
+        else:  # pragma: no cover - programming error
+            raise ValueError(kind)
+
+    def _buffer_texture(self, data: np.ndarray) -> tuple[int, int]:
+        GL = self._gl
+        data = np.ascontiguousarray(data, dtype=np.float32)
+        buf = GL.glGenBuffers(1)
+        GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, buf)
+        GL.glBufferData(GL.GL_TEXTURE_BUFFER, data.nbytes, data, GL.GL_STATIC_DRAW)
+        tex = GL.glGenTextures(1)
+        GL.glBindTexture(GL.GL_TEXTURE_BUFFER, tex)
+        GL.glTexBuffer(GL.GL_TEXTURE_BUFFER, GL.GL_RGBA32F, buf)
+        return tex, buf
+
+    # ------------------------------------------------------------------ uploads
+    def _upload(self) -> None:
+        GL = self._gl
+        sc = self.scene
+        self._vao = GL.glGenVertexArrays(1)
+        GL.glBindVertexArray(self._vao)
+        attribs = [(0, sc.vertices, 3), (1, sc.normals, 3)]
+        if self._has_tex:
+            attribs.append((2, sc.uvs, 2))
+        self._vbos = []
+        for loc, arr, n in attribs:
+            a = np.ascontiguousarray(arr, dtype=np.float32)
+            vbo = GL.glGenBuffers(1)
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, vbo)
+            GL.glBufferData(GL.GL_ARRAY_BUFFER, a.nbytes, a, GL.GL_STATIC_DRAW)
+            GL.glEnableVertexAttribArray(loc)
+            GL.glVertexAttribPointer(loc, n, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
+            self._vbos.append(vbo)
+        idx = np.ascontiguousarray(sc.faces, dtype=np.uint32)
+        self._ebo = GL.glGenBuffers(1)
+        GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, self._ebo)
+        GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, idx.nbytes, idx, GL.GL_STATIC_DRAW)
+        self._n_indices = idx.size
+        GL.glBindVertexArray(0)
+
+        faces = np.concatenate([sc.face_normals, sc.face_material[:, None].astype(np.float32)], 1)
+        self._face_tex, _ = self._buffer_texture(faces)
+        layers: dict[int, int] = {}
+        mats = np.zeros((2 * len(sc.materials), 4), np.float32)
+        for i, m in enumerate(sc.materials):
+            if m.is_textured:
+                layers[i] = len(layers)
+            mats[2 * i, :3] = m.albedo
+            mats[2 * i, 3] = layers.get(i, -1)
+            mats[2 * i + 1, :3] = m.emission
+        self._mat_tex, _ = self._buffer_texture(mats)
+        self._tex_array = None
+        if self._has_tex:
+            self._upload_textures([sc.materials[i].texture for i in layers])
+
+    def _upload_textures(self, textures: list[np.ndarray]) -> None:
+        import cv2
+
+        from icbtool.imageio import srgb_encode
+
+        GL = self._gl
+        s = self.config.texture_size
+        data = np.empty((len(textures), s, s, 4), np.uint8)
+        data[..., 3] = 255
+        for k, t in enumerate(textures):
+            interp = cv2.INTER_AREA if t.shape[0] >= s and t.shape[1] >= s else cv2.INTER_LINEAR
+            r = cv2.resize(np.asarray(t, np.float32), (s, s), interpolation=interp)
+            # GL's texel row 0 is t = 0 (bottom); the image's row 0 is the top (v = 1).
+            data[k, :, :, :3] = np.round(srgb_encode(r[::-1]) * 255.0).astype(np.uint8)
+        tex = GL.glGenTextures(1)
+        GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, tex)
+        GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
+        GL.glTexImage3D(
+            GL.GL_TEXTURE_2D_ARRAY,
+            0,
+            GL.GL_SRGB8_ALPHA8,
+            s,
+            s,
+            len(textures),
+            0,
+            GL.GL_RGBA,
+            GL.GL_UNSIGNED_BYTE,
+            data,
+        )
+        GL.glGenerateMipmap(GL.GL_TEXTURE_2D_ARRAY)
+        GL.glTexParameteri(
+            GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MIN_FILTER, GL.GL_LINEAR_MIPMAP_LINEAR
+        )
+        GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MAG_FILTER, GL.GL_LINEAR)
+        GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_WRAP_S, GL.GL_REPEAT)
+        GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_WRAP_T, GL.GL_REPEAT)
+        self._tex_array = tex
+
+    # ------------------------------------------------------------------ shadows
+    def _shadow_views(
+        self,
+    ) -> tuple[list[tuple[np.ndarray, float]], list[tuple[np.ndarray, float]]]:
+        """(sharp views, area-sample views): lists of (clip_from_world, texel size)."""
+        cfg = self.config
+        sc = self.scene
+        bounds = sc.bounds
+        res, ares = cfg.shadow_map_size, cfg.area_shadow_map_size
+        cap = cfg.max_frustum_half_angle_deg
+        sharp: list[tuple[np.ndarray, float]] = []
+        for light in sc.lights_of("directional"):
+            sharp.append(directional_view(light.direction, bounds, res))
+        for light in sc.lights_of("point"):
+            for fwd, up in _CUBE:
+                sharp.append(
+                    perspective_view(
+                        light.position, np.array(fwd, float), 45.0, bounds, res, np.array(up, float)
+                    )
+                )
+        for light in sc.lights_of("spot"):
+            sharp.append(
+                perspective_view(
+                    light.position, light.direction, min(light.outer_deg + 1.0, cap), bounds, res
+                )
+            )
+        area: list[tuple[np.ndarray, float]] = []
+        k = cfg.area_samples
+        for light in sc.lights_of("area"):
+            n = light.normal
+            for sj in range(k):
+                for si in range(k):
+                    s = light.corner + (si + 0.5) / k * light.edge_u + (sj + 0.5) / k * light.edge_v
+                    d = _corners(_bounds_pad(bounds)) - s
+                    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+                    ang = math.degrees(math.acos(float(np.clip((d @ n).min(), -1, 1))))
+                    area.append(perspective_view(s, n, min(ang + 1.0, cap), bounds, ares))
+        return sharp, area
+
+    def _depth_array(self, n: int, res: int) -> int:
+        GL = self._gl
+        tex = GL.glGenTextures(1)
+        GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, tex)
+        GL.glTexImage3D(
+            GL.GL_TEXTURE_2D_ARRAY,
+            0,
+            GL.GL_DEPTH_COMPONENT32F,
+            res,
+            res,
+            n,
+            0,
+            GL.GL_DEPTH_COMPONENT,
+            GL.GL_FLOAT,
+            None,
+        )
+        filt = GL.GL_LINEAR if self.config.pcf else GL.GL_NEAREST
+        GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MIN_FILTER, filt)
+        GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MAG_FILTER, filt)
+        GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_WRAP_S, GL.GL_CLAMP_TO_EDGE)
+        GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_WRAP_T, GL.GL_CLAMP_TO_EDGE)
+        GL.glTexParameteri(
+            GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_COMPARE_MODE, GL.GL_COMPARE_REF_TO_TEXTURE
+        )
+        GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_COMPARE_FUNC, GL.GL_LEQUAL)
+        return tex
+
+    def _render_shadows(self) -> dict[str, Any]:
+        GL = self._gl
+        cfg = self.config
+        sharp, area = self._shadow_views()
+        prog = self._compile("depth.vert", "depth.frag", {})
+        GL.glUseProgram(prog)
+        GL.glBindVertexArray(self._vao)
+        fbo = GL.glGenFramebuffers(1)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fbo)
+        GL.glDrawBuffer(GL.GL_NONE)
+        GL.glReadBuffer(GL.GL_NONE)
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        GL.glDepthFunc(GL.GL_LESS)
+        GL.glDepthMask(GL.GL_TRUE)
+        GL.glDisable(GL.GL_CULL_FACE)
+        GL.glEnable(GL.GL_POLYGON_OFFSET_FILL)
+        GL.glPolygonOffset(cfg.depth_bias_slope, cfg.depth_bias_units)
+        state: dict[str, Any] = {"sharp": sharp, "area": area, "sharp_tex": None, "area_tex": None}
+        for key, views, res in (
+            ("sharp_tex", sharp, cfg.shadow_map_size),
+            ("area_tex", area, cfg.area_shadow_map_size),
+        ):
+            if not views:
+                continue
+            tex = self._depth_array(len(views), res)
+            state[key] = tex
+            GL.glViewport(0, 0, res, res)
+            for layer, (m, _) in enumerate(views):
+                GL.glFramebufferTextureLayer(
+                    GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, tex, 0, layer
+                )
+                self._check_fbo(f"shadow map {key} layer {layer}")
+                GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
+                self._set(prog, "u_clip_from_world", m, "m4")
+                GL.glDrawElements(GL.GL_TRIANGLES, self._n_indices, GL.GL_UNSIGNED_INT, None)
+        GL.glDisable(GL.GL_POLYGON_OFFSET_FILL)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+        GL.glDeleteFramebuffers(1, [fbo])
+        GL.glFinish()
+        return state
+
+    def _free_shadows(self) -> None:
+        st = self._shadow_state
+        if st is not None:
+            texs = [t for t in (st["sharp_tex"], st["area_tex"]) if t is not None]
+            if texs:
+                self._gl.glDeleteTextures(texs)
+        self._shadow_state = None
+
+    def _check_fbo(self, what: str) -> None:
+        GL = self._gl
+        status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
+        if status != GL.GL_FRAMEBUFFER_COMPLETE:
+            raise RasterError(f"framebuffer for {what} is incomplete (status 0x{int(status):x})")
+
+    # ------------------------------------------------------------------ camera framebuffer
+    def _framebuffer(self, height: int, width: int) -> tuple[int, list[int], int]:
+        GL = self._gl
+        key = (height, width)
+        if key in self._fbo:
+            return self._fbo[key]
+        for fbo, colors, depth in self._fbo.values():  # one size at a time: free the old one
+            GL.glDeleteFramebuffers(1, [fbo])
+            GL.glDeleteRenderbuffers(len(colors), colors)
+            GL.glDeleteRenderbuffers(1, [depth])
+        self._fbo.clear()
+        maxsize = int(GL.glGetIntegerv(GL.GL_MAX_RENDERBUFFER_SIZE))
+        if height > maxsize or width > maxsize:
+            raise ValueError(f"camera {height}x{width} exceeds this GL's maximum size {maxsize}")
+        fbo = GL.glGenFramebuffers(1)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fbo)
+        colors = [int(x) for x in np.atleast_1d(GL.glGenRenderbuffers(_MAX_TARGETS))]
+        for i, rb in enumerate(colors):
+            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rb)
+            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA32F, width, height)
+            GL.glFramebufferRenderbuffer(
+                GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0 + i, GL.GL_RENDERBUFFER, rb
+            )
+        depth = GL.glGenRenderbuffers(1)
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, depth)
+        GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_DEPTH_COMPONENT32F, width, height)
+        GL.glFramebufferRenderbuffer(
+            GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_RENDERBUFFER, depth
+        )
+        self._check_fbo(f"camera {height}x{width}")
+        self._fbo[key] = (fbo, colors, depth)
+        return self._fbo[key]
+
+    # ------------------------------------------------------------------ render
+    def render(
+        self, camera: Camera, buffers: tuple[str, ...] | list[str] | str | None = None
+    ) -> RasterBuffers:
+        """Rasterize ``buffers`` (default: all) for ``camera``.
+
+        Args:
+            camera: the camera (any size up to the GL limit).
+            buffers: names from :data:`icbtool.raster.BUFFER_NAMES` (or a comma-separated string);
+                only these are rendered, the others are None in the result; mask is always there.
+
+        Returns:
+            RasterBuffers: (H, W, C) float32 arrays in icbtool's pixel convention.
+
+        Raises:
+            ValueError: for an unknown buffer name or an unusable camera.
+            RasterError: if OpenGL fails.
+        """
+        from icbtool.camera import Camera
+
+        if not isinstance(camera, Camera):
+            raise TypeError(f"camera must be an icbtool Camera, got {type(camera).__name__}")
+        names = check_buffers(buffers)
+        GL = self._gl
+        cfg = self.config
+        self._context.make_current()
+        timings: dict[str, float] = {}
+        t_start = time.perf_counter()
+        targets = [n for n in names if n != "mask"]
+        want_dl = "dl" in targets
+        any_light = any(self._counts.values())
+        shadows = want_dl and cfg.shadows and any_light
+        if shadows and self._shadow_state is not None and not cfg.cache_shadow_maps:
+            self._free_shadows()
+        if shadows and self._shadow_state is None:
+            t0 = time.perf_counter()
+            self._shadow_state = self._render_shadows()
+            timings["shadow"] = 1e3 * (time.perf_counter() - t0)
+
+        defines: dict[str, object] = {}
+        if self._has_tex and ("dl" in targets or "albedo" in targets):
+            defines["HAS_TEX"] = True
+        for i, n in enumerate(targets):
+            defines[_LOC_NAME[n]] = i
+        if not targets:
+            defines["LOC_MASK"] = 0
+        if want_dl:
+            defines.update(
+                N_DIR=self._counts["directional"],
+                N_POINT=self._counts["point"],
+                N_SPOT=self._counts["spot"],
+                N_AREA=self._counts["area"],
+                AREA_K=cfg.area_samples,
+            )
+            if shadows:
+                defines["SHADOWS"] = True
+        prog = self._compile("scene.vert", "scene.frag", defines)
+
+        h, w = camera.height, camera.width
+        near, far = camera_near_far(camera, self.scene.bounds, cfg)
+        clip_from_world = camera.gl_projection_matrix(near, far) @ camera.gl_view_matrix()
+        fbo, _, _ = self._framebuffer(h, w)
+        n_targets = max(1, len(targets))
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fbo)
+        GL.glViewport(0, 0, w, h)
+        GL.glBindVertexArray(self._vao)
+        GL.glDisable(GL.GL_BLEND)
+        GL.glDisable(GL.GL_CULL_FACE)
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        GL.glDepthMask(GL.GL_TRUE)
+        GL.glDrawBuffers(n_targets, [GL.GL_COLOR_ATTACHMENT0 + i for i in range(n_targets)])
+        GL.glClearColor(0.0, 0.0, 0.0, 0.0)
+        GL.glClearDepth(1.0)
+        GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
+
+        t0 = time.perf_counter()
+        if cfg.depth_prepass:
+            dprog = self._compile("depth.vert", "depth.frag", {})
+            GL.glUseProgram(dprog)
+            self._set(dprog, "u_clip_from_world", clip_from_world, "m4")
+            GL.glColorMask(GL.GL_FALSE, GL.GL_FALSE, GL.GL_FALSE, GL.GL_FALSE)
+            GL.glDepthFunc(GL.GL_LESS)
+            GL.glDrawElements(GL.GL_TRIANGLES, self._n_indices, GL.GL_UNSIGNED_INT, None)
+            GL.glColorMask(GL.GL_TRUE, GL.GL_TRUE, GL.GL_TRUE, GL.GL_TRUE)
+            GL.glDepthFunc(GL.GL_EQUAL)
+            GL.glDepthMask(GL.GL_FALSE)
+        else:
+            GL.glDepthFunc(GL.GL_LESS)
+
+        GL.glUseProgram(prog)
+        self._bind_scene_uniforms(prog, camera, clip_from_world, defines)
+        GL.glDrawElements(GL.GL_TRIANGLES, self._n_indices, GL.GL_UNSIGNED_INT, None)
+
+        if want_dl and self.scene.sky is not None:
+            self._draw_sky(camera, targets.index("dl"))
+        GL.glDepthMask(GL.GL_TRUE)
+        GL.glDepthFunc(GL.GL_LESS)
+        GL.glFinish()
+        timings["draw"] = 1e3 * (time.perf_counter() - t0)
+
+        t0 = time.perf_counter()
+        out: dict[str, np.ndarray] = {}
+        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 4)
+        mask = None
+        for i in range(n_targets):
+            n = targets[i] if targets else "mask"
+            c = 4 if i == 0 else BUFFER_CHANNELS[n]
+            fmt = {1: GL.GL_RED, 3: GL.GL_RGB, 4: GL.GL_RGBA}[c]
+            arr = np.empty((h, w, c), np.float32)
+            GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + i)
+            GL.glReadPixels(0, 0, w, h, fmt, GL.GL_FLOAT, arr)
+            arr = arr[::-1]
+            if i == 0:
+                mask = np.ascontiguousarray(arr[..., 3:4])
+                if targets:
+                    out[n] = np.ascontiguousarray(arr[..., : BUFFER_CHANNELS[n]])
+            else:
+                out[n] = np.ascontiguousarray(arr)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+        timings["readback"] = 1e3 * (time.perf_counter() - t0)
+        timings["total"] = 1e3 * (time.perf_counter() - t_start)
+        assert mask is not None
+        return RasterBuffers(camera=camera, mask=mask, timings=timings, **out)
+
+    def _bind_scene_uniforms(
+        self, prog: int, camera: Camera, clip_from_world: np.ndarray, defines: dict[str, object]
+    ) -> None:
+        GL = self._gl
+        cfg = self.config
+        sc = self.scene
+        self._set(prog, "u_clip_from_world", clip_from_world, "m4")
+        self._set(prog, "u_cam_pos", camera.position, "v3")
+        self._set(prog, "u_cam_forward", camera.forward, "v3")
+        self._set(prog, "u_cam_from_world", camera.cam_from_world[:3, :3], "m3")
+        units = [
+            (1, GL.GL_TEXTURE_BUFFER, self._face_tex, "u_faces"),
+            (2, GL.GL_TEXTURE_BUFFER, self._mat_tex, "u_materials"),
+        ]
+        if "HAS_TEX" in defines:
+            units.append((0, GL.GL_TEXTURE_2D_ARRAY, self._tex_array, "u_textures"))
+        if "SHADOWS" in defines:
+            st = self._shadow_state
+            assert st is not None
+            if st["sharp_tex"] is not None:
+                units.append((3, GL.GL_TEXTURE_2D_ARRAY, st["sharp_tex"], "u_shadow"))
+                self._set(prog, "u_shadow_mat", np.stack([m for m, _ in st["sharp"]]), "m4")
+                self._set(prog, "u_shadow_texel", [t for _, t in st["sharp"]], "f")
+            if st["area_tex"] is not None:
+                units.append((4, GL.GL_TEXTURE_2D_ARRAY, st["area_tex"], "u_area_shadow"))
+                self._set(prog, "u_area_mat", np.stack([m for m, _ in st["area"]]), "m4")
+                self._set(prog, "u_area_texel", [t for _, t in st["area"]], "f")
+            self._set(prog, "u_normal_offset", cfg.normal_offset, "f")
+        for unit, target, tex, name in units:
+            GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
+            GL.glBindTexture(target, tex)
+            self._set(prog, name, unit, "i")
+        GL.glActiveTexture(GL.GL_TEXTURE0)
+        if "N_DIR" not in defines:
+            return
+        d = sc.lights_of("directional")
+        if d:
+            self._set(prog, "u_dir_dir", np.stack([x.direction for x in d]), "v3")
+            self._set(prog, "u_dir_E", np.stack([x.irradiance for x in d]), "v3")
+        p = sc.lights_of("point")
+        if p:
+            self._set(prog, "u_point_pos", np.stack([x.position for x in p]), "v3")
+            self._set(prog, "u_point_I", np.stack([x.intensity for x in p]), "v3")
+        s = sc.lights_of("spot")
+        if s:
+            self._set(prog, "u_spot_pos", np.stack([x.position for x in s]), "v3")
+            self._set(prog, "u_spot_dir", np.stack([x.direction for x in s]), "v3")
+            self._set(prog, "u_spot_I", np.stack([x.intensity for x in s]), "v3")
+            cs = [
+                (math.cos(math.radians(x.inner_deg)), math.cos(math.radians(x.outer_deg)))
+                for x in s
+            ]
+            self._set(prog, "u_spot_cos", cs, "v2")
+        a = sc.lights_of("area")
+        if a:
+            self._set(prog, "u_area_corner", np.stack([x.corner for x in a]), "v3")
+            self._set(prog, "u_area_eu", np.stack([x.edge_u for x in a]), "v3")
+            self._set(prog, "u_area_ev", np.stack([x.edge_v for x in a]), "v3")
+            self._set(prog, "u_area_L", np.stack([x.radiance for x in a]), "v3")
+
+    def _draw_sky(self, camera: Camera, dl_index: int) -> None:
+        GL = self._gl
+        sky = self.scene.sky
+        assert sky is not None
+        defines: dict[str, object] = {"SKY_GRADIENT": True} if sky.kind == "gradient" else {}
+        prog = self._compile("sky.vert", "sky.frag", defines)
+        GL.glUseProgram(prog)
+        self._set(prog, "u_height", float(camera.height), "f")
+        self._set(prog, "u_intrinsics", [camera.fx, camera.fy, camera.cx, camera.cy], "v4")
+        self._set(prog, "u_world_from_cam", camera.world_from_cam[:3, :3], "m3")
+        self._set(prog, "u_zenith", sky.zenith, "v3")
+        self._set(prog, "u_horizon", sky.horizon, "v3")
+        self._set(prog, "u_ground", sky.ground, "v3")
+        self._set(prog, "u_up", sky.up, "v3")
+        bufs = [GL.GL_NONE] * (dl_index + 1)
+        bufs[dl_index] = GL.GL_COLOR_ATTACHMENT0 + dl_index
+        GL.glDrawBuffers(len(bufs), bufs)
+        GL.glDepthFunc(GL.GL_LEQUAL)
+        GL.glDepthMask(GL.GL_FALSE)
+        GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
+
+
+def render(
+    scene: Scene,
+    camera: Camera,
+    buffers: tuple[str, ...] | list[str] | str | None = None,
+    config: RasterConfig | None = None,
+) -> RasterBuffers:
+    """Rasterize one frame (creates and releases a GL context; use :class:`Rasterizer` for many).
+
+    Args:
+        scene: the scene.
+        camera: the camera.
+        buffers: the buffers to render (default: all); see :meth:`Rasterizer.render`.
+        config: options (default :class:`RasterConfig`).
+
+    Returns:
+        RasterBuffers.
+    """
+    names = check_buffers(buffers)  # validate before creating a context
+    with Rasterizer(scene, config) as r:
+        return r.render(camera, names)

@@ -1,0 +1,2 @@
+// Depth-only pass: no colour output.
+void main() {}
