@@ -1,0 +1,430 @@
+"""numpy API of :mod:`icbtool.warp`: warp HWC images between :class:`~icbtool.camera.Camera` s.
+
+``icb.warp.backward`` (target depth known: the client has it), ``icb.warp.forward`` (splatting,
+target depth unknown), ``icb.warp.combine`` (several references, per pixel) and
+``icb.warp.inpaint`` (fill what is left, still reported in the masks). They wrap the torch
+functions of :mod:`icbtool.warp.functional` under ``torch.inference_mode``.
+
+Invalid depth: pixels whose mask is 0 are "no geometry" whatever their depth. Without a mask,
+pixels with finite depth > 0 are geometry and the rest are not. With a mask, a pixel marked valid
+whose depth is zero, negative or not finite is an error (ValueError naming the pixel count).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+
+from icbtool.camera import Camera
+
+__all__ = [
+    "ForwardWarpResult",
+    "WarpConfig",
+    "WarpResult",
+    "backward",
+    "combine",
+    "forward",
+    "inpaint",
+    "inpaint_image",
+]
+
+
+@dataclass(frozen=True)
+class WarpConfig:
+    """Options of the numpy warps."""
+
+    rel_depth_tol: float = 0.02
+    """A bilinear tap passes the depth test if ``|z_tap - z| <= rel_depth_tol * z``. 2 % accepts
+    surfaces up to ~75-80 deg from the view direction at usual focal lengths and still separates
+    objects 2 % apart in depth."""
+    soft_depth: float = 0.0
+    """0: hard depth test. > 0: sigmoid test of this relative width (differentiable in torch)."""
+    min_weight: float = 1e-3
+    """A pixel whose passing bilinear weight is at most this counts as disoccluded."""
+    splat: Literal["nearest", "footprint2"] = "nearest"
+    """Forward warp footprint: the containing pixel, or the 2x2 pixels around the point."""
+    dtype: Literal["float32", "float64"] = "float32"
+    """Compute precision."""
+
+    def __post_init__(self) -> None:
+        if not self.rel_depth_tol > 0:
+            raise ValueError(f"WarpConfig.rel_depth_tol must be > 0, got {self.rel_depth_tol}")
+        if not self.soft_depth >= 0:
+            raise ValueError(f"WarpConfig.soft_depth must be >= 0, got {self.soft_depth}")
+        if not 0 <= self.min_weight < 1:
+            raise ValueError(f"WarpConfig.min_weight must be in [0, 1), got {self.min_weight}")
+        if self.splat not in ("nearest", "footprint2"):
+            raise ValueError(f"WarpConfig.splat must be nearest|footprint2, got {self.splat!r}")
+        if self.dtype not in ("float32", "float64"):
+            raise ValueError(f"WarpConfig.dtype must be float32|float64, got {self.dtype!r}")
+
+
+@dataclass
+class WarpResult:
+    """A warped image with its hole masks, all at the target resolution (H, W).
+
+    Attributes:
+        image: (H, W, C) float32 warped image; 0 on holes unless inpainted.
+        holes: (H, W) bool, ``outside | disoccluded | no_geometry``.
+        outside: (H, W) bool, the target point is outside (or behind) every reference frustum.
+        disoccluded: (H, W) bool, inside a reference frustum, but the reference saw another
+            surface (or nothing) there.
+        no_geometry: (H, W) bool, the target pixel has no geometry (mask 0 / invalid depth).
+        weight: (H, W) float32, passing bilinear tap weight in [0, 1] (depth agreement).
+        density: (H, W) float32, reference pixels per target pixel (< 1: magnified).
+        source: (H, W) int16, index of the reference used per pixel (0 for a single warp),
+            -1 on holes.
+        inpainted: (H, W) bool, hole pixels filled by :func:`inpaint` (they stay in ``holes``).
+    """
+
+    image: np.ndarray
+    holes: np.ndarray
+    outside: np.ndarray
+    disoccluded: np.ndarray
+    no_geometry: np.ndarray
+    weight: np.ndarray
+    density: np.ndarray
+    source: np.ndarray
+    inpainted: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), bool))
+
+    def __post_init__(self) -> None:
+        if self.inpainted.shape != self.holes.shape:
+            self.inpainted = np.zeros(self.holes.shape, bool)
+
+    @property
+    def hole_ratio(self) -> float:
+        """Fraction of target pixels WITH geometry that are holes (outside or disoccluded)."""
+        geo = ~self.no_geometry
+        n = int(geo.sum())
+        return float((self.holes & geo).sum() / n) if n else 0.0
+
+
+@dataclass
+class ForwardWarpResult:
+    """Result of :func:`forward`.
+
+    Attributes:
+        image: (H, W, C) float32 splatted image; 0 on holes.
+        depth: (H, W, 1) float32 splatted target depth; 0 on holes.
+        holes: (H, W) bool, target pixels that received no reference pixel.
+    """
+
+    image: np.ndarray
+    depth: np.ndarray
+    holes: np.ndarray
+
+
+# --------------------------------------------------------------------------- helpers
+def _hwc(x: np.ndarray, name: str, cam: Camera) -> np.ndarray:
+    a = np.asarray(x)
+    if a.ndim != 3:
+        raise ValueError(f"{name} must be (H, W, C), got shape {a.shape}")
+    if a.shape[:2] != (cam.height, cam.width):
+        raise ValueError(
+            f"{name} is {a.shape[0]}x{a.shape[1]} but its camera is {cam.height}x{cam.width}"
+        )
+    return a
+
+
+def _depth(x: np.ndarray, name: str, cam: Camera) -> np.ndarray:
+    a = np.asarray(x)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[2] != 1:
+        raise ValueError(f"{name} must be (H, W, 1) (or (H, W)), got shape {np.shape(x)}")
+    return _hwc(a, name, cam)
+
+
+def _to_torch(a: np.ndarray | None, dtype):
+    import torch
+
+    if a is None:
+        return None
+    t = torch.from_numpy(np.ascontiguousarray(a))
+    if t.dtype != torch.bool:
+        t = t.to(dtype)
+    return t.permute(2, 0, 1)[None]
+
+
+def _torch_dtype(cfg: WarpConfig):
+    import torch
+
+    return torch.float32 if cfg.dtype == "float32" else torch.float64
+
+
+def _mat(m: np.ndarray, dtype):
+    import torch
+
+    return torch.as_tensor(np.asarray(m, np.float64)).to(dtype)[None]
+
+
+def _np_map(t) -> np.ndarray:
+    return t[0, 0].cpu().numpy()
+
+
+# --------------------------------------------------------------------------- public API
+def backward(
+    src_image: np.ndarray,
+    src_depth: np.ndarray,
+    src_cam: Camera,
+    dst_depth: np.ndarray,
+    dst_cam: Camera,
+    src_mask: np.ndarray | None = None,
+    dst_mask: np.ndarray | None = None,
+    config: WarpConfig = WarpConfig(),  # noqa: B008 (frozen)
+) -> WarpResult:
+    """Backward-warp a reference image to a target camera whose depth is known.
+
+    For every target pixel: lift with ``dst_depth`` and ``dst_cam``, project into ``src_cam``,
+    sample ``src_image`` bilinearly with a per-tap depth test (see
+    :mod:`icbtool.warp.functional`). The cameras may differ in pose, FOV, intrinsics and size.
+
+    Args:
+        src_image: (Hs, Ws, C) reference image (e.g. a GI map).
+        src_depth: (Hs, Ws, 1) reference view-space depth.
+        src_cam: the reference camera (Hs x Ws).
+        dst_depth: (Hd, Wd, 1) target view-space depth.
+        dst_cam: the target camera (Hd x Wd).
+        src_mask: optional (Hs, Ws, 1) or (Hs, Ws) geometry mask (> 0.5 = geometry).
+        dst_mask: optional (Hd, Wd, 1) or (Hd, Wd) geometry mask.
+        config: a :class:`WarpConfig`.
+
+    Returns:
+        A :class:`WarpResult` (image (Hd, Wd, C) float32 and (Hd, Wd) bool masks).
+
+    Raises:
+        ValueError: on shapes that do not match the cameras, or a mask marking pixels valid whose
+            depth is zero, negative or not finite.
+    """
+    import torch
+
+    from icbtool.warp.functional import warp_backward
+
+    src_image = _hwc(src_image, "src_image", src_cam)
+    src_depth = _depth(src_depth, "src_depth", src_cam)
+    dst_depth = _depth(dst_depth, "dst_depth", dst_cam)
+    src_mask = None if src_mask is None else _depth(src_mask, "src_mask", src_cam)
+    dst_mask = None if dst_mask is None else _depth(dst_mask, "dst_mask", dst_cam)
+    dt = _torch_dtype(config)
+    with torch.inference_mode():
+        out = warp_backward(
+            _to_torch(src_image, dt),
+            _to_torch(src_depth, dt),
+            _to_torch(dst_depth, dt),
+            _mat(src_cam.K, dt),
+            _mat(dst_cam.K, dt),
+            _mat(src_cam.cam_from_world @ dst_cam.world_from_cam, dt),
+            _to_torch(src_mask, dt),
+            _to_torch(dst_mask, dt),
+            config.rel_depth_tol,
+            config.soft_depth,
+            config.min_weight,
+        )
+        holes = _np_map(out.holes)
+        return WarpResult(
+            image=out.image[0].permute(1, 2, 0).numpy().astype(np.float32),
+            holes=holes,
+            outside=_np_map(out.outside),
+            disoccluded=_np_map(out.disoccluded),
+            no_geometry=_np_map(out.no_geometry),
+            weight=_np_map(out.weight).astype(np.float32),
+            density=_np_map(out.density).astype(np.float32),
+            source=np.where(holes, -1, 0).astype(np.int16),
+        )
+
+
+def forward(
+    src_image: np.ndarray,
+    src_depth: np.ndarray,
+    src_cam: Camera,
+    dst_cam: Camera,
+    src_mask: np.ndarray | None = None,
+    config: WarpConfig = WarpConfig(),  # noqa: B008 (frozen)
+) -> ForwardWarpResult:
+    """Forward-warp (splat with a z-buffer) a reference image into a target camera.
+
+    Use it when the target depth is unknown; pixels that receive nothing are holes (cracks
+    where the reference is magnified, disocclusions, and outside the reference frustum alike).
+
+    Args:
+        src_image: (Hs, Ws, C) reference image.
+        src_depth: (Hs, Ws, 1) reference view-space depth.
+        src_cam: reference camera.
+        dst_cam: target camera (its size sets the output size).
+        src_mask: optional (Hs, Ws, 1) or (Hs, Ws) geometry mask.
+        config: ``config.splat`` chooses the footprint.
+
+    Returns:
+        A :class:`ForwardWarpResult` (image (Hd, Wd, C), depth (Hd, Wd, 1), holes (Hd, Wd)).
+    """
+    import torch
+
+    from icbtool.warp.functional import warp_forward
+
+    src_image = _hwc(src_image, "src_image", src_cam)
+    src_depth = _depth(src_depth, "src_depth", src_cam)
+    src_mask = None if src_mask is None else _depth(src_mask, "src_mask", src_cam)
+    dt = _torch_dtype(config)
+    with torch.inference_mode():
+        out = warp_forward(
+            _to_torch(src_image, dt),
+            _to_torch(src_depth, dt),
+            _mat(src_cam.K, dt),
+            _mat(dst_cam.K, dt),
+            _mat(dst_cam.cam_from_world @ src_cam.world_from_cam, dt),
+            (dst_cam.height, dst_cam.width),
+            _to_torch(src_mask, dt),
+            config.splat,
+        )
+        return ForwardWarpResult(
+            image=out.image[0].permute(1, 2, 0).numpy().astype(np.float32),
+            depth=out.depth[0].permute(1, 2, 0).numpy().astype(np.float32),
+            holes=_np_map(out.holes),
+        )
+
+
+def combine(results: Sequence[WarpResult]) -> WarpResult:
+    """Merge warps of several references to one target, choosing a reference per pixel.
+
+    Per pixel, among the references that are not holes, take the one with the highest score
+    ``weight * min(density, 1)``: full depth agreement of the four taps first, then the least
+    magnified (closest, densest) reference; ties go to the earlier reference in the list.
+    A pixel is a hole only if it is one in every reference; its cause is ``outside`` if it is
+    outside every reference frustum, else ``disoccluded`` (``no_geometry`` comes from the target).
+
+    Args:
+        results: warps of the references to the same target camera (same H, W, C).
+
+    Returns:
+        A :class:`WarpResult`; ``source`` tells which reference filled each pixel.
+    """
+    if len(results) == 0:
+        raise ValueError("combine: need at least one WarpResult")
+    shape = results[0].image.shape
+    for i, r in enumerate(results):
+        if not isinstance(r, WarpResult):
+            raise TypeError(f"combine: results[{i}] is a {type(r).__name__}, not a WarpResult")
+        if r.image.shape != shape:
+            raise ValueError(f"combine: results[{i}] image is {r.image.shape}, results[0] {shape}")
+    valid = np.stack([~r.holes for r in results])  # (R, H, W)
+    score = np.stack([r.weight * np.minimum(r.density, 1.0) for r in results])
+    score = np.where(valid, score + 1.0, 0.0)  # any valid beats every hole
+    best = np.argmax(score, axis=0)
+    any_valid = valid.any(0)
+    take = best[None, ..., None]
+    image = np.take_along_axis(np.stack([r.image for r in results]), take, 0)[0]
+    image = np.where(any_valid[..., None], image, 0).astype(np.float32)
+
+    def pick(name: str) -> np.ndarray:
+        a = np.stack([getattr(r, name) for r in results])
+        return np.take_along_axis(a, best[None], 0)[0]
+
+    holes = ~any_valid
+    no_geometry = results[0].no_geometry.copy()
+    outside = holes & np.all(np.stack([r.outside for r in results]), 0)
+    disoccluded = holes & ~outside & ~no_geometry
+    return WarpResult(
+        image=image,
+        holes=holes,
+        outside=outside,
+        disoccluded=disoccluded,
+        no_geometry=no_geometry,
+        weight=np.where(holes, 0, pick("weight")).astype(np.float32),
+        density=np.where(holes, 0, pick("density")).astype(np.float32),
+        source=np.where(holes, -1, best).astype(np.int16),
+    )
+
+
+def inpaint_image(
+    image: np.ndarray, mask: np.ndarray, radius: float = 3.0, method: str = "telea"
+) -> np.ndarray:
+    """Fill ``mask`` pixels of a float image with OpenCV's inpainting, channel by channel.
+
+    Args:
+        image: (H, W, C) float image (linear HDR is fine: done in float32).
+        mask: (H, W) bool, pixels to fill.
+        radius: neighbourhood radius in pixels.
+        method: ``telea`` (cv2.INPAINT_TELEA) or ``ns`` (Navier-Stokes).
+
+    Returns:
+        (H, W, C) float32 image; pixels outside ``mask`` unchanged.
+    """
+    import cv2
+
+    img = np.asarray(image, np.float32)
+    if img.ndim != 3:
+        raise ValueError(f"inpaint: image must be (H, W, C), got {img.shape}")
+    m = np.asarray(mask, bool)
+    if m.shape != img.shape[:2]:
+        raise ValueError(f"inpaint: mask {m.shape} does not match image {img.shape[:2]}")
+    if method not in ("telea", "ns"):
+        raise ValueError(f"inpaint: method must be telea|ns, got {method!r}")
+    if not m.any():
+        return img.copy()
+    flag = cv2.INPAINT_TELEA if method == "telea" else cv2.INPAINT_NS
+    m8 = m.astype(np.uint8) * 255
+    out = np.empty_like(img)
+    # OpenCV's float path extrapolates with gradients and overshoots (values far outside the
+    # known range at edges): inpaint a 16-bit encoding of each channel's known range instead,
+    # which also bounds the result to that range (16-bit steps on the filled pixels only).
+    for ch in range(img.shape[2]):
+        c = img[..., ch]
+        known = c[~m]
+        lo, hi = (float(known.min()), float(known.max())) if known.size else (0.0, 0.0)
+        if hi <= lo:
+            out[..., ch] = lo
+            continue
+        enc = np.round((np.clip(c, lo, hi) - lo) / (hi - lo) * 65535.0).astype(np.uint16)
+        fill = cv2.inpaint(enc, m8, float(radius), flag)
+        out[..., ch] = fill.astype(np.float32) / 65535.0 * (hi - lo) + lo
+    out[~m] = img[~m]
+    return out
+
+
+def inpaint(
+    result: WarpResult,
+    depth: np.ndarray | None = None,
+    radius: float = 3.0,
+    method: str = "telea",
+    fill_no_geometry: bool = False,
+    rel_depth_gap: float = 0.05,
+) -> WarpResult:
+    """Fill the holes of a warp by inpainting; the masks still report them.
+
+    Disocclusions reveal background, so with the target ``depth`` the fill is background-aware:
+    known pixels near a hole that are more than ``rel_depth_gap`` nearer than the hole (the
+    occluding foreground) are not used as sources (they are masked during the fill and restored
+    after it). Without ``depth`` it is plain Telea/NS inpainting, which smears the foreground
+    into disocclusions.
+
+    Args:
+        result: a :class:`WarpResult`.
+        depth: optional (H, W, 1) or (H, W) target depth (as given to :func:`backward`).
+        radius: inpainting radius in pixels.
+        method: ``telea`` or ``ns``.
+        fill_no_geometry: also fill pixels without geometry (background); default: only
+            ``outside | disoccluded``.
+        rel_depth_gap: relative depth gap that makes a known pixel foreground to a hole.
+
+    Returns:
+        A new :class:`WarpResult` with the filled image, ``inpainted`` set to the filled pixels
+        and ``holes`` / ``outside`` / ``disoccluded`` unchanged.
+    """
+    fill = result.holes if fill_no_geometry else result.holes & ~result.no_geometry
+    mask = fill.copy()
+    if depth is not None:
+        import cv2
+
+        z = np.asarray(depth, np.float32).reshape(result.holes.shape)
+        z = np.where(result.no_geometry, 0.0, np.nan_to_num(z)).astype(np.float32)
+        k = 2 * int(math.ceil(radius)) + 3
+        hole_z = cv2.dilate(np.where(fill, z, 0).astype(np.float32), np.ones((k, k), np.uint8))
+        foreground = ~fill & ~result.no_geometry & (z < (1 - rel_depth_gap) * hole_z)
+        mask |= foreground
+    image = inpaint_image(result.image, mask, radius, method)
+    image[~fill] = result.image[~fill]
+    return replace(result, image=image, inpainted=fill.copy())

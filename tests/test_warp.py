@@ -1,0 +1,345 @@
+"""Tests for icbtool.warp: known-answer warps, hole causes, round trips, gradients, filling."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+import icbtool as icb
+from icbtool.camera import Camera
+from icbtool.warp import WarpConfig, backward, combine, forward, inpaint
+from icbtool.warp.functional import BackwardWarp, warp_backward
+
+# --------------------------------------------------------------------------- a tiny ray caster
+# Scene: a wall (plane z = WALL_Z, facing the camera) and a box front (the square |x - BOX_X|,
+# |y| <= BOX_HALF at z = BOX_Z), cameras near the origin looking down +z.
+WALL_Z, BOX_Z, BOX_X, BOX_HALF = 5.0, 3.0, 0.0, 0.5
+
+
+def _colour(p: np.ndarray, on_box: np.ndarray) -> np.ndarray:
+    """A smooth colour of world position; the box is saturated red-ish, the wall is not."""
+    x, y = p[..., 0], p[..., 1]
+    wall = np.stack([0.5 + 0.2 * np.sin(0.7 * x), 0.5 + 0.2 * np.cos(0.9 * y), 0.4 + 0.1 * x], -1)
+    box = np.stack([np.full_like(x, 3.0), 0.1 + 0.05 * x, 0.1 + 0.05 * y], -1)
+    return np.where(on_box[..., None], box, wall).astype(np.float32)
+
+
+def render(cam: Camera, with_box: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(image (H,W,3), depth (H,W,1), on_box (H,W)) of the wall-and-box scene."""
+    o, d, cosz = cam.rays()
+    t_wall = (WALL_Z - o[..., 2]) / d[..., 2]
+    t = t_wall
+    on_box = np.zeros(t.shape, bool)
+    if with_box:
+        t_box = (BOX_Z - o[..., 2]) / d[..., 2]
+        pb = o + t_box[..., None] * d
+        on_box = (np.abs(pb[..., 0] - BOX_X) <= BOX_HALF) & (np.abs(pb[..., 1]) <= BOX_HALF)
+        on_box &= t_box > 0
+        t = np.where(on_box, t_box, t_wall)
+    p = o + t[..., None] * d
+    depth = (t * cosz)[..., None].astype(np.float32)
+    return _colour(p, on_box), depth, on_box
+
+
+def cam_at(x: float = 0.0, y: float = 0.0, z: float = 0.0, rotvec=(0, 0, 0), fov=50.0, h=48, w=64):
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    pose[:3, 3] = (x, y, z)
+    return Camera.from_fov(fov, h, w, pose)
+
+
+# --------------------------------------------------------------------------- known answers
+def test_identity_warp_is_exact(rng):
+    cam = cam_at()
+    img = rng.random((48, 64, 3)).astype(np.float32)
+    depth = (2.0 + rng.random((48, 64, 1))).astype(np.float32)
+    res = backward(img, depth, cam, depth, cam, config=WarpConfig(dtype="float64"))
+    assert not res.holes.any()
+    np.testing.assert_allclose(res.image, img, atol=1e-6)
+    assert np.all(res.weight > 1 - 1e-6)
+    # float32 geometry: (u * d) / d is not always u, so taps are off by ~1e-5 px
+    res = backward(img, depth, cam, depth, cam)
+    assert not res.holes.any()
+    np.testing.assert_allclose(res.image, img, atol=1e-4)
+
+
+def test_one_pixel_shift_of_a_plane(rng):
+    src = cam_at()
+    z = 4.0
+    tx = z / src.fx  # moves a point at depth z by exactly one pixel
+    dst = cam_at(x=tx)
+    img = rng.random((48, 64, 3)).astype(np.float32)
+    depth = np.full((48, 64, 1), z, np.float32)
+    res = backward(img, depth, src, depth, dst, config=WarpConfig(dtype="float64"))
+    # the target camera moved right: the image moves left by one pixel
+    np.testing.assert_allclose(res.image[:, :-1], img[:, 1:], atol=1e-6)
+    assert not res.holes[:, :-1].any()
+    assert res.outside[:, -1].all() and res.holes[:, -1].all()
+    assert not res.disoccluded.any() and not res.no_geometry.any()
+    # the forward warp agrees exactly on this integer shift
+    fwd = forward(img, depth, src, dst, config=WarpConfig(dtype="float64"))
+    np.testing.assert_allclose(fwd.image[:, :-1], img[:, 1:], atol=1e-6)
+    assert fwd.holes[:, -1].all() and not fwd.holes[:, :-1].any()
+    np.testing.assert_allclose(fwd.depth[:, :-1], z, rtol=1e-6)
+
+
+def test_disoccluded_wall_is_not_filled_with_the_box():
+    src, dst = cam_at(x=-0.4), cam_at(x=0.4)
+    s_img, s_depth, _ = render(src)
+    d_img, d_depth, d_box = render(dst)
+    res = backward(s_img, s_depth, src, d_depth, dst)
+    # pixels seeing the wall in the target whose wall point the reference's box hides
+    p = dst.unproject(dst.pixel_centers(), d_depth[..., 0])
+    uv, _ = src.project(p)
+    o, dirs, _ = src.rays(uv)  # rays of the reference towards those wall points
+    t_box = (BOX_Z - o[..., 2]) / dirs[..., 2]
+    pb = o + t_box[..., None] * dirs
+    margin = 0.1  # 2 px at the box: keep the bilinear footprint off its edge
+    hidden = np.abs(pb[..., 0] - BOX_X) < BOX_HALF - margin
+    hidden &= np.abs(pb[..., 1]) < BOX_HALF - margin
+    hidden &= ~d_box
+    assert hidden.sum() > 30
+    assert res.disoccluded[hidden].all()
+    assert not res.outside[hidden].any()
+    # no ghosts anywhere: no wall pixel of the target is given the box colour (red = 3)
+    assert np.all(res.image[~d_box, 0] < 1.0)
+    # valid pixels reproduce the target's own rendering (smooth colours, bilinear error only)
+    ok = ~res.holes
+    assert ok.mean() > 0.7
+    np.testing.assert_allclose(res.image[ok], d_img[ok], atol=0.02)
+    assert np.array_equal(res.holes, res.outside | res.disoccluded | res.no_geometry)
+
+
+def test_different_resolution_and_fov():
+    dst = cam_at(x=0.1, fov=45.0, h=48, w=64)
+    wide = cam_at(fov=70.0, h=96, w=120)  # wider and finer reference
+    narrow = cam_at(fov=30.0, h=30, w=40)
+    d_img, d_depth, d_box = render(dst, with_box=False)
+    for ref in (wide, narrow):
+        s_img, s_depth, _ = render(ref, with_box=False)
+        res = backward(s_img, s_depth, ref, d_depth, dst)
+        assert res.image.shape == (48, 64, 3)
+        ok = ~res.holes
+        np.testing.assert_allclose(res.image[ok], d_img[ok], atol=0.01)
+        # outside exactly where the target point projects outside the reference image
+        uv, _ = ref.project(dst.unproject(dst.pixel_centers(), d_depth[..., 0]))
+        out = (uv[..., 0] < 0) | (uv[..., 0] > ref.width) | (uv[..., 1] < 0)
+        out |= uv[..., 1] > ref.height
+        assert np.array_equal(res.outside, out)
+        assert not res.disoccluded.any()
+    assert not backward(*render(wide, False)[:2], wide, d_depth, dst).holes.any()
+
+
+def test_masks_and_errors(rng):
+    cam = cam_at()
+    img = rng.random((48, 64, 3)).astype(np.float32)
+    depth = np.full((48, 64, 1), 3.0, np.float32)
+    mask = np.ones((48, 64, 1), np.float32)
+    mask[:10] = 0
+    res = backward(img, depth, cam, depth, cam, dst_mask=mask)
+    assert res.no_geometry[:10].all() and not res.no_geometry[10:].any()
+    assert np.array_equal(res.holes, res.no_geometry)
+    # a source pixel without geometry is not used: those target pixels are disoccluded
+    res = backward(img, depth, cam, depth, cam, src_mask=mask)
+    assert res.disoccluded[:9].all() and not res.holes[11:].any()
+    bad = depth.copy()
+    bad[5, 5:8] = 0.0
+    with pytest.raises(ValueError, match="3 pixel"):
+        backward(img, depth, cam, bad, cam, dst_mask=np.ones_like(mask))
+    # without a mask, zero depth is simply no geometry
+    res = backward(img, depth, cam, bad, cam)
+    assert res.no_geometry.sum() == 3
+    with pytest.raises(ValueError, match="src_image"):
+        backward(img[:-1], depth, cam, depth, cam)
+    with pytest.raises(ValueError, match="dst_depth"):
+        backward(img, depth, cam, depth[..., 0:1, None], cam)
+    with pytest.raises(ValueError, match="src_depth"):
+        warp_backward(
+            torch.zeros(1, 3, 4, 4),
+            torch.ones(1, 1, 4, 5),
+            torch.ones(1, 1, 4, 4),
+            torch.eye(3),
+            torch.eye(3),
+            torch.eye(4),
+        )
+
+
+# --------------------------------------------------------------------------- round trip
+def _inner(uv: np.ndarray, cam: Camera) -> np.ndarray:
+    u, v = uv[..., 0], uv[..., 1]
+    return (u >= 1) & (u <= cam.width - 1) & (v >= 1) & (v <= cam.height - 1)
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    t=st.tuples(*[st.floats(-0.25, 0.25)] * 3),
+    r=st.tuples(*[st.floats(-0.05, 0.05)] * 3),
+)
+def test_round_trip_on_covisible_pixels(t, r):
+    a = cam_at()
+    b = cam_at(*t, rotvec=r)
+    _, da, _ = render(a)
+    _, db, _ = render(b)
+    # the image to carry: A's own pixel coordinates (a linear field, so bilinear taps are exact)
+    coords = a.pixel_centers().astype(np.float32)
+    cfg = WarpConfig(dtype="float64")
+    ab = backward(coords, da, a, db, b, config=cfg)
+    # B pixels carry exact coordinates where all four taps agreed and none was clamped at A's
+    # border (the outer half pixel replicates the border, which is not linear)
+    exact = (ab.weight > 1 - 1e-6) & _inner(ab.image, a)
+    ba = backward(ab.image, db, b, da, a, src_mask=exact, config=cfg)
+    uv_in_b, _ = b.project(a.unproject(coords, da[..., 0]))
+    co = ~ba.holes & (ba.weight > 1 - 1e-6) & _inner(uv_in_b, b)
+    assert co.mean() > 0.3
+    err = np.abs(ba.image[co] - coords[co]).max()
+    assert err < 0.05, err
+
+
+# --------------------------------------------------------------------------- gradients
+def _tiny_problem():
+    g = torch.Generator().manual_seed(0)
+    src = torch.rand(1, 2, 4, 5, generator=g, dtype=torch.float64)
+    src_depth = torch.full((1, 1, 4, 5), 2.0, dtype=torch.float64)
+    dst_depth = 2.0 + 0.05 * torch.rand(1, 1, 4, 5, generator=g, dtype=torch.float64)
+    K = torch.tensor([[4.0, 0, 2.5], [0, 4.0, 2.0], [0, 0, 1]], dtype=torch.float64)[None]
+    pose = torch.eye(4, dtype=torch.float64)[None].clone()
+    pose[0, 0, 3] = 0.13  # a fractional-pixel shift (0.26 px)
+    pose[0, 1, 3] = -0.07
+    return src, src_depth, dst_depth, K, pose
+
+
+def test_gradcheck_image_and_target_depth():
+    src, sd, dd, K, pose = _tiny_problem()
+    src.requires_grad_(True)
+    dd.requires_grad_(True)
+
+    def f(img, ddepth):
+        return warp_backward(img, sd, ddepth, K, K, pose, rel_depth_tol=0.2).image
+
+    assert torch.autograd.gradcheck(f, (src, dd), eps=1e-6, atol=1e-5)
+
+
+def test_gradcheck_source_depth_soft():
+    src, sd, dd, K, pose = _tiny_problem()
+    sd = sd + 0.1 * torch.rand(
+        sd.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64
+    )
+    sd.requires_grad_(True)
+    mod = BackwardWarp(rel_depth_tol=0.05, soft_depth=0.05)
+
+    def f(sdepth):
+        return mod(src, sdepth, dd, K, K, pose).image
+
+    assert torch.autograd.gradcheck(f, (sd,), eps=1e-6, atol=1e-5)
+    out = f(sd)
+    out.sum().backward()
+    assert sd.grad is not None and sd.grad.abs().sum() > 0
+
+
+def test_batched_matches_single(rng):
+    src, sd, dd, K, pose = _tiny_problem()
+    pose2 = pose.clone()
+    pose2[0, 0, 3] = -0.2
+    batch = warp_backward(
+        torch.cat([src, src.flip(-1)]),
+        sd.expand(2, -1, -1, -1),
+        dd.expand(2, -1, -1, -1),
+        K.expand(2, 3, 3),
+        K,
+        torch.cat([pose, pose2]),
+    )
+    one = warp_backward(src.flip(-1), sd, dd, K, K, pose2)
+    torch.testing.assert_close(batch.image[1:], one.image)
+    torch.testing.assert_close(batch.holes[1:], one.holes)
+
+
+# --------------------------------------------------------------------------- forward warp
+def test_forward_agrees_with_backward_on_covisible_pixels():
+    src, dst = cam_at(), cam_at(0.15, -0.05, 0.1, rotvec=(0.01, -0.02, 0.0))
+    s_img, s_depth, _ = render(src)
+    _, d_depth, _ = render(dst)
+    bw = backward(s_img, s_depth, src, d_depth, dst)
+    fw = forward(s_img, s_depth, src, dst)
+    # away from depth edges (a nearest splat is off by up to half a pixel)
+    import cv2
+
+    z = d_depth[..., 0]
+    k = np.ones((5, 5), np.uint8)
+    edge = cv2.dilate(z, k) > 1.05 * cv2.erode(z, k)
+    both = ~bw.holes & ~fw.holes & (bw.weight > 0.999) & ~edge
+    assert both.mean() > 0.6
+    # nearest splat: up to ~0.7 px position error on a smooth image (gradient < 0.02 / px)
+    np.testing.assert_allclose(fw.image[both], bw.image[both], atol=0.03)
+    np.testing.assert_allclose(fw.depth[both], d_depth[both], rtol=0.01)
+    # a wide disocclusion (sideways move) is a hole in the forward warp too
+    side = cam_at(0.5)
+    _, side_depth, _ = render(side)
+    bw = backward(s_img, s_depth, src, side_depth, side)
+    fw = forward(s_img, s_depth, src, side)
+    assert bw.disoccluded.sum() > 30
+    assert fw.holes[bw.disoccluded].mean() > 0.8
+
+
+# --------------------------------------------------------------------------- combine, inpaint
+def test_combine_picks_the_valid_reference():
+    dst = cam_at()
+    left, right = cam_at(x=-0.5), cam_at(x=0.5)
+    _, d_depth, _ = render(dst)
+    d_img = render(dst)[0]
+    rl = backward(*render(left)[:2], left, d_depth, dst)
+    rr = backward(*render(right)[:2], right, d_depth, dst)
+    assert rl.disoccluded.sum() > 20 and rr.disoccluded.sum() > 20
+    both = combine([rl, rr])
+    assert both.holes.sum() < min(rl.holes.sum(), rr.holes.sum())
+    only_r = rl.holes & ~rr.holes
+    assert only_r.any()
+    assert np.all(both.source[only_r] == 1)
+    np.testing.assert_array_equal(both.image[only_r], rr.image[only_r])
+    assert np.all(both.source[~rl.holes] >= 0)
+    ok = ~both.holes
+    np.testing.assert_allclose(both.image[ok], d_img[ok], atol=0.02)
+    assert np.array_equal(both.holes, rl.holes & rr.holes)
+    assert np.array_equal(both.holes, both.outside | both.disoccluded | both.no_geometry)
+
+
+def test_combine_prefers_the_denser_reference():
+    dst = cam_at()
+    near, far = cam_at(fov=40, h=96, w=128), cam_at(z=-1.0, fov=70)  # far: pulled back, coarse
+    _, d_depth, _ = render(dst, False)
+    r_far = backward(*render(far, False)[:2], far, d_depth, dst)
+    r_near = backward(*render(near, False)[:2], near, d_depth, dst)
+    both = combine([r_far, r_near])
+    common = ~r_far.holes & ~r_near.holes
+    assert common.sum() > 100 and np.all(both.source[common] == 1)
+
+
+def test_inpaint_fills_and_masks_still_report():
+    src, dst = cam_at(x=-0.4), cam_at(x=0.4)
+    s_img, s_depth, _ = render(src)
+    d_img, d_depth, _ = render(dst)
+    res = backward(s_img, s_depth, src, d_depth, dst)
+    filled = inpaint(res, d_depth)
+    assert np.array_equal(filled.holes, res.holes)
+    assert np.array_equal(filled.disoccluded, res.disoccluded)
+    assert np.array_equal(filled.inpainted, res.holes & ~res.no_geometry)
+    np.testing.assert_array_equal(filled.image[~res.holes], res.image[~res.holes])
+    h = res.disoccluded
+    assert np.all(filled.image[h] > 0.1)  # filled from the surrounding wall colours
+    err_before = np.abs(res.image[h] - d_img[h]).mean()
+    err_after = np.abs(filled.image[h] - d_img[h]).mean()
+    assert err_after < 0.3 * err_before
+
+
+def test_lazy_attribute_and_config_validation():
+    assert icb.warp.backward is backward
+    with pytest.raises(ValueError, match="rel_depth_tol"):
+        WarpConfig(rel_depth_tol=0)
+    with pytest.raises(ValueError, match="splat"):
+        WarpConfig(splat="gauss")  # type: ignore[arg-type]
+    assert math.isfinite(WarpConfig().min_weight)
