@@ -402,6 +402,36 @@ def test_egl_backend_in_subprocess():
     assert abs(out["dl"] - expect) < 1e-4 * expect
 
 
+@gl
+def test_cli_render(tmp_path):
+    from icbtool.cli import main
+    from icbtool.imageio import read_exr
+
+    out = tmp_path / "r"
+    argv = [
+        "render",
+        "plane",
+        "--out",
+        str(out),
+        "--buffers",
+        "dl,depth",
+        "--height",
+        "24",
+        "--width",
+        "32",
+        "--backend",
+        os.environ.get("ICBTOOL_GL_BACKEND", "auto"),
+    ]
+    assert main(argv) == 0
+    depth = read_exr(out / "depth.exr")
+    assert depth.shape == (24, 32)
+    np.testing.assert_allclose(depth, 2.0, rtol=1e-5)
+    assert (out / "dl.png").is_file() and (out / "mask.exr").is_file()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["buffers"] == ["dl", "depth", "mask"] and "run_info" in summary
+    assert main(["render", "plane", "--out", str(out), "--camera", "path:nope"]) == 1
+
+
 # --------------------------------------------------------------------------- Sponza
 @gl
 @pytest.mark.sponza
