@@ -437,7 +437,9 @@ class Store:
                 self._conn.execute("PRAGMA journal_mode=WAL")
         else:
             self._create()
-        self._conn.execute("PRAGMA synchronous=FULL")
+        # FULL: a commit is on disk when put returns; NORMAL (fsync=False) in WAL mode still
+        # survives a process crash, only not a power loss.
+        self._conn.execute(f"PRAGMA synchronous={'FULL' if self.config.fsync else 'NORMAL'}")
         self._load_index()
         if not self.readonly:
             self.orphans_removed_on_open = len(self._remove_orphans(self._find_orphans()))
@@ -646,6 +648,16 @@ class Store:
         self._geoms[scene_hash] = geom
         return geom
 
+    def geometry(self, scene_hash: str) -> OctreeGeometry:
+        """The octree geometry (root cube, depth) of a registered scene.
+
+        Raises:
+            KeyError: if the scene is not registered.
+        """
+        if scene_hash not in self._geoms:
+            raise KeyError(f"scene {scene_hash!r} is not registered in store {self.root}")
+        return self._geoms[scene_hash]
+
     def _bounds_for(self, buf: CRTBuffer) -> np.ndarray:
         if buf.meta.scene_bounds is not None:
             return np.asarray(buf.meta.scene_bounds, np.float64)
@@ -658,6 +670,7 @@ class Store:
             )
             pts.append(buf.position[m].astype(np.float64))
         p = np.concatenate(pts)
+        p = p[np.all(np.isfinite(p), axis=1)]  # the camera centre is always finite
         return np.stack([p.min(0), p.max(0)])
 
     # -------------------------------------------------------------- writing

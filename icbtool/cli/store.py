@@ -1,0 +1,102 @@
+"""``icbtool store stats|check|evict DIR``: inspect, verify and trim a CRT-buffer store."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("store", help="inspect, verify or trim a CRT-buffer store")
+    ss = p.add_subparsers(dest="store_command", metavar="ACTION", required=True)
+
+    s = ss.add_parser("stats", help="records, bytes, per scene/light setup, octree occupancy")
+    s.add_argument("dir", help="store directory")
+    s.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    s.set_defaults(func=_stats)
+
+    c = ss.add_parser("check", help="verify every payload checksum (exit 1 on damage)")
+    c.add_argument("dir", help="store directory")
+    c.add_argument("--repair", action="store_true", help="delete orphan payload files")
+    c.add_argument("--drop-damaged", action="store_true", help="delete the rows of damaged records")
+    c.set_defaults(func=_check)
+
+    e = ss.add_parser("evict", help="evict records down to a capacity")
+    e.add_argument("dir", help="store directory")
+    e.add_argument("--max-records", type=int, default=None, help="keep at most this many")
+    e.add_argument("--max-bytes", type=int, default=None, help="keep at most this many bytes")
+    e.add_argument(
+        "--policy", choices=("lru", "least_hit", "farthest"), default="lru", help="who goes first"
+    )
+    e.add_argument(
+        "--focus",
+        type=float,
+        nargs=3,
+        default=None,
+        metavar=("X", "Y", "Z"),
+        help="current position for --policy farthest",
+    )
+    e.set_defaults(func=_evict)
+
+
+def _open(path: str, readonly: bool):
+    from pathlib import Path
+
+    from icbtool import store
+
+    if not (Path(path) / store.store.DB_NAME).exists():
+        raise FileNotFoundError(f"no icbtool store at {path}")
+    return store.open(path, store.StoreConfig(readonly=readonly, create=False))
+
+
+def _stats(args: argparse.Namespace) -> int:
+    with _open(args.dir, readonly=True) as st:
+        s = st.stats()
+    if args.json:
+        print(json.dumps(s, indent=2))
+        return 0
+    print(f"store {s['path']} (format {s['format_version']})")
+    print(
+        f"  records: {s['records']}   bytes: {s['bytes']:,}   "
+        f"per record: {s['bytes_per_record']:,.0f}"
+    )
+    for g in s["groups"]:
+        o = g["octree"] or {}
+        print(
+            f"  scene {g['scene_name']!r} {g['scene_hash'][:12]} light {g['light_hash'][:12]}: "
+            f"{g['records']} records, {g['bytes']:,} bytes, {g['hits']} hits; octree depth "
+            f"{o.get('depth')}, leaf {o.get('leaf_size', 0):.4g}, {o.get('occupied_leaves')} "
+            f"leaves, {o.get('mean_per_leaf', 0):.2f} (max {o.get('max_per_leaf')}) per leaf"
+        )
+    return 0
+
+
+def _check(args: argparse.Namespace) -> int:
+    write = args.repair or args.drop_damaged
+    with _open(args.dir, readonly=not write) as st:
+        r = st.check(repair=args.repair, drop_damaged=args.drop_damaged)
+    print(f"checked {r.records_checked} records; database integrity: {r.db_integrity}")
+    for d in r.damaged:
+        print(f"  DAMAGED record {d.record_id}: {d.problem} ({d.path})")
+    if r.orphans:
+        verb = "removed" if args.repair else "found (run with --repair to remove)"
+        print(f"  {len(r.orphans)} orphan payload file(s) {verb}")
+    if r.dropped_records:
+        print(f"  dropped records {r.dropped_records}")
+    print("OK" if r.ok else f"DAMAGE: {len(r.damaged)} record(s)")
+    return 0 if r.ok else 1
+
+
+def _evict(args: argparse.Namespace) -> int:
+    if args.max_records is None and args.max_bytes is None:
+        raise ValueError("evict needs --max-records and/or --max-bytes")
+    with _open(args.dir, readonly=False) as st:
+        if args.focus is not None:
+            st.set_focus(args.focus)
+        before = (len(st), st.total_bytes)
+        gone = st.evict(args.max_records, args.max_bytes, args.policy)
+        print(
+            f"evicted {len(gone)} records: {before[0]} -> {len(st)} records, "
+            f"{before[1]:,} -> {st.total_bytes:,} bytes"
+        )
+    return 0

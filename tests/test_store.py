@@ -1,0 +1,621 @@
+"""Tests of icbtool.store: persistence, exact lookup, crash safety, corruption, eviction, baking."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+from scipy.spatial.transform import Rotation
+
+import icbtool.store as S
+from icbtool.camera import Camera
+
+REPO = Path(__file__).resolve().parents[1]
+PY = sys.executable
+
+
+def make_cam(pos, rot=None, size=(8, 8), fov=60.0) -> Camera:
+    m = np.eye(4)
+    if rot is not None:
+        m[:3, :3] = rot
+    m[:3, 3] = pos
+    return Camera.from_fov(fov, size[0], size[1], m)
+
+
+def make_record(cam: Camera, sh="scene", lh="light", seed=0, **tags) -> S.CRTBuffer:
+    r = np.random.default_rng(seed)
+    h, w = cam.height, cam.width
+    return S.CRTBuffer(
+        camera=cam,
+        meta=S.RecordMeta("s", sh, lh, spp=4, tags=tags),
+        gi=r.random((h, w, 3), np.float32),
+        dl=r.random((h, w, 3), np.float32),
+        albedo=r.random((h, w, 3), np.float32),
+        normal_world=r.standard_normal((h, w, 3)).astype(np.float32),
+        depth=r.random((h, w, 1), np.float32),
+        mask=(r.random((h, w, 1)) > 0.3).astype(np.float32),
+    )
+
+
+def same_buffers(a: S.CRTBuffer, b: S.CRTBuffer) -> bool:
+    if a.present != b.present or a.camera != b.camera:
+        return False
+    return all(
+        np.array_equal(getattr(a, n).view(np.uint32), getattr(b, n).view(np.uint32))
+        for n in a.present
+    )
+
+
+# ------------------------------------------------------------------------------ round trip
+_shape = st.tuples(st.integers(1, 6), st.integers(1, 6))
+
+
+@st.composite
+def records(draw):
+    h, w = draw(_shape)
+    cam = make_cam(draw(hnp.arrays(np.float64, 3, elements=st.floats(-5, 5))), size=(h, w))
+    names = draw(st.sets(st.sampled_from(S.BUFFER_NAMES)))
+    maps = {}
+    for n in names:
+        c = S.BUFFER_CHANNELS[n]
+        if n == "mask" and draw(st.booleans()):
+            el = st.sampled_from([0.0, 1.0])
+        else:
+            el = st.floats(width=32, allow_nan=True, allow_infinity=True)
+        maps[n] = draw(hnp.arrays(np.float32, (h, w, c), elements=el))
+    tags = draw(st.dictionaries(st.text(max_size=5), st.integers(-10, 10), max_size=3))
+    return S.CRTBuffer(cam, S.RecordMeta("s", "sh", "lh", tags=tags), **maps)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(recs=st.lists(records(), min_size=1, max_size=3))
+def test_put_get_roundtrip_is_bit_exact(recs):
+    with tempfile.TemporaryDirectory() as d:
+        with S.open(Path(d) / "s", S.StoreConfig(fsync=False)) as store:
+            ids = [store.put(r) for r in recs]
+            for rid, r in zip(ids, recs):
+                got = store.get(rid)
+                assert same_buffers(got, r)
+                assert got.meta == r.meta
+            assert len(store) == len(recs)
+            assert [i.record_id for i in store] == ids
+
+
+# ------------------------------------------------------------------------------ lookup
+_TABLES: dict = {}
+
+
+def brute_force(query: Camera, entries, a_pos, a_dir, rtol=1e-4):
+    """Reference: a plain scan of every (id, camera) entry of the query's group ("same" policy).
+
+    Returns (score, id, distance, 1 - dot) of the best match, or None.
+    """
+    key = id(entries)
+    if _TABLES.get("key") != (key, len(entries)):
+        _TABLES["key"] = (key, len(entries))
+        _TABLES["t"] = (
+            np.array([rid for rid, _ in entries]),
+            np.array([c.position for _, c in entries]),
+            np.array([c.forward for _, c in entries]),
+            np.array([[c.height, c.width, c.fx, c.fy, c.cx, c.cy] for _, c in entries]),
+        )
+    ids, pos, fwd, intr = _TABLES["t"]
+    q = np.array([query.height, query.width, query.fx, query.fy, query.cx, query.cy])
+    same = np.all(np.abs(intr - q) <= rtol * np.abs(q), axis=1)
+    dist = np.sqrt(np.sum((pos - query.position) ** 2, axis=1))
+    dd = 1.0 - fwd @ query.forward
+    ok = same & (dist < a_pos) & (dd < a_dir)
+    if not ok.any():
+        return None
+    score = dist / a_pos + dd / a_dir
+    k = min(np.flatnonzero(ok), key=lambda i: (score[i], ids[i]))
+    return score[k], int(ids[k]), dist[k], dd[k]
+
+
+@pytest.mark.parametrize("leaf_size", [0.05, 0.3, 2.0])
+def test_lookup_equals_brute_force(tmp_path, leaf_size):
+    rng = np.random.default_rng(7)
+    cfg = S.StoreConfig(alpha_pos=0.3, alpha_dir=0.05, leaf_size=leaf_size, fsync=False)
+    entries = []
+    with S.open(tmp_path / "s", cfg) as store:
+        store.register_scene(scene_hash="scene", bounds=[[0, 0, 0], [4, 2, 4]])
+        centres = rng.uniform([0, 0, 0], [4, 2, 4], (12, 3))
+        for k in range(400):
+            pos = centres[k % 12] + rng.normal(0, 0.25, 3)
+            if k % 40 == 0:
+                pos = rng.uniform(-3, 7, 3)  # some outside the bounds
+            rot = Rotation.random(random_state=k).as_matrix()
+            fov = 60.0 if k % 7 else 75.0  # some with other intrinsics
+            lh = "light" if k % 11 else "other-light"
+            cam = make_cam(pos, rot, size=(2, 2), fov=fov)
+            rid = store.put(make_record(cam, lh=lh, seed=k))
+            if lh == "light":
+                entries.append((rid, cam))
+        n_hits = 0
+        for q in range(300):
+            base = entries[rng.integers(len(entries))][1]
+            pos = base.position + rng.normal(0, 0.2, 3)
+            rot = Rotation.from_matrix(base.world_from_cam[:3, :3]) * Rotation.from_rotvec(
+                rng.normal(0, 0.15, 3)
+            )
+            query = make_cam(pos, rot.as_matrix(), size=(2, 2), fov=60.0 if q % 5 else 75.0)
+            # alternate the configured thresholds and larger per-call ones
+            a_pos, a_dir = (0.3, 0.05) if q % 2 else (0.9, 0.2)
+            hit = store.lookup(query, "scene", "light", alpha_pos=a_pos, alpha_dir=a_dir)
+            ref = brute_force(query, entries, a_pos, a_dir)
+            if ref is None:
+                assert hit is None, (q, hit)
+            else:
+                n_hits += 1
+                assert hit is not None and hit.record_id == ref[1], (q, hit, ref)
+                assert hit.distance == pytest.approx(ref[2], abs=1e-12)
+                assert hit.dir_score == pytest.approx(ref[3], abs=1e-12)
+                ang = np.degrees(np.arccos(np.clip(1 - ref[3], -1, 1)))
+                assert hit.angle_deg == pytest.approx(ang, abs=1e-6)
+        assert 50 < n_hits < 290  # the test exercises both hits and misses
+
+
+def test_lookup_matches_across_a_cell_boundary(tmp_path):
+    cfg = S.StoreConfig(alpha_pos=0.1, alpha_dir=0.01, leaf_size=1.0, fsync=False)
+    with S.open(tmp_path / "s", cfg) as store:
+        store.register_scene(scene_hash="scene", bounds=[[0, 0, 0], [8, 8, 8]])
+        g = store.geometry("scene")
+        assert g.leaf_size <= 1.0 and g.depth >= 3
+        # a corner shared by 8 leaves
+        corner = np.asarray(g.root_min) + 3 * g.leaf_size
+        stored = make_cam(corner - 0.02)
+        rid = store.put(make_record(stored))
+        query = make_cam(corner + 0.02)
+        tree = store._trees[("scene", "light")]
+        a, b = tree.cell_of(stored.position), tree.cell_of(query.position)
+        assert all(x != y for x, y in zip(a, b))  # different leaf on every axis
+        assert b in [(i + 1, j + 1, k + 1) for i, j, k in [a]]
+        assert a in tree.adjacent(b) or b not in tree.leaves  # the paper's "Adjacent"
+        hit = store.lookup(query, "scene", "light")
+        assert hit is not None and hit.record_id == rid
+        assert hit.distance == pytest.approx(0.04 * np.sqrt(3))
+        assert store.lookup(make_cam(corner + 0.05), "scene", "light") is None  # 0.12 away
+
+
+def test_cameras_outside_the_scene_bounds(tmp_path):
+    cfg = S.StoreConfig(alpha_pos=0.2, alpha_dir=0.05, fsync=False)
+    with S.open(tmp_path / "s", cfg) as store:
+        store.register_scene(scene_hash="scene", bounds=[[0, 0, 0], [1, 1, 1]])
+        far = [np.array([5.0, 5.0, 5.0]), np.array([-3.0, 0.5, 0.5]), np.array([0.5, 40, -9])]
+        ids = [store.put(make_record(make_cam(p), seed=i)) for i, p in enumerate(far)]
+        tree = store._trees[("scene", "light")]
+        assert not any(tree.is_inside(p) for p in far)
+        for rid, p in zip(ids, far):
+            hit = store.lookup(make_cam(p + [0.1, 0.05, 0.0]), "scene", "light")
+            assert hit is not None and hit.record_id == rid
+            assert store.lookup(make_cam(p + [0.3, 0.0, 0.0]), "scene", "light") is None
+        # clamped to the same border leaf but far apart: no false hit
+        assert store.lookup(make_cam([9.0, 5.0, 5.0]), "scene", "light") is None
+
+
+def test_other_light_setup_or_scene_never_matches(tmp_path):
+    with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as store:
+        cam = make_cam([1.0, 2.0, 3.0])
+        rid = store.put(make_record(cam, lh="sun-noon"))
+        assert store.lookup(cam, "scene", "sun-evening") is None
+        assert store.lookup(cam, "other-scene", "sun-noon") is None
+        assert store.lookup(cam, "scene", "sun-noon").record_id == rid
+
+
+def test_intrinsics_policy(tmp_path):
+    with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as store:
+        wide = make_cam([0, 0, 0], fov=90.0)
+        rid = store.put(make_record(wide))
+        narrow = make_cam([0, 0, 0.01], fov=60.0)
+        assert store.lookup(narrow, "scene", "light") is None  # "same": not a direct reuse
+        hit = store.lookup(narrow, "scene", "light", intrinsics="covering")
+        assert hit is not None and hit.record_id == rid and not hit.same_intrinsics
+        assert (
+            store.lookup(make_cam([0, 0, 0], fov=100.0), "scene", "light", intrinsics="covering")
+            is None
+        )  # the stored one is narrower
+        assert (
+            store.lookup(
+                make_cam([0, 0, 0], fov=100.0), "scene", "light", intrinsics="any"
+            ).record_id
+            == rid
+        )
+
+
+# ------------------------------------------------------------------------------ persistence
+def test_restart_keeps_everything(tmp_path):
+    cams = [make_cam([i * 0.5, 0, 0], size=(4, 5)) for i in range(12)]
+    with S.open(tmp_path / "s") as store:
+        ids = [store.put(make_record(c, seed=i, path="train")) for i, c in enumerate(cams)]
+        hits_before = [store.lookup(c, "scene", "light").record_id for c in cams]
+    with S.open(tmp_path / "s") as store:
+        assert len(store) == 12 and store.ids() == ids
+        for i, (rid, c) in enumerate(zip(ids, cams)):
+            assert same_buffers(store.get(rid), make_record(c, seed=i))
+            assert store.lookup(c, "scene", "light").record_id == hits_before[i]
+        assert sum(i.hits for i in store) == 24  # 12 flushed at close + 12 pending
+        assert store.check().ok
+
+
+WRITER = textwrap.dedent(
+    """
+    import sys, time
+    sys.path.insert(0, {repo!r})
+    import numpy as np
+    import icbtool.store as S
+    from icbtool.camera import Camera
+    d, start, n, sleep = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4])
+    with S.open(d, S.StoreConfig(lock_timeout_s=20)) as store:
+        print("open", flush=True)
+        for k in range(start, start + n):
+            m = np.eye(4); m[:3, 3] = [k * 0.01, 0, 0]
+            r = np.random.default_rng(k)
+            cam = Camera.from_fov(60, 16, 16, m)
+            buf = S.CRTBuffer(cam, S.RecordMeta("s", "scene", "light", tags={{"k": k}}),
+                              gi=r.random((16, 16, 3), np.float32),
+                              depth=r.random((16, 16, 1), np.float32))
+            rid = store.put(buf)
+            print(k, rid, flush=True)
+            time.sleep(sleep)
+    """
+)
+
+
+def expected(k: int) -> S.CRTBuffer:
+    m = np.eye(4)
+    m[:3, 3] = [k * 0.01, 0, 0]
+    r = np.random.default_rng(k)
+    cam = Camera.from_fov(60, 16, 16, m)
+    return S.CRTBuffer(
+        cam,
+        S.RecordMeta("s", "scene", "light", tags={"k": k}),
+        gi=r.random((16, 16, 3), np.float32),
+        depth=r.random((16, 16, 1), np.float32),
+    )
+
+
+def _writer(tmp_path: Path, d: Path, start: int, n: int, sleep: float) -> subprocess.Popen:
+    script = tmp_path / "writer.py"
+    if not script.exists():
+        script.write_text(WRITER.format(repo=str(REPO)))
+    return subprocess.Popen(
+        [PY, str(script), str(d), str(start), str(n), str(sleep)], stdout=subprocess.PIPE, text=True
+    )
+
+
+def test_sigkill_during_writes_loses_nothing_committed(tmp_path):
+    d = tmp_path / "s"
+    rng = np.random.default_rng(3)
+    committed: dict[int, int] = {}  # record id -> k
+    start = 0
+    for _round in range(20):
+        p = _writer(tmp_path, d, start, 10_000, 0.0)
+        assert p.stdout.readline().strip() == "open"
+        time.sleep(rng.uniform(0.0, 0.25))
+        p.send_signal(signal.SIGKILL)
+        out, _ = p.communicate()
+        for line in out.splitlines():
+            k, rid = map(int, line.split())
+            committed[rid] = k
+            start = max(start, k + 1)
+        with S.open(d, S.StoreConfig(readonly=True)) as store:  # readable right after the kill
+            assert set(committed) <= set(store.ids())
+    assert len(committed) > 20
+    with S.open(d) as store:  # the writer cleans orphan payloads on open
+        assert set(committed) <= set(store.ids())
+        for rid, k in committed.items():
+            assert same_buffers(store.get(rid), expected(k))
+        report = store.check()
+        assert report.ok and not report.orphans
+
+
+def test_readers_while_a_writer_writes(tmp_path):
+    d = tmp_path / "s"
+    with S.open(d) as store:
+        store.put(expected(0))
+    reader_code = textwrap.dedent(
+        f"""
+        import sys, time; sys.path.insert(0, {str(REPO)!r})
+        import icbtool.store as S
+        with S.open({str(d)!r}, S.StoreConfig(readonly=True)) as st:
+            seen = 0
+            t0 = time.time()
+            while time.time() - t0 < 20:
+                n = len(st)
+                assert n >= seen; seen = n
+                for rid in st.ids():
+                    st.get(rid)
+                if n >= 31: break
+                time.sleep(0.02)
+            print(seen)
+        """
+    )
+    reader = subprocess.Popen([PY, "-c", reader_code], stdout=subprocess.PIPE, text=True)
+    writer = _writer(tmp_path, d, 1, 30, 0.01)
+    assert writer.stdout.readline().strip() == "open"
+    with S.open(d, S.StoreConfig(readonly=True)) as store:
+        seen, lookups_hit = 0, 0
+        while writer.poll() is None or len(store) < 31:
+            n = len(store)
+            assert n >= seen
+            seen = n
+            for rid in store.ids():
+                assert store.get(rid).gi.shape == (16, 16, 3)
+            k = max(0, n - 1)
+            hit = store.lookup(expected(k).camera, "scene", "light", alpha_pos=0.001)
+            lookups_hit += hit is not None
+            if n >= 31:
+                break
+        assert len(store) == 31 and lookups_hit > 0
+        for rid in store.ids():
+            k = store.info(rid).meta.tags["k"]
+            assert same_buffers(store.get(rid), expected(k))
+    assert writer.wait(30) == 0
+    out, _ = reader.communicate(timeout=30)
+    assert reader.returncode == 0 and int(out) == 31
+
+
+def test_second_writer_is_refused_clearly(tmp_path):
+    with S.open(tmp_path / "s"):
+        p = _writer(tmp_path, tmp_path / "s", 0, 1, 0.0)  # waits for the lock (20 s)
+        time.sleep(0.5)
+        assert p.poll() is None  # blocked, not writing
+        with pytest.raises(S.StoreLockedError, match="open for writing"):
+            S.open(tmp_path / "s", S.StoreConfig(lock_timeout_s=0.1))
+    assert p.wait(30) == 0  # got the lock once we closed
+
+
+# ------------------------------------------------------------------------------ damage
+def test_corrupted_payloads_are_reported_by_check_and_get(tmp_path, capsys):
+    from icbtool.cli import main
+
+    d = tmp_path / "s"
+    with S.open(d) as store:
+        ids = [store.put(make_record(make_cam([i, 0, 0], size=(8, 8)), seed=i)) for i in range(4)]
+        paths = [store.info(i).payload for i in ids]
+    flip = bytearray(paths[0].read_bytes())
+    flip[len(flip) // 2] ^= 0xFF
+    paths[0].write_bytes(bytes(flip))
+    paths[1].write_bytes(paths[1].read_bytes()[:-10])
+    paths[2].unlink()
+    with S.open(d, S.StoreConfig(readonly=True)) as store:
+        rep = store.check()
+        assert not rep.ok
+        bad = {x.record_id: x.problem for x in rep.damaged}
+        assert set(bad) == set(ids[:3])
+        assert "checksum" in bad[ids[0]] and "size" in bad[ids[1]] and "missing" in bad[ids[2]]
+        for rid, what in zip(ids[:3], ("damaged", "damaged", "missing")):
+            with pytest.raises(S.PayloadError, match=f"record {rid}: payload file .* {what}"):
+                store.get(rid)
+        assert same_buffers(store.get(ids[3]), make_record(make_cam([3, 0, 0]), seed=3))
+    assert main(["store", "check", str(d)]) == 1
+    out = capsys.readouterr().out
+    assert out.count("DAMAGED") == 3 and "DAMAGE: 3" in out
+    assert main(["store", "check", str(d), "--drop-damaged"]) == 1  # damage found (and dropped)
+    assert main(["store", "check", str(d)]) == 0
+    with S.open(d) as store:
+        assert store.ids() == [ids[3]]
+
+
+def test_orphan_payloads_are_cleaned(tmp_path):
+    d = tmp_path / "s"
+    with S.open(d) as store:
+        store.put(make_record(make_cam([0, 0, 0])))
+    orphan = d / "payloads" / "ff" / ("f" * 32 + ".icbp")
+    orphan.parent.mkdir()
+    orphan.write_bytes(b"partial")
+    (d / "payloads" / "tmp" / "x.tmp").write_bytes(b"half-written")
+    with S.open(d, S.StoreConfig(readonly=True)) as store:
+        assert store.check().ok  # orphans are harmless; a reader only reports them
+    with S.open(d) as store:
+        assert store.orphans_removed_on_open == 2 and not orphan.exists()
+
+
+def test_non_store_and_corrupt_db_are_refused_untouched(tmp_path):
+    other = tmp_path / "photos"
+    other.mkdir()
+    (other / "holiday.jpg").write_bytes(b"jpeg")
+    with pytest.raises(S.StoreFormatError, match="not an icbtool store"):
+        S.open(other)
+    assert sorted(p.name for p in other.iterdir()) == ["holiday.jpg"]
+
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    junk = os.urandom(4096)
+    (bad / "icbstore.sqlite").write_bytes(junk)
+    with pytest.raises(S.StoreFormatError, match="icbstore.sqlite"):
+        S.open(bad)
+    assert (bad / "icbstore.sqlite").read_bytes() == junk
+
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    con = sqlite3.connect(foreign / "icbstore.sqlite")
+    con.execute("CREATE TABLE t (x)")
+    con.commit()
+    con.close()
+    before = (foreign / "icbstore.sqlite").read_bytes()
+    with pytest.raises(S.StoreFormatError, match="not an icbtool store"):
+        S.open(foreign)
+    assert (foreign / "icbstore.sqlite").read_bytes() == before
+
+    newer = tmp_path / "newer"
+    with S.open(newer) as store:
+        store.put(make_record(make_cam([0, 0, 0])))
+    con = sqlite3.connect(newer / "icbstore.sqlite")
+    con.execute("UPDATE meta SET value='99' WHERE key='format_version'")
+    con.commit()
+    con.close()
+    with pytest.raises(S.StoreFormatError, match="version '99' is not supported"):
+        S.open(newer)
+
+    with pytest.raises(FileNotFoundError):
+        S.open(tmp_path / "missing", S.StoreConfig(readonly=True))
+    with pytest.raises(S.RecordNotFoundError, match="no record 12345"):
+        with S.open(tmp_path / "fresh") as store:
+            store.get(12345)
+
+
+def test_bad_inputs_raise_clear_errors(tmp_path):
+    cam = make_cam([0, 0, 0], size=(4, 4))
+    with pytest.raises(ValueError, match=r"CRTBuffer.gi must be \(H, W, 3\)"):
+        S.CRTBuffer(cam, S.RecordMeta("s", "h", "l"), gi=np.zeros((4, 5, 3)))
+    with pytest.raises(ValueError, match="alpha_pos"):
+        S.StoreConfig(alpha_pos=0)
+    with pytest.raises(ValueError, match="eviction"):
+        S.StoreConfig(eviction="random")
+    with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as store:
+        with pytest.raises(ValueError, match="scene_hash and light_hash"):
+            store.lookup(cam)
+    with S.open(tmp_path / "s", S.StoreConfig(readonly=True)) as store:
+        with pytest.raises(S.ReadOnlyStoreError):
+            store.put(make_record(cam))
+
+
+# ------------------------------------------------------------------------------ eviction
+def test_eviction_keeps_the_store_within_capacity(tmp_path):
+    cfg = S.StoreConfig(max_records=10, eviction="lru", fsync=False)
+    cams = [make_cam([i * 1.0, 0, 0]) for i in range(30)]
+    with S.open(tmp_path / "s", cfg) as store:
+        first = store.put(make_record(cams[0]))
+        for i, c in enumerate(cams[1:], 1):
+            assert store.lookup(cams[0], "scene", "light").record_id == first  # keep it hot
+            store.put(make_record(c, seed=i))
+            assert len(store) <= 10
+        assert first in store  # recently hit: survives LRU
+        assert store.check().ok and len(list(store)) == len(store)
+        n_files = sum(1 for p in (tmp_path / "s" / "payloads").rglob("*.icbp"))
+        assert n_files == len(store)  # evicted payloads are gone from disk too
+
+    one = (tmp_path / "s" / "payloads").rglob("*.icbp").__next__().stat().st_size
+    cfg = S.StoreConfig(max_bytes=int(5.5 * one), eviction="least_hit", fsync=False)
+    with S.open(tmp_path / "b", cfg) as store:
+        for i, c in enumerate(cams[:15]):
+            store.put(make_record(c, seed=i))
+            assert store.total_bytes <= 5.5 * one * 1.05
+
+    cfg = S.StoreConfig(max_records=5, eviction="farthest", evict_to=1.0, fsync=False)
+    with S.open(tmp_path / "f", cfg) as store:
+        with pytest.raises(ValueError, match="focus"):
+            store.put(make_record(cams[0]))
+        store.set_focus([0.0, 0.0, 0.0])
+        for i, c in enumerate(cams[:10]):
+            store.put(make_record(c, seed=i))
+        kept = sorted(info.camera.position[0] for info in store)
+        assert kept == [0.0, 1.0, 2.0, 3.0, 9.0]  # the newest is protected at its own put
+
+
+def test_cli_stats_and_evict(tmp_path, capsys):
+    from icbtool.cli import main
+
+    d = tmp_path / "s"
+    with S.open(d) as store:
+        for i in range(6):
+            store.put(make_record(make_cam([i * 1.0, 0, 0]), seed=i))
+    assert main(["store", "stats", str(d)]) == 0
+    assert "records: 6" in capsys.readouterr().out
+    assert main(["store", "evict", str(d), "--max-records", "2"]) == 0
+    assert "6 -> 2 records" in capsys.readouterr().out
+    assert main(["store", "stats", str(d), "--json"]) == 0
+    assert '"records": 2' in capsys.readouterr().out
+    assert main(["store", "stats", str(tmp_path / "nothing")]) == 1
+
+
+# ------------------------------------------------------------------------------ dataset
+def test_dataset_splits_and_configurations(tmp_path):
+    with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as store:
+        for i in range(6):
+            cam = make_cam([i * 1.0, 0, 0], size=(4, 6))
+            rec = make_record(cam, seed=i, path="train" if i < 4 else "test", index=i)
+            rec.normal_view = rec.normal_world
+            rec.position = rec.normal_world
+            store.put(rec)
+        train = S.Dataset(store, scene="scene", split="train", inputs="I")
+        test = S.Dataset(store, scene="scene", split="test", inputs="I")
+        assert len(train) == 4 and len(test) == 2
+        assert not set(train.record_ids) & set(test.record_ids)
+        s = train[0]
+        assert s.inputs.shape == (10, 4, 6) and s.inputs.dtype == np.float32
+        assert s.target.shape == (3, 4, 6)
+        rec = store.get(s.record_id)
+        assert np.array_equal(s.inputs[:3], rec.albedo.transpose(2, 0, 1))
+        assert np.array_equal(s.inputs[9], rec.depth[..., 0])
+        assert np.array_equal(s.target, rec.gi.transpose(2, 0, 1))
+        for cfg, n in (("A", 6), ("D", 10), ("G", 12), ("J", 12)):
+            assert S.Dataset(store, split="train", inputs=cfg).n_channels == n
+        r1 = S.Dataset(store, split="test", split_by="random", seed=3).record_ids
+        r2 = S.Dataset(store, split="test", split_by="random", seed=3).record_ids
+        r3 = S.Dataset(store, split="train", split_by="random", seed=3).record_ids
+        assert r1 == r2 and not set(r1) & set(r3) and len(r1) + len(r3) == 6
+        with pytest.raises(ValueError, match="unknown input configuration"):
+            S.Dataset(store, inputs="Z")
+
+
+# ------------------------------------------------------------------------------ baking
+def _tiny_scene():
+    from icbtool.camera import CameraPath
+    from icbtool.scene import cornell_box, cornell_camera
+
+    scene = cornell_box()
+    base = cornell_camera(32, 32)
+    poses = []
+    for dx in (0.0, 0.05, 0.1):
+        m = np.array(base.world_from_cam)
+        m[:3, 3] += [dx, 0, 0]
+        poses.append(m)
+    scene.paths["tiny"] = CameraPath(np.arange(3.0), np.stack(poses), base, "tiny")
+    return scene
+
+
+def test_bake_without_gl_is_resumable(tmp_path):
+    scene = _tiny_scene()
+    cfg = S.BakeConfig(spp=2, gbuffer="trace", progress=False)
+    with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as store:
+        r1 = S.bake(
+            scene, "tiny", store, S.BakeConfig(spp=2, gbuffer="trace", progress=False, limit=2)
+        )
+        assert len(r1.rendered) == 2 and r1.skipped == []
+        r2 = S.bake(scene, "tiny", store, cfg)
+        assert len(r2.rendered) == 1 and r2.skipped == [0, 1]
+        r3 = S.bake(scene, "tiny", store, cfg)
+        assert r3.rendered == [] and len(store) == 3
+        rec = store.get(r2.rendered[0])
+        assert rec.meta.tags["path"] == "tiny" and rec.meta.tags["index"] == 2
+        assert rec.meta.scene_hash == scene.content_hash
+        assert np.all(np.isfinite(rec.gi)) and rec.gi.shape == (32, 32, 3)
+        m = rec.mask[..., 0] > 0
+        assert m.mean() > 0.5  # mostly walls
+        uv, z = rec.camera.project(rec.position[m])  # G-buffers agree with the camera
+        assert np.allclose(uv, rec.camera.pixel_centers()[m], atol=1e-3)
+        assert np.allclose(z, rec.depth[m][:, 0], rtol=1e-4)
+        hit = store.lookup(scene.paths["tiny"][2], scene=scene, alpha_pos=0.01)
+        assert hit is not None and hit.record_id == r2.rendered[0] and hit.distance == 0.0
+
+
+@pytest.mark.gl
+def test_bake_with_raster_is_resumable(tmp_path):
+    pytest.importorskip("icbtool.raster")
+    from icbtool import raster
+
+    if not hasattr(raster, "Rasterizer"):
+        pytest.skip("icbtool.raster.Rasterizer has not landed yet")
+    scene = _tiny_scene()
+    cfg = S.BakeConfig(spp=2, progress=False)
+    with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as store:
+        r1 = S.bake(scene, "tiny", store, cfg)
+        assert len(r1.rendered) == 3
+        r2 = S.bake(scene, "tiny", store, cfg)
+        assert r2.rendered == [] and r2.skipped == [0, 1, 2]
+        rec = store.get(r1.rendered[0])
+        assert set(rec.present) == set(S.BUFFER_NAMES)
