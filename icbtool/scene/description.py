@@ -38,7 +38,8 @@ description file; ``${VAR}`` and ``${VAR:-default}`` expand environment variable
     target = [10.0, 4.0, 0.0]
 
     [paths.train]                       # any number of named paths; type: flythrough | orbit |
-    type = "flythrough"                 #   random_walk; each may override fov_y_deg/height/width
+    type = "flythrough"                 #   random_walk; each may set fov_y_deg, image_height,
+                                        #   image_width (``height`` is the orbit's parameter)
     waypoints = [[-10, 1.7, 0], [10, 1.7, 0]]
     targets = [[0, 1.7, 0], [20, 1.7, 0]]   # optional
     n = 150
@@ -82,6 +83,8 @@ _LIGHT_KEYS = {
 }
 _SKY_KEYS = {"type", "zenith", "horizon", "ground", "up"}
 _DEFAULT_CAMERA_KEYS = {"eye", "target", "up"} | _CAMERA_KEYS
+#: Per-path intrinsics keys (``height`` is an orbit parameter, so image sizes are spelled out).
+_PATH_CAMERA_KEYS = {"fov_y_deg": "fov_y_deg", "image_height": "height", "image_width": "width"}
 _PATH_KEYS = {
     "flythrough": ({"waypoints"}, {"targets", "n", "speed", "up"}),
     "orbit": (
@@ -290,8 +293,8 @@ def add_area_lights(scene: Scene, lights: list[AreaLight]) -> Scene:
     )
 
 
-def _intr_for(spec: dict, intr: Intrinsics, size_override: dict, where: str, what: str):
-    kw = {k: spec[k] for k in _CAMERA_KEYS if k in spec}
+def _intr_for(spec: dict, intr: Intrinsics, size_override: dict, where: str, what: str, keys: dict):
+    kw = {name: spec[k] for k, name in keys.items() if k in spec}
     kw.update(size_override)  # build() overrides win over per-path values
     try:
         return Intrinsics(
@@ -306,7 +309,8 @@ def _intr_for(spec: dict, intr: Intrinsics, size_override: dict, where: str, wha
 def _default_camera(spec: dict, intr: Intrinsics, size_override: dict, where: str):
     from icbtool.camera import look_at_pose
 
-    cam = _intr_for(spec, intr, size_override, where, "[default_camera]")
+    keys = {k: k for k in _CAMERA_KEYS}
+    cam = _intr_for(spec, intr, size_override, where, "[default_camera]", keys)
     try:
         pose = look_at_pose(spec["eye"], spec["target"], spec.get("up", (0.0, 1.0, 0.0)))
     except (ValueError, TypeError) as e:
@@ -318,9 +322,9 @@ def _build_path(scene: Scene, pname: str, spec: dict, intr, size_override: dict,
     from icbtool.camera import CameraPath
     from icbtool.camera.walk import random_walk
 
-    cam = _intr_for(spec, intr, size_override, where, f"[paths.{pname}]")
+    cam = _intr_for(spec, intr, size_override, where, f"[paths.{pname}]", _PATH_CAMERA_KEYS)
     kind = spec["type"]
-    kw = {k: v for k, v in spec.items() if k not in _CAMERA_KEYS | {"type"}}
+    kw = {k: v for k, v in spec.items() if k not in set(_PATH_CAMERA_KEYS) | {"type"}}
     try:
         if kind == "flythrough":
             return CameraPath.flythrough(intrinsics=cam, name=pname, **kw)
@@ -422,7 +426,7 @@ def read_description(path: str | os.PathLike) -> SceneDescription:
             )
         req, opt = _PATH_KEYS[spec["type"]]
         paths[pname] = _check_keys(
-            spec, req | opt | _CAMERA_KEYS | {"type"}, where, f"paths.{pname}", req
+            spec, req | opt | set(_PATH_CAMERA_KEYS) | {"type"}, where, f"paths.{pname}", req
         )
     return SceneDescription(
         path=p,

@@ -176,7 +176,8 @@ def load_mesh(
     if uvs is not None and flip_v:
         uvs[:, 1] = 1.0 - uvs[:, 1]
     rot = UP_AXIS_ROTATIONS[up_axis]
-    verts = scale * verts @ rot.T + t
+    with np.errstate(invalid="ignore", over="ignore"):  # NaN/Inf vertices: reported below
+        verts = scale * verts @ rot.T + t
     if normals is not None:
         normals = normals @ rot.T
     where = str(p)

@@ -97,9 +97,12 @@ def _obj_face_indices(lines: list[bytes], n_tokens: int) -> np.ndarray | None:
     n_slash = text.count(b"/")
     k = n_slash // n_tokens + 1
     if n_slash == n_tokens * (k - 1):  # fast path: every corner has the same form
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # fromstring warns (and stops) on junk
-            a = np.fromstring(text.replace(b"/", b" "), dtype=np.int64, sep=" ")
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # older numpy warns (and stops) on junk
+                a = np.fromstring(text.replace(b"/", b" "), dtype=np.int64, sep=" ")
+        except ValueError:  # numpy 2 raises on junk
+            a = np.empty(0, np.int64)
         if a.size == n_tokens * k:
             return a.reshape(-1, k)[:, 0]
     try:
