@@ -684,85 +684,114 @@ class Store:
             ReadOnlyStoreError: if opened read-only.
             ValueError: if ``buf`` is not a CRTBuffer or eviction 'farthest' has no focus.
         """
+        return self.put_many([buf])[0]
+
+    def put_many(self, bufs: list[CRTBuffer]) -> list[int]:
+        """Store several CRT-buffers in one transaction (bulk import); returns their ids.
+
+        All payloads are made durable first, then every row is committed at once: after a crash
+        either all of them are in the store or none (orphan payloads are cleaned on open).
+        """
         conn = self._writable()
-        if not isinstance(buf, CRTBuffer):
-            raise ValueError(f"put() needs a CRTBuffer, got {type(buf).__name__}")
+        bufs = list(bufs)
+        for b in bufs:
+            if not isinstance(b, CRTBuffer):
+                raise ValueError(f"put() needs a CRTBuffer, got {type(b).__name__}")
+        if not bufs:
+            return []
         cfg = self.config
         capped = cfg.max_records is not None or cfg.max_bytes is not None
         if capped and cfg.eviction == "farthest" and self._focus is None:
             raise ValueError("eviction='farthest' needs a focus: call store.set_focus(position)")
-        meta, cam = buf.meta, buf.camera
-        if meta.scene_hash not in self._geoms:
-            self.register_scene(
-                scene_hash=meta.scene_hash, bounds=self._bounds_for(buf), name=meta.scene_name
-            )
-        data = encode_payload(buf, cfg.compression_level)
-        digest = _checksum(data)
-        name = uuid.uuid4().hex
-        rel = f"{name[:2]}/{name}{PAYLOAD_SUFFIX}"
-        final = self._payload_root / rel
-        tmp = self._payload_root / "tmp" / f"{name}.tmp"
-        tmp.parent.mkdir(parents=True, exist_ok=True)
-        with builtins.open(tmp, "wb") as f:
-            f.write(data)
-            if cfg.fsync:
-                f.flush()
-                os.fsync(f.fileno())
-        if not final.parent.exists():
-            final.parent.mkdir(parents=True, exist_ok=True)
-            if cfg.fsync:
-                _fsync_dir(self._payload_root)
-        os.replace(tmp, final)
+        for b in bufs:
+            if b.meta.scene_hash not in self._geoms:
+                self.register_scene(
+                    scene_hash=b.meta.scene_hash,
+                    bounds=self._bounds_for(b),
+                    name=b.meta.scene_name,
+                )
+        tmp_dir = self._payload_root / "tmp"
+        tmp_dir.mkdir(parents=True, exist_ok=True)
+        staged = []
+        dirs: set[Path] = set()
+        for buf in bufs:
+            data = encode_payload(buf, cfg.compression_level)
+            name = uuid.uuid4().hex
+            rel = f"{name[:2]}/{name}{PAYLOAD_SUFFIX}"
+            final = self._payload_root / rel
+            tmp = tmp_dir / f"{name}.tmp"
+            with builtins.open(tmp, "wb") as f:
+                f.write(data)
+                if cfg.fsync:
+                    f.flush()
+                    os.fsync(f.fileno())
+            if not final.parent.exists():
+                final.parent.mkdir(parents=True, exist_ok=True)
+                dirs.add(self._payload_root)
+            os.replace(tmp, final)
+            dirs.add(final.parent)
+            staged.append((buf, rel, len(data), _checksum(data)))
         if cfg.fsync:
-            _fsync_dir(final.parent)
-        row = _camera_row(cam)
-        geom = self._geoms[meta.scene_hash]
-        probe = SceneOctree(geom)
-        leaf = probe.cell_of(row[:3])
-        cur = conn.execute(
-            f"INSERT INTO records ({_INSERT_COLS}) VALUES ({', '.join(['?'] * 27)}, 0, ?)",
-            (
-                meta.scene_name,
-                meta.scene_hash,
-                meta.light_hash,
-                camera_key(cam),
-                *map(float, row[:6]),
-                cam.height,
-                cam.width,
-                cam.fx,
-                cam.fy,
-                cam.cx,
-                cam.cy,
-                np.ascontiguousarray(cam.world_from_cam, np.float64).tobytes(),
-                morton(*leaf),
-                ",".join(buf.present),
-                rel,
-                len(data),
-                digest,
-                meta.spp,
-                float(meta.render_time_s),
-                float(meta.created),
-                json.dumps(meta.tags),
-                None if meta.scene_bounds is None else json.dumps(meta.scene_bounds),
-                float(meta.created),
-            ),
-        )  # autocommit (isolation_level=None): committed when execute returns
-        rid = int(cur.lastrowid)
-        self._data_version = conn.execute("PRAGMA data_version").fetchone()[0]
-        key = (meta.scene_hash, meta.light_hash)
-        tree = self._trees.get(key)
-        if tree is None:
-            tree = self._trees[key] = SceneOctree(geom)
-        tree.insert(rid, row)
-        self._ids.add(rid)
-        self._max_id = max(self._max_id, rid)
-        self._count += 1
-        self._bytes += len(data)
+            for d in sorted(dirs, key=lambda p: len(p.parts)):
+                _fsync_dir(d)
+        rows = []
+        for buf, rel, nbytes, digest in staged:
+            meta, cam = buf.meta, buf.camera
+            row = _camera_row(cam)
+            leaf = SceneOctree(self._geoms[meta.scene_hash]).cell_of(row[:3])
+            rows.append(
+                (
+                    meta.scene_name,
+                    meta.scene_hash,
+                    meta.light_hash,
+                    camera_key(cam),
+                    *map(float, row[:6]),
+                    cam.height,
+                    cam.width,
+                    cam.fx,
+                    cam.fy,
+                    cam.cx,
+                    cam.cy,
+                    np.ascontiguousarray(cam.world_from_cam, np.float64).tobytes(),
+                    morton(*leaf),
+                    ",".join(buf.present),
+                    rel,
+                    nbytes,
+                    digest,
+                    meta.spp,
+                    float(meta.render_time_s),
+                    float(meta.created),
+                    json.dumps(meta.tags),
+                    None if meta.scene_bounds is None else json.dumps(meta.scene_bounds),
+                    float(meta.created),
+                )
+            )
+        sql = f"INSERT INTO records ({_INSERT_COLS}) VALUES ({', '.join(['?'] * 27)}, 0, ?)"
+        ids = []
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            for r in rows:
+                ids.append(int(conn.execute(sql, r).lastrowid))
+            conn.execute("COMMIT")
+        except BaseException:
+            conn.execute("ROLLBACK")
+            raise
+        for rid, (buf, _rel, nbytes, _d) in zip(ids, staged):
+            meta = buf.meta
+            key = (meta.scene_hash, meta.light_hash)
+            tree = self._trees.get(key)
+            if tree is None:
+                tree = self._trees[key] = SceneOctree(self._geoms[meta.scene_hash])
+            tree.insert(rid, _camera_row(buf.camera))
+            self._ids.add(rid)
+            self._max_id = max(self._max_id, rid)
+            self._count += 1
+            self._bytes += nbytes
         if self._over_capacity():
-            self.evict(protect=(rid,))
+            self.evict(protect=tuple(ids))
         elif time.monotonic() - self._last_flush > 5.0:
             self._flush_hits()
-        return rid
+        return ids
 
     def _over_capacity(self) -> bool:
         c = self.config
@@ -1007,6 +1036,7 @@ class Store:
         alpha_pos: float | None = None,
         alpha_dir: float | None = None,
         intrinsics: str | None = None,
+        exclude: Any = None,
     ) -> Hit | None:
         """The most similar stored camera (module docstring), or None on a miss.
 
@@ -1015,6 +1045,7 @@ class Store:
             scene_hash, light_hash: the scene content and light setup (or give ``scene``).
             scene: an :class:`~icbtool.scene.Scene` supplying both hashes.
             alpha_pos, alpha_dir, intrinsics: override the config's thresholds / policy.
+            exclude: record ids never to return (e.g. the query's own record).
 
         Returns:
             A :class:`Hit` (payload loaded lazily through ``hit.record``), or None.
@@ -1045,6 +1076,8 @@ class Store:
         dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
         dd = 1.0 - data[:, 3:6] @ m[:3, 2]
         ok = (dist < a_pos) & (dd < a_dir)
+        if exclude is not None:
+            ok &= ~np.isin(ids, np.fromiter(exclude, np.int64))
         if not ok.any():
             return None
         allowed, same = _intrinsics_mask(
