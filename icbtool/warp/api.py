@@ -38,9 +38,13 @@ class WarpConfig:
     """Options of the numpy warps."""
 
     rel_depth_tol: float = 0.02
-    """A bilinear tap passes the depth test if ``|z_tap - z| <= rel_depth_tol * z``. 2 % accepts
-    surfaces up to ~75-80 deg from the view direction at usual focal lengths and still separates
-    objects 2 % apart in depth."""
+    """A bilinear tap passes the depth test if ``|z / z_tap - 1| <= rel_depth_tol``, with the
+    tap's depth extrapolated to the sample along its own surface slope (see ``slope_limit``):
+    surfaces 2 % apart in depth are told apart."""
+    slope_limit: float = 0.25
+    """Slope-aware depth test: inverse-depth slopes up to this (relative, per pixel) are
+    surface slopes, larger ones are edges. 0: compare the raw tap depths (grazing surfaces then
+    lose taps)."""
     soft_depth: float = 0.0
     """0: hard depth test. > 0: sigmoid test of this relative width (differentiable in torch)."""
     min_weight: float = 1e-3
@@ -55,6 +59,8 @@ class WarpConfig:
             raise ValueError(f"WarpConfig.rel_depth_tol must be > 0, got {self.rel_depth_tol}")
         if not self.soft_depth >= 0:
             raise ValueError(f"WarpConfig.soft_depth must be >= 0, got {self.soft_depth}")
+        if not self.slope_limit >= 0:
+            raise ValueError(f"WarpConfig.slope_limit must be >= 0, got {self.slope_limit}")
         if not 0 <= self.min_weight < 1:
             raise ValueError(f"WarpConfig.min_weight must be in [0, 1), got {self.min_weight}")
         if self.splat not in ("nearest", "footprint2"):
@@ -223,6 +229,7 @@ def backward(
             config.rel_depth_tol,
             config.soft_depth,
             config.min_weight,
+            config.slope_limit,
         )
         holes = _np_map(out.holes)
         return WarpResult(

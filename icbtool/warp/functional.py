@@ -128,6 +128,29 @@ def _valid_mask(depth: Tensor, mask: Tensor | None, name: str) -> Tensor:
     return m
 
 
+def _inverse_depth_slopes(iz: Tensor, valid: Tensor, limit: float) -> tuple[Tensor, Tensor]:
+    """Per-pixel slopes (d/dx, d/dy) of inverse depth (B, 1, H, W): the one-sided difference of
+    smaller magnitude among those to valid neighbours; 0 if none, or if larger than
+    ``limit * iz`` (an edge, not a slope)."""
+    inf = torch.tensor(float("inf"), dtype=iz.dtype, device=iz.device)
+
+    def one(dim: int) -> Tensor:
+        d = torch.diff(iz, dim=dim)
+        ok = torch.logical_and(
+            valid.narrow(dim, 1, iz.shape[dim] - 1), valid.narrow(dim, 0, iz.shape[dim] - 1)
+        )
+        d = torch.where(ok, d, inf)
+        pad = [0, 0, 0, 0]
+        i = 0 if dim == 3 else 2
+        fwd = torch.nn.functional.pad(d, pad[:i] + [0, 1] + pad[i + 2 :], value=float("inf"))
+        bwd = torch.nn.functional.pad(d, pad[:i] + [1, 0] + pad[i + 2 :], value=float("inf"))
+        g = torch.where(fwd.abs() <= bwd.abs(), fwd, bwd)
+        g = torch.where(torch.isfinite(g) & (g.abs() <= limit * iz), g, 0.0)
+        return g
+
+    return one(3), one(2)
+
+
 # --------------------------------------------------------------------------- backward warp
 @dataclass
 class BackwardWarpOutput:
@@ -172,6 +195,7 @@ def warp_backward(
     rel_depth_tol: float = 0.02,
     soft_depth: float = 0.0,
     min_weight: float = 1e-3,
+    slope_limit: float = 0.25,
 ) -> BackwardWarpOutput:
     """Backward-warp a source image to a target camera whose depth is known.
 
@@ -185,11 +209,16 @@ def warp_backward(
         src_mask: optional (B, 1, Hs, Ws) geometry mask (> 0.5 or True = geometry). Without it,
             pixels with finite depth > 0 are geometry.
         dst_mask: optional (B, 1, Hd, Wd) likewise for the target.
-        rel_depth_tol: a tap passes if ``|z_tap - z| <= rel_depth_tol * z``.
+        rel_depth_tol: a tap passes if ``|z / z_tap - 1| <= rel_depth_tol`` (``z``: the point's
+            depth in the source camera, ``z_tap``: the tap's depth extrapolated to the sample).
         soft_depth: 0 for the hard test; > 0 replaces it by
-            ``sigmoid((rel_depth_tol * z - |z_tap - z|) / (soft_depth * z))`` (differentiable
-            w.r.t. the source depth).
+            ``sigmoid((rel_depth_tol - |z / z_tap - 1|) / soft_depth)`` (differentiable w.r.t.
+            the source depth).
         min_weight: a pixel whose passing tap weight is at most this is disoccluded.
+        slope_limit: slope-aware test: each tap's inverse depth is extrapolated to the sample
+            position with its own per-pixel slope (the smaller of the one-sided differences,
+            so a depth edge does not count as slope); slopes above ``slope_limit`` (relative,
+            per pixel) are treated as edges (0). 0 disables it (plain per-tap comparison).
 
     Returns:
         A :class:`BackwardWarpOutput`.
@@ -250,22 +279,39 @@ def warp_backward(
     y1 = (y0 + 1).clamp_max(hs - 1)
     x0 = x0.clamp_min(0)
     y0 = y0.clamp_min(0)
+    if slope_limit > 0:
+        x0, x1, y0, y1 = (t.to(dtype) for t in (x0, x1, y0, y1))
+        idx_x0, idx_x1, idx_y0, idx_y1 = (t.long() for t in (x0, x1, y0, y1))
+    else:
+        idx_x0, idx_x1, idx_y0, idx_y1 = x0, x1, y0, y1
     off = (torch.arange(b, device=device) * (hs * ws))[:, None]
-    r0, r1 = y0 * ws + off, y1 * ws + off
-    idx = torch.stack([r0 + x0, r0 + x1, r1 + x0, r1 + x1], 0)  # (4, B, N)
+    r0, r1 = idx_y0 * ws + off, idx_y1 * ws + off
+    idx = torch.stack([r0 + idx_x0, r0 + idx_x1, r1 + idx_x0, r1 + idx_x1], 0)  # (4, B, N)
     bw = torch.stack([(1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy], 0)
 
-    src_z = torch.where(src_valid, src_depth, torch.zeros_like(src_depth))
-    feats = torch.cat([src_image, src_z, src_valid.to(dtype)], 1)  # (B, C+2, Hs, Ws)
-    feats = feats.transpose(0, 1).reshape(c + 2, b * hs * ws)
-    taps = feats.index_select(1, idx.reshape(-1)).view(c + 2, 4, b, n)
-    tap_z, tap_ok = taps[c], taps[c + 1] > 0.5
-    diff = (tap_z - zs).abs()
-    tol = rel_depth_tol * z_safe
-    if soft_depth > 0:
-        passed = torch.sigmoid((tol - diff) / (soft_depth * z_safe)) * tap_ok
+    # per-tap depth test in inverse depth (affine in pixels on a plane): each tap's inverse
+    # depth is extrapolated to the sample with its own surface slope, so grazing surfaces pass
+    # while a tap across a depth edge (another surface) fails.
+    src_iz = torch.where(src_valid, 1.0 / torch.where(src_valid, src_depth, 1.0), 0.0)
+    if slope_limit > 0:
+        gx, gy = _inverse_depth_slopes(src_iz, src_valid, slope_limit)
+        extra = [src_iz, src_valid.to(dtype), gx, gy]
     else:
-        passed = ((diff <= tol) & tap_ok).to(dtype)
+        extra = [src_iz, src_valid.to(dtype)]
+    k = c + len(extra)
+    feats = torch.cat([src_image, *extra], 1)  # (B, k, Hs, Ws)
+    feats = feats.transpose(0, 1).reshape(k, b * hs * ws)
+    taps = feats.index_select(1, idx.reshape(-1)).view(k, 4, b, n)
+    tap_iz, tap_ok = taps[c], taps[c + 1] > 0.5
+    if slope_limit > 0:
+        dx = torch.stack([x - x0, x - x1, x - x0, x - x1], 0)
+        dy = torch.stack([y - y0, y - y0, y - y1, y - y1], 0)
+        tap_iz = tap_iz + taps[c + 2] * dx + taps[c + 3] * dy
+    rel = (tap_iz * z_safe - 1.0).abs()  # |z / z_tap - 1| to first order
+    if soft_depth > 0:
+        passed = torch.sigmoid((rel_depth_tol - rel) / soft_depth) * tap_ok
+    else:
+        passed = ((rel <= rel_depth_tol) & tap_ok).to(dtype)
     w = bw * passed  # (4, B, N)
     wsum = w.sum(0)  # (B, N)
     covered = inside & dv
@@ -409,9 +455,14 @@ class BackwardWarp(nn.Module):
     """
 
     def __init__(
-        self, rel_depth_tol: float = 0.02, soft_depth: float = 0.0, min_weight: float = 1e-3
+        self,
+        rel_depth_tol: float = 0.02,
+        soft_depth: float = 0.0,
+        min_weight: float = 1e-3,
+        slope_limit: float = 0.25,
     ) -> None:
         super().__init__()
+        self.slope_limit = slope_limit
         self.rel_depth_tol = rel_depth_tol
         self.soft_depth = soft_depth
         self.min_weight = min_weight
@@ -439,6 +490,7 @@ class BackwardWarp(nn.Module):
             self.rel_depth_tol,
             self.soft_depth,
             self.min_weight,
+            self.slope_limit,
         )
 
 
