@@ -156,6 +156,27 @@ def test_only_requested_buffers_and_determinism():
 
 
 @gl
+def test_clusters_and_culling_change_nothing(monkeypatch):
+    """Tiny culling clusters (many draw calls, u_prim_base offsets, clusters outside the view
+    skipped) give exactly the single-draw image."""
+    from icbtool.raster import renderer
+
+    scene = icb.scene.cornell_box()
+    cam = icb.Camera.look_at(
+        (0.5, 1.2, 1.5), (-0.6, 0.4, -1), (0, 1, 0), fov_y_deg=40, height=40, width=48
+    )
+    cfg = _cfg(area_samples=2, area_shadow_map_size=128)
+    ref = icb.raster.render(scene, cam, ("dl", "albedo", "depth", "normal_world"), config=cfg)
+    monkeypatch.setattr(renderer, "CLUSTER_FACES", 2)
+    with Rasterizer(scene, cfg) as r:
+        assert len(r._cluster_start) == scene.n_triangles // 2
+        buf = r.render(cam, ("dl", "albedo", "depth", "normal_world"))
+        assert buf.timings["clusters_drawn"] < 1.0  # some clusters were culled
+    for n in ("dl", "albedo", "depth", "normal_world"):
+        np.testing.assert_array_equal(getattr(buf, n), getattr(ref, n), err_msg=n)
+
+
+@gl
 def test_cornell_matches_embree_primary_rays():
     from icbtool.trace.embree import EmbreeScene
 

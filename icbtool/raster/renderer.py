@@ -51,6 +51,31 @@ _LOC_NAME = {
     "position": "LOC_POS",
 }
 _MAX_TARGETS = 6
+#: Faces per culling cluster (faces are sorted along a Morton curve, then cut into clusters).
+CLUSTER_FACES = 1024
+
+
+def _morton_order(points: np.ndarray) -> np.ndarray:
+    """(N,) permutation sorting ``points`` (N, 3) along a Morton (Z-order) curve, 10 bits/axis."""
+    lo, hi = points.min(0), points.max(0)
+    q = ((points - lo) / np.maximum(hi - lo, 1e-30) * 1023).astype(np.uint64)
+    code = np.zeros(len(points), np.uint64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return np.argsort(code, kind="stable")
+
+
+def _frustum_visible(clip_from_world: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(C,) bool: boxes [lo, hi] (C, 3) not entirely outside one of the 6 clip planes."""
+    m = clip_from_world
+    planes = np.stack(
+        [m[3] + m[0], m[3] - m[0], m[3] + m[1], m[3] - m[1], m[3] + m[2], m[3] - m[2]]
+    )
+    # the box corner farthest along each plane normal ("positive vertex")
+    pv = np.where(planes[None, :, :3] > 0, hi[:, None, :], lo[:, None, :])  # (C, 6, 3)
+    dist = (pv * planes[None, :, :3]).sum(-1) + planes[None, :, 3]
+    return ~(dist < 0).any(1)
 
 
 class RasterError(RuntimeError):
@@ -322,7 +347,18 @@ class Rasterizer:
             GL.glEnableVertexAttribArray(loc)
             GL.glVertexAttribPointer(loc, n, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
             self._vbos.append(vbo)
-        idx = np.ascontiguousarray(sc.faces, dtype=np.uint32)
+        # Faces sorted along a Morton curve and cut into clusters of CLUSTER_FACES, so that each
+        # frame draws only the clusters whose bounding box meets the view frustum (a few draw
+        # calls of contiguous ranges; u_prim_base maps gl_PrimitiveID back to the face).
+        order = _morton_order(sc.vertices[sc.faces].mean(1))
+        self._face_order = order
+        tri = sc.vertices[sc.faces[order]]
+        starts = np.arange(0, len(order), CLUSTER_FACES)
+        self._cluster_start = starts
+        self._cluster_count = np.minimum(CLUSTER_FACES, len(order) - starts)
+        self._cluster_lo = np.minimum.reduceat(tri.min(1), starts).astype(np.float64)
+        self._cluster_hi = np.maximum.reduceat(tri.max(1), starts).astype(np.float64)
+        idx = np.ascontiguousarray(sc.faces[order], dtype=np.uint32)
         self._ebo = GL.glGenBuffers(1)
         GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, self._ebo)
         GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, idx.nbytes, idx, GL.GL_STATIC_DRAW)
@@ -330,6 +366,7 @@ class Rasterizer:
         GL.glBindVertexArray(0)
 
         faces = np.concatenate([sc.face_normals, sc.face_material[:, None].astype(np.float32)], 1)
+        faces = faces[order]
         self._face_tex, _ = self._buffer_texture(faces)
         layers: dict[int, int] = {}
         mats = np.zeros((2 * len(sc.materials), 4), np.float32)
@@ -421,7 +458,7 @@ class Rasterizer:
                     area.append(perspective_view(s, n, min(ang + 1.0, cap), bounds, ares))
         return sharp, area
 
-    def _depth_array(self, n: int, res: int) -> int:
+    def _depth_array(self, n: int, res: int, linear: bool) -> int:
         GL = self._gl
         tex = GL.glGenTextures(1)
         GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, tex)
@@ -437,7 +474,7 @@ class Rasterizer:
             GL.GL_FLOAT,
             None,
         )
-        filt = GL.GL_LINEAR if self.config.pcf else GL.GL_NEAREST
+        filt = GL.GL_LINEAR if linear else GL.GL_NEAREST
         GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MIN_FILTER, filt)
         GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MAG_FILTER, filt)
         GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_WRAP_S, GL.GL_CLAMP_TO_EDGE)
@@ -472,7 +509,8 @@ class Rasterizer:
         ):
             if not views:
                 continue
-            tex = self._depth_array(len(views), res)
+            # area maps: no PCF, the k x k samples already average the penumbra
+            tex = self._depth_array(len(views), res, cfg.pcf and key == "sharp_tex")
             state[key] = tex
             GL.glViewport(0, 0, res, res)
             for layer, (m, _) in enumerate(views):
@@ -598,6 +636,12 @@ class Rasterizer:
         near, far = camera_near_far(camera, self.scene.bounds, cfg)
         clip_from_world = camera.gl_projection_matrix(near, far) @ camera.gl_view_matrix()
         fbo, _, _ = self._framebuffer(h, w)
+        # without a pre-pass, front-to-back cluster order lets early depth testing skip most
+        # hidden fragments
+        ranges = self._visible_ranges(
+            clip_from_world, None if cfg.depth_prepass else camera.position
+        )
+        timings["clusters_drawn"] = float(sum(c for _, c in ranges)) / max(1, len(self._face_order))
         n_targets = max(1, len(targets))
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fbo)
         GL.glViewport(0, 0, w, h)
@@ -618,7 +662,10 @@ class Rasterizer:
             self._set(dprog, "u_clip_from_world", clip_from_world, "m4")
             GL.glColorMask(GL.GL_FALSE, GL.GL_FALSE, GL.GL_FALSE, GL.GL_FALSE)
             GL.glDepthFunc(GL.GL_LESS)
-            GL.glDrawElements(GL.GL_TRIANGLES, self._n_indices, GL.GL_UNSIGNED_INT, None)
+            for first, count in ranges:
+                GL.glDrawElements(
+                    GL.GL_TRIANGLES, 3 * count, GL.GL_UNSIGNED_INT, ctypes.c_void_p(12 * first)
+                )
             GL.glColorMask(GL.GL_TRUE, GL.GL_TRUE, GL.GL_TRUE, GL.GL_TRUE)
             GL.glDepthFunc(GL.GL_EQUAL)
             GL.glDepthMask(GL.GL_FALSE)
@@ -627,7 +674,12 @@ class Rasterizer:
 
         GL.glUseProgram(prog)
         self._bind_scene_uniforms(prog, camera, clip_from_world, defines)
-        GL.glDrawElements(GL.GL_TRIANGLES, self._n_indices, GL.GL_UNSIGNED_INT, None)
+        base_loc = self._loc(prog, "u_prim_base")
+        for first, count in ranges:
+            GL.glUniform1i(base_loc, first)
+            GL.glDrawElements(
+                GL.GL_TRIANGLES, 3 * count, GL.GL_UNSIGNED_INT, ctypes.c_void_p(12 * first)
+            )
 
         if want_dl and self.scene.sky is not None:
             self._draw_sky(camera, targets.index("dl"))
@@ -659,6 +711,25 @@ class Rasterizer:
         timings["total"] = 1e3 * (time.perf_counter() - t_start)
         assert mask is not None
         return RasterBuffers(camera=camera, mask=mask, timings=timings, **out)
+
+    def _visible_ranges(
+        self, clip_from_world: np.ndarray, eye: np.ndarray | None = None
+    ) -> list[tuple[int, int]]:
+        """(first face, face count) of the runs of consecutive clusters inside the frustum,
+        front to back (by the distance from ``eye`` to the cluster box) when ``eye`` is given."""
+        vis = np.flatnonzero(_frustum_visible(clip_from_world, self._cluster_lo, self._cluster_hi))
+        if eye is not None:
+            lo, hi = self._cluster_lo[vis], self._cluster_hi[vis]
+            dist = np.linalg.norm(np.clip(eye, lo, hi) - eye, axis=1)
+            vis = vis[np.argsort(dist, kind="stable")]
+        ranges: list[tuple[int, int]] = []
+        for c in vis:
+            first, count = int(self._cluster_start[c]), int(self._cluster_count[c])
+            if ranges and ranges[-1][0] + ranges[-1][1] == first:
+                ranges[-1] = (ranges[-1][0], ranges[-1][1] + count)
+            else:
+                ranges.append((first, count))
+        return ranges
 
     def _bind_scene_uniforms(
         self, prog: int, camera: Camera, clip_from_world: np.ndarray, defines: dict[str, object]

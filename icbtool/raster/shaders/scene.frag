@@ -15,6 +15,7 @@ uniform sampler2DArray u_textures;
 #endif
 
 uniform samplerBuffer u_faces;      // per face: (geometric normal xyz, material index)
+uniform int u_prim_base;            // index of this draw's first face in u_faces
 uniform samplerBuffer u_materials;  // per material: (albedo rgb, texture layer or -1), (emission rgb, 0)
 uniform vec3 u_cam_pos;             // camera centre, world
 uniform vec3 u_cam_forward;         // +z camera axis, world
@@ -57,11 +58,11 @@ uniform float u_area_texel[N_AREA * AREA_K * AREA_K];
 uniform float u_normal_offset;  // in texels
 
 // 1 = lit, 0 = shadowed (bilinear PCF when the sampler filters linearly). Outside the map: lit.
+// w0: the receiver's depth in the light view (1 for orthographic views), scales the texel size.
 float shadow_lookup(sampler2DArrayShadow tex, mat4 m, float texel, int layer, vec3 p, vec3 ng,
-                    float cos_l) {
-    vec4 c0 = m * vec4(p, 1.0);
+                    float cos_l, float w0) {
     float sin_l = sqrt(max(0.0, 1.0 - cos_l * cos_l));
-    vec3 q = p + ng * (u_normal_offset * texel * max(c0.w, 0.0) * sin_l);
+    vec3 q = p + ng * (u_normal_offset * texel * max(w0, 0.0) * sin_l);
     vec4 c = m * vec4(q, 1.0);
     if (c.w <= 0.0) return 1.0;
     vec3 ndc = c.xyz / c.w;
@@ -126,7 +127,7 @@ float spot_falloff(float c, vec2 cs) {
 #endif  // LOC_DL
 
 void main() {
-    vec4 face = texelFetch(u_faces, gl_PrimitiveID);
+    vec4 face = texelFetch(u_faces, gl_PrimitiveID + u_prim_base);
     int mat = int(face.w + 0.5);
     vec4 m0 = texelFetch(u_materials, 2 * mat);
     vec3 albedo = m0.rgb;
@@ -149,7 +150,7 @@ void main() {
         if (cg <= 0.0) continue;
         float vis = 1.0;
 #ifdef SHADOWS
-        vis = shadow_lookup(u_shadow, u_shadow_mat[i], u_shadow_texel[i], i, p, ng, cg);
+        vis = shadow_lookup(u_shadow, u_shadow_mat[i], u_shadow_texel[i], i, p, ng, cg, 1.0);
 #endif
         dl += brdf * u_dir_E[i] * max(dot(ns, l), 0.0) * vis;
     }
@@ -168,7 +169,8 @@ void main() {
         int f = (aa.x >= aa.y && aa.x >= aa.z) ? (a.x > 0.0 ? 0 : 1)
               : ((aa.y >= aa.z) ? (a.y > 0.0 ? 2 : 3) : (a.z > 0.0 ? 4 : 5));
         int layer = N_DIR + 6 * i + f;
-        vis = shadow_lookup(u_shadow, u_shadow_mat[layer], u_shadow_texel[layer], layer, p, ng, cg);
+        vis = shadow_lookup(u_shadow, u_shadow_mat[layer], u_shadow_texel[layer], layer, p, ng, cg,
+                            (u_shadow_mat[layer] * vec4(p, 1.0)).w);
 #endif
         dl += brdf * u_point_I[i] / r2 * max(dot(ns, l), 0.0) * vis;
     }
@@ -184,7 +186,8 @@ void main() {
         float vis = 1.0;
 #ifdef SHADOWS
         int layer = N_DIR + 6 * N_POINT + i;
-        vis = shadow_lookup(u_shadow, u_shadow_mat[layer], u_shadow_texel[layer], layer, p, ng, cg);
+        vis = shadow_lookup(u_shadow, u_shadow_mat[layer], u_shadow_texel[layer], layer, p, ng, cg,
+                            (u_shadow_mat[layer] * vec4(p, 1.0)).w);
 #endif
         dl += brdf * u_spot_I[i] * fall / r2 * max(dot(ns, l), 0.0) * vis;
     }
@@ -202,6 +205,7 @@ void main() {
         // weighted by their unshadowed contribution cos * cos' / r^2.
         float wsum = 0.0;
         float vsum = 0.0;
+        float w0 = dot(p - u_area_corner[i], nl);  // depth in every sample's view (axis nl)
         for (int sj = 0; sj < AREA_K; ++sj) {
             for (int si = 0; si < AREA_K; ++si) {
                 vec3 s = u_area_corner[i] + (float(si) + 0.5) / float(AREA_K) * u_area_eu[i]
@@ -215,7 +219,7 @@ void main() {
                 float cg = max(dot(ng, l), 0.0);
                 wsum += w;
                 vsum += w * shadow_lookup(u_area_shadow, u_area_mat[layer], u_area_texel[layer],
-                                          layer, p, ng, cg);
+                                          layer, p, ng, cg, w0);
             }
         }
         vis = wsum > 0.0 ? vsum / wsum : 1.0;
