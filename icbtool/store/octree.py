@@ -114,6 +114,7 @@ class SceneOctree:
     def __init__(self, geometry: OctreeGeometry) -> None:
         self.geometry = geometry
         self._min = np.asarray(geometry.root_min, dtype=np.float64)
+        self._min_list = self._min.tolist()
         self._inv = 1.0 / geometry.leaf_size
         self._n = geometry.cells_per_axis
         self.leaves: dict[tuple[int, int, int], _Leaf] = {}
@@ -175,11 +176,13 @@ class SceneOctree:
             data: (N, 12) float64 rows (:data:`COLS`).
             ids: (N,) int64 record ids.
         """
-        q = (p - self._min) * self._inv
-        r = radius * self._inv
-        n1 = self._n - 1
-        lo = [min(max(int(math.floor(q[a] - r)), 0), n1) for a in range(3)]
-        hi = [min(max(int(math.floor(q[a] + r)), 0), n1) for a in range(3)]
+        inv, mn, n1 = self._inv, self._min_list, self._n - 1
+        r = radius * inv
+        lo, hi = [], []
+        for a, x in enumerate(p.tolist()):
+            qa = (x - mn[a]) * inv
+            lo.append(min(max(math.floor(qa - r), 0), n1))
+            hi.append(min(max(math.floor(qa + r), 0), n1))
         count = (hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1)
         leaves = self.leaves
         found = []

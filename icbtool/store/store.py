@@ -107,7 +107,8 @@ class StoreConfig:
     intrinsics_rtol: float = 1e-4
     """Relative tolerance on fx, fy, cx, cy for "same" (and on the half-angles for "covering")."""
     leaf_size: float | None = None
-    """Target leaf edge of a new scene's octree (default: alpha_pos); fixed once a scene exists."""
+    """Largest leaf edge of a new scene's octree (default: 2 * alpha_pos, so a lookup ball touches
+    at most 2 leaves per axis); fixed once the scene exists."""
     max_depth: int = 12
     """Deepest octree level (2^12 leaves per axis)."""
     max_records: int | None = None
@@ -127,6 +128,8 @@ class StoreConfig:
     """Create the store if the directory does not exist or is empty."""
     record_hits: bool = True
     """Count lookup hits (for LRU / least-hit eviction); flushed to the DB every few seconds."""
+    refresh_interval_s: float = 0.05
+    """Readers: how often (at most) a lookup checks for the writer's new commits."""
     lock_timeout_s: float = 10.0
     """How long a writer waits for another writer to close the store."""
     fsync: bool = True
@@ -168,6 +171,10 @@ class StoreConfig:
         if not (0 <= self.compression_level <= 9):
             raise ValueError(
                 f"StoreConfig.compression_level must be 0..9, got {self.compression_level}"
+            )
+        if not (self.refresh_interval_s >= 0):
+            raise ValueError(
+                f"StoreConfig.refresh_interval_s must be >= 0, got {self.refresh_interval_s}"
             )
         if self.lock_timeout_s < 0:
             raise ValueError(f"StoreConfig.lock_timeout_s must be >= 0, got {self.lock_timeout_s}")
@@ -343,29 +350,31 @@ def _camera_row(cam: Camera) -> np.ndarray:
     )
 
 
-def _intrinsics_mask(
-    data: np.ndarray, cam: Camera, policy: str, rtol: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """(ok for the policy, exactly-same intrinsics) for candidate rows ``data`` (N, 12)."""
-    h, w, fx, fy, cx, cy = (data[:, k] for k in range(6, 12))
+def _intrinsics_check(
+    r: list[float], q: tuple[int, int, float, float, float, float], policy: str, rtol: float
+) -> tuple[bool, bool]:
+    """(allowed by the policy, same intrinsics) for a stored camera ``r`` = [h, w, fx, fy, cx, cy]
+    and the query ``q`` (same layout)."""
+    h, w, fx, fy, cx, cy = r
+    qh, qw, qfx, qfy, qcx, qcy = q
     same = (
-        (h == cam.height)
-        & (w == cam.width)
-        & (np.abs(fx - cam.fx) <= rtol * cam.fx)
-        & (np.abs(fy - cam.fy) <= rtol * cam.fy)
-        & (np.abs(cx - cam.cx) <= rtol * max(cam.cx, 1.0))
-        & (np.abs(cy - cam.cy) <= rtol * max(cam.cy, 1.0))
+        h == qh
+        and w == qw
+        and abs(fx - qfx) <= rtol * qfx
+        and abs(fy - qfy) <= rtol * qfy
+        and abs(cx - qcx) <= rtol * max(qcx, 1.0)
+        and abs(cy - qcy) <= rtol * max(qcy, 1.0)
     )
     if policy == "same":
         return same, same
     if policy == "any":
-        return np.ones(len(data), bool), same
+        return True, same
     s = 1.0 - rtol  # covering: every half-angle tangent at least the query's
     cover = (
-        (cx / fx >= s * cam.cx / cam.fx)
-        & ((w - cx) / fx >= s * (cam.width - cam.cx) / cam.fx)
-        & (cy / fy >= s * cam.cy / cam.fy)
-        & ((h - cy) / fy >= s * (cam.height - cam.cy) / cam.fy)
+        cx / fx >= s * qcx / qfx
+        and (w - cx) / fx >= s * (qw - qcx) / qfx
+        and cy / fy >= s * qcy / qfy
+        and (h - cy) / fy >= s * (qh - qcy) / qfy
     )
     return cover, same
 
@@ -391,6 +400,7 @@ class Store:
         self._data_version = -1
         self._pending_hits: dict[int, tuple[int, float]] = {}
         self._last_flush = time.monotonic()
+        self._last_refresh = 0.0
         self._focus: np.ndarray | None = None
         self.orphans_removed_on_open = 0
         try:
@@ -626,7 +636,7 @@ class Store:
         if scene_hash in self._geoms:
             return self._geoms[scene_hash]
         conn = self._writable()
-        leaf = self.config.leaf_size or self.config.alpha_pos
+        leaf = self.config.leaf_size or 2.0 * self.config.alpha_pos
         geom = OctreeGeometry.for_bounds(
             np.asarray(bounds, np.float64), leaf, self.config.max_depth
         )
@@ -1056,9 +1066,11 @@ class Store:
             raise ValueError("lookup needs scene_hash and light_hash (or scene=)")
         conn = self._db()
         if self.readonly:
-            dv = conn.execute("PRAGMA data_version").fetchone()[0]
-            if dv != self._data_version:
-                self.refresh()
+            now = time.monotonic()
+            if now - self._last_refresh >= self.config.refresh_interval_s:
+                self._last_refresh = now
+                if conn.execute("PRAGMA data_version").fetchone()[0] != self._data_version:
+                    self.refresh()
         cfg = self.config
         a_pos = cfg.alpha_pos if alpha_pos is None else float(alpha_pos)
         a_dir = cfg.alpha_dir if alpha_dir is None else float(alpha_dir)
@@ -1075,22 +1087,30 @@ class Store:
         diff = data[:, 0:3] - p
         dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
         dd = 1.0 - data[:, 3:6] @ m[:3, 2]
-        ok = (dist < a_pos) & (dd < a_dir)
+        idx = np.flatnonzero((dist < a_pos) & (dd < a_dir)).tolist()
+        if not idx:
+            return None
         if exclude is not None:
-            ok &= ~np.isin(ids, np.fromiter(exclude, np.int64))
-        if not ok.any():
+            excl = {int(e) for e in exclude}
+            idx = [k for k in idx if int(ids[k]) not in excl]
+        policy = intrinsics or cfg.intrinsics
+        if policy not in ("same", "covering", "any"):
+            raise ValueError(f"intrinsics policy must be same|covering|any, got {policy!r}")
+        q = (camera.height, camera.width, camera.fx, camera.fy, camera.cx, camera.cy)
+        best: tuple[float, int, int, bool] | None = None  # score, id, index, same intrinsics
+        for k in idx:  # few candidates pass the thresholds: plain Python is fastest here
+            allowed, same = _intrinsics_check(
+                data[k, 6:12].tolist(), q, policy, cfg.intrinsics_rtol
+            )
+            if not allowed:
+                continue
+            sc = float(dist[k]) / a_pos + float(dd[k]) / a_dir
+            rid = int(ids[k])
+            if best is None or (sc, rid) < (best[0], best[1]):
+                best = (sc, rid, k, same)
+        if best is None:
             return None
-        allowed, same = _intrinsics_mask(
-            data, camera, intrinsics or cfg.intrinsics, cfg.intrinsics_rtol
-        )
-        ok &= allowed
-        if not ok.any():
-            return None
-        score = np.where(ok, dist / a_pos + dd / a_dir, np.inf)
-        best = score.min()
-        tie = np.flatnonzero(score == best)
-        k = int(tie[np.argmin(ids[tie])]) if len(tie) > 1 else int(tie[0])
-        rid = int(ids[k])
+        score, rid, k, same = best
         if cfg.record_hits and not self.readonly:
             n, _ = self._pending_hits.get(rid, (0, 0.0))
             self._pending_hits[rid] = (n + 1, time.time())
@@ -1100,8 +1120,8 @@ class Store:
             float(dist[k]),
             float(dd[k]),
             math.degrees(math.acos(cos)),
-            float(best),
-            bool(same[k]),
+            score,
+            same,
             len(ids),
             self,
         )
