@@ -619,3 +619,35 @@ def test_bake_with_raster_is_resumable(tmp_path):
         assert r2.rendered == [] and r2.skipped == [0, 1, 2]
         rec = store.get(r1.rendered[0])
         assert set(rec.present) == set(S.BUFFER_NAMES)
+
+
+def test_cloud_camera_modes():
+    scene = _tiny_scene()
+    path = scene.paths["tiny"]
+    client = path[1]
+    assert S.cloud_camera(client, S.BakeConfig()) == client
+    w = S.cloud_camera(client, S.BakeConfig(cloud_camera="wider", fov_multiplier=1.5, pullback=0.5))
+    assert w.fov_y_deg == pytest.approx(1.5 * client.fov_y_deg)
+    assert np.allclose(w.position, client.position - 0.5 * client.forward)
+    assert np.allclose(w.forward, client.forward)
+    p = S.cloud_camera(client, S.BakeConfig(cloud_camera="prefetch"), path, 1, scene)
+    assert np.allclose(p.forward, client.forward) and p.fov_y_deg >= client.fov_y_deg - 1e-9
+    with pytest.raises(ValueError, match="needs the camera path"):
+        S.cloud_camera(client, S.BakeConfig(cloud_camera="prefetch"))
+
+
+def test_put_many_and_exclude(tmp_path):
+    cams = [make_cam([0.01 * i, 0, 0]) for i in range(5)]
+    with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as store:
+        ids = store.put_many([make_record(c, seed=i) for i, c in enumerate(cams)])
+        assert ids == sorted(ids) and len(store) == 5
+        assert store.lookup(cams[2], "scene", "light").record_id == ids[2]
+        h = store.lookup(cams[2], "scene", "light", exclude=(ids[2],))
+        assert h.record_id in (ids[1], ids[3]) and h.distance == pytest.approx(0.01)
+        assert store.find_exact(cams[4], "scene", "light") == ids[4]
+        assert store.find_exact(make_cam([0.015, 0, 0]), "scene", "light") is None
+    with S.open(tmp_path / "s") as store:
+        assert all(
+            same_buffers(store.get(r), make_record(c, seed=i))
+            for i, (r, c) in enumerate(zip(ids, cams))
+        )

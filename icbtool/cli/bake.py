@@ -20,9 +20,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="raster",
         help="DL and G-buffers from the rasterizer or a primary ray cast",
     )
-    p.add_argument("--cloud-camera", choices=("same", "prefetch"), default="same")
-    p.add_argument("--fov-multiplier", type=float, default=1.5, help="prefetch FOV factor")
-    p.add_argument("--pullback", type=float, default=0.0, help="prefetch pull-back distance")
+    p.add_argument("--cloud-camera", choices=("same", "wider", "prefetch"), default="same")
+    p.add_argument(
+        "--fov-multiplier", type=float, default=1.5, help="--cloud-camera wider: FOV factor"
+    )
+    p.add_argument("--pullback", type=float, default=0.0, help="--cloud-camera wider: pull-back")
     p.add_argument(
         "--size",
         type=int,

@@ -38,14 +38,19 @@ class BakeConfig:
     gbuffer: Literal["raster", "trace"] = "raster"
     """Where DL and the G-buffers come from: the OpenGL rasterizer (the system's design), or a
     primary Embree ray cast at pixel centres plus the tracer's direct light (no OpenGL needed)."""
-    cloud_camera: Literal["same", "prefetch"] = "same"
-    """The camera baked for a client camera: the same one, or a prefetch camera."""
+    cloud_camera: Literal["same", "wider", "prefetch"] = "same"
+    """The camera baked for a client camera: the same one; "wider": a fixed rule (FOV times
+    ``fov_multiplier``, pulled back by ``pullback``); "prefetch":
+    ``icbtool.prefetch.prefetch_camera`` with the path's velocities at that camera (ICB.md
+    section 4) and ``prefetch_config``."""
     fov_multiplier: float = 1.5
-    """Prefetch: the vertical FOV is multiplied by this (capped at ``max_fov_deg``)."""
+    """"wider": the vertical FOV is multiplied by this (capped at ``max_fov_deg``)."""
     pullback: float = 0.0
-    """Prefetch: the camera moves this far back along -forward (scene units)."""
+    """"wider": the camera moves this far back along -forward (scene units)."""
     max_fov_deg: float = 120.0
-    """Prefetch: FOV cap (a pinhole camera near 180 degrees is unusable)."""
+    """"wider": FOV cap (a pinhole camera near 180 degrees is unusable)."""
+    prefetch_config: Any = None
+    """"prefetch": an ``icbtool.prefetch.PrefetchConfig`` (None: its defaults)."""
     resolution: tuple[int, int] | None = None
     """(height, width) of the baked maps; None: the path's."""
     stride: int = 1
@@ -70,9 +75,10 @@ class BakeConfig:
             raise ValueError(
                 f"BakeConfig.gbuffer must be 'raster' or 'trace', got {self.gbuffer!r}"
             )
-        if self.cloud_camera not in ("same", "prefetch"):
+        if self.cloud_camera not in ("same", "wider", "prefetch"):
             raise ValueError(
-                f"BakeConfig.cloud_camera must be 'same' or 'prefetch', got {self.cloud_camera!r}"
+                "BakeConfig.cloud_camera must be 'same', 'wider' or 'prefetch', "
+                f"got {self.cloud_camera!r}"
             )
         if not (self.fov_multiplier >= 1.0 and math.isfinite(self.fov_multiplier)):
             raise ValueError(f"BakeConfig.fov_multiplier must be >= 1, got {self.fov_multiplier}")
@@ -107,18 +113,37 @@ class BakeReport:
     seconds_per_view: float
 
 
-def cloud_camera(client: Camera, config: BakeConfig) -> Camera:
+def cloud_camera(
+    client: Camera,
+    config: BakeConfig,
+    path: CameraPath | None = None,
+    index: int = 0,
+    scene: Any = None,
+) -> Camera:
     """The cloud camera baked for ``client`` (see :attr:`BakeConfig.cloud_camera`).
 
-    ``"prefetch"`` here is the simple rule: same orientation and resolution, vertical FOV times
-    ``fov_multiplier`` (capped), centre moved ``pullback`` back along -forward. Pass
-    ``camera_fn=`` to :func:`bake` to use another rule (e.g. ``icbtool.prefetch.prefetch_camera``
-    with velocities).
+    Args:
+        client: the client camera (``path[index]``).
+        config: the bake config.
+        path, index: the path and the camera's index in it ("prefetch" uses its velocities).
+        scene: the scene ("prefetch" uses its diagonal as the far depth).
+
+    Raises:
+        ValueError: "prefetch" without a path.
     """
     if config.resolution is not None:
         client = client.resized(*config.resolution)
     if config.cloud_camera == "same":
         return client
+    if config.cloud_camera == "prefetch":
+        from icbtool import prefetch
+
+        if path is None:
+            raise ValueError("cloud_camera='prefetch' needs the camera path (for velocities)")
+        v_t, v_r = path.velocity_cam(float(path.times[index]))
+        far = 100.0 if scene is None else max(1.0, float(scene.diagonal))
+        cfg = config.prefetch_config or prefetch.PrefetchConfig()
+        return prefetch.prefetch_camera(client, v_t, v_r, cfg, (0.1, far)).camera
     fov = min(client.fov_y_deg * config.fov_multiplier, config.max_fov_deg)
     pose = np.array(client.world_from_cam)
     pose[:3, 3] -= config.pullback * pose[:3, 2]
@@ -199,7 +224,10 @@ def bake(
     store.register_scene(scene)
     todo, skipped = [], []
     for i in indices:
-        cam = camera_fn(path[i], i) if camera_fn is not None else cloud_camera(path[i], cfg)
+        if camera_fn is not None:
+            cam = camera_fn(path[i], i)
+        else:
+            cam = cloud_camera(path[i], cfg, path, i, scene)
         if cfg.skip_existing and store.find_exact(cam, sh, lh) is not None:
             skipped.append(i)
         else:
