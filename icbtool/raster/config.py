@@ -73,7 +73,9 @@ class RasterConfig:
         normal_offset: receiver offset along its geometric normal at shadow lookup, in shadow-map
             texels (scaled by the sine of the light's incidence angle).
         max_frustum_half_angle_deg: half-angle cap of the perspective shadow frusta of area-light
-            samples (and spot lights); receivers outside the frustum count as unshadowed.
+            samples (a frustum is fitted to the scene bounds, then capped: a wider one wastes
+            resolution); receivers farther off the light's axis count as unshadowed (they get at
+            most cos(cap) of the on-axis emission). Spot frusta cover the outer cone (<= 89 deg).
         texture_size: textured materials are resized to this square size (texels) to share one
             GL_TEXTURE_2D_ARRAY (stored as sRGB8 of the linear texture, decoded by GL; mipmapped).
         near: camera near plane (scene units); None: from the scene bounds and the camera.
@@ -93,7 +95,7 @@ class RasterConfig:
     depth_bias_slope: float = 1.5
     depth_bias_units: float = 2.0
     normal_offset: float = 1.5
-    max_frustum_half_angle_deg: float = 80.0
+    max_frustum_half_angle_deg: float = 60.0
     texture_size: int = 512
     near: float | None = None
     far: float | None = None

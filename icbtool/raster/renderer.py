@@ -442,7 +442,7 @@ class Rasterizer:
         for light in sc.lights_of("spot"):
             sharp.append(
                 perspective_view(
-                    light.position, light.direction, min(light.outer_deg + 1.0, cap), bounds, res
+                    light.position, light.direction, min(light.outer_deg + 1.0, 89.0), bounds, res
                 )
             )
         area: list[tuple[np.ndarray, float]] = []
@@ -509,8 +509,7 @@ class Rasterizer:
         ):
             if not views:
                 continue
-            # area maps: no PCF, the k x k samples already average the penumbra
-            tex = self._depth_array(len(views), res, cfg.pcf and key == "sharp_tex")
+            tex = self._depth_array(len(views), res, cfg.pcf)
             state[key] = tex
             GL.glViewport(0, 0, res, res)
             for layer, (m, _) in enumerate(views):
