@@ -401,3 +401,21 @@ def test_slope_aware_depth_test_keeps_grazing_surfaces():
     inner = ~aware.outside
     assert (raw.weight[inner] < 0.999).mean() > 0.5
     assert (aware.weight[inner] > 0.999).mean() > 0.95
+
+
+def test_precomputed_slopes_give_the_same_warp():
+    from icbtool.warp.functional import inverse_depth_slopes
+
+    src, dst = cam_at(x=-0.3), cam_at(x=0.2, rotvec=(0, 0.03, 0))
+    s_img, s_depth, _ = render(src)
+    _, d_depth, _ = render(dst)
+    t = lambda a: torch.from_numpy(a).permute(2, 0, 1)[None]  # noqa: E731
+    K_s, K_d = torch.from_numpy(src.K)[None].float(), torch.from_numpy(dst.K)[None].float()
+    pose = torch.from_numpy(src.cam_from_world @ dst.world_from_cam)[None].float()
+    a = warp_backward(t(s_img), t(s_depth), t(d_depth), K_s, K_d, pose)
+    slopes = inverse_depth_slopes(t(s_depth))
+    b = warp_backward(t(s_img), t(s_depth), t(d_depth), K_s, K_d, pose, src_slopes=slopes)
+    torch.testing.assert_close(a.image, b.image)
+    assert torch.equal(a.holes, b.holes)
+    with pytest.raises(ValueError, match="src_slopes"):
+        warp_backward(t(s_img), t(s_depth), t(d_depth), K_s, K_d, pose, src_slopes=slopes[:, :1])

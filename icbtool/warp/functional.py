@@ -39,6 +39,7 @@ __all__ = [
     "BackwardWarpOutput",
     "ForwardWarp",
     "ForwardWarpOutput",
+    "inverse_depth_slopes",
     "pixel_grid",
     "warp_backward",
     "warp_forward",
@@ -151,6 +152,28 @@ def _inverse_depth_slopes(iz: Tensor, valid: Tensor, limit: float) -> tuple[Tens
     return one(3), one(2)
 
 
+def inverse_depth_slopes(
+    src_depth: Tensor, src_mask: Tensor | None = None, slope_limit: float = 0.25
+) -> Tensor:
+    """Per-pixel inverse-depth slopes of a reference, for :func:`warp_backward`'s ``src_slopes``.
+
+    A reference (GI map) is warped to many client frames: compute this once per reference and
+    pass it to every warp instead of recomputing it each time.
+
+    Args:
+        src_depth: (B, 1, H, W) view-space depth.
+        src_mask: optional (B, 1, H, W) geometry mask.
+        slope_limit: relative per-pixel slope above which a difference counts as an edge.
+
+    Returns:
+        (B, 2, H, W): d(1/z)/dx and d(1/z)/dy per pixel (0 at edges and invalid pixels).
+    """
+    _check_bchw(src_depth, "src_depth", 1)
+    valid = _valid_mask(src_depth, src_mask, "src")
+    iz = torch.where(valid, 1.0 / torch.where(valid, src_depth, 1.0), 0.0)
+    return torch.cat(_inverse_depth_slopes(iz, valid, slope_limit), 1)
+
+
 # --------------------------------------------------------------------------- backward warp
 @dataclass
 class BackwardWarpOutput:
@@ -196,6 +219,7 @@ def warp_backward(
     soft_depth: float = 0.0,
     min_weight: float = 1e-3,
     slope_limit: float = 0.25,
+    src_slopes: Tensor | None = None,
 ) -> BackwardWarpOutput:
     """Backward-warp a source image to a target camera whose depth is known.
 
@@ -219,6 +243,8 @@ def warp_backward(
             position with its own per-pixel slope (the smaller of the one-sided differences,
             so a depth edge does not count as slope); slopes above ``slope_limit`` (relative,
             per pixel) are treated as edges (0). 0 disables it (plain per-tap comparison).
+        src_slopes: optional (B, 2, Hs, Ws) precomputed :func:`inverse_depth_slopes` of the
+            source (used instead of computing them; ``slope_limit`` must then be > 0).
 
     Returns:
         A :class:`BackwardWarpOutput`.
@@ -294,8 +320,15 @@ def warp_backward(
     # while a tap across a depth edge (another surface) fails.
     src_iz = torch.where(src_valid, 1.0 / torch.where(src_valid, src_depth, 1.0), 0.0)
     if slope_limit > 0:
-        gx, gy = _inverse_depth_slopes(src_iz, src_valid, slope_limit)
-        extra = [src_iz, src_valid.to(dtype), gx, gy]
+        if src_slopes is None:
+            gx, gy = _inverse_depth_slopes(src_iz, src_valid, slope_limit)
+            extra = [src_iz, src_valid.to(dtype), gx, gy]
+        else:
+            if src_slopes.shape != (b, 2, hs, ws):
+                raise ValueError(
+                    f"src_slopes must be ({b}, 2, {hs}, {ws}), got {tuple(src_slopes.shape)}"
+                )
+            extra = [src_iz, src_valid.to(dtype), src_slopes.to(dtype)]
     else:
         extra = [src_iz, src_valid.to(dtype)]
     k = c + len(extra)
