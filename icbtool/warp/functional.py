@@ -331,8 +331,8 @@ def warp_backward(
             extra = [src_iz, src_valid.to(dtype), src_slopes.to(dtype)]
     else:
         extra = [src_iz, src_valid.to(dtype)]
-    k = c + len(extra)
     feats = torch.cat([src_image, *extra], 1)  # (B, k, Hs, Ws)
+    k = feats.shape[1]
     feats = feats.transpose(0, 1).reshape(k, b * hs * ws)
     taps = feats.index_select(1, idx.reshape(-1)).view(k, 4, b, n)
     tap_iz, tap_ok = taps[c], taps[c + 1] > 0.5
