@@ -223,6 +223,7 @@ class Rasterizer:
         self._uniform_locs: dict[tuple[int, str], int] = {}
         self._fbo: dict[tuple[int, int], tuple[int, list[int], int]] = {}
         self._shadow_state: dict[str, Any] | None = None
+        self.last_drawn_fraction = 1.0  # faces drawn / all faces in the last frame (culling)
         self._has_tex = scene.has_textures
         self._counts = {
             k: len(scene.lights_of(k)) for k in ("directional", "point", "spot", "area")
@@ -640,7 +641,8 @@ class Rasterizer:
         ranges = self._visible_ranges(
             clip_from_world, None if cfg.depth_prepass else camera.position
         )
-        timings["clusters_drawn"] = float(sum(c for _, c in ranges)) / max(1, len(self._face_order))
+        # fraction of the faces sent to GL after frustum culling (diagnostics)
+        self.last_drawn_fraction = sum(c for _, c in ranges) / max(1, len(self._face_order))
         n_targets = max(1, len(targets))
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fbo)
         GL.glViewport(0, 0, w, h)
