@@ -24,9 +24,7 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
 def srgb_decode(encoded: np.ndarray) -> np.ndarray:
     """sRGB-encoded [0, 1] -> linear [0, 1] (float32)."""
     x = np.clip(np.asarray(encoded, dtype=np.float32), 0.0, 1.0)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(
-        np.float32
-    )
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
 
 
 def to_display(linear: np.ndarray, exposure: float = 1.0) -> np.ndarray:
@@ -124,8 +122,12 @@ def read_exr(path: str | os.PathLike) -> np.ndarray:
         raise OSError(f"could not read EXR {path}: {e}") from e
 
 
-def preview(image: np.ndarray, kind: str = "color", exposure: float | None = None,
-            mask: np.ndarray | None = None) -> np.ndarray:
+def preview(
+    image: np.ndarray,
+    kind: str = "color",
+    exposure: float | None = None,
+    mask: np.ndarray | None = None,
+) -> np.ndarray:
     """An 8-bit RGB preview of a buffer.
 
     Args:

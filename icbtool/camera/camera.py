@@ -5,7 +5,7 @@ kornia only through :meth:`Camera.K_kornia`):
 
 * Camera axes are OpenCV's: +x right, +y down, +z forward (the viewing direction).
 * ``world_from_cam`` is a 4x4 rigid transform taking camera coordinates to world coordinates.
-* Continuous pixel coordinates ``(u, v)``: ``u`` grows to the right (columns), ``v`` downwards (rows).
+* Continuous pixel coordinates ``(u, v)``: ``u`` grows to the right (columns), ``v`` down (rows).
   The image covers ``[0, width] x [0, height]``; the centre of pixel ``(row i, col j)`` is at
   ``(u, v) = (j + 0.5, i + 0.5)``. This is OpenGL's and Mitsuba's convention. kornia (and OpenCV's
   ``cv2.remap``) put pixel centres at integer coordinates: :meth:`Camera.K_kornia` shifts the
@@ -54,7 +54,7 @@ class Camera:
         height: image height in pixels.
         width: image width in pixels.
         fx, fy: focal lengths in pixels.
-        cx, cy: principal point in continuous pixel coordinates (``width / 2`` for a centred camera).
+        cx, cy: principal point in continuous pixel coordinates (``width / 2`` when centred).
         world_from_cam: (4, 4) float64 rigid transform, camera coordinates to world.
     """
 
@@ -359,8 +359,17 @@ class Camera:
         )
 
     def __hash__(self) -> int:
-        return hash((self.height, self.width, self.fx, self.fy, self.cx, self.cy,
-                     self.world_from_cam.tobytes()))
+        return hash(
+            (
+                self.height,
+                self.width,
+                self.fx,
+                self.fy,
+                self.cx,
+                self.cy,
+                self.world_from_cam.tobytes(),
+            )
+        )
 
     def __repr__(self) -> str:
         p = np.round(self.position, 4).tolist()

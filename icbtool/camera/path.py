@@ -238,7 +238,9 @@ class CameraPath:
         if targets is not None:
             tg = np.asarray(targets, np.float64)
             if tg.shape != w.shape:
-                raise ValueError(f"targets must have the waypoints' shape {w.shape}, got {tg.shape}")
+                raise ValueError(
+                    f"targets must have the waypoints' shape {w.shape}, got {tg.shape}"
+                )
             tspl = CubicSpline(knots, tg, axis=0, bc_type=bc)
         # arc-length reparametrisation
         s_dense = np.linspace(0, knots[-1], 2048)

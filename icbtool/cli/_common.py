@@ -54,8 +54,17 @@ def run_info() -> dict[str, Any]:
         pass
     from importlib import metadata
 
-    for pkg in ("numpy", "embreex", "pyrender", "PyOpenGL", "torch", "kornia", "open3d-cpu",
-                "opencv-contrib-python-headless", "trimesh"):
+    for pkg in (
+        "numpy",
+        "embreex",
+        "pyrender",
+        "PyOpenGL",
+        "torch",
+        "kornia",
+        "open3d-cpu",
+        "opencv-contrib-python-headless",
+        "trimesh",
+    ):
         try:
             info[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:

@@ -18,7 +18,9 @@ def _as_display(x: np.ndarray, exposure: float) -> np.ndarray:
     return to_display(a, exposure).astype(np.float64)
 
 
-def mse(a: np.ndarray, b: np.ndarray, exposure: float = 1.0, mask: np.ndarray | None = None) -> float:
+def mse(
+    a: np.ndarray, b: np.ndarray, exposure: float = 1.0, mask: np.ndarray | None = None
+) -> float:
     """Mean squared error on the display scale (0-255). Float inputs are linear HDR and go through
     the display transform with ``exposure``; uint8 inputs are used as they are.
 

@@ -39,8 +39,12 @@ _CB_TALL = [
     [(265.0, 0, 296.0), (265.0, 330.0, 296.0), (423.0, 330.0, 247.0), (423.0, 0, 247.0)],
 ]
 # The light: 130 x 105 mm, hung 0.5 mm below the ceiling (the data put it in the ceiling plane).
-_CB_LIGHT = [(343.0, 548.3, 227.0), (343.0, 548.3, 332.0), (213.0, 548.3, 332.0),
-             (213.0, 548.3, 227.0)]
+_CB_LIGHT = [
+    (343.0, 548.3, 227.0),
+    (343.0, 548.3, 332.0),
+    (213.0, 548.3, 332.0),
+    (213.0, 548.3, 227.0),
+]
 
 # Linear RGB reflectances commonly used for the box's measured spectra (as in Mitsuba's and
 # PBRT's Cornell box scenes) and the light's radiance.
@@ -130,15 +134,28 @@ def cornell_box(
     cam = cornell_camera(height, width)
     intr = Camera.from_fov(cam.fov_y_deg, height, width)
     train = CameraPath.orbit(
-        center=(0.0, 0.0, 0.0), radius=3.6, height=1.0, intrinsics=intr, n=48, duration_s=5.0,
-        start_deg=60.0, sweep_deg=60.0, look_height=0.95, name="train",
+        center=(0.0, 0.0, 0.0),
+        radius=3.6,
+        height=1.0,
+        intrinsics=intr,
+        n=48,
+        duration_s=5.0,
+        start_deg=60.0,
+        sweep_deg=60.0,
+        look_height=0.95,
+        name="train",
     )
     test = CameraPath.flythrough(
-        [(-0.55, 0.7, 3.0), (0.0, 0.8, 2.2), (0.45, 0.9, 1.5)], intr, n=48, speed=0.3,
-        targets=[(0.2, 0.8, -1.0), (0.0, 0.9, -1.0), (-0.3, 0.8, -1.0)], name="test",
+        [(-0.55, 0.7, 3.0), (0.0, 0.8, 2.2), (0.45, 0.9, 1.5)],
+        intr,
+        n=48,
+        speed=0.3,
+        targets=[(0.2, 0.8, -1.0), (0.0, 0.9, -1.0), (-0.3, 0.8, -1.0)],
+        name="test",
     )
-    return b.build(default_camera=cam, paths={"train": train, "test": test},
-                   source="procedural:cornell_box")
+    return b.build(
+        default_camera=cam, paths={"train": train, "test": test}, source="procedural:cornell_box"
+    )
 
 
 # --------------------------------------------------------------------------- known answers
@@ -167,8 +184,7 @@ def white_furnace(
     b = SceneBuilder("white_furnace")
     m = b.material("furnace", albedo=(albedo,) * 3, emission=(emission,) * 3)
     b.add_mesh(verts, faces, m, normals)
-    cam = Camera.look_at((0, 0, 0), (0, 0, -1), (0, 1, 0), fov_y_deg=60, height=height,
-                         width=width)
+    cam = Camera.look_at((0, 0, 0), (0, 0, -1), (0, 1, 0), fov_y_deg=60, height=height, width=width)
     return b.build(default_camera=cam, source="procedural:white_furnace")
 
 
@@ -195,8 +211,7 @@ def plane(
         b.lights.append(DirectionalLight(sun_direction, (sun_irradiance,) * 3, name="sun"))
     if sky is not None:
         b.sky = Sky((sky,) * 3)
-    cam = Camera.look_at((0, 2, 0), (0, 0, 0), (0, 0, -1), fov_y_deg=60, height=height,
-                         width=width)
+    cam = Camera.look_at((0, 2, 0), (0, 0, 0), (0, 0, -1), fov_y_deg=60, height=height, width=width)
     return b.build(default_camera=cam, source="procedural:plane")
 
 
@@ -225,15 +240,19 @@ def boxes_on_floor(
         b.add_box(pos, size, m, rotation_y_deg=float(rng.uniform(0, 90)))
     b.lights.append(DirectionalLight(sun_direction, (sun_irradiance,) * 3, name="sun"))
     b.sky = Sky((sky,) * 3)
-    cam = Camera.look_at((0, 3, 8), (0, 0.5, 0), (0, 1, 0), fov_y_deg=50, height=height,
-                         width=width)
+    cam = Camera.look_at(
+        (0, 3, 8), (0, 0.5, 0), (0, 1, 0), fov_y_deg=50, height=height, width=width
+    )
     intr = Camera.from_fov(50, height, width)
-    train = CameraPath.orbit((0, 0, 0), 7.0, 2.5, intr, n=48, duration_s=20, name="train",
-                             look_height=0.5)
-    test = CameraPath.orbit((0, 0, 0), 5.5, 1.5, intr, n=48, duration_s=20, start_deg=20,
-                            name="test", look_height=0.5)
-    return b.build(default_camera=cam, paths={"train": train, "test": test},
-                   source="procedural:boxes_on_floor")
+    train = CameraPath.orbit(
+        (0, 0, 0), 7.0, 2.5, intr, n=48, duration_s=20, name="train", look_height=0.5
+    )
+    test = CameraPath.orbit(
+        (0, 0, 0), 5.5, 1.5, intr, n=48, duration_s=20, start_deg=20, name="test", look_height=0.5
+    )
+    return b.build(
+        default_camera=cam, paths={"train": train, "test": test}, source="procedural:boxes_on_floor"
+    )
 
 
 #: Procedural scenes by name (``icbtool render cornell_box`` etc.).

@@ -84,9 +84,7 @@ class Material:
         if self.texture is not None:
             t = np.asarray(self.texture, dtype=np.float32)
             if t.ndim != 3 or t.shape[2] != 3 or t.shape[0] < 1 or t.shape[1] < 1:
-                raise ValueError(
-                    f"material '{self.name}' texture must be (h, w, 3), got {t.shape}"
-                )
+                raise ValueError(f"material '{self.name}' texture must be (h, w, 3), got {t.shape}")
             if not np.all(np.isfinite(t)):
                 raise ValueError(f"material '{self.name}' texture has NaN/Inf texels")
             t = np.clip(t, 0.0, 1.0)
@@ -299,7 +297,8 @@ class Scene:
             raise ValueError(f"{where}: {int((~np.isfinite(v)).any(1).sum())} vertices are NaN/Inf")
         if f.min() < 0 or f.max() >= len(v):
             raise ValueError(
-                f"{where}: face indices out of range [0, {len(v) - 1}]: min {f.min()}, max {f.max()}"
+                f"{where}: face indices out of range [0, {len(v) - 1}]: "
+                f"min {f.min()}, max {f.max()}"
             )
         f = f.astype(np.int32)
         n = np.ascontiguousarray(self.normals, dtype=np.float32)
@@ -508,13 +507,15 @@ class SceneBuilder:
             ((-hx, -hy, -hz), (2 * hx, 0, 0), (0, 0, 2 * hz)),
         ]
         for corner, eu, ev in faces:
-            self.add_quad(c + rot @ np.array(corner), rot @ np.array(eu), rot @ np.array(ev),
-                          material)
+            self.add_quad(
+                c + rot @ np.array(corner), rot @ np.array(eu), rot @ np.array(ev), material
+            )
 
     def add_area_light(self, light: AreaLight) -> None:
         """Add an area light: its emissive quad goes into the mesh, the light into ``lights``."""
-        m = self.add_material(Material(f"emitter:{light.name}", albedo=np.zeros(3),
-                                       emission=light.radiance))
+        m = self.add_material(
+            Material(f"emitter:{light.name}", albedo=np.zeros(3), emission=light.radiance)
+        )
         self.add_quad(light.corner, light.edge_u, light.edge_v, m)
         self.lights.append(light)
 
@@ -531,8 +532,10 @@ class SceneBuilder:
         uvs = None
         if any_uv:
             uvs = np.concatenate(
-                [p[3] if p[3] is not None else np.zeros((len(p[0]), 2), np.float32)
-                 for p in self._parts]
+                [
+                    p[3] if p[3] is not None else np.zeros((len(p[0]), 2), np.float32)
+                    for p in self._parts
+                ]
             )
         kwargs.setdefault("lights", self.lights)
         kwargs.setdefault("sky", self.sky)

@@ -1,0 +1,418 @@
+"""The ICB loop in one process: a client moving along a camera path, a cloud with a cache.
+
+For every client frame at time ``t`` (ICB.md section 6, without the network yet):
+
+1. The client rasterizes its WRT-buffer (DL, albedo, normals, depth) at its camera ``c(t)``.
+2. The cloud answers the request the client sent ``T_IL`` earlier: from the client's camera and
+   velocities at ``t - T_IL`` it predicts the prefetch camera (wider, pulled back;
+   :func:`icbtool.prefetch.prefetch_camera`), looks it up in the octree cache (a similar camera
+   whose FOV covers it is a hit) and otherwise renders a CRT-buffer there (raster G-buffers,
+   path-traced GI, optionally denoised) and stores it.
+3. The client warps the reference GI to ``c(t)`` with its own depth (backward warp, hole mask by
+   cause), combines it with the previous reference, and inpaints what is left.
+4. The final frame is ``DL + w * GI``.
+
+Every stage is timed; on some frames the truth (a high-sample trace at ``c(t)``) is rendered to
+score the frame (SSIM on the display scale).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from icbtool.camera import CameraPath
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """How :func:`run_loop` drives the client and the cloud."""
+
+    path: str = "test"
+    """Name of the scene's camera path the client follows."""
+    frames: int = 24
+    """Client frames, evenly spaced in time along the path."""
+    height: int = 128
+    """Client image height (pixels)."""
+    width: int = 128
+    """Client image width (pixels)."""
+    latency_s: float = 0.1
+    """Interaction latency T_IL: the reference for frame t is requested at t - T_IL."""
+    prefetch: bool = True
+    """Render the cloud reference at the prefetch camera (else at the client's old camera)."""
+    spp: int = 16
+    """Path-tracing samples per pixel of the cloud's GI maps."""
+    denoise: bool = True
+    """Denoise the GI maps the cloud serves (OIDN with albedo and normal)."""
+    max_depth: int = 8
+    """Longest traced path (segments)."""
+    alpha_pos: float = 0.1
+    """Cache position threshold (scene units)."""
+    alpha_dir: float = 0.01
+    """Cache direction threshold on 1 - dot (0.01 = 8.1 degrees)."""
+    combine_previous: bool = True
+    """Combine the warp of the current reference with the previous one."""
+    inpaint: bool = True
+    """Inpaint the holes left after combining (they stay reported)."""
+    gi_weight: float = 1.0
+    """Final = DL + gi_weight * GI (1 is physically right)."""
+    truth_every: int = 6
+    """Render the ground truth every this many frames (0: never)."""
+    truth_spp: int = 128
+    """Samples per pixel of the ground truth."""
+    seed: int = 0
+    """Base seed of every traced image."""
+
+    def __post_init__(self) -> None:
+        for k in ("frames", "height", "width", "spp", "max_depth", "truth_spp"):
+            v = getattr(self, k)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"LoopConfig.{k} must be an integer >= 1, got {v!r}")
+        if self.latency_s < 0 or not np.isfinite(self.latency_s):
+            raise ValueError(f"LoopConfig.latency_s must be finite and >= 0, got {self.latency_s}")
+        if self.truth_every < 0:
+            raise ValueError(f"LoopConfig.truth_every must be >= 0, got {self.truth_every}")
+        if self.alpha_pos <= 0 or self.alpha_dir <= 0:
+            raise ValueError("LoopConfig.alpha_pos and alpha_dir must be > 0")
+
+
+@dataclass
+class FrameStats:
+    """What happened in one client frame (times in milliseconds)."""
+
+    index: int
+    time_s: float
+    cache_hit: bool
+    reference_fov_y_deg: float
+    raster_ms: float
+    lookup_ms: float
+    cloud_render_ms: float
+    warp_ms: float
+    hole_ratio: float
+    """Holes after warping the current reference alone."""
+    hole_ratio_combined: float
+    """Holes left after combining with the previous reference (then inpainted)."""
+    ssim_final: float | None = None
+    ssim_gi: float | None = None
+    ssim_dl_only: float | None = None
+    """SSIM of DL alone against the truth: what the client would show without the cloud."""
+    mse_final: float | None = None
+    """MSE (display scale, 0-255) of the final frame against the truth."""
+    mse_dl_only: float | None = None
+    """MSE (display scale) of DL alone against the truth."""
+
+
+@dataclass
+class LoopReport:
+    """The result of :func:`run_loop`."""
+
+    scene: str
+    config: LoopConfig
+    frames: list[FrameStats] = field(default_factory=list)
+    cloud_renders: int = 0
+    total_s: float = 0.0
+
+    @property
+    def hit_rate(self) -> float:
+        return float(np.mean([f.cache_hit for f in self.frames])) if self.frames else 0.0
+
+    def summary(self) -> dict[str, Any]:
+        """Aggregates: hit rate, mean hole ratios, mean SSIMs, mean stage times."""
+
+        def mean(key: str) -> float | None:
+            vals = [getattr(f, key) for f in self.frames if getattr(f, key) is not None]
+            return float(np.mean(vals)) if vals else None
+
+        return {
+            "scene": self.scene,
+            "frames": len(self.frames),
+            "cloud_renders": self.cloud_renders,
+            "cache_hit_rate": self.hit_rate,
+            "mean_hole_ratio_single_reference": mean("hole_ratio"),
+            "mean_hole_ratio_combined": mean("hole_ratio_combined"),
+            "mean_ssim_final_vs_truth": mean("ssim_final"),
+            "mean_ssim_gi_vs_truth": mean("ssim_gi"),
+            "mean_ssim_dl_only_vs_truth": mean("ssim_dl_only"),
+            "mean_mse_final_vs_truth": mean("mse_final"),
+            "mean_mse_dl_only_vs_truth": mean("mse_dl_only"),
+            "mean_raster_ms": mean("raster_ms"),
+            "mean_lookup_ms": mean("lookup_ms"),
+            "mean_cloud_render_ms_on_miss": float(
+                np.mean([f.cloud_render_ms for f in self.frames if not f.cache_hit])
+            )
+            if any(not f.cache_hit for f in self.frames)
+            else None,
+            "mean_warp_ms": mean("warp_ms"),
+            "total_s": self.total_s,
+        }
+
+
+def _client_path(scene: Any, cfg: LoopConfig) -> CameraPath:
+    if cfg.path not in scene.paths:
+        raise ValueError(
+            f"scene '{scene.name}' has no camera path {cfg.path!r}; it has {sorted(scene.paths)}"
+        )
+    p = scene.paths[cfg.path]
+    intr = p.intrinsics.resized(cfg.height, cfg.width)
+    return p.with_intrinsics(intr)
+
+
+def run_loop(
+    scene: Any,
+    config: LoopConfig | None = None,
+    out_dir: str | Path | None = None,
+    store_dir: str | Path | None = None,
+    progress: bool = True,
+) -> LoopReport:
+    """Run the client/cloud loop along a path (see module docstring).
+
+    Args:
+        scene: an :class:`icbtool.scene.Scene` with the named path.
+        config: :class:`LoopConfig`.
+        out_dir: where to write frame images (PNG), ``frames.csv``, ``summary.json`` and
+            ``config.json``; None writes nothing.
+        store_dir: the cloud's cache (an :func:`icbtool.store.open` directory); default
+            ``out_dir / "cache"``, or a temporary directory when ``out_dir`` is None.
+
+    Returns:
+        A :class:`LoopReport`.
+    """
+    import tempfile
+
+    from icbtool import imageio, metrics, prefetch, raster, store, trace, warp
+    from icbtool.store.record import CRTBuffer, RecordMeta
+
+    cfg = config or LoopConfig()
+    path = _client_path(scene, cfg)
+    out = Path(out_dir) if out_dir is not None else None
+    tmp = None
+    if store_dir is None:
+        if out is not None:
+            store_dir = out / "cache"
+        else:
+            tmp = tempfile.TemporaryDirectory(prefix="icb-cache-")
+            store_dir = tmp.name
+    if out is not None:
+        (out / "frames").mkdir(parents=True, exist_ok=True)
+    times = np.linspace(path.times[0], path.times[-1], cfg.frames)
+    pcfg = prefetch.PrefetchConfig(latency_s=max(cfg.latency_s, 1e-9))
+    scfg = store.StoreConfig(alpha_pos=cfg.alpha_pos, alpha_dir=cfg.alpha_dir)
+    report = LoopReport(scene.name, cfg)
+    t_start = time.perf_counter()
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.frames, desc=f"icb loop {scene.name}", unit="frame")
+    prev_ref: CRTBuffer | None = None
+    try:
+        with raster.Rasterizer(scene) as rz, store.open(store_dir, scfg) as cache:
+            cache.register_scene(scene)
+            for k, t in enumerate(times):
+                cam = path.camera_at(float(t))
+                # 1. client raster
+                t0 = time.perf_counter()
+                wrt = rz.render(cam, buffers=("dl", "albedo", "normal_world", "depth"))
+                raster_ms = 1e3 * (time.perf_counter() - t0)
+                # 2. cloud: the request sent T_IL ago
+                t_req = max(float(t) - cfg.latency_s, float(path.times[0]))
+                req_cam = path.camera_at(t_req)
+                if cfg.prefetch:
+                    v_t, v_r = path.velocity_cam(t_req)
+                    near, far = _depth_range(wrt)
+                    ref_cam = prefetch.prefetch_camera(
+                        req_cam, v_t, v_r, pcfg, depth_range=(near, far)
+                    ).camera
+                else:
+                    ref_cam = req_cam
+                t0 = time.perf_counter()
+                hit = cache.lookup(ref_cam, scene=scene, intrinsics="covering")
+                lookup_ms = 1e3 * (time.perf_counter() - t0)
+                cloud_ms = 0.0
+                if hit is not None:
+                    ref = hit.record
+                else:
+                    t0 = time.perf_counter()
+                    rb = rz.render(ref_cam, buffers=("dl", "albedo", "normal_world", "depth"))
+                    tr = trace.render(
+                        scene,
+                        ref_cam,
+                        trace.TraceConfig(
+                            spp=cfg.spp,
+                            seed=cfg.seed + 1000 + k,
+                            max_depth=cfg.max_depth,
+                            denoise=cfg.denoise,
+                        ),
+                    )
+                    cloud_ms = 1e3 * (time.perf_counter() - t0)
+                    meta = RecordMeta.for_scene(
+                        scene, spp=cfg.spp, render_time_s=cloud_ms / 1e3, tags={"frame": k}
+                    )
+                    ref = CRTBuffer(
+                        camera=ref_cam,
+                        meta=meta,
+                        dl=rb.dl,
+                        albedo=rb.albedo,
+                        gi=tr.gi,
+                        normal_world=rb.normal_world,
+                        depth=rb.depth,
+                        mask=rb.mask,
+                    )
+                    cache.put(ref)
+                    report.cloud_renders += 1
+                # 3. client warp
+                t0 = time.perf_counter()
+                w_cur = warp.backward(
+                    ref.gi, ref.depth, ref.camera, wrt.depth, cam, ref.mask, wrt.mask
+                )
+                results = [w_cur]
+                if cfg.combine_previous and prev_ref is not None and prev_ref is not ref:
+                    results.append(
+                        warp.backward(
+                            prev_ref.gi,
+                            prev_ref.depth,
+                            prev_ref.camera,
+                            wrt.depth,
+                            cam,
+                            prev_ref.mask,
+                            wrt.mask,
+                        )
+                    )
+                both = warp.combine(results) if len(results) > 1 else w_cur
+                hole_combined = both.hole_ratio
+                if cfg.inpaint:
+                    both = warp.inpaint(both, depth=wrt.depth)
+                warp_ms = 1e3 * (time.perf_counter() - t0)
+                gi = both.image
+                final = wrt.dl + cfg.gi_weight * gi
+                prev_ref = ref
+                fs = FrameStats(
+                    index=k,
+                    time_s=float(t),
+                    cache_hit=hit is not None,
+                    reference_fov_y_deg=ref.camera.fov_y_deg,
+                    raster_ms=raster_ms,
+                    lookup_ms=lookup_ms,
+                    cloud_render_ms=cloud_ms,
+                    warp_ms=warp_ms,
+                    hole_ratio=w_cur.hole_ratio,
+                    hole_ratio_combined=hole_combined,
+                )
+                truth = None
+                if cfg.truth_every and k % cfg.truth_every == 0:
+                    truth = trace.render(
+                        scene,
+                        cam,
+                        trace.TraceConfig(
+                            spp=cfg.truth_spp, seed=cfg.seed + 5000 + k, max_depth=cfg.max_depth
+                        ),
+                    )
+                    fs.ssim_final = metrics.ssim(final, truth.full)
+                    fs.ssim_gi = metrics.ssim(gi, truth.gi)
+                    fs.ssim_dl_only = metrics.ssim(wrt.dl, truth.full)
+                    fs.mse_final = metrics.mse(final, truth.full)
+                    fs.mse_dl_only = metrics.mse(wrt.dl, truth.full)
+                report.frames.append(fs)
+                if out is not None:
+                    _write_frame(out / "frames" / f"{k:03d}.png", wrt, both, final, truth, imageio)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(hit=fs.cache_hit, holes=f"{fs.hole_ratio_combined:.3f}")
+    finally:
+        if bar is not None:
+            bar.close()
+        if tmp is not None:
+            tmp.cleanup()
+    report.total_s = time.perf_counter() - t_start
+    if out is not None:
+        _write_report(out, report)
+    return report
+
+
+def _depth_range(wrt: Any) -> tuple[float, float]:
+    d = wrt.depth[..., 0][wrt.valid]
+    if d.size == 0:
+        return 0.1, 100.0
+    return float(max(d.min(), 1e-3)), float(max(d.max(), d.min() * 1.01 + 1e-3))
+
+
+_EXPOSURE = 1.0
+
+
+def _write_frame(path: Path, wrt: Any, w: Any, final: np.ndarray, truth: Any, imageio: Any) -> None:
+    """One strip: DL | warped GI | holes by cause | final | truth (when rendered)."""
+    holes = np.zeros((*w.holes.shape, 3), np.uint8)
+    holes[w.outside] = (255, 64, 64)
+    holes[w.disoccluded] = (255, 200, 0)
+    holes[w.no_geometry] = (40, 40, 40)
+    tiles = [
+        imageio.to_display(wrt.dl, _EXPOSURE),
+        imageio.to_display(w.image, _EXPOSURE),
+        holes,
+        imageio.to_display(final, _EXPOSURE),
+    ]
+    if truth is not None:
+        tiles.append(imageio.to_display(truth.full, _EXPOSURE))
+    sep = np.full((final.shape[0], 2, 3), 255, np.uint8)
+    strip = tiles[0]
+    for t in tiles[1:]:
+        strip = np.concatenate([strip, sep, t], axis=1)
+    imageio.write_png(path, strip)
+
+
+def _write_report(out: Path, report: LoopReport) -> None:
+    import csv
+
+    from icbtool.cli._common import run_info, write_json
+
+    write_json(out / "config.json", {"loop": asdict(report.config), "run": run_info()})
+    write_json(out / "summary.json", report.summary())
+    with open(out / "frames.csv", "w", newline="") as f:
+        rows = [asdict(fr) for fr in report.frames]
+        if rows:
+            wtr = csv.DictWriter(f, fieldnames=list(rows[0]))
+            wtr.writeheader()
+            wtr.writerows(rows)
+    # a plot of holes and SSIM over the path
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fr = report.frames
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    ax[0].plot([f.index for f in fr], [100 * f.hole_ratio for f in fr], label="one reference")
+    ax[0].plot([f.index for f in fr], [100 * f.hole_ratio_combined for f in fr], label="combined")
+    ax[0].scatter(
+        [f.index for f in fr if not f.cache_hit],
+        [100 * f.hole_ratio for f in fr if not f.cache_hit],
+        marker="x",
+        color="k",
+        label="cloud render (miss)",
+    )
+    ax[0].set_xlabel("frame")
+    ax[0].set_ylabel("holes (% of pixels)")
+    ax[0].legend()
+    sel = [f for f in fr if f.ssim_final is not None]
+    if sel:
+        ax[1].plot([f.index for f in sel], [f.ssim_final for f in sel], "o-", label="DL + GI")
+        ax[1].plot([f.index for f in sel], [f.ssim_dl_only for f in sel], "s--", label="DL only")
+        ax[1].set_xlabel("frame")
+        ax[1].set_ylabel("SSIM vs path-traced truth")
+        ax[1].legend()
+    fig.suptitle(f"ICB loop on {report.scene}: hit rate {100 * report.hit_rate:.0f} %")
+    fig.tight_layout()
+    fig.savefig(out / "loop.png", dpi=110)
+    plt.close(fig)
+    (out / "README.txt").write_text(
+        "frames/NNN.png: DL | warped GI (after combine+inpaint) | holes (red: outside the "
+        "reference, yellow: disoccluded, grey: no geometry) | final DL+GI | truth (some frames)\n"
+        "summary.json, frames.csv: numbers; loop.png: holes and SSIM along the path\n"
+        + json.dumps(report.summary(), indent=2)
+        + "\n"
+    )
