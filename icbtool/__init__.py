@@ -23,6 +23,7 @@ _SUBMODULES = (
     "imageio",
     "bench",
     "cli",
+    "pipeline",
 )
 
 if TYPE_CHECKING:  # pragma: no cover
