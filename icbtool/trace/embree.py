@@ -209,6 +209,59 @@ class EmbreeScene:
         self._map(run, self._chunks(n, threads))
         return out
 
+    # ------------------------------------------------------------------ raw queries (tracer)
+    def intersect_raw(
+        self, origins: np.ndarray, directions: np.ndarray, threads: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Closest hits without the :class:`Hits` extras (for the tracer's hot loop).
+
+        Args:
+            origins, directions: (N, 3) C-contiguous float32 (not copied, not checked).
+            threads: threads for this call (default: ``self.threads``).
+
+        Returns:
+            t (N,) float32 (undefined for misses), prim (N,) int32 (-1 = miss), u, v (N,) float32.
+        """
+        n = len(origins)
+        t = np.empty(n, np.float32)
+        prim = np.empty(n, np.int32)
+        u = np.empty(n, np.float32)
+        v = np.empty(n, np.float32)
+
+        def run(s: slice) -> None:
+            if s.stop <= s.start:
+                return
+            r = self._scene.run(origins[s], directions[s], query="INTERSECT", output=1)
+            prim[s] = r["primID"]
+            t[s] = r["tfar"]
+            u[s] = r["u"]
+            v[s] = r["v"]
+
+        self._map(run, self._chunks(n, threads))
+        return t, prim, u, v
+
+    def occluded_raw(
+        self,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        tfar: np.ndarray,
+        threads: int | None = None,
+    ) -> np.ndarray:
+        """:meth:`occluded` for C-contiguous float32 (N, 3) rays and (N,) float32 ``tfar``
+        (``tfar`` is overwritten, nothing is checked or copied). Returns (N,) bool, True = blocked.
+        """
+        n = len(origins)
+        out = np.empty(n, np.bool_)
+
+        def run(s: slice) -> None:
+            if s.stop <= s.start:
+                return
+            r = self._scene.run(origins[s], directions[s], dists=tfar[s], query="OCCLUDED")
+            out[s] = np.asarray(r) == 0
+
+        self._map(run, self._chunks(n, threads))
+        return out
+
     def __repr__(self) -> str:
         return (
             f"EmbreeScene({self.n_triangles} triangles, robust={self.robust}, "

@@ -24,7 +24,9 @@ budget changes how many samples are taken, not the samples themselves).
 from __future__ import annotations
 
 import logging
+import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -79,6 +81,9 @@ class TraceConfig:
     """Embree robust (watertight) mode."""
     aux: bool = True
     """Compute the first-hit albedo and normal buffers (forced on by ``denoise``)."""
+    sampler: Literal["sobol", "independent"] = "sobol"
+    """Random numbers: 'sobol' (shuffled Owen-scrambled Sobol pairs per pixel for the pixel area,
+    BSDF and light dimensions; unbiased, lower variance) or 'independent' (a hash per dimension)."""
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> ValueError:
@@ -102,6 +107,8 @@ class TraceConfig:
             raise bad("target_error", "must be > 0 or None")
         if self.texture_filter not in ("bilinear", "nearest"):
             raise bad("texture_filter", "must be 'bilinear' or 'nearest'")
+        if self.sampler not in ("sobol", "independent"):
+            raise bad("sampler", "must be 'sobol' or 'independent'")
         if self.adaptive and self.target_error is None:
             raise ValueError("TraceConfig.adaptive needs a target_error (the per-pixel threshold)")
 
@@ -172,22 +179,12 @@ class TraceResult:
 
 
 # ---------------------------------------------------------------------------------- rng
-_M1 = np.uint64(0xBF58476D1CE4E5B9)
-_M2 = np.uint64(0x94D049BB133111EB)
 _GOLD = 0x9E3779B97F4A7C15
 _MASK64 = (1 << 64) - 1
 
 
-def _mix(x: np.ndarray) -> np.ndarray:
-    """splitmix64 finaliser on uint64 arrays (wrapping arithmetic)."""
-    x = x ^ (x >> np.uint64(30))
-    x = x * _M1
-    x = x ^ (x >> np.uint64(27))
-    x = x * _M2
-    return x ^ (x >> np.uint64(31))
-
-
 def _mix_int(x: int) -> int:
+    """splitmix64 finaliser on a Python int (the kernels use the same on uint64)."""
     x &= _MASK64
     x ^= x >> 30
     x = (x * 0xBF58476D1CE4E5B9) & _MASK64
@@ -196,25 +193,17 @@ def _mix_int(x: int) -> int:
     return x ^ (x >> 31)
 
 
-class _Rng:
-    """Counter-based uniforms: u = hash(seed, pixel, sample, dimension) in [0, 1)."""
-
-    def __init__(self, seed: int, pixel: np.ndarray, sample: np.ndarray) -> None:
-        self.seed = int(seed)
-        key = (pixel.astype(np.uint64) << np.uint64(24)) ^ sample.astype(np.uint64)
-        with np.errstate(over="ignore"):
-            self.base = _mix(key * np.uint64(_GOLD) + np.uint64(_mix_int(self.seed)))
-
-    def uniform(self, dim: int, idx: np.ndarray | None = None) -> np.ndarray:
-        b = self.base if idx is None else self.base[idx]
-        salt = np.uint64(_mix_int(self.seed * 0x632BE59BD9B4E019 + (dim + 1) * _GOLD))
-        with np.errstate(over="ignore"):
-            x = _mix(b ^ salt)
-        return (x >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
-
-
-#: dimensions per bounce: 0-1 bsdf direction, 2 light pick, 3-4 point on light, 5 rr
+#: dimensions per bounce of the independent sampler: 0-1 bsdf direction, 2 light pick,
+#: 3-4 point on light, 5 rr
 _DIMS_PER_BOUNCE = 8
+
+
+def _salts(seed: int, n_dims: int) -> np.ndarray:
+    """(n_dims,) uint64 per-dimension salts of the independent sampler."""
+    return np.array(
+        [_mix_int(int(seed) * 0x632BE59BD9B4E019 + (dim + 1) * _GOLD) for dim in range(n_dims)],
+        np.uint64,
+    )
 
 
 # ---------------------------------------------------------------------------------- scene data
@@ -282,6 +271,57 @@ class _SceneData:
         if self.sky is not None and self.sky.max_radiance <= 0:
             self.sky = None
 
+        self._pack(scene)
+
+    def _pack(self, scene: Scene) -> None:
+        """Contiguous arrays for the numba kernels."""
+        F = len(scene.faces)
+        self.k_face_mat = np.ascontiguousarray(self.face_material, np.int64)
+        self.k_face_uv = (
+            np.zeros((1, 3, 2)) if self.face_uv is None else np.ascontiguousarray(self.face_uv)
+        )
+        M = len(scene.materials)
+        self.k_tex_off = np.full(M, -1, np.int64)
+        self.k_tex_hw = np.ones((M, 2), np.int64)
+        chunks, off = [], 0
+        for m, tex in self.textures.items():
+            if self.face_uv is None:
+                continue  # no uvs: the texture cannot be looked up (the material albedo is used)
+            t = np.ascontiguousarray(tex, np.float32)
+            self.k_tex_off[m] = off
+            self.k_tex_hw[m] = t.shape[:2]
+            chunks.append(t.ravel())
+            off += t.size
+        self.k_tex = np.concatenate(chunks) if chunks else np.zeros(1, np.float32)
+        self.k_face_is_area = np.ascontiguousarray(self.face_is_area_light, np.bool_)
+        self.k_emit_faces = np.ascontiguousarray(self.emit_faces, np.int64)
+        self.k_emit_cdf = (
+            np.ascontiguousarray(self.emit_cdf, np.float64) if len(self.emit_faces) else np.ones(1)
+        )
+        self.k_suns = np.array(
+            [[*s.direction, *s.irradiance] for s in self.suns], np.float64
+        ).reshape(-1, 6)
+        rows = []
+        for lt in [*self.points, *self.spots]:
+            if lt.kind == "spot":
+                c_in = math.cos(math.radians(lt.inner_deg))
+                c_out = math.cos(math.radians(lt.outer_deg))
+                rows.append([*lt.position, *lt.intensity, *lt.direction, c_in, c_out, 1.0])
+            else:
+                rows.append([*lt.position, *lt.intensity, 0, 0, 0, 1, 0, 0.0])
+        self.k_punct = np.array(rows, np.float64).reshape(-1, 12)
+        self.k_sky_kind = 0
+        self.k_sky = np.zeros((4, 3))
+        if self.sky is not None:
+            self.k_sky_kind = 1 if self.sky.kind == "uniform" else 2
+            self.k_sky = np.array(
+                [self.sky.zenith, self.sky.horizon, self.sky.ground, self.sky.up], np.float64
+            )
+        for name in ("tri", "fn", "vn", "face_albedo", "face_emission", "face_light_pmf"):
+            setattr(self, name, np.ascontiguousarray(getattr(self, name), np.float64))
+        self.face_area = np.ascontiguousarray(self.face_area, np.float64)
+        assert self.tri.shape == (F, 3, 3)
+
     @classmethod
     def of(cls, scene: Scene) -> _SceneData:
         d = scene._cache.get("trace_data")
@@ -290,68 +330,11 @@ class _SceneData:
             scene._cache["trace_data"] = d
         return d
 
-    # ------------------------------------------------------------------ surface queries
-    def texture_albedo(self, prim: np.ndarray, b1: np.ndarray, b2: np.ndarray, nearest: bool):
-        """(N, 3) albedo at hits, material albedo times texture."""
-        alb = self.face_albedo[prim].copy()
-        if not self.textures:
-            return alb
-        tex_hits = np.flatnonzero(self.face_textured[prim])
-        if len(tex_hits) == 0:
-            return alb
-        p = prim[tex_hits]
-        w0 = (1 - b1[tex_hits] - b2[tex_hits])[:, None]
-        uv = (
-            w0 * self.face_uv[p, 0]
-            + b1[tex_hits, None] * self.face_uv[p, 1]
-            + b2[tex_hits, None] * self.face_uv[p, 2]
-        )
-        mats = self.face_material[p]
-        for m, tex in self.textures.items():
-            sel = np.flatnonzero(mats == m)
-            if len(sel) == 0:
-                continue
-            h, w = tex.shape[:2]
-            x = uv[sel, 0] * w - 0.5
-            y = (1.0 - uv[sel, 1]) * h - 0.5
-            if nearest:
-                xi = np.floor(x + 0.5).astype(np.int64) % w
-                yi = np.floor(y + 0.5).astype(np.int64) % h
-                t = tex[yi, xi].astype(np.float64)
-            else:
-                x0, y0 = np.floor(x), np.floor(y)
-                fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-                x0 = x0.astype(np.int64) % w
-                y0 = y0.astype(np.int64) % h
-                x1, y1 = (x0 + 1) % w, (y0 + 1) % h
-                t = (1 - fy) * ((1 - fx) * tex[y0, x0] + fx * tex[y0, x1]) + fy * (
-                    (1 - fx) * tex[y1, x0] + fx * tex[y1, x1]
-                )
-            alb[tex_hits[sel]] *= t
-        return alb
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.einsum("ij,ij->i", a, b)
-
 
 def _normalize(a: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     n = np.linalg.norm(a, axis=1, keepdims=True)
     ok = n > 1e-20
     return np.where(ok, a / np.where(ok, n, 1.0), fallback)
-
-
-def _cosine_sample(n: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> np.ndarray:
-    """Cosine-weighted directions about unit normals n (N, 3) (Duff et al. basis)."""
-    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
-    a = -1.0 / (sign + n[:, 2])
-    b = n[:, 0] * n[:, 1] * a
-    t = np.stack([1 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], 1)
-    bt = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], 1)
-    r = np.sqrt(u1)
-    phi = 2 * np.pi * u2
-    z = np.sqrt(np.maximum(0.0, 1 - u1))
-    return (r * np.cos(phi))[:, None] * t + (r * np.sin(phi))[:, None] * bt + z[:, None] * n
 
 
 # ---------------------------------------------------------------------------------- tracer
@@ -381,12 +364,23 @@ class _Tracer:
             sk.append("aux buffers (albedo, normal): not asked for")
         for s in sk:
             log.info("trace: skipped %s", s)
+        n_dims = 2 + (cfg.depth_limit + 1) * _DIMS_PER_BOUNCE
+        self._salts = _salts(cfg.seed, n_dims)
+        self._seed_mix = np.uint64(_mix_int(int(cfg.seed)))
+        self._pixseed = np.uint64(_mix_int(int(cfg.seed) ^ 0x5851F42D4C957F2D))
         stats.add_time("setup", time.perf_counter() - t0)
 
-    def eps(self, p: np.ndarray, t: np.ndarray | float) -> np.ndarray:
-        """Offset distance at points p (N, 3) reached by rays of length t (float32-safe)."""
-        mag = np.abs(p).max(1)
-        return 3e-5 * (mag + np.abs(t)) + 1e-6 * self.sd.diag
+    def _parallel(self, n: int, kernel, *args) -> None:
+        """Run ``kernel(*args, lo, hi)`` over [0, n) split into ``threads`` ranges (GIL-free)."""
+        k = max(1, min(self.cfg.threads, n // _MIN_ITEMS_PER_THREAD))
+        if k == 1:
+            kernel(*args, 0, n)
+            return
+        edges = np.linspace(0, n, k + 1).astype(np.int64)
+        pool = _pool(k)
+        futs = [pool.submit(kernel, *args, int(edges[i]), int(edges[i + 1])) for i in range(k)]
+        for f in futs:
+            f.result()
 
     # ------------------------------------------------------------------ one pass
     def trace(self, pix: np.ndarray, sid: np.ndarray):
@@ -395,223 +389,128 @@ class _Tracer:
         Returns:
             direct, gi (P, 3); hit (P,) bool; albedo, normal (P, 3) or None.
         """
-        cfg, sd, st = self.cfg, self.sd, self.stats
+        from icbtool.trace import kernels as K
+
+        cfg, sd, st, cam = self.cfg, self.sd, self.stats, self.cam
         P = len(pix)
         tt = time.perf_counter()
-        rng = _Rng(cfg.seed, pix, sid)
-        W = self.cam.width
-        if cfg.pixel_jitter:
-            jx, jy = rng.uniform(0), rng.uniform(1)
-        else:
-            jx = jy = np.full(P, 0.5)
-        uv = np.stack([pix % W + jx, pix // W + jy], -1)
-        o, d, _ = self.cam.rays(uv)
+        pix = np.ascontiguousarray(pix, np.int64)
+        sid = np.ascontiguousarray(sid, np.int64)
+        limit = cfg.depth_limit
+        salts = self._salts
+        base = np.empty(P, np.uint64)
+        K.sample_base(self._seed_mix, pix, sid, base)
+        sampler = K.SAMPLER_SOBOL if cfg.sampler == "sobol" else K.SAMPLER_INDEPENDENT
+        o32 = np.empty((P, 3), np.float32)
+        d32 = np.empty((P, 3), np.float32)
+        d64 = np.empty((P, 3), np.float64)
+        self._parallel(
+            P,
+            K.primary_rays,
+            pix,
+            sid,
+            base,
+            salts,
+            cam.width,
+            np.array([cam.fx, cam.fy, cam.cx, cam.cy], np.float64),
+            np.ascontiguousarray(cam.world_from_cam[:3, :3], np.float64),
+            np.ascontiguousarray(cam.position, np.float64),
+            bool(cfg.pixel_jitter),
+            sampler,
+            self._pixseed,
+            o32,
+            d32,
+            d64,
+        )
         st.add_time("rng", time.perf_counter() - tt)
         direct = np.zeros((P, 3))
         gi = np.zeros((P, 3))
-        first_hit = np.zeros(P, bool)
+        first_hit = np.zeros(P, np.bool_)
         want_aux = cfg.aux or cfg.denoise
-        alb_out = np.zeros((P, 3)) if want_aux else None
-        nrm_out = np.zeros((P, 3)) if want_aux else None
+        alb_out = np.zeros((P, 3)) if want_aux else np.zeros((1, 3))
+        nrm_out = np.zeros((P, 3)) if want_aux else np.zeros((1, 3))
+        n_lights = len(sd.k_suns) + len(sd.k_punct) + (1 if len(sd.emit_faces) else 0)
 
-        idx = np.arange(P)  # alive path -> sample
+        idx = np.arange(P, dtype=np.int64)  # alive path -> sample
         thr = np.ones((P, 3))
         pdf_prev = np.zeros(P)  # solid-angle pdf of the bsdf sample that led here
-        from_first = np.zeros(P, bool)  # the current ray left the first hit (for the DL split)
-        limit = cfg.depth_limit
+        from_first = np.zeros(P, np.bool_)  # the current ray left the first hit (DL split)
         for depth in range(1, limit + 1):  # ray segment number `depth` arrives at vertex `depth`
-            if len(idx) == 0:
-                break
-            t0 = time.perf_counter()
-            hits = self.es.intersect(o, d)
-            st.rays["primary" if depth == 1 else "bounce"] += len(idx)
-            st.add_time("intersect", time.perf_counter() - t0)
-            t0 = time.perf_counter()
-            hit = hits.hit
-            # ---- misses: sky
-            miss = np.flatnonzero(~hit)
-            if len(miss) and sd.sky is not None:
-                le = sd.sky.radiance(d[miss]).astype(np.float64) * thr[miss]
-                if depth == 1:
-                    direct[idx[miss]] += le
-                else:
-                    gi[idx[miss]] += le
-            h = np.flatnonzero(hit)
-            if len(h) == 0:
-                st.add_time("shade", time.perf_counter() - t0)
-                break
-            idx, o, d, thr = idx[h], o[h], d[h], thr[h]
-            pdf_prev, from_first = pdf_prev[h], from_first[h]
-            prim = hits.prim[h]
-            b1 = hits.u[h].astype(np.float64)
-            b2 = hits.v[h].astype(np.float64)
-            thit = hits.t[h].astype(np.float64)
-            w0 = 1.0 - b1 - b2
-            tri = sd.tri[prim]
-            x = w0[:, None] * tri[:, 0] + b1[:, None] * tri[:, 1] + b2[:, None] * tri[:, 2]
-            ng = sd.fn[prim]
-            cos_o = -_dot(ng, d)
-            degenerate = ~np.any(ng != 0, axis=1)
-            ng = np.where(degenerate[:, None], -d, ng)
-            cos_o = np.where(degenerate, 1.0, cos_o)
-            front = cos_o > 0
-            nf = np.where(front[:, None], ng, -ng)  # geometric normal facing the incoming ray
-            if cfg.shading_normals:
-                vn = sd.vn[prim]
-                ns = _normalize(
-                    w0[:, None] * vn[:, 0] + b1[:, None] * vn[:, 1] + b2[:, None] * vn[:, 2], nf
-                )
-                ns = np.where((_dot(ns, nf) < 0)[:, None], -ns, ns)
-            else:
-                ns = nf
-            # ---- emission seen (one-sided)
-            le_face = sd.face_emission[prim]
-            em = np.flatnonzero(front & np.any(le_face > 0, axis=1))
-            if len(em):
-                le = le_face[em] * thr[em]
-                if depth == 1:
-                    direct[idx[em]] += le
-                else:
-                    pe = prim[em]
-                    pl = (
-                        sd.face_light_pmf[pe]
-                        / np.maximum(sd.face_area[pe], 1e-300)
-                        * thit[em] ** 2
-                        / np.maximum(cos_o[em], 1e-12)
-                    )
-                    pb = pdf_prev[em]
-                    w = np.where(pl > 0, pb * pb / np.maximum(pb * pb + pl * pl, 1e-300), 1.0)
-                    le = le * w[:, None]
-                    to_direct = from_first[em] & sd.face_is_area_light[pe]
-                    direct[idx[em[to_direct]]] += le[to_direct]
-                    gi[idx[em[~to_direct]]] += le[~to_direct]
-            albedo = sd.texture_albedo(prim, b1, b2, cfg.texture_filter == "nearest")
-            if depth == 1:
-                first_hit[idx] = True
-                if want_aux:
-                    alb_out[idx] = albedo
-                    nrm_out[idx] = ns
-            if depth >= limit:
-                st.add_time("shade", time.perf_counter() - t0)
-                break
-            # ---- survive: drop paths with zero throughput*albedo (exact, unbiased)
-            fthr = thr * albedo  # throughput after a cosine-sampled Lambertian bounce
-            alive = np.any(fthr > 0, axis=1)
-            if not np.all(alive):
-                keep = np.flatnonzero(alive)
-                idx, o, d, thr, fthr, x, ng, nf, ns, albedo, thit = (
-                    a[keep] for a in (idx, o, d, thr, fthr, x, ng, nf, ns, albedo, thit)
-                )
             n = len(idx)
             if n == 0:
-                st.add_time("shade", time.perf_counter() - t0)
                 break
-            eps = self.eps(x, thit)
-            xo = x + nf * eps[:, None]  # origin offset to the incoming side
-            dim0 = 2 + depth * _DIMS_PER_BOUNCE
-            # ---- next-event estimation: gather shadow rays
-            so, sdr, stf, sc, sdst = [], [], [], [], []  # origin, dir, tfar, contribution, dest
-            to_dir = depth == 1
-            f_over = thr * albedo / np.pi  # throughput * BRDF
-            for sun in sd.suns:
-                wi = np.broadcast_to(-sun.direction, (n, 3))
-                c = np.minimum(_dot(ns, wi), 1.0)
-                ok = np.flatnonzero((c > 0) & (_dot(nf, wi) > 0))
-                if len(ok):
-                    so.append(xo[ok])
-                    sdr.append(wi[ok])
-                    stf.append(np.full(len(ok), np.inf))
-                    sc.append(f_over[ok] * sun.irradiance * c[ok, None])
-                    sdst.append((ok, to_dir))
-            for lt in [*sd.points, *sd.spots]:
-                v = lt.position - x
-                dist = np.linalg.norm(v, axis=1)
-                wi = v / np.maximum(dist, 1e-300)[:, None]
-                c = np.minimum(_dot(ns, wi), 1.0)
-                inten = np.broadcast_to(lt.intensity, (n, 3))
-                if lt.kind == "spot":
-                    inten = (
-                        inten
-                        * lt.falloff(-_dot(wi, np.broadcast_to(lt.direction, (n, 3))))[:, None]
-                    )
-                ok = np.flatnonzero(
-                    (c > 0) & (_dot(nf, wi) > 0) & (dist > 0) & np.any(inten > 0, axis=1)
-                )
-                if len(ok):
-                    so.append(xo[ok])
-                    sdr.append(wi[ok])
-                    stf.append(dist[ok] * (1 - 1e-5) - eps[ok])
-                    sc.append(f_over[ok] * inten[ok] * (c[ok] / dist[ok] ** 2)[:, None])
-                    sdst.append((ok, to_dir))
-            if len(sd.emit_faces):
-                ul = rng.uniform(dim0 + 2, idx)
-                k = np.minimum(
-                    np.searchsorted(sd.emit_cdf, ul, side="right"), len(sd.emit_faces) - 1
-                )
-                lf = sd.emit_faces[k]
-                r1 = np.sqrt(rng.uniform(dim0 + 3, idx))
-                r2 = rng.uniform(dim0 + 4, idx)
-                y = (
-                    sd.tri[lf, 0]
-                    + (r1 * (1 - r2))[:, None] * sd.e1[lf]
-                    + (r1 * r2)[:, None] * sd.e2[lf]
-                )
-                v = y - x
-                dist = np.linalg.norm(v, axis=1)
-                wi = v / np.maximum(dist, 1e-300)[:, None]
-                c = np.minimum(_dot(ns, wi), 1.0)
-                cl = -_dot(sd.fn[lf], wi)
-                ok = np.flatnonzero((c > 0) & (cl > 0) & (_dot(nf, wi) > 0) & (dist > 0))
-                if len(ok):
-                    pl = sd.face_light_pmf[lf[ok]] / sd.face_area[lf[ok]] * dist[ok] ** 2 / cl[ok]
-                    pb = c[ok] / np.pi
-                    w = pl * pl / (pl * pl + pb * pb)
-                    contrib = f_over[ok] * sd.face_emission[lf[ok]] * (c[ok] * w / pl)[:, None]
-                    eps_l = self.eps(y[ok], dist[ok])
-                    is_dir = sd.face_is_area_light[lf[ok]] if to_dir else np.zeros(len(ok), bool)
-                    so.append(xo[ok])
-                    sdr.append(wi[ok])
-                    stf.append(np.maximum(dist[ok] - eps[ok] - eps_l, 0.0))
-                    sc.append(contrib)
-                    sdst.append((ok, is_dir))
+            t0 = time.perf_counter()
+            h_t, h_prim, h_u, h_v = self.es.intersect_raw(o32, d32)
+            st.rays["primary" if depth == 1 else "bounce"] += n
+            st.add_time("intersect", time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            nl = max(n_lights, 1)
+            s_o = np.empty((n * nl, 3))
+            s_d = np.empty((n * nl, 3))
+            s_tf = np.empty(n * nl)
+            s_c = np.empty((n * nl, 3))
+            s_dest = np.empty(n * nl, np.int8)
+            n_o = np.empty((n, 3))
+            n_d = np.empty((n, 3))
+            n_thr = np.empty((n, 3))
+            n_pdf = np.empty(n)
+            alive = np.empty(n, np.bool_)
+            iparams = np.array(
+                [
+                    depth,
+                    limit,
+                    cfg.rr_depth,
+                    sampler,
+                    cfg.texture_filter == "nearest",
+                    cfg.shading_normals,
+                    want_aux,
+                    nl,
+                ],
+                np.int64,
+            )
+            self._parallel(
+                n, K.shade,
+                idx, d64, thr, pdf_prev, from_first,
+                h_t, h_prim, h_u, h_v,
+                pix, sid, base, salts,
+                sd.tri, sd.fn, sd.vn, sd.face_albedo, sd.face_emission, sd.k_face_mat,
+                sd.k_face_uv, sd.k_tex, sd.k_tex_off, sd.k_tex_hw, sd.face_light_pmf,
+                sd.face_area, sd.k_face_is_area, sd.k_emit_faces, sd.k_emit_cdf, sd.k_suns,
+                sd.k_punct, sd.k_sky_kind, sd.k_sky,
+                iparams, float(sd.diag), self._pixseed,
+                direct, gi, first_hit, alb_out, nrm_out,
+                s_o, s_d, s_tf, s_c, s_dest, n_o, n_d, n_thr, n_pdf, alive,
+            )  # fmt: skip
+            slots, so32, sd32, stf32 = K.compact_shadow(s_dest, s_o, s_d, s_tf)
             st.add_time("shade", time.perf_counter() - t0)
-            if so:
+            if len(slots):
                 t0 = time.perf_counter()
-                blocked = self.es.occluded(
-                    np.concatenate(so), np.concatenate(sdr), np.concatenate(stf)
-                )
-                st.rays["shadow"] += len(blocked)
+                blocked = self.es.occluded_raw(so32, sd32, stf32)
+                st.rays["shadow"] += len(slots)
                 st.add_time("shadow", time.perf_counter() - t0)
                 t0 = time.perf_counter()
-                off = 0
-                for contrib, (ok, is_dir) in zip(sc, sdst):
-                    m = len(ok)
-                    vis = ~blocked[off : off + m]
-                    off += m
-                    is_dir = np.broadcast_to(np.asarray(is_dir), (m,))
-                    sel = vis & is_dir
-                    direct[idx[ok[sel]]] += contrib[sel]
-                    sel = vis & ~is_dir
-                    gi[idx[ok[sel]]] += contrib[sel]
+                K.add_shadow(blocked, slots, nl, idx, s_c, s_dest, direct, gi)
                 st.add_time("shade", time.perf_counter() - t0)
             t0 = time.perf_counter()
-            # ---- bounce: cosine-weighted about the shading normal
-            wi = _cosine_sample(ns, rng.uniform(dim0, idx), rng.uniform(dim0 + 1, idx))
-            below = _dot(wi, nf)
-            wi = np.where((below <= 0)[:, None], wi - 2 * below[:, None] * nf, wi)
-            wi = _normalize(wi, nf)
-            pdf_prev = np.maximum(_dot(ns, wi), 1e-12) / np.pi
-            thr = fthr
-            if depth + 1 > cfg.rr_depth:  # Russian roulette for the next segment
-                q = np.minimum(thr.max(1), 0.95)
-                live = rng.uniform(dim0 + 5, idx) < q
-                keep = np.flatnonzero(live)
-                idx, thr, wi, pdf_prev, xo = (a[keep] for a in (idx, thr, wi, pdf_prev, xo))
-                thr = thr / q[keep, None]
-            o, d = xo, wi
+            idx, o32, d32, d64, thr, pdf_prev = K.compact_paths(alive, idx, n_o, n_d, n_thr, n_pdf)
             from_first = np.full(len(idx), depth == 1)
             st.add_time("shade", time.perf_counter() - t0)
+        if not want_aux:
+            alb_out = nrm_out = None
         return direct, gi, first_hit, alb_out, nrm_out
+
+
+#: Kernel launches smaller than this are not split over threads.
+_MIN_ITEMS_PER_THREAD = 2048
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _pool(k: int) -> ThreadPoolExecutor:
+    """A shared thread pool for the GIL-free shading kernels."""
+    global _POOL
+    if _POOL is None or _POOL._max_workers < k:
+        _POOL = ThreadPoolExecutor(max_workers=k, thread_name_prefix="icb-trace")
+    return _POOL
 
 
 # ---------------------------------------------------------------------------------- driver
@@ -625,25 +524,15 @@ class _Accum:
 
     def add(self, pix: np.ndarray, x: np.ndarray) -> None:
         """Merge a batch of samples x (P, C) of pixels pix (P,) (any number per pixel)."""
-        npix = len(self.n)
-        nb = np.bincount(pix, minlength=npix).astype(np.int64)
-        c = x.shape[1]
-        sb = np.stack([np.bincount(pix, x[:, i], minlength=npix) for i in range(c)], 1)
-        has = nb > 0
-        mb = np.zeros_like(sb)
-        mb[has] = sb[has] / nb[has, None]
-        dev = x - mb[pix]
-        m2b = np.stack([np.bincount(pix, dev[:, i] ** 2, minlength=npix) for i in range(c)], 1)
-        na = self.n
-        ntot = na + nb
-        delta = mb - self.mean
-        with np.errstate(invalid="ignore", divide="ignore"):
-            frac = np.where(ntot > 0, nb / np.maximum(ntot, 1), 0.0)[:, None]
-            self.mean = np.where(has[:, None], self.mean + delta * frac, self.mean)
-            self.m2 = np.where(
-                has[:, None], self.m2 + m2b + delta**2 * (na * frac[:, 0])[:, None], self.m2
-            )
-        self.n = ntot
+        from icbtool.trace.kernels import welford_add
+
+        welford_add(
+            np.ascontiguousarray(pix, np.int64),
+            np.ascontiguousarray(x, np.float64),
+            self.n,
+            self.mean,
+            self.m2,
+        )
 
     def var_of_mean(self) -> np.ndarray:
         n = self.n[:, None].astype(np.float64)
