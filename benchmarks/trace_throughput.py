@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,16 @@ class Recorder:
         self.log.append(("intersect", np.array(o, np.float32), np.array(d, np.float32), None))
         return self.es.intersect(o, d, tnear, tfar, threads)
 
+    def intersect_raw(self, o, d, threads=None, out=None):
+        self.log.append(("intersect", np.array(o, np.float32), np.array(d, np.float32), None))
+        return self.es.intersect_raw(o, d, threads, out=out)
+
+    def occluded_raw(self, o, d, tfar, threads=None):
+        self.log.append(
+            ("occluded", np.array(o, np.float32), np.array(d, np.float32), np.array(tfar))
+        )
+        return self.es.occluded_raw(o, d, tfar, threads)
+
     def occluded(self, o, d, tfar, threads=None):
         self.log.append(
             (
@@ -60,7 +71,9 @@ def bench(scene, cam, cfg) -> dict:
     es = EmbreeScene.from_scene(scene, robust=cfg.robust, threads=cfg.threads)
     rec = Recorder(es)
     key = f"embree_robust={cfg.robust}"
-    res = icb.trace.render(scene, cam, cfg)  # warm-up (caches)
+    t0 = time.perf_counter()
+    res = icb.trace.render(scene, cam, replace(cfg, spp=1))  # warm-up (JIT cache, scene data)
+    warmup_s = time.perf_counter() - t0
     scene._cache[key] = rec
     try:
         res = tr.render(scene, cam, cfg)
@@ -74,9 +87,9 @@ def bench(scene, cam, cfg) -> dict:
     for kind, o, d, tf in rec.log:
         t1 = time.perf_counter()
         if kind == "intersect":
-            es.intersect(o, d)
+            es.intersect_raw(o, d)
         else:
-            es.occluded(o, d, tf)
+            es.occluded_raw(o, d, tf.copy())
         dt = time.perf_counter() - t1
         if kind == "occluded":
             name = "shadow"
@@ -97,6 +110,8 @@ def bench(scene, cam, cfg) -> dict:
         "size": [cam.height, cam.width],
         "triangles": scene.n_triangles,
         "spp": cfg.spp,
+        "warmup_render_s": warmup_s,
+        "load_average_1min": os.getloadavg()[0],
         "tracer_total_s": st.time_s["total"],
         "tracer_time_s": st.time_s,
         "rays": st.rays,
@@ -123,8 +138,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--spp", type=int, default=8)
+    ap.add_argument("--sampler", default="sobol", choices=["sobol", "independent"])
     args = ap.parse_args()
-    cfg = TraceConfig(spp=args.spp, spp_per_pass=4, max_depth=8, seed=0)
+    cfg = TraceConfig(spp=args.spp, spp_per_pass=4, max_depth=8, seed=0, sampler=args.sampler)
     rows = []
     scenes = [("cornell_box", icb.scene.cornell_box)]
     try:

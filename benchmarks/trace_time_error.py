@@ -6,7 +6,13 @@ Each renderer is measured against its own high-spp reference (ours against ours,
 Mitsuba: they differ slightly in conventions, e.g. shading normals); the RMSE between the two
 references is reported as `reference_gap`. Mitsuba cannot split DL/GI, so "full" is compared.
 
-    .venv/bin/python benchmarks/trace_time_error.py [--size 128] [--ref-spp 256]
+    .venv/bin/python benchmarks/trace_time_error.py [--size 256] [--ref-spp 1024]
+
+Variants of ours: raw (default sampler, sobol), raw_independent (hash sampler), denoised (GI
+denoised with OIDN + albedo/normal, as the system uses it: DL comes from the raster), denoised_full
+(direct + GI denoised together) and adaptive. The first render (numba JIT or cache load) is a
+warm-up, not counted; Mitsuba's kernel cache is warmed by one untimed render per spp. The target
+check gives, per Mitsuba point (T, E), the time our curve needs to reach E, divided by T.
 
 Writes benchmarks/results/trace/time_error.{json,png}. Mitsuba is a benchmark peer only.
 """
@@ -16,6 +22,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,11 +38,11 @@ OUT = REPO / "benchmarks" / "results" / "trace"
 MAX_DEPTH = 8
 
 
-def to_mitsuba(scene, cam, spp: int):
+def to_mitsuba(scene, cam, spp: int, max_depth: int = MAX_DEPTH):
     """A Mitsuba scene dict for our Scene (two-sided diffuse, area emitters, sun, sky)."""
     import mitsuba as mi
 
-    d = {"type": "scene", "integrator": {"type": "path", "max_depth": MAX_DEPTH, "rr_depth": 4}}
+    d = {"type": "scene", "integrator": {"type": "path", "max_depth": max_depth, "rr_depth": 4}}
     up = cam.up
     d["sensor"] = {
         "type": "perspective",
@@ -122,10 +129,12 @@ def _write_ply(scene, faces, idx) -> str:
     return str(path)
 
 
-def mitsuba_render(scene, cam, spp: int, seed: int = 0) -> tuple[np.ndarray, float]:
+def mitsuba_render(
+    scene, cam, spp: int, seed: int = 0, max_depth: int = MAX_DEPTH
+) -> tuple[np.ndarray, float]:
     import mitsuba as mi
 
-    sc = mi.load_dict(to_mitsuba(scene, cam, spp))
+    sc = mi.load_dict(to_mitsuba(scene, cam, spp, max_depth))
     t0 = time.perf_counter()
     img = np.asarray(mi.render(sc, spp=spp, seed=seed), np.float32)[..., :3]
     return img, time.perf_counter() - t0
@@ -146,6 +155,70 @@ def sponza():
     return icb.scene.load(REPO / "data" / "scenes" / "sponza.toml")
 
 
+def alignment(ours: np.ndarray, theirs: np.ndarray, max_shift: int = 2) -> dict:
+    """Pixel alignment of two images of one view: RMSE over integer shifts of ``theirs`` (crop of
+    ``max_shift`` px), and the row/column mean profiles' best sub-pixel shift (parabola fit)."""
+    h, w = ours.shape[:2]
+    m = max_shift
+    a = ours[m : h - m, m : w - m]
+    grid = {}
+    for dy in range(-m, m + 1):
+        for dx in range(-m, m + 1):
+            b = theirs[m + dy : h - m + dy, m + dx : w - m + dx]
+            grid[f"{dy},{dx}"] = float(np.sqrt(np.mean((a - b) ** 2)))
+    best = min(grid, key=grid.get)
+
+    def profile_shift(pa: np.ndarray, pb: np.ndarray) -> float:
+        pa = pa - pa.mean()
+        pb = pb - pb.mean()
+        errs = [float(np.mean((pa[m:-m] - np.roll(pb, -s)[m:-m]) ** 2)) for s in (-1, 0, 1)]
+        den = errs[0] - 2 * errs[1] + errs[2]
+        return 0.0 if den <= 0 else 0.5 * (errs[0] - errs[2]) / den
+
+    lo, lt = ours.mean(-1), theirs.mean(-1)
+    return {
+        "rmse_by_shift_dy_dx": grid,
+        "best_shift_dy_dx": best,
+        "row_profile_subpixel_shift": profile_shift(lo.mean(1), lt.mean(1)),
+        "column_profile_subpixel_shift": profile_shift(lo.mean(0), lt.mean(0)),
+    }
+
+
+def time_to_reach(curve: list[dict], err: float, metric: str) -> float | None:
+    """Time our curve needs to reach ``err`` (log-log interpolation; None if never reached)."""
+    t = np.array([p["time_s"] for p in curve])
+    e = np.array([p[metric] for p in curve])
+    order = np.argsort(t)
+    t, e = t[order], e[order]
+    if e[0] <= err:
+        return float(t[0] * (e[0] / err) ** 2)  # extrapolate below the first point with 1/sqrt(t)
+    for i in range(1, len(t)):
+        if e[i] <= err:
+            f = np.log(err / e[i - 1]) / np.log(e[i] / e[i - 1])
+            return float(np.exp(np.log(t[i - 1]) + f * (np.log(t[i]) - np.log(t[i - 1]))))
+    return None
+
+
+def target_check(curves: dict, metric: str) -> dict:
+    """For each Mitsuba point (T, E): our time to reach E divided by T (target: <= 0.5)."""
+    out = {}
+    for key, c in curves.items():
+        if key == "mitsuba":
+            continue
+        ratios = []
+        for p in curves["mitsuba"]:
+            t = time_to_reach(c, p[metric], metric)
+            ratios.append(None if t is None else t / p["time_s"])
+        valid = [r for r in ratios if r is not None]
+        out[key] = {
+            "time_ratio_per_mitsuba_point": ratios,
+            "worst_ratio": max(valid) if len(valid) == len(ratios) else None,
+            "median_ratio": float(np.median(valid)) if valid else None,
+            "meets_target_everywhere": bool(len(valid) == len(ratios) and max(valid) <= 0.5),
+        }
+    return out
+
+
 def main() -> None:
     import mitsuba as mi
 
@@ -154,6 +227,7 @@ def main() -> None:
     ap.add_argument("--ref-spp", type=int, default=256)
     ap.add_argument("--spps", default="1,2,4,8,16,32")
     ap.add_argument("--scenes", default="cornell_box,sponza")
+    ap.add_argument("--out-name", default="time_error")
     args = ap.parse_args()
     try:
         mi.set_variant("llvm_ad_rgb")
@@ -165,29 +239,69 @@ def main() -> None:
         scene = icb.scene.cornell_box() if name == "cornell_box" else sponza()
         cam = scene.default_camera.resized(args.size, args.size)
         base = dict(max_depth=MAX_DEPTH, rr_depth=4, spp_per_pass=4)
+        # warm-up: the first render pays numba's JIT (or cache load); not counted in the curves
+        t0 = time.perf_counter()
+        icb.trace.render(scene, cam.resized(8, 8), TraceConfig(spp=1, **base))
+        warmup_s = time.perf_counter() - t0
+        print(f"{name}: warm-up render (JIT/cache load) {warmup_s:.2f} s", flush=True)
+        t0 = time.perf_counter()
         ref_ours = icb.trace.render(scene, cam, TraceConfig(spp=args.ref_spp, seed=1000, **base))
-        ref_mi, _ = mitsuba_render(scene, cam, args.ref_spp, seed=1000)
+        print(f"{name}: our reference {time.perf_counter() - t0:.1f} s", flush=True)
+        ref_mi, t_ref_mi = mitsuba_render(scene, cam, args.ref_spp, seed=1000)
+        print(f"{name}: Mitsuba reference {t_ref_mi:.1f} s", flush=True)
         gap = float(np.sqrt(np.mean((ref_ours.full - ref_mi) ** 2)))
-        curves = {"ours_raw": [], "ours_denoised": [], "ours_adaptive": [], "mitsuba": []}
+        # alignment on the direct-only images (sharper edges than full); Mitsuba max_depth 2
+        # renders emitters + direct light, which is our `direct` plus sky/other-emitter direct
+        ref_mi_direct, _ = mitsuba_render(scene, cam, args.ref_spp, seed=1001, max_depth=2)
+        align = {
+            "full": alignment(ref_ours.full, ref_mi),
+            "direct_depth2": alignment(ref_ours.direct, ref_mi_direct),
+        }
+        print(f"{name}: alignment best shift {align['full']['best_shift_dy_dx']}", flush=True)
+        keys = (
+            "ours_raw",
+            "ours_raw_independent",
+            "ours_denoised",
+            "ours_denoised_full",
+            "ours_adaptive",
+            "mitsuba",
+        )
+        curves = {k: [] for k in keys}
         for spp in tqdm(spps, desc=name):
-            r = icb.trace.render(scene, cam, TraceConfig(spp=spp, seed=spp, **base))
+            cfg = TraceConfig(spp=spp, seed=spp, **base)
+            r = icb.trace.render(scene, cam, cfg)
             curves["ours_raw"].append(
                 {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_ours.full, r.full)}
             )
-            r = icb.trace.render(scene, cam, TraceConfig(spp=spp, seed=spp, denoise=True, **base))
+            # the GI-only denoised image from the same render (the system's use: DL is rastered)
+            t0 = time.perf_counter()
+            gi_dn = icb.trace.denoise(r.gi_raw, r.albedo, r.normal)
+            t_dn = time.perf_counter() - t0
             curves["ours_denoised"].append(
                 {
                     "spp": spp,
-                    "time_s": r.stats.time_s["total"],
-                    **errors(ref_ours.full, r.direct + r.gi),
+                    "time_s": r.stats.time_s["total"] + t_dn,
+                    **errors(ref_ours.full, r.direct + gi_dn),
                 }
+            )
+            t0 = time.perf_counter()
+            full_dn = icb.trace.denoise(r.full, r.albedo, r.normal)
+            t_dn = time.perf_counter() - t0
+            curves["ours_denoised_full"].append(
+                {
+                    "spp": spp,
+                    "time_s": r.stats.time_s["total"] + t_dn,
+                    **errors(ref_ours.full, full_dn),
+                }
+            )
+            r = icb.trace.render(scene, cam, replace(cfg, sampler="independent"))
+            curves["ours_raw_independent"].append(
+                {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_ours.full, r.full)}
             )
             r = icb.trace.render(
                 scene,
                 cam,
-                TraceConfig(
-                    spp=4 * spp, seed=spp, adaptive=True, target_error=0.5 / np.sqrt(spp), **base
-                ),
+                replace(cfg, spp=4 * spp, adaptive=True, target_error=0.5 / np.sqrt(spp)),
             )
             curves["ours_adaptive"].append(
                 {
@@ -196,20 +310,35 @@ def main() -> None:
                     **errors(ref_ours.full, r.full),
                 }
             )
+            mitsuba_render(scene, cam, spp, seed=spp + 10_000)  # warm Mitsuba's kernel cache
             img, dt = mitsuba_render(scene, cam, spp, seed=spp)
             curves["mitsuba"].append({"spp": spp, "time_s": dt, **errors(ref_mi, img)})
+            tqdm.write(
+                f"{name} spp {spp}: "
+                + ", ".join(
+                    f"{k} {c[-1]['time_s']:.2f}s rmse {c[-1]['rmse']:.4f}"
+                    for k, c in curves.items()
+                )
+            )
         results["scenes"][name] = {
             "size": args.size,
             "ref_spp": args.ref_spp,
+            "warmup_render_s": warmup_s,
             "reference_gap_rmse": gap,
             "reference_mean_ours": float(ref_ours.full.mean()),
             "reference_mean_mitsuba": float(ref_mi.mean()),
+            "alignment_ours_vs_mitsuba": align,
+            "target_rmse": target_check(curves, "rmse"),
+            "target_flip": target_check(curves, "flip"),
+            "load_average_1min_end": os.getloadavg()[0],
             "curves": curves,
         }
         print(name, "reference gap RMSE", gap, ref_ours.full.mean(), ref_mi.mean())
+        for k, v in results["scenes"][name]["target_rmse"].items():
+            print(f"  {k}: time ratio to reach Mitsuba's RMSE {v['time_ratio_per_mitsuba_point']}")
     OUT.mkdir(parents=True, exist_ok=True)
     write_json(
-        OUT / "time_error.json",
+        OUT / f"{args.out_name}.json",
         {"args": vars(args), "max_depth": MAX_DEPTH, "results": results, "run_info": run_info()},
     )
     import matplotlib
@@ -229,8 +358,8 @@ def main() -> None:
                 axes[i, j].set_title(f"{name} {args.size}x{args.size}")
         axes[0, j].legend()
     fig.tight_layout()
-    fig.savefig(OUT / "time_error.png", dpi=100)
-    print(f"wrote {OUT / 'time_error.json'}")
+    fig.savefig(OUT / f"{args.out_name}.png", dpi=100)
+    print(f"wrote {OUT / args.out_name}.json")
 
 
 if __name__ == "__main__":

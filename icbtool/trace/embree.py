@@ -211,22 +211,31 @@ class EmbreeScene:
 
     # ------------------------------------------------------------------ raw queries (tracer)
     def intersect_raw(
-        self, origins: np.ndarray, directions: np.ndarray, threads: int | None = None
+        self,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        threads: int | None = None,
+        out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Closest hits without the :class:`Hits` extras (for the tracer's hot loop).
 
         Args:
             origins, directions: (N, 3) C-contiguous float32 (not copied, not checked).
             threads: threads for this call (default: ``self.threads``).
+            out: optional (t, prim, u, v) output arrays of length N to fill (reused buffers).
 
         Returns:
             t (N,) float32 (undefined for misses), prim (N,) int32 (-1 = miss), u, v (N,) float32.
         """
         n = len(origins)
-        t = np.empty(n, np.float32)
-        prim = np.empty(n, np.int32)
-        u = np.empty(n, np.float32)
-        v = np.empty(n, np.float32)
+        if out is None:
+            out = (
+                np.empty(n, np.float32),
+                np.empty(n, np.int32),
+                np.empty(n, np.float32),
+                np.empty(n, np.float32),
+            )
+        t, prim, u, v = out
 
         def run(s: slice) -> None:
             if s.stop <= s.start:

@@ -110,27 +110,54 @@ def _nus(x, seed):
 
 
 @nb.njit(**_JIT)
-def _sobol1(i):
-    """Second dimension of the Sobol sequence (32-bit), generator x + 1."""
+def _sobol1_rev(i):
+    """Bit-reversed second dimension of the Sobol sequence (generator x + 1): the direction
+    numbers reversed are w_0 = 1, w_{j+1} = w_j ^ (w_j << 1)."""
     r = _U0
-    v = np.uint64(0x80000000)
+    w = _U1
     while i != _U0:
         if (i & _U1) != _U0:
-            r = r ^ v
+            r = r ^ w
         i = i >> _U1
-        v = v ^ (v >> _U1)
+        w = (w ^ (w << _U1)) & _MASK32
     return r
 
 
 @nb.njit(**_JIT)
+def _pair_seed(pixseed, pair):
+    return _mix(pixseed ^ _mix((np.uint64(pair) + _U1) * _GOLD))
+
+
+@nb.njit(**_JIT)
+def _shuffled_index(h, sid):
+    """Owen-scrambled (bit-reversed) sample index: a per-pixel, per-pair shuffle that keeps
+    every power-of-two prefix of samples a (0, m, 2)-net."""
+    return _nus(np.uint64(sid) & _MASK32, h & _MASK32)
+
+
+@nb.njit(**_JIT)
 def _sobol2(pixseed, sid, pair):
-    """Shuffled Owen-scrambled 2D Sobol point of sample ``sid`` in pair ``pair`` of a pixel."""
-    h = _mix(pixseed ^ _mix((np.uint64(pair) + _U1) * _GOLD))
-    h2 = _mix(h + _GOLD)
-    i = _nus(np.uint64(sid) & _MASK32, h & _MASK32)
-    x0 = _nus(_rev32(i), h >> _U32)
-    x1 = _nus(_sobol1(i), h2 & _MASK32)
+    """Shuffled Owen-scrambled 2D Sobol point of sample ``sid`` in pair ``pair`` of a pixel.
+
+    x0 = nus(rev(i)) = rev(lk(i)); x1 = nus(sobol1(i)) = rev(lk(rev(sobol1(i)))).
+    """
+    h = _pair_seed(pixseed, pair)
+    i = _shuffled_index(h, sid)
+    x0 = _rev32(_lk_perm(i, h >> _U32))
+    x1 = _rev32(_lk_perm(_sobol1_rev(i), _mix(h + _GOLD) & _MASK32))
     return np.float64(x0) * _INV32, np.float64(x1) * _INV32
+
+
+@nb.njit(**_JIT)
+def _sobol1d(pixseed, sid, pair):
+    """First coordinate of :func:`_sobol2` only (a 1D stratified, Owen-scrambled sample)."""
+    h = _pair_seed(pixseed, pair)
+    i = _shuffled_index(h, sid)
+    return np.float64(_rev32(_lk_perm(i, h >> _U32))) * _INV32
+
+
+#: the sobol sampler is used for the first LD_MAX_DEPTH vertices; deeper ones use hashes
+LD_MAX_DEPTH = 3
 
 
 @nb.njit(**_JIT)
@@ -503,10 +530,11 @@ def shade(
                 s_dest[slot] = dest_dl
             slot += 1
         # ---- emissive triangles (power-sampled, MIS with the BSDF)
+        use_ld = sampler == SAMPLER_SOBOL and depth <= LD_MAX_DEPTH
+        ps = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD)) if use_ld else _U0
         if n_e > 0:
-            if sampler == SAMPLER_SOBOL:
-                ps = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD))
-                ul, _unused = _sobol2(ps, sid[s], pair0 + 1)
+            if use_ld:
+                ul = _sobol1d(ps, sid[s], pair0 + 1)
                 ra, r2 = _sobol2(ps, sid[s], pair0 + 2)
             else:
                 ul = _u01(base[s], salts[dim0 + 2])
@@ -570,8 +598,7 @@ def shade(
                 s_dest[slot] = DEST_DIRECT if (depth == 1 and face_is_area[lf]) else DEST_GI
             slot += 1
         # ---- bounce: cosine-weighted about the shading normal (Duff et al. basis)
-        if sampler == SAMPLER_SOBOL:
-            ps = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD))
+        if use_ld:
             u1, u2 = _sobol2(ps, sid[s], pair0)
         else:
             u1 = _u01(base[s], salts[dim0])
@@ -625,18 +652,8 @@ def shade(
 
 
 @nb.njit(**_JIT)
-def compact_paths(alive, idx, n_o, n_d, n_thr, n_pdf):
-    """Surviving paths: (idx, o32, d32, d64, thr, pdf), in the original order."""
-    m = 0
-    for i in range(len(alive)):
-        if alive[i]:
-            m += 1
-    idx2 = np.empty(m, np.int64)
-    o32 = np.empty((m, 3), np.float32)
-    d32 = np.empty((m, 3), np.float32)
-    d64 = np.empty((m, 3), np.float64)
-    thr = np.empty((m, 3), np.float64)
-    pdf = np.empty(m, np.float64)
+def compact_paths(alive, idx, n_o, n_d, n_thr, n_pdf, idx2, o32, d32, d64, thr, pdf):
+    """Copy the surviving paths, in order, into the output buffers; returns their count."""
     j = 0
     for i in range(len(alive)):
         if alive[i]:
@@ -648,30 +665,22 @@ def compact_paths(alive, idx, n_o, n_d, n_thr, n_pdf):
                 thr[j, k] = n_thr[i, k]
             pdf[j] = n_pdf[i]
             j += 1
-    return idx2, o32, d32, d64, thr, pdf
+    return j
 
 
 @nb.njit(**_JIT)
-def compact_shadow(s_dest, s_o, s_d, s_tf):
-    """Used shadow slots: (slot index, o32, d32, tfar32)."""
-    m = 0
-    for i in range(len(s_dest)):
-        if s_dest[i] != DEST_NONE:
-            m += 1
-    sl = np.empty(m, np.int64)
-    o32 = np.empty((m, 3), np.float32)
-    d32 = np.empty((m, 3), np.float32)
-    tf = np.empty(m, np.float32)
+def compact_shadow(s_dest, s_o, s_d, s_tf, slots, o32, d32, tf):
+    """Copy the used shadow slots, in order, into the output buffers; returns their count."""
     j = 0
     for i in range(len(s_dest)):
         if s_dest[i] != DEST_NONE:
-            sl[j] = i
+            slots[j] = i
             for k in range(3):
                 o32[j, k] = s_o[i, k]
                 d32[j, k] = s_d[i, k]
             tf[j] = s_tf[i]
             j += 1
-    return sl, o32, d32, tf
+    return j
 
 
 @nb.njit(**_JIT)
@@ -702,3 +711,37 @@ def welford_add(pix, x, n, mean, m2):
             delta = x[i, k] - mean[p, k]
             mean[p, k] += delta * inv
             m2[p, k] += delta * (x[i, k] - mean[p, k])
+
+
+@nb.njit(**_JIT)
+def accumulate_pass(
+    pix, gi, direct, hit, alb, nrm, want_aux, lum_w,
+    n_g, mean_g, m2_g, n_d, mean_d, m2_d, hit_sum, alb_sum, nrm_sum,
+):  # fmt: skip
+    """One pass's samples into the per-pixel statistics (in place): Welford mean/M2 of
+    (gi rgb, gi luminance) and of direct, and sums of the hit flag, albedo and normal."""
+    x = np.empty(4)
+    for i in range(len(pix)):
+        p = pix[i]
+        x[0] = gi[i, 0]
+        x[1] = gi[i, 1]
+        x[2] = gi[i, 2]
+        x[3] = gi[i, 0] * lum_w[0] + gi[i, 1] * lum_w[1] + gi[i, 2] * lum_w[2]
+        n_g[p] += 1
+        inv = 1.0 / n_g[p]
+        for k in range(4):
+            delta = x[k] - mean_g[p, k]
+            mean_g[p, k] += delta * inv
+            m2_g[p, k] += delta * (x[k] - mean_g[p, k])
+        n_d[p] += 1
+        inv = 1.0 / n_d[p]
+        for k in range(3):
+            delta = direct[i, k] - mean_d[p, k]
+            mean_d[p, k] += delta * inv
+            m2_d[p, k] += delta * (direct[i, k] - mean_d[p, k])
+        if hit[i]:
+            hit_sum[p] += 1.0
+        if want_aux:
+            for k in range(3):
+                alb_sum[p, k] += alb[i, k]
+                nrm_sum[p, k] += nrm[i, k]

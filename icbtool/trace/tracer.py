@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -364,6 +365,7 @@ class _Tracer:
             sk.append("aux buffers (albedo, normal): not asked for")
         for s in sk:
             log.info("trace: skipped %s", s)
+        self._ws = _take_workspace()
         n_dims = 2 + (cfg.depth_limit + 1) * _DIMS_PER_BOUNCE
         self._salts = _salts(cfg.seed, n_dims)
         self._seed_mix = np.uint64(_mix_int(int(cfg.seed)))
@@ -398,12 +400,14 @@ class _Tracer:
         sid = np.ascontiguousarray(sid, np.int64)
         limit = cfg.depth_limit
         salts = self._salts
-        base = np.empty(P, np.uint64)
+        ws = self._ws
+        base = ws.get("base", (P,), np.uint64)
         K.sample_base(self._seed_mix, pix, sid, base)
         sampler = K.SAMPLER_SOBOL if cfg.sampler == "sobol" else K.SAMPLER_INDEPENDENT
-        o32 = np.empty((P, 3), np.float32)
-        d32 = np.empty((P, 3), np.float32)
-        d64 = np.empty((P, 3), np.float64)
+        # ping-pong path state buffers (A: this depth, B: the survivors)
+        o32 = ws.get("o32A", (P, 3), np.float32)
+        d32 = ws.get("d32A", (P, 3), np.float32)
+        d64 = ws.get("d64A", (P, 3), np.float64)
         self._parallel(
             P,
             K.primary_rays,
@@ -423,51 +427,66 @@ class _Tracer:
             d64,
         )
         st.add_time("rng", time.perf_counter() - tt)
-        direct = np.zeros((P, 3))
-        gi = np.zeros((P, 3))
-        first_hit = np.zeros(P, np.bool_)
         want_aux = cfg.aux or cfg.denoise
-        alb_out = np.zeros((P, 3)) if want_aux else np.zeros((1, 3))
-        nrm_out = np.zeros((P, 3)) if want_aux else np.zeros((1, 3))
+        # per-sample outputs (workspace views: valid until the next call)
+        direct = ws.zeros("direct", (P, 3), np.float64)
+        gi = ws.zeros("gi", (P, 3), np.float64)
+        first_hit = ws.zeros("first_hit", (P,), np.bool_)
+        alb_out = ws.zeros("alb", (P if want_aux else 1, 3), np.float64)
+        nrm_out = ws.zeros("nrm", (P if want_aux else 1, 3), np.float64)
         n_lights = len(sd.k_suns) + len(sd.k_punct) + (1 if len(sd.emit_faces) else 0)
+        nl = max(n_lights, 1)
 
-        idx = np.arange(P, dtype=np.int64)  # alive path -> sample
-        thr = np.ones((P, 3))
-        pdf_prev = np.zeros(P)  # solid-angle pdf of the bsdf sample that led here
+        idx = ws.get("idxA", (P,), np.int64)  # alive path -> sample
+        idx[:] = np.arange(P)
+        thr = ws.get("thrA", (P, 3), np.float64)
+        thr.fill(1.0)
+        pdf_prev = ws.get("pdfA", (P,), np.float64)  # pdf of the bsdf sample that led here
+        pdf_prev.fill(0.0)
         from_first = np.zeros(P, np.bool_)  # the current ray left the first hit (DL split)
+        iparams = np.array(
+            [
+                0,
+                limit,
+                cfg.rr_depth,
+                sampler,
+                cfg.texture_filter == "nearest",
+                cfg.shading_normals,
+                want_aux,
+                nl,
+            ],
+            np.int64,
+        )
         for depth in range(1, limit + 1):  # ray segment number `depth` arrives at vertex `depth`
             n = len(idx)
             if n == 0:
                 break
+            cur, nxt = ("A", "B") if depth % 2 else ("B", "A")
             t0 = time.perf_counter()
-            h_t, h_prim, h_u, h_v = self.es.intersect_raw(o32, d32)
+            h_t, h_prim, h_u, h_v = self.es.intersect_raw(
+                o32,
+                d32,
+                out=(
+                    ws.get("h_t", (n,), np.float32),
+                    ws.get("h_prim", (n,), np.int32),
+                    ws.get("h_u", (n,), np.float32),
+                    ws.get("h_v", (n,), np.float32),
+                ),
+            )
             st.rays["primary" if depth == 1 else "bounce"] += n
             st.add_time("intersect", time.perf_counter() - t0)
             t0 = time.perf_counter()
-            nl = max(n_lights, 1)
-            s_o = np.empty((n * nl, 3))
-            s_d = np.empty((n * nl, 3))
-            s_tf = np.empty(n * nl)
-            s_c = np.empty((n * nl, 3))
-            s_dest = np.empty(n * nl, np.int8)
-            n_o = np.empty((n, 3))
-            n_d = np.empty((n, 3))
-            n_thr = np.empty((n, 3))
-            n_pdf = np.empty(n)
-            alive = np.empty(n, np.bool_)
-            iparams = np.array(
-                [
-                    depth,
-                    limit,
-                    cfg.rr_depth,
-                    sampler,
-                    cfg.texture_filter == "nearest",
-                    cfg.shading_normals,
-                    want_aux,
-                    nl,
-                ],
-                np.int64,
-            )
+            s_o = ws.get("s_o", (n * nl, 3), np.float64)
+            s_d = ws.get("s_d", (n * nl, 3), np.float64)
+            s_tf = ws.get("s_tf", (n * nl,), np.float64)
+            s_c = ws.get("s_c", (n * nl, 3), np.float64)
+            s_dest = ws.get("s_dest", (n * nl,), np.int8)
+            n_o = ws.get("n_o", (n, 3), np.float64)
+            n_d = ws.get("n_d", (n, 3), np.float64)
+            n_thr = ws.get("n_thr", (n, 3), np.float64)
+            n_pdf = ws.get("n_pdf", (n,), np.float64)
+            alive = ws.get("alive", (n,), np.bool_)
+            iparams[0] = depth
             self._parallel(
                 n, K.shade,
                 idx, d64, thr, pdf_prev, from_first,
@@ -481,23 +500,86 @@ class _Tracer:
                 direct, gi, first_hit, alb_out, nrm_out,
                 s_o, s_d, s_tf, s_c, s_dest, n_o, n_d, n_thr, n_pdf, alive,
             )  # fmt: skip
-            slots, so32, sd32, stf32 = K.compact_shadow(s_dest, s_o, s_d, s_tf)
+            slots = ws.get("slots", (n * nl,), np.int64)
+            so32 = ws.get("so32", (n * nl, 3), np.float32)
+            sd32 = ws.get("sd32", (n * nl, 3), np.float32)
+            stf32 = ws.get("stf32", (n * nl,), np.float32)
+            m = K.compact_shadow(s_dest, s_o, s_d, s_tf, slots, so32, sd32, stf32)
             st.add_time("shade", time.perf_counter() - t0)
-            if len(slots):
+            if m:
                 t0 = time.perf_counter()
-                blocked = self.es.occluded_raw(so32, sd32, stf32)
-                st.rays["shadow"] += len(slots)
+                blocked = self.es.occluded_raw(so32[:m], sd32[:m], stf32[:m])
+                st.rays["shadow"] += m
                 st.add_time("shadow", time.perf_counter() - t0)
                 t0 = time.perf_counter()
-                K.add_shadow(blocked, slots, nl, idx, s_c, s_dest, direct, gi)
+                K.add_shadow(blocked, slots[:m], nl, idx, s_c, s_dest, direct, gi)
                 st.add_time("shade", time.perf_counter() - t0)
             t0 = time.perf_counter()
-            idx, o32, d32, d64, thr, pdf_prev = K.compact_paths(alive, idx, n_o, n_d, n_thr, n_pdf)
-            from_first = np.full(len(idx), depth == 1)
+            buf = [
+                ws.get(f"idx{nxt}", (n,), np.int64),
+                ws.get(f"o32{nxt}", (n, 3), np.float32),
+                ws.get(f"d32{nxt}", (n, 3), np.float32),
+                ws.get(f"d64{nxt}", (n, 3), np.float64),
+                ws.get(f"thr{nxt}", (n, 3), np.float64),
+                ws.get(f"pdf{nxt}", (n,), np.float64),
+            ]
+            k = K.compact_paths(alive, idx, n_o, n_d, n_thr, n_pdf, *buf)
+            idx, o32, d32, d64, thr, pdf_prev = (b[:k] for b in buf)
+            from_first = np.full(k, depth == 1)
             st.add_time("shade", time.perf_counter() - t0)
         if not want_aux:
             alb_out = nrm_out = None
         return direct, gi, first_hit, alb_out, nrm_out
+
+
+def _kernels():
+    """The numba kernels module (imported on first use: numba is a heavy import)."""
+    from icbtool.trace import kernels
+
+    return kernels
+
+
+class _Workspace:
+    """Reusable buffers (fresh allocations page-fault on first touch, which cost more than the
+    shading itself); ``get`` returns a C-contiguous view of a buffer grown as needed."""
+
+    def __init__(self) -> None:
+        self._bufs: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+        n = int(np.prod(shape))
+        b = self._bufs.get(name)
+        if b is None or b.size < n or b.dtype != np.dtype(dtype):
+            b = np.empty(max(n, 1), dtype)
+            self._bufs[name] = b
+        return b[:n].reshape(shape)
+
+    def zeros(self, name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+        a = self.get(name, shape, dtype)
+        a.fill(0)
+        return a
+
+    @property
+    def nbytes(self) -> int:
+        return sum(b.nbytes for b in self._bufs.values())
+
+
+#: Workspaces kept between renders (a render takes one, or makes one, and gives it back).
+_WS_FREE: list[_Workspace] = []
+_WS_LOCK = threading.Lock()
+#: Workspaces larger than this are not kept after a render.
+_WS_KEEP_BYTES = 512 * 2**20
+
+
+def _take_workspace() -> _Workspace:
+    with _WS_LOCK:
+        return _WS_FREE.pop() if _WS_FREE else _Workspace()
+
+
+def _give_workspace(ws: _Workspace) -> None:
+    with _WS_LOCK:
+        if ws.nbytes <= _WS_KEEP_BYTES and len(_WS_FREE) < 2:
+            _WS_FREE.append(ws)
 
 
 #: Kernel launches smaller than this are not split over threads.
@@ -596,19 +678,16 @@ def render(scene: Scene, cam: Camera, config: TraceConfig | None = None) -> Trac
             stats.stop_reason = stats.stop_reason or "spp"
             break
         k = np.minimum(cfg.spp_per_pass, cfg.spp - acc_gi.n[active])
-        pix = np.repeat(active, k)
+        pix = np.repeat(active, k).astype(np.int64)
         start = np.repeat(acc_gi.n[active], k)
         sid = start + (np.arange(len(pix)) - np.repeat(np.cumsum(k) - k, k))
         direct, gi, hit, alb, nrm = tracer.trace(pix, sid)
         t0 = time.perf_counter()
-        lum = gi @ _LUM
-        acc_gi.add(pix, np.concatenate([gi, lum[:, None]], 1))
-        acc_dir.add(pix, direct)
-        hit_sum += np.bincount(pix, hit.astype(np.float64), minlength=npix)
-        if want_aux:
-            for i in range(3):
-                alb_sum[:, i] += np.bincount(pix, alb[:, i], minlength=npix)
-                nrm_sum[:, i] += np.bincount(pix, nrm[:, i], minlength=npix)
+        _kernels().accumulate_pass(
+            pix, gi, direct, hit, alb if want_aux else gi, nrm if want_aux else gi, want_aux,
+            _LUM, acc_gi.n, acc_gi.mean, acc_gi.m2, acc_dir.n, acc_dir.mean, acc_dir.m2,
+            hit_sum, alb_sum if want_aux else acc_dir.mean, nrm_sum if want_aux else acc_dir.mean,
+        )  # fmt: skip
         stats.passes += 1
         covered = hit_sum > 0.5 * np.maximum(acc_gi.n, 1)
         rel, mean_rel = _rel_error(acc_gi, covered)
@@ -633,6 +712,7 @@ def render(scene: Scene, cam: Camera, config: TraceConfig | None = None) -> Trac
         stats.skipped.append(
             f"adaptive: {n_skipped_pixels} of {npix} pixels below the target error stopped early"
         )
+    _give_workspace(tracer._ws)  # (lost on an exception: then it is simply garbage)
     # ---- outputs
     n = np.maximum(acc_gi.n, 1)[:, None]
     gi = acc_gi.mean[:, :3].reshape(H, W, 3).astype(np.float32)
