@@ -45,10 +45,8 @@ def walk_cameras(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
             [np.cos(heading) * np.cos(pitch), np.sin(pitch), np.sin(heading) * np.cos(pitch)]
         )
         p = p + 0.05 * f
-        out = (p < BOUNDS[0]) | (p > BOUNDS[1])
-        if out.any():  # bounce off the walls
-            heading += np.pi
-            p = np.clip(p, BOUNDS[0], BOUNDS[1])
+        if np.any((p < BOUNDS[0]) | (p > BOUNDS[1])):  # left the box: start a new walk
+            p = rng.uniform(BOUNDS[0], BOUNDS[1])
         poses[i] = look_at_pose(p, p + f)
     return poses
 

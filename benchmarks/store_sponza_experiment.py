@@ -24,7 +24,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "store"
-ALPHA_POS = [0.25, 0.5, 1.0, 2.0, 4.0, 8.0]
+ALPHA_POS = [0.2, 0.35, 0.5, 1.0, 2.0, 4.0]
 ALPHA_DIR = [0.003, 0.01, 0.03, 0.1, 0.3, 1.0]
 
 
@@ -36,6 +36,7 @@ def main() -> None:
     ap.add_argument("--denoise", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--train-stride", type=int, default=1)
     ap.add_argument("--test-stride", type=int, default=2)
+    ap.add_argument("--ceiling-views", type=int, default=6, help="views for the noise ceiling")
     ap.add_argument("--stores", default=str(REPO / "out" / "store_sponza"))
     ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args()
@@ -109,6 +110,37 @@ def main() -> None:
                             cache[key] = _compare(hh.record, true, exposure, metrics, warp)
                         raw_[a, b, k], warp_[a, b, k], holes_[a, b, k] = cache[key]
 
+    # noise ceiling: the same test camera traced again with another seed, vs the stored GI
+    from icbtool import trace
+
+    ceiling: list[float] = []
+    ceiling_error = ""
+    with S.open(stores / "test", ro) as test:
+        for tid in tqdm(
+            test_ids[:: max(1, n_test // args.ceiling_views)][: args.ceiling_views],
+            desc="noise ceiling",
+            unit="view",
+        ):
+            true = test.get(tid)
+            cfg_t = bake_cfg["test"]
+            if ceiling_error:
+                break
+            try:  # the tracer is another team's module: record a failure, keep the results
+                again = trace.render(
+                    scene,
+                    true.camera,
+                    trace.TraceConfig(
+                        spp=cfg_t.spp,
+                        seed=777_000 + tid,
+                        max_depth=cfg_t.max_depth,
+                        denoise=cfg_t.denoise,
+                    ),
+                )
+                exposure = auto_exposure(true.gi, true.mask[..., 0] > 0)
+                ceiling.append(metrics.ssim(again.gi, true.gi, exposure))
+            except Exception as e:  # noqa: BLE001
+                ceiling_error = f"{type(e).__name__}: {e}"
+
     def mean_over_hits(h: np.ndarray, x: np.ndarray) -> list[list[float | None]]:
         with np.errstate(invalid="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
@@ -138,6 +170,12 @@ def main() -> None:
             None if n is None else {"distance": n[0], "angle_deg": n[1]} for n in nearest
         ],
         "lookup_us_median": 1e6 * float(np.median(t_lookup)),
+        "noise_ceiling_ssim": {
+            "what": "SSIM of a second render of the same test camera (other seed) vs the stored GI",
+            "values": ceiling,
+            "mean": float(np.mean(ceiling)) if ceiling else None,
+            "error": ceiling_error or None,
+        },
         "bake": reports,
         "scene_load_s": t_load,
         "ssim": "icbtool.metrics.ssim (display scale, valid padding), exposure from the true GI",

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -92,14 +93,14 @@ class _Leaf:
     __slots__ = ("rows", "ids", "_data", "_ids")
 
     def __init__(self) -> None:
-        self.rows: list[np.ndarray] = []
+        self.rows: list[tuple[float, ...]] = []  # (12,) rows as Python floats
         self.ids: list[int] = []
         self._data: np.ndarray | None = None
         self._ids: np.ndarray | None = None
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         if self._data is None:
-            self._data = np.stack(self.rows) if self.rows else np.empty((0, NCOLS))
+            self._data = np.array(self.rows, np.float64).reshape(-1, NCOLS)
             self._ids = np.asarray(self.ids, dtype=np.int64)
         return self._data, self._ids  # type: ignore[return-value]
 
@@ -139,7 +140,7 @@ class SceneOctree:
         leaf = self.leaves.get(key)
         if leaf is None:
             leaf = self.leaves[key] = _Leaf()
-        leaf.rows.append(np.asarray(row, dtype=np.float64))
+        leaf.rows.append(tuple(np.asarray(row, dtype=np.float64).tolist()))
         leaf.ids.append(int(record_id))
         leaf._data = None
         self._where[int(record_id)] = key
@@ -176,10 +177,19 @@ class SceneOctree:
             data: (N, 12) float64 rows (:data:`COLS`).
             ids: (N,) int64 record ids.
         """
+        found = [leaf.arrays() for leaf in self.candidate_leaves(p, radius)]
+        if not found:
+            return np.empty((0, NCOLS)), np.empty(0, np.int64)
+        if len(found) == 1:
+            return found[0]
+        return np.concatenate([f[0] for f in found]), np.concatenate([f[1] for f in found])
+
+    def candidate_leaves(self, p: Any, radius: float) -> list[_Leaf]:
+        """The occupied leaves intersecting the axis-aligned box around the ball (p, radius)."""
         inv, mn, n1 = self._inv, self._min_list, self._n - 1
         r = radius * inv
         lo, hi = [], []
-        for a, x in enumerate(p.tolist()):
+        for a, x in enumerate(p.tolist() if isinstance(p, np.ndarray) else p):
             qa = (x - mn[a]) * inv
             lo.append(min(max(math.floor(qa - r), 0), n1))
             hi.append(min(max(math.floor(qa + r), 0), n1))
@@ -189,7 +199,7 @@ class SceneOctree:
         if count > len(leaves):
             for (a, b, c), leaf in leaves.items():
                 if lo[0] <= a <= hi[0] and lo[1] <= b <= hi[1] and lo[2] <= c <= hi[2]:
-                    found.append(leaf.arrays())
+                    found.append(leaf)
         else:
             get = leaves.get
             for a in range(lo[0], hi[0] + 1):
@@ -197,12 +207,8 @@ class SceneOctree:
                     for c in range(lo[2], hi[2] + 1):
                         leaf = get((a, b, c))
                         if leaf is not None:
-                            found.append(leaf.arrays())
-        if not found:
-            return np.empty((0, NCOLS)), np.empty(0, np.int64)
-        if len(found) == 1:
-            return found[0]
-        return np.concatenate([f[0] for f in found]), np.concatenate([f[1] for f in found])
+                            found.append(leaf)
+        return found
 
     def occupancy(self) -> dict[str, float]:
         """Leaf statistics: occupied leaves, records per occupied leaf (mean, max)."""

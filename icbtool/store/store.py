@@ -351,7 +351,7 @@ def _camera_row(cam: Camera) -> np.ndarray:
 
 
 def _intrinsics_check(
-    r: list[float], q: tuple[int, int, float, float, float, float], policy: str, rtol: float
+    r: Any, q: tuple[int, int, float, float, float, float], policy: str, rtol: float
 ) -> tuple[bool, bool]:
     """(allowed by the policy, same intrinsics) for a stored camera ``r`` = [h, w, fx, fy, cx, cy]
     and the query ``q`` (same layout)."""
@@ -1080,51 +1080,60 @@ class Store:
         if tree is None:
             return None
         m = camera.world_from_cam
-        p = m[:3, 3]
-        data, ids = tree.candidates(p, a_pos)
-        if len(ids) == 0:
-            return None
-        diff = data[:, 0:3] - p
-        dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
-        dd = 1.0 - data[:, 3:6] @ m[:3, 2]
-        idx = np.flatnonzero((dist < a_pos) & (dd < a_dir)).tolist()
-        if not idx:
-            return None
-        if exclude is not None:
-            excl = {int(e) for e in exclude}
-            idx = [k for k in idx if int(ids[k]) not in excl]
+        pw = m[:3, 3].tolist()
+        fw = m[:3, 2].tolist()
         policy = intrinsics or cfg.intrinsics
         if policy not in ("same", "covering", "any"):
             raise ValueError(f"intrinsics policy must be same|covering|any, got {policy!r}")
         q = (camera.height, camera.width, camera.fx, camera.fy, camera.cx, camera.cy)
-        best: tuple[float, int, int, bool] | None = None  # score, id, index, same intrinsics
-        for k in idx:  # few candidates pass the thresholds: plain Python is fastest here
-            allowed, same = _intrinsics_check(
-                data[k, 6:12].tolist(), q, policy, cfg.intrinsics_rtol
-            )
+        excl = None if exclude is None else {int(e) for e in exclude}
+        leaves = tree.candidate_leaves(pw, a_pos)
+        n_cand = sum(len(leaf.ids) for leaf in leaves)
+        if n_cand == 0:
+            return None
+        # (distance, 1 - dot, id, row) of the records within both thresholds
+        passing: list[tuple[float, float, int, tuple[float, ...]]] = []
+        if n_cand <= 64:  # the usual case: a few records; plain Python beats numpy's overhead
+            px, py, pz = pw
+            fx_, fy_, fz_ = fw
+            a2 = a_pos * a_pos * (1.0 + 1e-9)  # prefilter only; the exact test is on the sqrt
+            for leaf in leaves:
+                for rid, row in zip(leaf.ids, leaf.rows):
+                    dx, dy, dz = row[0] - px, row[1] - py, row[2] - pz
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 > a2:
+                        continue
+                    dd = 1.0 - (row[3] * fx_ + row[4] * fy_ + row[5] * fz_)
+                    dist = math.sqrt(d2)
+                    if dist < a_pos and dd < a_dir:
+                        passing.append((dist, dd, rid, row))
+        else:
+            data, ids = tree.candidates(pw, a_pos)
+            diff = data[:, 0:3] - m[:3, 3]
+            dist_a = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+            dd_a = 1.0 - data[:, 3:6] @ m[:3, 2]
+            for k in np.flatnonzero((dist_a < a_pos) & (dd_a < a_dir)).tolist():
+                passing.append(
+                    (float(dist_a[k]), float(dd_a[k]), int(ids[k]), tuple(data[k].tolist()))
+                )
+        best: tuple[float, int, float, float, bool] | None = None  # score, id, dist, dd, same
+        for dist, dd, rid, row in passing:
+            if excl is not None and rid in excl:
+                continue
+            allowed, same = _intrinsics_check(row[6:12], q, policy, cfg.intrinsics_rtol)
             if not allowed:
                 continue
-            sc = float(dist[k]) / a_pos + float(dd[k]) / a_dir
-            rid = int(ids[k])
+            sc = dist / a_pos + dd / a_dir
             if best is None or (sc, rid) < (best[0], best[1]):
-                best = (sc, rid, k, same)
+                best = (sc, rid, dist, dd, same)
         if best is None:
             return None
-        score, rid, k, same = best
+        score, rid, dist, dd, same = best
         if cfg.record_hits and not self.readonly:
             n, _ = self._pending_hits.get(rid, (0, 0.0))
             self._pending_hits[rid] = (n + 1, time.time())
-        cos = min(1.0, max(-1.0, 1.0 - float(dd[k])))
-        return Hit(
-            rid,
-            float(dist[k]),
-            float(dd[k]),
-            math.degrees(math.acos(cos)),
-            score,
-            same,
-            len(ids),
-            self,
-        )
+        cos = min(1.0, max(-1.0, 1.0 - dd))
+        return Hit(rid, dist, dd, math.degrees(math.acos(cos)), score, same, n_cand, self)
 
     def _flush_hits(self) -> None:
         self._last_flush = time.monotonic()
