@@ -111,7 +111,7 @@ def _batched_matrix(m: Tensor, name: str, n: int, batch: int) -> Tensor:
 def _valid_mask(depth: Tensor, mask: Tensor | None, name: str) -> Tensor:
     """(B, 1, H, W) bool geometry mask. Without ``mask``: finite depth > 0. With ``mask``: the mask,
     and a ValueError if it marks pixels valid whose depth is zero, negative or not finite."""
-    good = torch.isfinite(depth) & (depth > 0)
+    good = (depth > 0) & (depth < float("inf"))  # False for NaN too
     if mask is None:
         return good
     _check_bchw(mask, f"{name}_mask", 1)
@@ -299,57 +299,49 @@ def warp_backward(
     y = (vs - 0.5).clamp(-0.5, hs - 0.5)
     x0f, y0f = torch.floor(x.detach()), torch.floor(y.detach())
     wx, wy = x - x0f, y - y0f
-    x0 = x0f.long()
-    y0 = y0f.long()
-    x1 = (x0 + 1).clamp_max(ws - 1)
-    y1 = (y0 + 1).clamp_max(hs - 1)
-    x0 = x0.clamp_min(0)
-    y0 = y0.clamp_min(0)
-    if slope_limit > 0:
-        x0, x1, y0, y1 = (t.to(dtype) for t in (x0, x1, y0, y1))
-        idx_x0, idx_x1, idx_y0, idx_y1 = (t.long() for t in (x0, x1, y0, y1))
-    else:
-        idx_x0, idx_x1, idx_y0, idx_y1 = x0, x1, y0, y1
+    # taps are laid out (2 rows, 2 columns): index [i, j] = row y_i, column x_j
+    cols = torch.stack([x0f.clamp_min(0), (x0f + 1).clamp_max(ws - 1)], 0)  # (2, B, N)
+    rows = torch.stack([y0f.clamp_min(0), (y0f + 1).clamp_max(hs - 1)], 0)
     off = (torch.arange(b, device=device) * (hs * ws))[:, None]
-    r0, r1 = idx_y0 * ws + off, idx_y1 * ws + off
-    idx = torch.stack([r0 + idx_x0, r0 + idx_x1, r1 + idx_x0, r1 + idx_x1], 0)  # (4, B, N)
-    bw = torch.stack([(1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy], 0)
+    idx = ((rows * ws).long() + off)[:, None] + cols.long()[None]  # (2, 2, B, N)
+    bw = torch.stack([1 - wy, wy], 0)[:, None] * torch.stack([1 - wx, wx], 0)[None]
 
     # per-tap depth test in inverse depth (affine in pixels on a plane): each tap's inverse
     # depth is extrapolated to the sample with its own surface slope, so grazing surfaces pass
     # while a tap across a depth edge (another surface) fails.
-    src_iz = torch.where(src_valid, 1.0 / torch.where(src_valid, src_depth, 1.0), 0.0)
+    # inverse depth, -1 where the source has no geometry (fails every depth test below)
+    src_iz = torch.where(src_valid, torch.reciprocal(src_depth), -1.0)
     if slope_limit > 0:
         if src_slopes is None:
             gx, gy = _inverse_depth_slopes(src_iz, src_valid, slope_limit)
-            extra = [src_iz, src_valid.to(dtype), gx, gy]
+            extra = [src_iz, gx, gy]
         else:
             if src_slopes.shape != (b, 2, hs, ws):
                 raise ValueError(
                     f"src_slopes must be ({b}, 2, {hs}, {ws}), got {tuple(src_slopes.shape)}"
                 )
-            extra = [src_iz, src_valid.to(dtype), src_slopes.to(dtype)]
+            extra = [src_iz, src_slopes.to(dtype)]
     else:
-        extra = [src_iz, src_valid.to(dtype)]
+        extra = [src_iz]
     feats = torch.cat([src_image, *extra], 1)  # (B, k, Hs, Ws)
     k = feats.shape[1]
     feats = feats.transpose(0, 1).reshape(k, b * hs * ws)
-    taps = feats.index_select(1, idx.reshape(-1)).view(k, 4, b, n)
-    tap_iz, tap_ok = taps[c], taps[c + 1] > 0.5
+    taps = feats.index_select(1, idx.reshape(-1)).view(k, 2, 2, b, n)
+    tap_iz = taps[c]
     if slope_limit > 0:
-        dx = torch.stack([x - x0, x - x1, x - x0, x - x1], 0)
-        dy = torch.stack([y - y0, y - y0, y - y1, y - y1], 0)
-        tap_iz = tap_iz + taps[c + 2] * dx + taps[c + 3] * dy
-    rel = (tap_iz * z_safe - 1.0).abs()  # |z / z_tap - 1| to first order
+        tap_iz = torch.addcmul(tap_iz, taps[c + 1], (x - cols)[None])
+        tap_iz = torch.addcmul(tap_iz, taps[c + 2], (y - rows)[:, None])
     if soft_depth > 0:
-        passed = torch.sigmoid((rel_depth_tol - rel) / soft_depth) * tap_ok
-    else:
-        passed = ((rel <= rel_depth_tol) & tap_ok).to(dtype)
-    w = bw * passed  # (4, B, N)
+        rel = (tap_iz * z_safe - 1.0).abs()  # |z / z_tap - 1| to first order
+        w = bw * torch.sigmoid((rel_depth_tol - rel) / soft_depth) * (tap_iz > 0)
+    else:  # the same test as bounds on the tap's inverse depth (fewer passes)
+        lo, hi = (1.0 - rel_depth_tol) / z_safe, (1.0 + rel_depth_tol) / z_safe
+        w = bw * ((tap_iz >= lo) & (tap_iz <= hi))
+    w = w.view(4, b, n)
     wsum = w.sum(0)  # (B, N)
     covered = inside & dv
     ok = covered & (wsum > min_weight)
-    img = (taps[:c] * w).sum(1) / wsum.clamp_min(1e-12)  # (C, B, N)
+    img = (taps[:c].reshape(c, 4, b, n) * w).sum(1) / wsum.clamp_min(1e-12)  # (C, B, N)
     img = torch.where(ok, img, torch.zeros((), dtype=dtype, device=device))
     image = img.transpose(0, 1).reshape(b, c, hd, wd)
 
