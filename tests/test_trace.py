@@ -405,3 +405,121 @@ def test_cli_trace_writes_outputs(tmp_path):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["config"]["spp"] == 2 and summary["views"][0]["stats"]["passes"] == 1
     assert main(["trace", "plane", "--out", str(tmp_path), "--camera", "path:nope"]) == 1
+
+
+# ------------------------------------------------------------------------------ samplers, kernels
+def test_sobol_points_stratified_and_uniform():
+    """Each pixel's first 2^k Sobol samples of a pair stratify the unit square (a (0, k, 2)-net:
+    one point per elementary interval), and a sample is uniform over pixels (unbiased)."""
+    from icbtool.trace import kernels as K
+
+    pts = np.array([K._sobol2(np.uint64(12345), j, 3) for j in range(64)])
+    for a in range(7):  # elementary intervals 2^a x 2^(6-a): one point each
+        cells = set(zip((pts[:, 0] * 2**a).astype(int), (pts[:, 1] * 2 ** (6 - a)).astype(int)))
+        assert len(cells) == 64, a
+    first16 = pts[:16]
+    assert len(set(zip((first16[:, 0] * 4).astype(int), (first16[:, 1] * 4).astype(int)))) == 16
+    # one sample index across many pixels: uniform marginals, uncorrelated coordinates
+    v = np.array([K._sobol2(np.uint64(p * 7919 + 1), 5, 3) for p in range(4000)])
+    assert sstats.kstest(v[:, 0], "uniform").pvalue > 1e-4
+    assert sstats.kstest(v[:, 1], "uniform").pvalue > 1e-4
+    assert abs(np.corrcoef(v.T)[0, 1]) < 0.08
+    assert 0 <= v.min() and v.max() < 1
+
+
+def test_sobol_and_independent_agree_with_reference_and_sobol_is_better():
+    """Both samplers are unbiased (z-test against the stored reference, 64 spp as the test above:
+    fewer samples make the 4x4-block means too heavy-tailed for the normal approximation), and
+    the Sobol sampler's squared error against the reference is clearly lower (measured over 4
+    seeds: GI 1.5-1.9x, direct 4.9-28x)."""
+    ref = np.load(DATA / "trace_cornell_ref.npz")
+    cfg_ref = json.loads(str(ref["config"]))
+    scene = icb.scene.cornell_box()
+    cam = scene.default_camera.resized(int(ref["height"]), int(ref["width"]))
+    mse = {}
+    for sampler in ("sobol", "independent"):
+        cfg = TraceConfig(
+            **{**cfg_ref, "spp": 64, "seed": 21, "spp_per_pass": 16, "sampler": sampler}
+        )
+        res = render(scene, cam, cfg)
+        _, p = _reference_z(res.gi, ref, cfg.spp)
+        m = p.size
+        assert not np.any(np.sort(p) <= 1e-3 / (m - np.arange(m))), sampler
+        mse[sampler] = (
+            float(np.mean((res.gi - ref["gi_mean"]) ** 2)),
+            float(np.mean((res.direct - ref["direct_mean"]) ** 2)),
+        )
+    assert mse["sobol"][0] < 0.9 * mse["independent"][0], mse
+    assert mse["sobol"][1] < 0.7 * mse["independent"][1], mse
+
+
+@pytest.mark.parametrize("sampler", ["sobol", "independent"])
+def test_threads_split_kernels_and_embree_deterministic(sampler):
+    """Large enough batches to split every kernel and Embree query over 2 threads: identical."""
+    scene = icb.scene.cornell_box()
+    cam = scene.default_camera.resized(64, 64)  # 16k samples per pass
+    cfg = TraceConfig(spp=4, seed=3, threads=1, sampler=sampler)
+    a = render(scene, cam, cfg)
+    b = render(scene, cam, replace(cfg, threads=2))
+    assert np.array_equal(a.gi, b.gi) and np.array_equal(a.direct, b.direct)
+    assert np.array_equal(a.albedo, b.albedo) and np.array_equal(a.variance, b.variance)
+
+
+def test_reused_workspaces_do_not_leak_between_renders():
+    """Buffers are reused across renders: a render in between (another scene, size, lights)
+    must not change the result of the same render repeated."""
+    sc = icb.scene.cornell_box()
+    cam = sc.default_camera.resized(40, 40)
+    cfg = TraceConfig(spp=8, seed=2)
+    a = render(sc, cam, cfg)
+    other = icb.scene.plane(sky=1.0)
+    render(other, other.default_camera.resized(56, 48), TraceConfig(spp=4, max_depth=3))
+    b = render(sc, cam, cfg)
+    for name in ("gi", "direct", "variance", "albedo", "normal", "mask"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
+def test_textured_lookup_wraps_and_matches_bilinear_formula():
+    """A textured quad with uvs far outside [0, 1] under a uniform sky: the traced first-hit
+    albedo equals the repeat-wrapped bilinear lookup at each pixel's hit point."""
+    b = SceneBuilder("tex")
+    rng = np.random.default_rng(0)
+    tex = rng.uniform(0.1, 0.9, (5, 7, 3)).astype(np.float32)
+    m = b.material("t", albedo=(1, 1, 1), texture=tex)
+    b.add_quad((-1, 0, 1), (2, 0, 0), (0, 0, -2), m)
+    b.sky = Sky((1.0, 1.0, 1.0))
+    sc = b.build()
+    uvs = np.array(sc.uvs if sc.uvs is not None else np.zeros((len(sc.vertices), 2)))
+    uvs = uvs * 7.3 - 10.2  # repeat: uvs from about -10 to 11 as in Sponza
+    sc = Scene(
+        sc.name,
+        sc.vertices,
+        sc.faces,
+        sc.normals,
+        sc.face_material,
+        sc.materials,
+        uvs.astype(np.float32),
+        sc.lights,
+        sc.sky,
+    )
+    cam = Camera.look_at((0, 2, 0.001), (0, 0, 0), (0, 0, -1), fov_y_deg=40, height=12, width=12)
+    res = render(sc, cam, TraceConfig(spp=1, pixel_jitter=False, max_depth=1))
+    o, d, _ = cam.rays()
+    hits = EmbreeScene.from_scene(sc).intersect(o.reshape(-1, 3), d.reshape(-1, 3))
+    assert hits.hit.all()
+    f = sc.faces[hits.prim]
+    w = np.stack([1 - hits.u - hits.v, hits.u, hits.v], 1).astype(np.float64)
+    uv = np.einsum("nk,nkc->nc", w, uvs[f].astype(np.float64))
+    h, wd = tex.shape[:2]
+    x = uv[:, 0] * wd - 0.5
+    y = (1 - uv[:, 1]) * h - 0.5
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    x0 = x0.astype(int) % wd
+    y0 = y0.astype(int) % h
+    x1, y1 = (x0 + 1) % wd, (y0 + 1) % h
+    expect = (1 - fy) * ((1 - fx) * tex[y0, x0] + fx * tex[y0, x1]) + fy * (
+        (1 - fx) * tex[y1, x0] + fx * tex[y1, x1]
+    )
+    # (float32 hit barycentrics at uv ~ 10 move the lookup by ~1e-6 texel: tolerance 1e-4)
+    np.testing.assert_allclose(res.albedo.reshape(-1, 3), expect, rtol=1e-4, atol=1e-5)
