@@ -1,7 +1,8 @@
-"""The cloud path tracer for GI maps (Embree via embreex, numpy wavefront).
+"""The cloud path tracer for GI maps (Embree via embreex, numba wavefront kernels).
 
 ``icb.trace.render_gi(scene, cam, spp=64)`` or ``icb.trace.render(scene, cam, TraceConfig(...))``.
-embreex is imported lazily (by :class:`icbtool.trace.embree.EmbreeScene`), pyoidn only to denoise.
+embreex is imported lazily (by :class:`icbtool.trace.embree.EmbreeScene`), numba on the first
+render, pyoidn only to denoise.
 """
 
 from icbtool.trace.tracer import (

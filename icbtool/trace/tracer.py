@@ -1,4 +1,10 @@
-"""A progressive wavefront path tracer: GI maps (full - DL) with Embree and numpy.
+"""A progressive wavefront path tracer: GI maps (full - DL) with Embree and numba kernels.
+
+Per path depth, the driver here calls Embree (GIL-free, split over ``threads`` Python threads) and
+the numba kernels of :mod:`icbtool.trace.kernels` (also GIL-free, split over the same threads),
+which do all per-ray work. The kernels are compiled on first use and cached on disk (numba
+``cache=True``): about 15-25 s once per machine (or per change of ``kernels.py``), ~1 s to load
+the cache in a new process.
 
 Light transport: two-sided Lambertian surfaces (textured albedo), one-sided emissive faces, a
 directional sun, point and spot lights (delta lights: next-event estimation only), emissive
@@ -16,9 +22,14 @@ Depth convention (as Mitsuba's ``max_depth``): a path of ``k`` segments has dept
 an emitter seen directly, depth 2 direct lighting; ``max_depth = -1`` is unbounded (Russian
 roulette ends paths; a hard cap of :data:`HARD_MAX_DEPTH` guards against hangs).
 
-Determinism: every random number is a hash of (seed, pixel, sample index, dimension), so an image
-depends on the seed and the config only, never on the number of threads or on timing (a time
-budget changes how many samples are taken, not the samples themselves).
+Determinism: every random number is a function of (seed, pixel, sample index, dimension), so an
+image depends on the seed and the config only, never on the number of threads or on timing (a
+time budget changes how many samples are taken, not the samples themselves). The default
+``sampler='sobol'`` stratifies each pixel's samples (pixel area, BSDF direction and point on the
+light for the first vertices) with shuffled Owen-scrambled Sobol points; it stays unbiased, and
+the per-pixel variance estimate (``variance``, adaptive sampling, target error) becomes
+conservative (it assumes independent samples). ``sampler='independent'`` reproduces the earlier
+numpy tracer's images bit for bit.
 """
 
 from __future__ import annotations
