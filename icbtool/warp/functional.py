@@ -133,21 +133,19 @@ def _inverse_depth_slopes(iz: Tensor, valid: Tensor, limit: float) -> tuple[Tens
     """Per-pixel slopes (d/dx, d/dy) of inverse depth (B, 1, H, W): the one-sided difference of
     smaller magnitude among those to valid neighbours; 0 if none, or if larger than
     ``limit * iz`` (an edge, not a slope)."""
-    inf = torch.tensor(float("inf"), dtype=iz.dtype, device=iz.device)
+    big = torch.where(valid, iz, 1e30)  # a difference to a missing neighbour is huge
+    bound = limit * iz
 
     def one(dim: int) -> Tensor:
-        d = torch.diff(iz, dim=dim)
-        ok = torch.logical_and(
-            valid.narrow(dim, 1, iz.shape[dim] - 1), valid.narrow(dim, 0, iz.shape[dim] - 1)
-        )
-        d = torch.where(ok, d, inf)
-        pad = [0, 0, 0, 0]
-        i = 0 if dim == 3 else 2
-        fwd = torch.nn.functional.pad(d, pad[:i] + [0, 1] + pad[i + 2 :], value=float("inf"))
-        bwd = torch.nn.functional.pad(d, pad[:i] + [1, 0] + pad[i + 2 :], value=float("inf"))
-        g = torch.where(fwd.abs() <= bwd.abs(), fwd, bwd)
-        g = torch.where(torch.isfinite(g) & (g.abs() <= limit * iz), g, 0.0)
-        return g
+        if iz.shape[dim] < 3:
+            return torch.zeros_like(iz)
+        d = torch.diff(big, dim=dim)
+        ad = d.abs()
+        m = d.shape[dim]
+        right, left = d.narrow(dim, 1, m - 1), d.narrow(dim, 0, m - 1)
+        inner = torch.where(ad.narrow(dim, 1, m - 1) <= ad.narrow(dim, 0, m - 1), right, left)
+        g = torch.cat([d.narrow(dim, 0, 1), inner, d.narrow(dim, m - 1, 1)], dim)
+        return torch.where(g.abs() <= bound, g, 0.0)
 
     return one(3), one(2)
 
@@ -337,12 +335,11 @@ def warp_backward(
     else:  # the same test as bounds on the tap's inverse depth (fewer passes)
         lo, hi = (1.0 - rel_depth_tol) / z_safe, (1.0 + rel_depth_tol) / z_safe
         w = bw * ((tap_iz >= lo) & (tap_iz <= hi))
-    w = w.view(4, b, n)
-    wsum = w.sum(0)  # (B, N)
+    wsum = w.sum((0, 1))  # (B, N)
     covered = inside & dv
     ok = covered & (wsum > min_weight)
-    img = (taps[:c].reshape(c, 4, b, n) * w).sum(1) / wsum.clamp_min(1e-12)  # (C, B, N)
-    img = torch.where(ok, img, torch.zeros((), dtype=dtype, device=device))
+    scale = ok / wsum.clamp_min(1e-12)  # renormalise the passing taps; 0 on holes
+    img = (taps[:c] * w).sum((1, 2)) * scale  # (C, B, N)
     image = img.transpose(0, 1).reshape(b, c, hd, wd)
 
     def _map(t: Tensor) -> Tensor:
