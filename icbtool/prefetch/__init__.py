@@ -9,8 +9,9 @@ exceed 2*pi and is undefined when V_t.z = 0, so no literal version is kept):
 
 * Predicted motions. Translations in the client's camera frame, over ``T_IL``:
   ``motion_model="axes"`` (default, the paper's six directions) uses ``+-s`` along each of x, y and
-  z with ``s = |V_t| * T_IL`` (any direction at the current speed is then covered by the convex
-  hull argument below only per axis; the six axes are what the paper names);
+  z with ``s = |V_t| * T_IL``; by the convexity argument below this covers every displacement in
+  the octahedron they span (``|dx| + |dy| + |dz| <= s``), so a diagonal move at full speed (L1
+  norm up to ``sqrt(3) s``) may poke out slightly;
   ``"velocity"`` uses the actual displacement ``V_t * T_IL`` only. Rotations: ``+-|V_r.x| T_IL``
   (pitch), ``+-|V_r.y| T_IL`` (yaw), ``+-|V_r.z| T_IL`` (roll) about the client's axes in
   ``axes`` mode, the actual rotation vector ``V_r * T_IL`` in ``velocity`` mode. The identity is
