@@ -235,6 +235,60 @@ def test_cornell_matches_embree_primary_rays():
     np.testing.assert_allclose(buf.position[h], pos, atol=1e-4 * scene.diagonal)
 
 
+@gl
+def test_textured_albedo_follows_uv_and_mip_footprint():
+    """A ramp texture (R = u, G = v) seen obliquely: albedo equals the uv of the pixel's surface
+    point (perspective-correct interpolation, texture orientation); a fine checkerboard far away
+    averages to grey (the mip level follows the pixel footprint) but stays sharp nearby."""
+    n = 64
+    ramp = np.zeros((n, n, 3), np.float32)
+    ramp[..., 0] = (np.arange(n) + 0.5)[None, :] / n  # u grows along columns
+    ramp[..., 1] = 1.0 - (np.arange(n) + 0.5)[:, None] / n  # image row 0 is the top: v = 1
+    checker = (np.indices((n, n)) // 4).sum(0) % 2  # cells of 4x4 texels
+    checker = np.repeat(checker[..., None], 3, -1).astype(np.float32)
+    b = SceneBuilder("textured")
+    b.add_quad(
+        (-2, 0, 2), (4, 0, 0), (0, 0, -4), b.material("ramp", albedo=(1, 1, 1), texture=ramp)
+    )
+    b.add_quad(
+        (-2, 0.01, -2.5),
+        (4, 0, 0),
+        (0, 0, -20),
+        b.material("checker", albedo=(1, 1, 1), texture=checker),
+    )
+    scene = b.build()
+    cam = icb.Camera.look_at(
+        (0.2, 1.2, 3.0), (0, 0, -2), (0, 1, 0), fov_y_deg=60, height=96, width=96
+    )
+    buf = icb.raster.render(scene, cam, ("albedo", "position"), config=_cfg(texture_size=n))
+    p = buf.position.astype(np.float64)
+    u = (p[..., 0] + 2) / 4
+    v = (2 - p[..., 2]) / 4
+    on_ramp = buf.valid & (p[..., 2] > -2.0) & (np.abs(p[..., 1]) < 1e-4)
+    inner = on_ramp & (np.minimum(u, v) > 0.15) & (np.maximum(u, v) < 0.85)
+    assert inner.sum() > 1500
+    # sRGB8 storage quantises by < 0.005; filtering a linear ramp keeps it linear
+    np.testing.assert_allclose(buf.albedo[inner][:, 0], u[inner], atol=0.01)
+    np.testing.assert_allclose(buf.albedo[inner][:, 1], v[inner], atol=0.01)
+    on_checker = buf.valid & (np.abs(p[..., 1] - 0.01) < 1e-4)
+    far = on_checker & (p[..., 2] < -14)
+    near = on_checker & (p[..., 2] > -3.5) & (p[..., 2] < -2.6)
+    assert far.sum() > 20 and near.sum() > 50
+    assert np.abs(buf.albedo[far][:, 0] - 0.5).max() < 0.05  # averaged by the mip chain
+    assert buf.albedo[near][:, 0].std() > 0.3  # texels still resolved
+
+
+@gl
+def test_depth_prepass_changes_nothing():
+    scene = icb.scene.cornell_box()
+    cam = icb.scene.cornell_camera(40, 48)
+    cfg = dict(area_samples=2, area_shadow_map_size=128)
+    a = icb.raster.render(scene, cam, config=_cfg(depth_prepass=False, **cfg))
+    b = icb.raster.render(scene, cam, config=_cfg(depth_prepass=True, **cfg))
+    for n in icb.raster.BUFFER_NAMES:
+        np.testing.assert_array_equal(getattr(a, n), getattr(b, n), err_msg=n)
+
+
 # --------------------------------------------------------------------------- lighting
 @gl
 def test_directional_light_lambert():

@@ -82,8 +82,10 @@ class RasterConfig:
         far: camera far plane; None: from the scene bounds and the camera.
         cache_shadow_maps: lights and geometry are fixed for a Rasterizer, so render the shadow
             maps once (first frame that needs them) and reuse them; False: every frame.
-        depth_prepass: draw depth first, then shade each pixel once (GL_EQUAL): avoids shading
-            hidden fragments, which is what costs on a software rasterizer.
+        depth_prepass: draw depth first, then the visibility pass with GL_EQUAL. The renderer is
+            deferred (every pixel is shaded once by a full-screen resolve pass whatever the
+            overdraw), so this only repeats the vertex work: off by default; kept for
+            experiments.
     """
 
     backend: Literal["auto", "osmesa", "egl"] = "auto"
@@ -100,7 +102,7 @@ class RasterConfig:
     near: float | None = None
     far: float | None = None
     cache_shadow_maps: bool = True
-    depth_prepass: bool = True
+    depth_prepass: bool = False
 
     def __post_init__(self) -> None:
         if self.backend not in ("auto", "osmesa", "egl"):
@@ -149,7 +151,8 @@ class RasterBuffers:
         normal_view: (H, W, 3) float32 the same in camera space (OpenCV axes).
         depth: (H, W, 1) float32 view-space z.
         position: (H, W, 3) float32 world positions.
-        timings: milliseconds per stage ("shadow", "draw", "readback", "total", ...).
+        timings: milliseconds per stage ("shadow" (first frame), "visibility", "resolve",
+            "draw" (both passes), "readback", "total").
     """
 
     camera: Camera

@@ -1,22 +1,32 @@
-"""The OpenGL rasterizer: float G-buffers and shadowed direct lighting in one draw call per pass.
+"""The OpenGL rasterizer: float G-buffers and shadowed direct lighting, deferred.
 
 Design (see also the shaders in ``shaders/``):
 
-* The whole merged scene is one vertex array (positions, shading normals, uvs) drawn with one
-  ``glDrawElements``. Per-face data (geometric normal, material index) sits in a texture buffer
-  indexed by ``gl_PrimitiveID``; per-material data (albedo factor, texture layer, emission) in
-  another; textures in one mipmapped ``GL_TEXTURE_2D_ARRAY`` (resized to
-  :attr:`RasterConfig.texture_size`, stored as ``GL_SRGB8_ALPHA8`` of the linear texture
-  re-encoded, so GL decodes to linear before filtering).
-* Output: our own framebuffer with one ``GL_RGBA32F`` colour attachment per requested buffer
-  (``glDrawBuffers``) and a 32-bit float depth buffer, read back with ``glReadPixels(GL_FLOAT)``
-  and flipped upside down into icbtool's pixel convention (GL's window origin is bottom-left;
-  :meth:`Camera.gl_projection_matrix` makes the fragment centres icbtool's pixel centres).
+* Visibility pass: the whole merged scene is one vertex array (positions only) drawn with a few
+  ``glDrawElements`` (frustum-culled clusters, front to back). The fragment shader writes only
+  +-(face index + 1) (sign: facing) into a ``GL_R32F`` target. On a software rasterizer
+  (llvmpipe) fragments are shaded in whole 4x4 blocks and Sponza's triangles cover a few pixels
+  each, so any real work per fragment would mostly be wasted; here the per-triangle cost is
+  vertex processing, setup and binning (single-threaded in llvmpipe) and nothing else.
+* Resolve pass: one full-screen triangle computes every requested target of every pixel
+  exactly once (MRT, ``GL_RGBA32F``): the camera ray through the pixel centre meets the face's
+  plane, and its barycentrics interpolate the vertex position, shading normal and uv (the same
+  perspective-correct interpolation the rasterizer does); the texture footprint comes from the
+  rays through the neighbouring pixels (``textureGrad``). Per-face data (vertex indices,
+  geometric normal, material) and per-vertex data sit in texture buffers; per-material data
+  (albedo factor, texture layer, emission) in another; textures in one mipmapped
+  ``GL_TEXTURE_2D_ARRAY`` (resized to :attr:`RasterConfig.texture_size`, stored as
+  ``GL_SRGB8_ALPHA8`` of the linear texture re-encoded, so GL decodes to linear before
+  filtering). DL (lights, shadow lookups, emission, sky on the background) is computed there
+  too, only when requested. Packing: depth is the position target's alpha; view normals are the
+  world normals rotated on the CPU; the mask is any target's alpha.
+* Readback: ``glReadPixels(GL_RGBA, GL_FLOAT)`` per target, flipped upside down into icbtool's
+  pixel convention (GL's window origin is bottom-left; :meth:`Camera.gl_projection_matrix`
+  makes the fragment centres icbtool's pixel centres).
 * Shadows: one depth map per directional light (orthographic, fitted to the scene bounds), six per
   point light (cube faces), one per spot light, one per stratified sample point of each area light
   (perspective); slope-scaled depth bias + normal offset; bilinear PCF. Lights and geometry are
   fixed for a :class:`Rasterizer`, so the shadow maps are rendered on the first frame and reused.
-* A depth pre-pass, then one shading pass with ``GL_EQUAL``: every pixel is shaded once.
 """
 
 from __future__ import annotations
@@ -29,7 +39,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from icbtool.raster.config import (
-    BUFFER_CHANNELS,
     RasterBuffers,
     RasterConfig,
     check_buffers,
@@ -41,16 +50,12 @@ if TYPE_CHECKING:  # pragma: no cover
     from icbtool.camera import Camera
     from icbtool.scene import Scene
 
-#: Shader #define names of the colour buffers (mask has no target: it is attachment 0's alpha).
-_LOC_NAME = {
-    "dl": "LOC_DL",
-    "albedo": "LOC_ALBEDO",
-    "normal_world": "LOC_NW",
-    "normal_view": "LOC_NV",
-    "depth": "LOC_DEPTH",
-    "position": "LOC_POS",
-}
-_MAX_TARGETS = 6
+#: Output targets (colour attachments of the output FBO) and their shader #define names.
+_T_ALBEDO, _T_NORMAL, _T_POS, _T_DL = 0, 1, 2, 3
+_N_TARGETS = 4
+_TARGET_DEFINE = {_T_ALBEDO: "LOC_A", _T_NORMAL: "LOC_N", _T_POS: "LOC_P", _T_DL: "LOC_DL"}
+#: Face ids travel as floats in the visibility target: exact below 2^24.
+MAX_FACES = 1 << 24
 #: Faces per culling cluster (faces are sorted along a Morton curve, then cut into clusters).
 CLUSTER_FACES = 1024
 
@@ -76,6 +81,22 @@ def _frustum_visible(clip_from_world: np.ndarray, lo: np.ndarray, hi: np.ndarray
     pv = np.where(planes[None, :, :3] > 0, hi[:, None, :], lo[:, None, :])  # (C, 6, 3)
     dist = (pv * planes[None, :, :3]).sum(-1) + planes[None, :, 3]
     return ~(dist < 0).any(1)
+
+
+def _rgb(rgba: np.ndarray) -> np.ndarray:
+    """(H, W, 3) contiguous float32: the first 3 channels of ``rgba`` (H, W, 4), rows flipped."""
+    import cv2
+
+    out = cv2.cvtColor(rgba[::-1], cv2.COLOR_RGBA2RGB)
+    return out.reshape(rgba.shape[0], rgba.shape[1], 3)
+
+
+def _rotate(v: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float32: every vector of ``v`` (H, W, 3) multiplied by ``r`` (3, 3)."""
+    import cv2
+
+    out = cv2.transform(v, np.asarray(r, np.float64))
+    return out.reshape(v.shape).astype(np.float32, copy=False)
 
 
 class RasterError(RuntimeError):
@@ -214,6 +235,11 @@ class Rasterizer:
         self.config = RasterConfig() if config is None else config
         if not isinstance(self.config, RasterConfig):
             raise TypeError(f"config must be a RasterConfig, got {type(self.config).__name__}")
+        if len(scene.faces) >= MAX_FACES:
+            raise ValueError(
+                f"scene {scene.name!r} has {len(scene.faces)} triangles; the rasterizer handles "
+                f"at most {MAX_FACES - 1}"
+            )
         t0 = time.perf_counter()
         self._ctx: GLContext | None = create_context(self.config.backend)
         from OpenGL import GL
@@ -221,7 +247,8 @@ class Rasterizer:
         self._gl = GL
         self._programs: dict[tuple, int] = {}
         self._uniform_locs: dict[tuple[int, str], int] = {}
-        self._fbo: dict[tuple[int, int], tuple[int, list[int], int]] = {}
+        self._fbo: dict[tuple[int, int], tuple[int, int, int]] = {}
+        self._rbos: list[int] = []
         self._shadow_state: dict[str, Any] | None = None
         self.last_drawn_fraction = 1.0  # faces drawn / all faces in the last frame (culling)
         self._has_tex = scene.has_textures
@@ -319,15 +346,16 @@ class Rasterizer:
         else:  # pragma: no cover - programming error
             raise ValueError(kind)
 
-    def _buffer_texture(self, data: np.ndarray) -> tuple[int, int]:
+    def _buffer_texture(self, data: np.ndarray, integer: bool = False) -> tuple[int, int]:
+        """A texture buffer of 4-vectors (N, 4): RGBA32F, or RGBA32I if ``integer``."""
         GL = self._gl
-        data = np.ascontiguousarray(data, dtype=np.float32)
+        data = np.ascontiguousarray(data, dtype=np.int32 if integer else np.float32)
         buf = GL.glGenBuffers(1)
         GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, buf)
         GL.glBufferData(GL.GL_TEXTURE_BUFFER, data.nbytes, data, GL.GL_STATIC_DRAW)
         tex = GL.glGenTextures(1)
         GL.glBindTexture(GL.GL_TEXTURE_BUFFER, tex)
-        GL.glTexBuffer(GL.GL_TEXTURE_BUFFER, GL.GL_RGBA32F, buf)
+        GL.glTexBuffer(GL.GL_TEXTURE_BUFFER, GL.GL_RGBA32I if integer else GL.GL_RGBA32F, buf)
         return tex, buf
 
     # ------------------------------------------------------------------ uploads
@@ -336,18 +364,20 @@ class Rasterizer:
         sc = self.scene
         self._vao = GL.glGenVertexArrays(1)
         GL.glBindVertexArray(self._vao)
-        attribs = [(0, sc.vertices, 3), (1, sc.normals, 3)]
-        if self._has_tex:
-            attribs.append((2, sc.uvs, 2))
-        self._vbos = []
-        for loc, arr, n in attribs:
-            a = np.ascontiguousarray(arr, dtype=np.float32)
-            vbo = GL.glGenBuffers(1)
-            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, vbo)
-            GL.glBufferData(GL.GL_ARRAY_BUFFER, a.nbytes, a, GL.GL_STATIC_DRAW)
-            GL.glEnableVertexAttribArray(loc)
-            GL.glVertexAttribPointer(loc, n, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
-            self._vbos.append(vbo)
+        # the rasterizer only needs positions; the resolve pass reads the other vertex data from
+        # a texture buffer (per vertex: (position, u), (normal, v))
+        pos = np.ascontiguousarray(sc.vertices, dtype=np.float32)
+        vbo = GL.glGenBuffers(1)
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, vbo)
+        GL.glBufferData(GL.GL_ARRAY_BUFFER, pos.nbytes, pos, GL.GL_STATIC_DRAW)
+        GL.glEnableVertexAttribArray(0)
+        GL.glVertexAttribPointer(0, 3, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
+        uv = sc.uvs if self._has_tex else np.zeros((len(sc.vertices), 2), np.float32)
+        verts = np.empty((len(sc.vertices), 2, 4), np.float32)
+        verts[:, 0, :3], verts[:, 0, 3] = sc.vertices, uv[:, 0]
+        verts[:, 1, :3], verts[:, 1, 3] = sc.normals, uv[:, 1]
+        self._vert_tex, _ = self._buffer_texture(verts.reshape(-1, 4))
+        self._vbos = [vbo]
         # Faces sorted along a Morton curve and cut into clusters of CLUSTER_FACES, so that each
         # frame draws only the clusters whose bounding box meets the view frustum (a few draw
         # calls of contiguous ranges; u_prim_base maps gl_PrimitiveID back to the face).
@@ -369,6 +399,8 @@ class Rasterizer:
         faces = np.concatenate([sc.face_normals, sc.face_material[:, None].astype(np.float32)], 1)
         faces = faces[order]
         self._face_tex, _ = self._buffer_texture(faces)
+        tris = np.concatenate([sc.faces[order], sc.face_material[order, None]], 1)
+        self._tri_tex, _ = self._buffer_texture(tris, integer=True)
         layers: dict[int, int] = {}
         mats = np.zeros((2 * len(sc.materials), 4), np.float32)
         for i, m in enumerate(sc.materials):
@@ -541,37 +573,56 @@ class Rasterizer:
         if status != GL.GL_FRAMEBUFFER_COMPLETE:
             raise RasterError(f"framebuffer for {what} is incomplete (status 0x{int(status):x})")
 
-    # ------------------------------------------------------------------ camera framebuffer
-    def _framebuffer(self, height: int, width: int) -> tuple[int, list[int], int]:
+    # ------------------------------------------------------------------ camera framebuffers
+    def _framebuffer(self, height: int, width: int) -> tuple[int, int, int]:
+        """(visibility FBO, visibility texture, output FBO) for this size.
+
+        The visibility FBO has the GL_R32F face-id texture and a float depth buffer; the output
+        FBO has one GL_RGBA32F renderbuffer per output target (albedo, normal, position, dl).
+        """
         GL = self._gl
         key = (height, width)
         if key in self._fbo:
             return self._fbo[key]
-        for fbo, colors, depth in self._fbo.values():  # one size at a time: free the old one
-            GL.glDeleteFramebuffers(1, [fbo])
-            GL.glDeleteRenderbuffers(len(colors), colors)
-            GL.glDeleteRenderbuffers(1, [depth])
+        for vfbo, vtex, ofbo in self._fbo.values():  # one size at a time: free the old one
+            GL.glDeleteFramebuffers(2, [vfbo, ofbo])
+            GL.glDeleteTextures([vtex])
+            GL.glDeleteRenderbuffers(len(self._rbos), self._rbos)
         self._fbo.clear()
         maxsize = int(GL.glGetIntegerv(GL.GL_MAX_RENDERBUFFER_SIZE))
         if height > maxsize or width > maxsize:
             raise ValueError(f"camera {height}x{width} exceeds this GL's maximum size {maxsize}")
-        fbo = GL.glGenFramebuffers(1)
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fbo)
-        colors = [int(x) for x in np.atleast_1d(GL.glGenRenderbuffers(_MAX_TARGETS))]
-        for i, rb in enumerate(colors):
-            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rb)
-            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA32F, width, height)
-            GL.glFramebufferRenderbuffer(
-                GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0 + i, GL.GL_RENDERBUFFER, rb
-            )
-        depth = GL.glGenRenderbuffers(1)
-        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, depth)
+        vtex = GL.glGenTextures(1)
+        GL.glBindTexture(GL.GL_TEXTURE_2D, vtex)
+        GL.glTexImage2D(
+            GL.GL_TEXTURE_2D, 0, GL.GL_R32F, width, height, 0, GL.GL_RED, GL.GL_FLOAT, None
+        )
+        GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
+        GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
+        rbos = [int(x) for x in np.atleast_1d(GL.glGenRenderbuffers(_N_TARGETS + 1))]
+        vfbo = GL.glGenFramebuffers(1)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, vfbo)
+        GL.glFramebufferTexture2D(
+            GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, GL.GL_TEXTURE_2D, vtex, 0
+        )
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rbos[-1])
         GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_DEPTH_COMPONENT32F, width, height)
         GL.glFramebufferRenderbuffer(
-            GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_RENDERBUFFER, depth
+            GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_RENDERBUFFER, rbos[-1]
         )
-        self._check_fbo(f"camera {height}x{width}")
-        self._fbo[key] = (fbo, colors, depth)
+        GL.glDrawBuffers(1, [GL.GL_COLOR_ATTACHMENT0])
+        self._check_fbo(f"camera visibility {height}x{width}")
+        ofbo = GL.glGenFramebuffers(1)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, ofbo)
+        for i in range(_N_TARGETS):
+            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rbos[i])
+            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA32F, width, height)
+            GL.glFramebufferRenderbuffer(
+                GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0 + i, GL.GL_RENDERBUFFER, rbos[i]
+            )
+        self._check_fbo(f"camera outputs {height}x{width}")
+        self._rbos = rbos
+        self._fbo[key] = (vfbo, vtex, ofbo)
         return self._fbo[key]
 
     # ------------------------------------------------------------------ render
@@ -579,6 +630,11 @@ class Rasterizer:
         self, camera: Camera, buffers: tuple[str, ...] | list[str] | str | None = None
     ) -> RasterBuffers:
         """Rasterize ``buffers`` (default: all) for ``camera``.
+
+        Deferred, in two passes: a visibility pass rasterizes the face id of every pixel (the
+        only per-triangle work), then one full-screen resolve pass computes the requested
+        targets of every pixel exactly once (interpolated position, normal, textured albedo,
+        and dl with the shadow-map lookups and the sky on the background).
 
         Args:
             camera: the camera (any size up to the GL limit).
@@ -602,8 +658,7 @@ class Rasterizer:
         self._context.make_current()
         timings: dict[str, float] = {}
         t_start = time.perf_counter()
-        targets = [n for n in names if n != "mask"]
-        want_dl = "dl" in targets
+        want_dl = "dl" in names
         any_light = any(self._counts.values())
         shadows = want_dl and cfg.shadows and any_light
         if shadows and self._shadow_state is not None and not cfg.cache_shadow_maps:
@@ -613,45 +668,34 @@ class Rasterizer:
             self._shadow_state = self._render_shadows()
             timings["shadow"] = 1e3 * (time.perf_counter() - t0)
 
-        defines: dict[str, object] = {}
-        if self._has_tex and ("dl" in targets or "albedo" in targets):
-            defines["HAS_TEX"] = True
-        for i, n in enumerate(targets):
-            defines[_LOC_NAME[n]] = i
-        if not targets:
-            defines["LOC_MASK"] = 0
-        if want_dl:
-            defines.update(
-                N_DIR=self._counts["directional"],
-                N_POINT=self._counts["point"],
-                N_SPOT=self._counts["spot"],
-                N_AREA=self._counts["area"],
-                AREA_K=cfg.area_samples,
-            )
-            if shadows:
-                defines["SHADOWS"] = True
-        prog = self._compile("scene.vert", "scene.frag", defines)
+        # output targets (attachment index) this request needs; mask only: the position target
+        need = {
+            _T_ALBEDO: "albedo" in names,
+            _T_NORMAL: "normal_world" in names or "normal_view" in names,
+            _T_POS: "position" in names or "depth" in names,
+            _T_DL: want_dl,
+        }
+        if not any(need.values()):
+            need[_T_POS] = True
+        used = [t for t in range(_N_TARGETS) if need[t]]
 
         h, w = camera.height, camera.width
         near, far = camera_near_far(camera, self.scene.bounds, cfg)
         clip_from_world = camera.gl_projection_matrix(near, far) @ camera.gl_view_matrix()
-        fbo, _, _ = self._framebuffer(h, w)
-        # without a pre-pass, front-to-back cluster order lets early depth testing skip most
-        # hidden fragments
+        vfbo, vtex, ofbo = self._framebuffer(h, w)
+        # front-to-back cluster order lets early depth testing skip most hidden fragments
         ranges = self._visible_ranges(
             clip_from_world, None if cfg.depth_prepass else camera.position
         )
         # fraction of the faces sent to GL after frustum culling (diagnostics)
         self.last_drawn_fraction = sum(c for _, c in ranges) / max(1, len(self._face_order))
-        n_targets = max(1, len(targets))
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fbo)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, vfbo)
         GL.glViewport(0, 0, w, h)
         GL.glBindVertexArray(self._vao)
         GL.glDisable(GL.GL_BLEND)
         GL.glDisable(GL.GL_CULL_FACE)
         GL.glEnable(GL.GL_DEPTH_TEST)
         GL.glDepthMask(GL.GL_TRUE)
-        GL.glDrawBuffers(n_targets, [GL.GL_COLOR_ATTACHMENT0 + i for i in range(n_targets)])
         GL.glClearColor(0.0, 0.0, 0.0, 0.0)
         GL.glClearDepth(1.0)
         GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
@@ -672,46 +716,134 @@ class Rasterizer:
             GL.glDepthMask(GL.GL_FALSE)
         else:
             GL.glDepthFunc(GL.GL_LESS)
-
+        prog = self._compile("vis.vert", "vis.frag", {})
         GL.glUseProgram(prog)
-        self._bind_scene_uniforms(prog, camera, clip_from_world, defines)
+        self._set(prog, "u_clip_from_world", clip_from_world, "m4")
         base_loc = self._loc(prog, "u_prim_base")
         for first, count in ranges:
             GL.glUniform1i(base_loc, first)
             GL.glDrawElements(
                 GL.GL_TRIANGLES, 3 * count, GL.GL_UNSIGNED_INT, ctypes.c_void_p(12 * first)
             )
-
-        if want_dl and self.scene.sky is not None:
-            self._draw_sky(camera, targets.index("dl"))
         GL.glDepthMask(GL.GL_TRUE)
         GL.glDepthFunc(GL.GL_LESS)
         GL.glFinish()
+        timings["visibility"] = 1e3 * (time.perf_counter() - t0)
+        t1 = time.perf_counter()
+        self._resolve(camera, used, vtex, ofbo, shadows)
+        GL.glFinish()
+        timings["resolve"] = 1e3 * (time.perf_counter() - t1)
         timings["draw"] = 1e3 * (time.perf_counter() - t0)
 
         t0 = time.perf_counter()
         out: dict[str, np.ndarray] = {}
         GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 4)
-        mask = None
-        for i in range(n_targets):
-            n = targets[i] if targets else "mask"
-            c = 4 if i == 0 else BUFFER_CHANNELS[n]
-            fmt = {1: GL.GL_RED, 3: GL.GL_RGB, 4: GL.GL_RGBA}[c]
-            arr = np.empty((h, w, c), np.float32)
-            GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + i)
-            GL.glReadPixels(0, 0, w, h, fmt, GL.GL_FLOAT, arr)
-            arr = arr[::-1]
-            if i == 0:
-                mask = np.ascontiguousarray(arr[..., 3:4])
-                if targets:
-                    out[n] = np.ascontiguousarray(arr[..., : BUFFER_CHANNELS[n]])
-            else:
-                out[n] = np.ascontiguousarray(arr)
+        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, ofbo)
+        raw: dict[int, np.ndarray] = {}
+        for t in used:
+            GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + t)
+            raw[t] = self._read_rgba(h, w)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+        # GL's row 0 is the bottom row: flip into icbtool's pixel convention (cv2 copies the
+        # 3 of 4 channels ~10x faster than numpy's strided copy)
+        mask = np.ascontiguousarray(raw[used[0]][::-1, :, 3:4] != 0, dtype=np.float32)
+        if want_dl:
+            out["dl"] = _rgb(raw[_T_DL])
+        if "albedo" in names:
+            out["albedo"] = _rgb(raw[_T_ALBEDO])
+        if need[_T_NORMAL]:
+            nw = _rgb(raw[_T_NORMAL])
+            if "normal_world" in names:
+                out["normal_world"] = nw
+            if "normal_view" in names:  # rotated into OpenCV camera axes (0 stays 0)
+                out["normal_view"] = _rotate(nw, camera.cam_from_world[:3, :3])
+        if "position" in names:
+            out["position"] = _rgb(raw[_T_POS])
+        if "depth" in names:
+            out["depth"] = np.ascontiguousarray(raw[_T_POS][::-1, :, 3:4])
         timings["readback"] = 1e3 * (time.perf_counter() - t0)
         timings["total"] = 1e3 * (time.perf_counter() - t_start)
-        assert mask is not None
         return RasterBuffers(camera=camera, mask=mask, timings=timings, **out)
+
+    def _read_rgba(self, height: int, width: int) -> np.ndarray:
+        """(H, W, 4) float32 of the current read buffer, GL row order (bottom row first)."""
+        arr = np.empty((height, width, 4), np.float32)
+        self._gl.glReadPixels(0, 0, width, height, self._gl.GL_RGBA, self._gl.GL_FLOAT, arr)
+        return arr
+
+    def _resolve(
+        self, camera: Camera, used: list[int], vtex: int, ofbo: int, shadows: bool
+    ) -> None:
+        """The full-screen resolve pass: the ``used`` targets of every pixel from the face ids."""
+        GL = self._gl
+        cfg = self.config
+        sky = self.scene.sky
+        want_dl = _T_DL in used
+        defines: dict[str, object] = {}
+        for t in used:
+            defines[_TARGET_DEFINE[t]] = t
+        if self._has_tex and (want_dl or _T_ALBEDO in used):
+            defines["HAS_TEX"] = True
+        if want_dl:
+            defines.update(
+                N_DIR=self._counts["directional"],
+                N_POINT=self._counts["point"],
+                N_SPOT=self._counts["spot"],
+                N_AREA=self._counts["area"],
+                AREA_K=cfg.area_samples,
+            )
+            if shadows:
+                defines["SHADOWS"] = True
+            if sky is not None:
+                defines["SKY_GRADIENT" if sky.kind == "gradient" else "SKY_UNIFORM"] = True
+        prog = self._compile("resolve.vert", "resolve.frag", defines)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, ofbo)
+        bufs = [
+            GL.GL_COLOR_ATTACHMENT0 + t if t in used else GL.GL_NONE for t in range(max(used) + 1)
+        ]
+        GL.glDrawBuffers(len(bufs), bufs)
+        GL.glDisable(GL.GL_DEPTH_TEST)
+        GL.glUseProgram(prog)
+        units = [
+            (1, GL.GL_TEXTURE_BUFFER, self._face_tex, "u_faces"),
+            (2, GL.GL_TEXTURE_BUFFER, self._mat_tex, "u_materials"),
+            (5, GL.GL_TEXTURE_2D, vtex, "u_vis"),
+            (6, GL.GL_TEXTURE_BUFFER, self._tri_tex, "u_tris"),
+            (7, GL.GL_TEXTURE_BUFFER, self._vert_tex, "u_verts"),
+        ]
+        if "HAS_TEX" in defines:
+            units.append((0, GL.GL_TEXTURE_2D_ARRAY, self._tex_array, "u_textures"))
+        if shadows:
+            st = self._shadow_state
+            assert st is not None
+            if st["sharp_tex"] is not None:
+                units.append((3, GL.GL_TEXTURE_2D_ARRAY, st["sharp_tex"], "u_shadow"))
+                self._set(prog, "u_shadow_mat", np.stack([m for m, _ in st["sharp"]]), "m4")
+                self._set(prog, "u_shadow_texel", [t for _, t in st["sharp"]], "f")
+            if st["area_tex"] is not None:
+                units.append((4, GL.GL_TEXTURE_2D_ARRAY, st["area_tex"], "u_area_shadow"))
+                self._set(prog, "u_area_mat", np.stack([m for m, _ in st["area"]]), "m4")
+                self._set(prog, "u_area_texel", [t for _, t in st["area"]], "f")
+            self._set(prog, "u_normal_offset", cfg.normal_offset, "f")
+        for unit, target, tex, name in units:
+            GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
+            GL.glBindTexture(target, tex)
+            self._set(prog, name, unit, "i")
+        GL.glActiveTexture(GL.GL_TEXTURE0)
+        self._set(prog, "u_height", float(camera.height), "f")
+        self._set(prog, "u_intrinsics", [camera.fx, camera.fy, camera.cx, camera.cy], "v4")
+        self._set(prog, "u_world_from_cam", camera.world_from_cam[:3, :3], "m3")
+        self._set(prog, "u_cam_pos", camera.position, "v3")
+        self._set(prog, "u_cam_forward", camera.forward, "v3")
+        if want_dl:
+            self._set_light_uniforms(prog)
+            if sky is not None:
+                self._set(prog, "u_zenith", sky.zenith, "v3")
+                self._set(prog, "u_horizon", sky.horizon, "v3")
+                self._set(prog, "u_ground", sky.ground, "v3")
+                self._set(prog, "u_up", sky.up, "v3")
+        GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
+        GL.glEnable(GL.GL_DEPTH_TEST)
 
     def _visible_ranges(
         self, clip_from_world: np.ndarray, eye: np.ndarray | None = None
@@ -732,41 +864,8 @@ class Rasterizer:
                 ranges.append((first, count))
         return ranges
 
-    def _bind_scene_uniforms(
-        self, prog: int, camera: Camera, clip_from_world: np.ndarray, defines: dict[str, object]
-    ) -> None:
-        GL = self._gl
-        cfg = self.config
+    def _set_light_uniforms(self, prog: int) -> None:
         sc = self.scene
-        self._set(prog, "u_clip_from_world", clip_from_world, "m4")
-        self._set(prog, "u_cam_pos", camera.position, "v3")
-        self._set(prog, "u_cam_forward", camera.forward, "v3")
-        self._set(prog, "u_cam_from_world", camera.cam_from_world[:3, :3], "m3")
-        units = [
-            (1, GL.GL_TEXTURE_BUFFER, self._face_tex, "u_faces"),
-            (2, GL.GL_TEXTURE_BUFFER, self._mat_tex, "u_materials"),
-        ]
-        if "HAS_TEX" in defines:
-            units.append((0, GL.GL_TEXTURE_2D_ARRAY, self._tex_array, "u_textures"))
-        if "SHADOWS" in defines:
-            st = self._shadow_state
-            assert st is not None
-            if st["sharp_tex"] is not None:
-                units.append((3, GL.GL_TEXTURE_2D_ARRAY, st["sharp_tex"], "u_shadow"))
-                self._set(prog, "u_shadow_mat", np.stack([m for m, _ in st["sharp"]]), "m4")
-                self._set(prog, "u_shadow_texel", [t for _, t in st["sharp"]], "f")
-            if st["area_tex"] is not None:
-                units.append((4, GL.GL_TEXTURE_2D_ARRAY, st["area_tex"], "u_area_shadow"))
-                self._set(prog, "u_area_mat", np.stack([m for m, _ in st["area"]]), "m4")
-                self._set(prog, "u_area_texel", [t for _, t in st["area"]], "f")
-            self._set(prog, "u_normal_offset", cfg.normal_offset, "f")
-        for unit, target, tex, name in units:
-            GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
-            GL.glBindTexture(target, tex)
-            self._set(prog, name, unit, "i")
-        GL.glActiveTexture(GL.GL_TEXTURE0)
-        if "N_DIR" not in defines:
-            return
         d = sc.lights_of("directional")
         if d:
             self._set(prog, "u_dir_dir", np.stack([x.direction for x in d]), "v3")
@@ -791,27 +890,6 @@ class Rasterizer:
             self._set(prog, "u_area_eu", np.stack([x.edge_u for x in a]), "v3")
             self._set(prog, "u_area_ev", np.stack([x.edge_v for x in a]), "v3")
             self._set(prog, "u_area_L", np.stack([x.radiance for x in a]), "v3")
-
-    def _draw_sky(self, camera: Camera, dl_index: int) -> None:
-        GL = self._gl
-        sky = self.scene.sky
-        assert sky is not None
-        defines: dict[str, object] = {"SKY_GRADIENT": True} if sky.kind == "gradient" else {}
-        prog = self._compile("sky.vert", "sky.frag", defines)
-        GL.glUseProgram(prog)
-        self._set(prog, "u_height", float(camera.height), "f")
-        self._set(prog, "u_intrinsics", [camera.fx, camera.fy, camera.cx, camera.cy], "v4")
-        self._set(prog, "u_world_from_cam", camera.world_from_cam[:3, :3], "m3")
-        self._set(prog, "u_zenith", sky.zenith, "v3")
-        self._set(prog, "u_horizon", sky.horizon, "v3")
-        self._set(prog, "u_ground", sky.ground, "v3")
-        self._set(prog, "u_up", sky.up, "v3")
-        bufs = [GL.GL_NONE] * (dl_index + 1)
-        bufs[dl_index] = GL.GL_COLOR_ATTACHMENT0 + dl_index
-        GL.glDrawBuffers(len(bufs), bufs)
-        GL.glDepthFunc(GL.GL_LEQUAL)
-        GL.glDepthMask(GL.GL_FALSE)
-        GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
 
 
 def render(

@@ -1,46 +1,85 @@
-// Scene pass: G-buffer + direct lighting (DL) into float MRT targets.
+// Resolve pass of the deferred renderer: one full-screen triangle shades every pixel once from
+// the visibility target (vis.frag: face id + facing). Per pixel: the camera ray through the pixel
+// centre meets the face's plane (barycentrics), which interpolates the vertex position, shading
+// normal and uv exactly like the rasterizer's perspective-correct interpolation; the texture
+// footprint comes from the rays through the pixels of its 2x2 quad (the derivatives a GPU takes
+// from neighbouring fragments), so textureGrad picks the same mip level.
 // icbtool.raster prepends "#version 330 core" and #defines:
-//   LOC_<BUFFER> n  output location of each requested buffer (DL, ALBEDO, NW, NV, DEPTH, POS, MASK)
-//   HAS_TEX         some material is textured (sampler2DArray, per-material layer)
+//   LOC_A n   albedo target:   (linear albedo rgb, 1)
+//   LOC_N n   normal target:   (world shading normal facing the camera, 1)
+//   LOC_P n   position target: (world position, view-space depth)
+//   LOC_DL n  direct lighting: (DL rgb, 1); background: (sky radiance or 0, 0)
+//   HAS_TEX   some material is textured (sampler2DArray, per-material layer)
 //   N_DIR, N_POINT, N_SPOT, N_AREA   number of lights of each kind (0 = code compiled out)
 //   SHADOWS         shadow lookups on;  AREA_K  k x k shadow samples per area light
-// Every target gets alpha = 1 (cleared to 0: alpha is the coverage mask).
+//   SKY_UNIFORM / SKY_GRADIENT       the scene's sky (none: background DL is 0)
+// Every output is 0 on background pixels except DL's colour; a non-zero alpha marks coverage.
 const float PI = 3.14159265358979;
 
-in vec3 v_position;
-in vec3 v_normal;
+uniform sampler2D u_vis;            // R: +-(face + 1), 0 = background
+uniform isamplerBuffer u_tris;      // per face: (vertex indices i0, i1, i2, material)
+uniform samplerBuffer u_faces;      // per face: (geometric normal xyz, material index)
+uniform samplerBuffer u_verts;      // per vertex: (position xyz, u), (shading normal xyz, v)
+uniform samplerBuffer u_materials;  // per material: (albedo rgb, texture layer or -1), (emission rgb, 0)
+uniform float u_height;
+uniform vec4 u_intrinsics;          // fx, fy, cx, cy (icbtool pixel convention)
+uniform mat3 u_world_from_cam;      // OpenCV camera axes -> world
+uniform vec3 u_cam_pos;             // camera centre, world
+uniform vec3 u_cam_forward;         // +z camera axis, world
 #ifdef HAS_TEX
-in vec2 v_uv;
 uniform sampler2DArray u_textures;
 #endif
 
-uniform samplerBuffer u_faces;      // per face: (geometric normal xyz, material index)
-uniform int u_prim_base;            // index of this draw's first face in u_faces
-uniform samplerBuffer u_materials;  // per material: (albedo rgb, texture layer or -1), (emission rgb, 0)
-uniform vec3 u_cam_pos;             // camera centre, world
-uniform vec3 u_cam_forward;         // +z camera axis, world
-uniform mat3 u_cam_from_world;      // rotation world -> OpenCV camera axes
-
+#ifdef LOC_A
+layout(location = LOC_A) out vec4 o_albedo;
+#endif
+#ifdef LOC_N
+layout(location = LOC_N) out vec4 o_normal;
+#endif
+#ifdef LOC_P
+layout(location = LOC_P) out vec4 o_pos;
+#endif
 #ifdef LOC_DL
 layout(location = LOC_DL) out vec4 o_dl;
 #endif
-#ifdef LOC_ALBEDO
-layout(location = LOC_ALBEDO) out vec4 o_albedo;
+
+// World direction (not normalised, camera z = 1) of the ray through this fragment's pixel centre
+// moved by (dx, dy) pixels in GL window axes (x right, y up).
+vec3 pixel_ray(float dx, float dy) {
+    // GL window origin is bottom-left; icbtool's v grows downwards.
+    float u = gl_FragCoord.x + dx;
+    float v = u_height - (gl_FragCoord.y + dy);
+    vec3 dc = vec3((u - u_intrinsics.z) / u_intrinsics.x, (v - u_intrinsics.w) / u_intrinsics.y, 1.0);
+    return u_world_from_cam * dc;
+}
+
+// Barycentrics (b1, b2) of the point where the ray u_cam_pos + t d meets the plane of the
+// triangle (v0, v0 + e1, v0 + e2) (Moller-Trumbore, without the inside test).
+vec2 barycentrics(vec3 d, vec3 v0, vec3 e1, vec3 e2) {
+    vec3 pv = cross(d, e2);
+    float inv = 1.0 / dot(e1, pv);
+    vec3 tv = u_cam_pos - v0;
+    return vec2(dot(tv, pv), dot(d, cross(tv, e1))) * inv;
+}
+
+#if defined(SKY_UNIFORM) || defined(SKY_GRADIENT)
+uniform vec3 u_zenith;
+uniform vec3 u_horizon;
+uniform vec3 u_ground;
+uniform vec3 u_up;
+
+// The sky radiance along this pixel's primary ray (icbtool.scene.Sky.radiance).
+vec3 sky_radiance() {
+#ifdef SKY_GRADIENT
+    vec3 d = normalize(pixel_ray(0.0, 0.0));
+    float c = dot(d, u_up);
+    float w = sqrt(clamp(c, 0.0, 1.0));
+    vec3 sky = (1.0 - w) * u_horizon + w * u_zenith;
+    return c >= 0.0 ? sky : u_ground;
+#else
+    return u_zenith;
 #endif
-#ifdef LOC_NW
-layout(location = LOC_NW) out vec4 o_nw;
-#endif
-#ifdef LOC_NV
-layout(location = LOC_NV) out vec4 o_nv;
-#endif
-#ifdef LOC_DEPTH
-layout(location = LOC_DEPTH) out vec4 o_depth;
-#endif
-#ifdef LOC_POS
-layout(location = LOC_POS) out vec4 o_pos;
-#endif
-#ifdef LOC_MASK
-layout(location = LOC_MASK) out vec4 o_mask;
+}
 #endif
 
 #ifdef LOC_DL
@@ -127,21 +166,78 @@ float spot_falloff(float c, vec2 cs) {
 #endif  // LOC_DL
 
 void main() {
-    vec4 face = texelFetch(u_faces, gl_PrimitiveID + u_prim_base);
-    int mat = int(face.w + 0.5);
+    ivec2 px = ivec2(gl_FragCoord.xy);
+    float id = texelFetch(u_vis, px, 0).r;
+    if (id == 0.0) {  // background
+#ifdef LOC_A
+        o_albedo = vec4(0.0);
+#endif
+#ifdef LOC_N
+        o_normal = vec4(0.0);
+#endif
+#ifdef LOC_P
+        o_pos = vec4(0.0);
+#endif
+#ifdef LOC_DL
+#if defined(SKY_UNIFORM) || defined(SKY_GRADIENT)
+        o_dl = vec4(sky_radiance(), 0.0);
+#else
+        o_dl = vec4(0.0);
+#endif
+#endif
+        return;
+    }
+    bool front = id > 0.0;
+    int fi = int(abs(id) + 0.5) - 1;
+    ivec4 tri = texelFetch(u_tris, fi);
+    int mat = tri.w;
+    vec4 a0 = texelFetch(u_verts, 2 * tri.x);
+    vec4 a1 = texelFetch(u_verts, 2 * tri.y);
+    vec4 a2 = texelFetch(u_verts, 2 * tri.z);
+    vec3 e1 = a1.xyz - a0.xyz;
+    vec3 e2 = a2.xyz - a0.xyz;
+    // the rasterizer samples at the pixel centre, inside the face: clamp rounding excursions
+    vec2 b = barycentrics(pixel_ray(0.0, 0.0), a0.xyz, e1, e2);
+    b = max(b, 0.0);
+    b /= max(1.0, b.x + b.y);
+    float b0 = 1.0 - b.x - b.y;
+    vec3 p = b0 * a0.xyz + b.x * a1.xyz + b.y * a2.xyz;
+#if defined(LOC_N) || defined(LOC_DL) || defined(HAS_TEX)
+    vec4 n0 = texelFetch(u_verts, 2 * tri.x + 1);  // (normal, v)
+    vec4 n1 = texelFetch(u_verts, 2 * tri.y + 1);
+    vec4 n2 = texelFetch(u_verts, 2 * tri.z + 1);
+#endif
+#if defined(LOC_N) || defined(LOC_DL)
+    // Two-sided surfaces: seen from behind, both normals are flipped to face the camera.
+    vec3 ns = normalize(b0 * n0.xyz + b.x * n1.xyz + b.y * n2.xyz);
+    if (!front) ns = -ns;
+#endif
+#if defined(LOC_A) || defined(LOC_DL)
     vec4 m0 = texelFetch(u_materials, 2 * mat);
     vec3 albedo = m0.rgb;
 #ifdef HAS_TEX
-    if (m0.w >= 0.0) albedo *= texture(u_textures, vec3(v_uv, m0.w)).rgb;
+    if (m0.w >= 0.0) {
+        vec2 t0 = vec2(a0.w, n0.w);
+        vec2 tu = vec2(a1.w, n1.w) - t0;
+        vec2 tv = vec2(a2.w, n2.w) - t0;
+        vec2 uv = t0 + b.x * tu + b.y * tv;
+        // Footprint as the rasterizer takes it: uv differences across this pixel's 2x2 quad (its
+        // first pixel to the next right and the next up), on this face's plane.
+        vec2 q = vec2(ivec2(gl_FragCoord.xy) & 1);  // position in the quad
+        vec2 bq = barycentrics(pixel_ray(-q.x, -q.y), a0.xyz, e1, e2);
+        vec2 bx = barycentrics(pixel_ray(1.0 - q.x, -q.y), a0.xyz, e1, e2) - bq;
+        vec2 by = barycentrics(pixel_ray(-q.x, 1.0 - q.y), a0.xyz, e1, e2) - bq;
+        vec2 ddx = bx.x * tu + bx.y * tv;
+        vec2 ddy = by.x * tu + by.y * tv;
+        albedo *= textureGrad(u_textures, vec3(uv, m0.w), ddx, ddy).rgb;
+    }
 #endif
-    // Two-sided surfaces: seen from behind, both normals are flipped to face the camera.
-    vec3 ng = gl_FrontFacing ? face.xyz : -face.xyz;
-    vec3 ns = normalize(v_normal);
-    if (!gl_FrontFacing) ns = -ns;
-    vec3 p = v_position;
+#endif
 
 #ifdef LOC_DL
-    vec3 dl = gl_FrontFacing ? texelFetch(u_materials, 2 * mat + 1).rgb : vec3(0.0);
+    vec4 face = texelFetch(u_faces, fi);
+    vec3 ng = front ? face.xyz : -face.xyz;
+    vec3 dl = front ? texelFetch(u_materials, 2 * mat + 1).rgb : vec3(0.0);
     vec3 brdf = albedo / PI;
 #if N_DIR > 0
     for (int i = 0; i < N_DIR; ++i) {
@@ -228,24 +324,14 @@ void main() {
     }
 #endif
     o_dl = vec4(dl, 1.0);
-#endif  // LOC_DL
-
-#ifdef LOC_ALBEDO
+#endif
+#ifdef LOC_A
     o_albedo = vec4(albedo, 1.0);
 #endif
-#ifdef LOC_NW
-    o_nw = vec4(ns, 1.0);
+#ifdef LOC_N
+    o_normal = vec4(ns, 1.0);
 #endif
-#ifdef LOC_NV
-    o_nv = vec4(u_cam_from_world * ns, 1.0);
-#endif
-#ifdef LOC_DEPTH
-    o_depth = vec4(dot(p - u_cam_pos, u_cam_forward), 0.0, 0.0, 1.0);
-#endif
-#ifdef LOC_POS
-    o_pos = vec4(p, 1.0);
-#endif
-#ifdef LOC_MASK
-    o_mask = vec4(1.0);
+#ifdef LOC_P
+    o_pos = vec4(p, dot(p - u_cam_pos, u_cam_forward));
 #endif
 }

@@ -1,5 +1,0 @@
-// One triangle covering the screen, on the far plane (drawn where no surface was).
-void main() {
-    vec2 p = vec2((gl_VertexID == 1) ? 3.0 : -1.0, (gl_VertexID == 2) ? 3.0 : -1.0);
-    gl_Position = vec4(p, 1.0, 1.0);
-}
