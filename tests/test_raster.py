@@ -289,6 +289,29 @@ def test_depth_prepass_changes_nothing():
         np.testing.assert_array_equal(getattr(a, n), getattr(b, n), err_msg=n)
 
 
+@gl
+def test_frames_do_not_share_memory():
+    """Each frame's buffers are its own (readback staging memory is reused between frames)."""
+    scene = icb.scene.cornell_box()
+    cams = [icb.scene.cornell_camera(32, 32), icb.scene.cornell_camera(32, 32).resized(1, 1)]
+    with Rasterizer(scene, _cfg(area_samples=2, area_shadow_map_size=128)) as r:
+        for cam in cams:
+            first = r.render(cam)
+            kept = {n: getattr(first, n).copy() for n in first.names}
+            moved = icb.Camera.look_at(
+                (0.3, 0.2, 1.0),
+                (0, 1.5, -1),
+                (0, 1, 0),
+                fov_y_deg=50,
+                height=cam.height,
+                width=cam.width,
+            )
+            second = r.render(moved)
+            assert not np.array_equal(second.position, kept["position"])
+            for n, x in kept.items():
+                np.testing.assert_array_equal(getattr(first, n), x, err_msg=n)
+
+
 # --------------------------------------------------------------------------- lighting
 @gl
 def test_directional_light_lambert():

@@ -249,9 +249,11 @@ class Rasterizer:
         self._uniform_locs: dict[tuple[int, str], int] = {}
         self._fbo: dict[tuple[int, int], tuple[int, int, int]] = {}
         self._rbos: list[int] = []
+        self._staging: dict[int, np.ndarray] = {}
         self._shadow_state: dict[str, Any] | None = None
         self.last_drawn_fraction = 1.0  # faces drawn / all faces in the last frame (culling)
         self._has_tex = scene.has_textures
+        self._bounds = scene.bounds  # a property computed from every vertex: once, not per frame
         self._counts = {
             k: len(scene.lights_of(k)) for k in ("directional", "point", "spot", "area")
         }
@@ -459,7 +461,7 @@ class Rasterizer:
         """(sharp views, area-sample views): lists of (clip_from_world, texel size)."""
         cfg = self.config
         sc = self.scene
-        bounds = sc.bounds
+        bounds = self._bounds
         res, ares = cfg.shadow_map_size, cfg.area_shadow_map_size
         cap = cfg.max_frustum_half_angle_deg
         sharp: list[tuple[np.ndarray, float]] = []
@@ -680,7 +682,7 @@ class Rasterizer:
         used = [t for t in range(_N_TARGETS) if need[t]]
 
         h, w = camera.height, camera.width
-        near, far = camera_near_far(camera, self.scene.bounds, cfg)
+        near, far = camera_near_far(camera, self._bounds, cfg)
         clip_from_world = camera.gl_projection_matrix(near, far) @ camera.gl_view_matrix()
         vfbo, vtex, ofbo = self._framebuffer(h, w)
         # front-to-back cluster order lets early depth testing skip most hidden fragments
@@ -742,7 +744,7 @@ class Rasterizer:
         raw: dict[int, np.ndarray] = {}
         for t in used:
             GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + t)
-            raw[t] = self._read_rgba(h, w)
+            raw[t] = self._read_rgba(t, h, w)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
         # GL's row 0 is the bottom row: flip into icbtool's pixel convention (cv2 copies the
         # 3 of 4 channels ~10x faster than numpy's strided copy)
@@ -760,14 +762,20 @@ class Rasterizer:
         if "position" in names:
             out["position"] = _rgb(raw[_T_POS])
         if "depth" in names:
-            out["depth"] = np.ascontiguousarray(raw[_T_POS][::-1, :, 3:4])
+            out["depth"] = raw[_T_POS][::-1, :, 3:4].copy()  # never a view of the staging array
         timings["readback"] = 1e3 * (time.perf_counter() - t0)
         timings["total"] = 1e3 * (time.perf_counter() - t_start)
         return RasterBuffers(camera=camera, mask=mask, timings=timings, **out)
 
-    def _read_rgba(self, height: int, width: int) -> np.ndarray:
-        """(H, W, 4) float32 of the current read buffer, GL row order (bottom row first)."""
-        arr = np.empty((height, width, 4), np.float32)
+    def _read_rgba(self, target: int, height: int, width: int) -> np.ndarray:
+        """(H, W, 4) float32 of the current read buffer, GL row order (bottom row first).
+
+        Read into a staging array kept per target (fresh memory would cost page faults every
+        frame); only valid until the next frame: callers copy out of it.
+        """
+        arr = self._staging.get(target)
+        if arr is None or arr.shape != (height, width, 4):
+            arr = self._staging[target] = np.empty((height, width, 4), np.float32)
         self._gl.glReadPixels(0, 0, width, height, self._gl.GL_RGBA, self._gl.GL_FLOAT, arr)
         return arr
 
