@@ -19,6 +19,7 @@ score the frame (SSIM on the display scale).
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -45,6 +46,9 @@ class LoopConfig:
     """Interaction latency T_IL: the reference for frame t is requested at t - T_IL."""
     prefetch: bool = True
     """Render the cloud reference at the prefetch camera (else at the client's old camera)."""
+    fov_step_deg: float = 2.0
+    """The cloud rounds the prefetch FOV up to a multiple of this (0: no rounding), so a stored
+    reference covers the slightly different FOVs of the next requests and can be reused."""
     spp: int = 16
     """Path-tracing samples per pixel of the cloud's GI maps."""
     denoise: bool = True
@@ -77,6 +81,8 @@ class LoopConfig:
             raise ValueError(f"LoopConfig.latency_s must be finite and >= 0, got {self.latency_s}")
         if self.truth_every < 0:
             raise ValueError(f"LoopConfig.truth_every must be >= 0, got {self.truth_every}")
+        if not 0.0 <= self.fov_step_deg < 30.0:
+            raise ValueError(f"LoopConfig.fov_step_deg must be in [0, 30), got {self.fov_step_deg}")
         if self.alpha_pos <= 0 or self.alpha_dir <= 0:
             raise ValueError("LoopConfig.alpha_pos and alpha_dir must be > 0")
 
@@ -228,6 +234,7 @@ def run_loop(
                     ref_cam = prefetch.prefetch_camera(
                         req_cam, v_t, v_r, pcfg, depth_range=(near, far)
                     ).camera
+                    ref_cam = _round_fov(ref_cam, cfg.fov_step_deg, pcfg.max_fov_deg)
                 else:
                     ref_cam = req_cam
                 t0 = time.perf_counter()
@@ -332,6 +339,19 @@ def run_loop(
     if out is not None:
         _write_report(out, report)
     return report
+
+
+def _round_fov(cam: Any, step_deg: float, max_fov_deg: float) -> Any:
+    """``cam`` with its vertical FOV rounded up to a multiple of ``step_deg`` (capped), the
+    resolution scaled to keep the pixel density at the centre."""
+    if step_deg <= 0:
+        return cam
+    fov = min(math.ceil(cam.fov_y_deg / step_deg - 1e-9) * step_deg, max_fov_deg)
+    if fov <= cam.fov_y_deg:
+        return cam
+    scale = math.tan(math.radians(fov) / 2) / math.tan(math.radians(cam.fov_y_deg) / 2)
+    h, w = round(cam.height * scale), round(cam.width * scale)
+    return cam.with_fov(fov, h, w)
 
 
 def _depth_range(wrt: Any) -> tuple[float, float]:
