@@ -55,28 +55,33 @@ def cam_at(x: float = 0.0, y: float = 0.0, z: float = 0.0, rotvec=(0, 0, 0), fov
 
 
 # --------------------------------------------------------------------------- known answers
-def test_identity_warp_is_exact(rng):
+BACKENDS = pytest.mark.parametrize("backend", ["numba", "torch"])
+
+
+@BACKENDS
+def test_identity_warp_is_exact(rng, backend):
     cam = cam_at()
     img = rng.random((48, 64, 3)).astype(np.float32)
     depth = (2.0 + rng.random((48, 64, 1))).astype(np.float32)
-    res = backward(img, depth, cam, depth, cam, config=WarpConfig(dtype="float64"))
+    res = backward(img, depth, cam, depth, cam, config=WarpConfig(dtype="float64", backend=backend))
     assert not res.holes.any()
     np.testing.assert_allclose(res.image, img, atol=1e-6)
     assert np.all(res.weight > 1 - 1e-6)
     # float32 geometry: (u * d) / d is not always u, so taps are off by ~1e-5 px
-    res = backward(img, depth, cam, depth, cam)
+    res = backward(img, depth, cam, depth, cam, config=WarpConfig(backend=backend))
     assert not res.holes.any()
     np.testing.assert_allclose(res.image, img, atol=1e-4)
 
 
-def test_one_pixel_shift_of_a_plane(rng):
+@BACKENDS
+def test_one_pixel_shift_of_a_plane(rng, backend):
     src = cam_at()
     z = 4.0
     tx = z / src.fx  # moves a point at depth z by exactly one pixel
     dst = cam_at(x=tx)
     img = rng.random((48, 64, 3)).astype(np.float32)
     depth = np.full((48, 64, 1), z, np.float32)
-    res = backward(img, depth, src, depth, dst, config=WarpConfig(dtype="float64"))
+    res = backward(img, depth, src, depth, dst, config=WarpConfig(dtype="float64", backend=backend))
     # the target camera moved right: the image moves left by one pixel
     np.testing.assert_allclose(res.image[:, :-1], img[:, 1:], atol=1e-6)
     assert not res.holes[:, :-1].any()
@@ -89,11 +94,12 @@ def test_one_pixel_shift_of_a_plane(rng):
     np.testing.assert_allclose(fwd.depth[:, :-1], z, rtol=1e-6)
 
 
-def test_disoccluded_wall_is_not_filled_with_the_box():
+@BACKENDS
+def test_disoccluded_wall_is_not_filled_with_the_box(backend):
     src, dst = cam_at(x=-0.4), cam_at(x=0.4)
     s_img, s_depth, _ = render(src)
     d_img, d_depth, d_box = render(dst)
-    res = backward(s_img, s_depth, src, d_depth, dst)
+    res = backward(s_img, s_depth, src, d_depth, dst, config=WarpConfig(backend=backend))
     # pixels seeing the wall in the target whose wall point the reference's box hides
     p = dst.unproject(dst.pixel_centers(), d_depth[..., 0])
     uv, _ = src.project(p)
@@ -116,14 +122,16 @@ def test_disoccluded_wall_is_not_filled_with_the_box():
     assert np.array_equal(res.holes, res.outside | res.disoccluded | res.no_geometry)
 
 
-def test_different_resolution_and_fov():
+@BACKENDS
+def test_different_resolution_and_fov(backend):
+    cfg = WarpConfig(backend=backend)
     dst = cam_at(x=0.1, fov=45.0, h=48, w=64)
     wide = cam_at(fov=70.0, h=96, w=120)  # wider and finer reference
     narrow = cam_at(fov=30.0, h=30, w=40)
     d_img, d_depth, d_box = render(dst, with_box=False)
     for ref in (wide, narrow):
         s_img, s_depth, _ = render(ref, with_box=False)
-        res = backward(s_img, s_depth, ref, d_depth, dst)
+        res = backward(s_img, s_depth, ref, d_depth, dst, config=cfg)
         assert res.image.shape == (48, 64, 3)
         ok = ~res.holes
         np.testing.assert_allclose(res.image[ok], d_img[ok], atol=0.01)
@@ -133,32 +141,34 @@ def test_different_resolution_and_fov():
         out |= uv[..., 1] > ref.height
         assert np.array_equal(res.outside, out)
         assert not res.disoccluded.any()
-    assert not backward(*render(wide, False)[:2], wide, d_depth, dst).holes.any()
+    assert not backward(*render(wide, False)[:2], wide, d_depth, dst, config=cfg).holes.any()
 
 
-def test_masks_and_errors(rng):
+@BACKENDS
+def test_masks_and_errors(rng, backend):
+    cfg = WarpConfig(backend=backend)
     cam = cam_at()
     img = rng.random((48, 64, 3)).astype(np.float32)
     depth = np.full((48, 64, 1), 3.0, np.float32)
     mask = np.ones((48, 64, 1), np.float32)
     mask[:10] = 0
-    res = backward(img, depth, cam, depth, cam, dst_mask=mask)
+    res = backward(img, depth, cam, depth, cam, dst_mask=mask, config=cfg)
     assert res.no_geometry[:10].all() and not res.no_geometry[10:].any()
     assert np.array_equal(res.holes, res.no_geometry)
     # a source pixel without geometry is not used: those target pixels are disoccluded
-    res = backward(img, depth, cam, depth, cam, src_mask=mask)
+    res = backward(img, depth, cam, depth, cam, src_mask=mask, config=cfg)
     assert res.disoccluded[:9].all() and not res.holes[11:].any()
     bad = depth.copy()
     bad[5, 5:8] = 0.0
     with pytest.raises(ValueError, match="3 pixel"):
-        backward(img, depth, cam, bad, cam, dst_mask=np.ones_like(mask))
+        backward(img, depth, cam, bad, cam, dst_mask=np.ones_like(mask), config=cfg)
     # without a mask, zero depth is simply no geometry
-    res = backward(img, depth, cam, bad, cam)
+    res = backward(img, depth, cam, bad, cam, config=cfg)
     assert res.no_geometry.sum() == 3
     with pytest.raises(ValueError, match="src_image"):
-        backward(img[:-1], depth, cam, depth, cam)
+        backward(img[:-1], depth, cam, depth, cam, config=cfg)
     with pytest.raises(ValueError, match="dst_depth"):
-        backward(img, depth, cam, depth[..., 0:1, None], cam)
+        backward(img, depth, cam, depth[..., 0:1, None], cam, config=cfg)
     with pytest.raises(ValueError, match="src_depth"):
         warp_backward(
             torch.zeros(1, 3, 4, 4),
@@ -419,3 +429,121 @@ def test_precomputed_slopes_give_the_same_warp():
     assert torch.equal(a.holes, b.holes)
     with pytest.raises(ValueError, match="src_slopes"):
         warp_backward(t(s_img), t(s_depth), t(d_depth), K_s, K_d, pose, src_slopes=slopes[:, :1])
+
+
+# --------------------------------------------------------------------------- numba vs torch
+def _scene_case(seed: int):
+    """A random pose/size pair of cameras in the wall-and-box scene, the target wider than the
+    reference (so some target pixels are outside it) and often disoccluding."""
+    r = np.random.default_rng(seed)
+    sizes = [(48, 64), (40, 40), (60, 90), (33, 47)]
+    cams = []
+    for i, fov in enumerate((r.uniform(35, 55), r.uniform(60, 80))):
+        h, w = sizes[(seed + i) % 4]
+        pose = r.uniform(-0.4, 0.4, 3)
+        cams.append(cam_at(*pose, rotvec=r.uniform(-0.1, 0.1, 3), fov=fov, h=h, w=w))
+    return cams[0], cams[1]
+
+
+def _assert_backends_agree(a, b, atol=1e-5):
+    for name in ("holes", "outside", "disoccluded", "no_geometry", "source"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    np.testing.assert_allclose(a.image, b.image, atol=atol, rtol=0)
+    np.testing.assert_allclose(a.weight, b.weight, atol=atol, rtol=0)
+    np.testing.assert_allclose(a.density, b.density, atol=atol, rtol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_numba_and_torch_backends_agree_on_random_scenes(seed):
+    src, dst = _scene_case(seed)
+    r = np.random.default_rng(100 + seed)
+    _, s_depth, _ = render(src)
+    _, d_depth, _ = render(dst)
+    # a random image (each tap's value is visible), 1 to 4 channels
+    img = r.random((src.height, src.width, 1 + seed % 4)).astype(np.float32)
+    kw = {}
+    if seed % 3 == 1:  # masks with holes (source and target)
+        kw = dict(
+            src_mask=(r.random((src.height, src.width, 1)) > 0.1).astype(np.float32),
+            dst_mask=r.random((dst.height, dst.width)) > 0.1,
+        )
+    opts = [
+        dict(),
+        dict(slope_limit=0.0),
+        dict(soft_depth=0.05, rel_depth_tol=0.05),
+        dict(min_weight=0.3, slope_limit=0.5),
+    ][seed % 4]
+    res = {
+        be: backward(
+            img,
+            s_depth,
+            src,
+            d_depth,
+            dst,
+            **kw,
+            config=WarpConfig(dtype="float64", backend=be, **opts),
+        )
+        for be in ("numba", "torch")
+    }
+    _assert_backends_agree(res["numba"], res["torch"])
+    # each case exercises valid pixels and holes outside the reference
+    assert (~res["numba"].holes).sum() > 50 and res["numba"].outside.any()
+
+
+def test_numba_and_torch_backends_agree_on_disocclusion_and_fov_change():
+    """The disocclusion case, a wide fine reference and a narrow coarse one, in float64 (exact
+    masks) and float32 (the kernel computes in float64, torch in float32: a tap whose depth test
+    is decided by the last bits may differ, on a tiny fraction of pixels)."""
+    dst = cam_at(x=0.4)
+    refs = [cam_at(x=-0.4), cam_at(fov=70.0, h=96, w=120), cam_at(x=0.2, fov=30.0, h=30, w=40)]
+    _, d_depth, _ = render(dst)
+    for ref in refs:
+        s_img, s_depth, _ = render(ref)
+        for dt in ("float64", "float32"):
+            a, b = (
+                backward(s_img, s_depth, ref, d_depth, dst, config=WarpConfig(dtype=dt, backend=be))
+                for be in ("numba", "torch")
+            )
+            if dt == "float64":
+                _assert_backends_agree(a, b)
+            else:
+                assert (a.holes != b.holes).mean() < 1e-3
+                same = (a.holes == b.holes) & (np.abs(a.weight - b.weight) < 1e-4)
+                assert same.mean() > 0.995
+                np.testing.assert_allclose(a.image[same], b.image[same], atol=1e-4)
+    res = backward(*render(refs[0])[:2], refs[0], d_depth, dst)
+    assert res.disoccluded.sum() > 30  # the case does disocclude
+
+
+def test_numba_threads_give_identical_results():
+    """Large enough to be split into row blocks over threads: the result does not depend on the
+    number of threads (nor on which thread did which block)."""
+    src, dst = cam_at(x=-0.3, h=150, w=240), cam_at(x=0.25, rotvec=(0, 0.04, 0), h=160, w=240)
+    s_img, s_depth, _ = render(src)
+    _, d_depth, _ = render(dst)
+    one = backward(s_img, s_depth, src, d_depth, dst, config=WarpConfig(threads=1))
+    for threads in (2, 3):
+        many = backward(s_img, s_depth, src, d_depth, dst, config=WarpConfig(threads=threads))
+        _assert_backends_agree(one, many, atol=0.0)
+    ref = backward(
+        s_img, s_depth, src, d_depth, dst, config=WarpConfig(dtype="float64", backend="torch")
+    )
+    num = backward(s_img, s_depth, src, d_depth, dst, config=WarpConfig(dtype="float64"))
+    _assert_backends_agree(num, ref)
+
+
+def test_backend_choice_is_explicit(monkeypatch):
+    with pytest.raises(ValueError, match="backend"):
+        WarpConfig(backend="cuda")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="threads"):
+        WarpConfig(threads=0)
+    cam = cam_at()
+    img = np.ones((48, 64, 3), np.float32)
+    depth = np.full((48, 64, 1), 3.0, np.float32)
+    # numba missing: 'auto' and 'numba' fail loudly (no silent fall back to torch); 'torch' works
+    monkeypatch.setitem(__import__("sys").modules, "icbtool.warp._numba", None)
+    for be in ("auto", "numba"):
+        with pytest.raises(ImportError, match="backend='torch'"):
+            backward(img, depth, cam, depth, cam, config=WarpConfig(backend=be))
+    res = backward(img, depth, cam, depth, cam, config=WarpConfig(backend="torch"))
+    assert not res.holes.any()

@@ -2,8 +2,10 @@
 
 ``icb.warp.backward`` (target depth known: the client has it), ``icb.warp.forward`` (splatting,
 target depth unknown), ``icb.warp.combine`` (several references, per pixel) and
-``icb.warp.inpaint`` (fill what is left, still reported in the masks). They wrap the torch
-functions of :mod:`icbtool.warp.functional` under ``torch.inference_mode``.
+``icb.warp.inpaint`` (fill what is left, still reported in the masks). ``backward`` runs a fused
+numba kernel (:mod:`icbtool.warp._numba`) by default, or the torch function
+:func:`icbtool.warp.functional.warp_backward` under ``torch.inference_mode`` with
+``WarpConfig(backend="torch")``; ``forward`` wraps :func:`~icbtool.warp.functional.warp_forward`.
 
 Invalid depth: pixels whose mask is 0 are "no geometry" whatever their depth. Without a mask,
 pixels with finite depth > 0 are geometry and the rest are not. With a mask, a pixel marked valid
@@ -13,6 +15,7 @@ whose depth is zero, negative or not finite is an error (ValueError naming the p
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
@@ -52,7 +55,17 @@ class WarpConfig:
     splat: Literal["nearest", "footprint2"] = "nearest"
     """Forward warp footprint: the containing pixel, or the 2x2 pixels around the point."""
     dtype: Literal["float32", "float64"] = "float32"
-    """Compute precision."""
+    """Precision the inputs are read in (images and depths are cast to it). The torch backend
+    also computes in it; the numba kernel always computes in float64 (scalar code: no slower)."""
+    backend: Literal["auto", "numba", "torch"] = "auto"
+    """Implementation of :func:`backward`: ``numba`` (the fused, non-differentiable kernel of
+    :mod:`icbtool.warp._numba`, several times faster), ``torch`` (the differentiable
+    :func:`~icbtool.warp.functional.warp_backward`, the reference), or ``auto`` = ``numba`` (the
+    numpy API needs no gradients). Both give the same masks and images (to float rounding).
+    :func:`forward` always uses torch."""
+    threads: int = 2
+    """Threads of the numba backend (the target rows are split into this many ranges; small
+    images use one)."""
 
     def __post_init__(self) -> None:
         if not self.rel_depth_tol > 0:
@@ -67,6 +80,10 @@ class WarpConfig:
             raise ValueError(f"WarpConfig.splat must be nearest|footprint2, got {self.splat!r}")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"WarpConfig.dtype must be float32|float64, got {self.dtype!r}")
+        if self.backend not in ("auto", "numba", "torch"):
+            raise ValueError(f"WarpConfig.backend must be auto|numba|torch, got {self.backend!r}")
+        if isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1:
+            raise ValueError(f"WarpConfig.threads must be an int >= 1, got {self.threads!r}")
 
 
 @dataclass
@@ -188,6 +205,8 @@ def backward(
     For every target pixel: lift with ``dst_depth`` and ``dst_cam``, project into ``src_cam``,
     sample ``src_image`` bilinearly with a per-tap depth test (see
     :mod:`icbtool.warp.functional`). The cameras may differ in pose, FOV, intrinsics and size.
+    ``config.backend`` picks the implementation: the fused numba kernel (``auto``/``numba``,
+    compiled on first use and cached on disk) or the torch reference (``torch``); they agree.
 
     Args:
         src_image: (Hs, Ws, C) reference image (e.g. a GI map).
@@ -205,16 +224,32 @@ def backward(
     Raises:
         ValueError: on shapes that do not match the cameras, or a mask marking pixels valid whose
             depth is zero, negative or not finite.
+        ImportError: the numba backend was asked for (or ``auto``) and numba cannot be imported.
     """
-    import torch
-
-    from icbtool.warp.functional import warp_backward
-
     src_image = _hwc(src_image, "src_image", src_cam)
     src_depth = _depth(src_depth, "src_depth", src_cam)
     dst_depth = _depth(dst_depth, "dst_depth", dst_cam)
     src_mask = None if src_mask is None else _depth(src_mask, "src_mask", src_cam)
     dst_mask = None if dst_mask is None else _depth(dst_mask, "dst_mask", dst_cam)
+    if not isinstance(config, WarpConfig):
+        raise TypeError(f"config must be a WarpConfig, got {type(config).__name__}")
+    if config.backend == "torch":
+        return _backward_torch(
+            src_image, src_depth, src_cam, dst_depth, dst_cam, src_mask, dst_mask, config
+        )
+    return _backward_numba(
+        src_image, src_depth, src_cam, dst_depth, dst_cam, src_mask, dst_mask, config
+    )
+
+
+def _backward_torch(
+    src_image, src_depth, src_cam, dst_depth, dst_cam, src_mask, dst_mask, config: WarpConfig
+) -> WarpResult:
+    """:func:`backward` through :func:`icbtool.warp.functional.warp_backward` (checked inputs)."""
+    import torch
+
+    from icbtool.warp.functional import warp_backward
+
     dt = _torch_dtype(config)
     with torch.inference_mode():
         out = warp_backward(
@@ -242,6 +277,167 @@ def backward(
             density=_np_map(out.density).astype(np.float32),
             source=np.where(holes, -1, 0).astype(np.int16),
         )
+
+
+#: Target images with fewer pixels than this are warped on one thread (a split costs more).
+_MIN_PIXELS_PER_THREAD = 16384
+_POOL = None
+_POOL_LOCK = threading.Lock()
+
+
+def _pool(k: int):
+    """A shared thread pool for the GIL-free numba kernels (as in icbtool.trace.tracer)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None or _POOL._max_workers < k:
+            _POOL = ThreadPoolExecutor(max_workers=k, thread_name_prefix="icb-warp")
+        return _POOL
+
+
+class _RowBlocks:
+    """One kernel over the rows of an image in blocks, taken in turn by the calling thread and
+    ``threads - 1`` pool threads (the kernels release the GIL). The caller waits only for the
+    blocks, never for a pool thread that has not started: on a busy machine a woken thread can
+    wait milliseconds for a core, and then the caller simply does more of the blocks."""
+
+    def __init__(self, kernel, args: tuple, rows: int, block: int) -> None:
+        self.kernel, self.args, self.rows, self.block = kernel, args, rows, block
+        self.n_blocks = -(-rows // block)
+        self._lock = threading.Lock()
+        self._next = 0
+        self._done = 0
+        self._error: Exception | None = None
+        self._finished = threading.Event()
+
+    def work(self) -> None:
+        while True:
+            with self._lock:
+                b = self._next
+                self._next += 1
+            if b >= self.n_blocks or self._finished.is_set():
+                return
+            lo = b * self.block
+            try:
+                self.kernel(*self.args, lo, min(lo + self.block, self.rows))
+            except Exception as e:  # re-raised by run() in the calling thread
+                with self._lock:
+                    self._error = e
+                self._finished.set()
+                return
+            with self._lock:
+                self._done += 1
+                if self._done == self.n_blocks:
+                    self._finished.set()
+
+    def run(self, threads: int) -> None:
+        if threads > 1:
+            pool = _pool(threads - 1)
+            for _ in range(threads - 1):
+                pool.submit(self.work)
+        self.work()
+        self._finished.wait()
+        if self._error is not None:
+            raise self._error
+
+
+def _run_rows(kernel, args: tuple, shape: tuple[int, int], config: WarpConfig) -> None:
+    """Run ``kernel(*args, row_lo, row_hi)`` over the rows of an (H, W) image on
+    ``config.threads`` threads (one for small images), about 4 row blocks per thread."""
+    h, w = shape
+    k = max(1, min(config.threads, h, (h * w) // _MIN_PIXELS_PER_THREAD))
+    if k == 1:
+        kernel(*args, 0, h)
+        return
+    _RowBlocks(kernel, args, h, max(1, -(-h // (4 * k)))).run(k)
+
+
+def _numba_kernels():
+    import importlib
+
+    try:
+        return importlib.import_module("icbtool.warp._numba")
+    except ImportError as e:  # numba is a dependency: a broken install, not a choice
+        raise ImportError(
+            "WarpConfig.backend='numba' (also the 'auto' choice of the numpy API) needs numba "
+            f"({e}); install the project's requirements.lock, or pass WarpConfig(backend='torch')"
+        ) from e
+
+
+def _geometry_mask(depth2d: np.ndarray, mask: np.ndarray | None, name: str) -> np.ndarray:
+    """(H, W) bool mask (> 0.5) checked against the depth, as functional._valid_mask."""
+    m = mask[..., 0]
+    m = m if m.dtype == np.bool_ else m > 0.5
+    good = (depth2d > 0) & (depth2d < np.inf)
+    bad = int(np.count_nonzero(m & ~good))
+    if bad:
+        raise ValueError(
+            f"{name}_depth: {bad} pixel(s) marked valid by {name}_mask have zero, negative or "
+            "non-finite depth"
+        )
+    return np.ascontiguousarray(m)
+
+
+def _backward_numba(
+    src_image, src_depth, src_cam, dst_depth, dst_cam, src_mask, dst_mask, config: WarpConfig
+) -> WarpResult:
+    """:func:`backward` through the fused numba kernel (checked inputs)."""
+    kern = _numba_kernels()
+    dt = np.dtype(config.dtype)
+    img = np.ascontiguousarray(src_image, dt)
+    sd = np.ascontiguousarray(src_depth, dt).reshape(src_cam.height, src_cam.width)
+    dd = np.ascontiguousarray(dst_depth, dt).reshape(dst_cam.height, dst_cam.width)
+    no_mask = np.zeros((0, 0), np.bool_)
+    sm = no_mask if src_mask is None else _geometry_mask(sd, src_mask, "src")
+    dm = no_mask if dst_mask is None else _geometry_mask(dd, dst_mask, "dst")
+    # K_src R K_dst^-1 and K_src t in float64, as functional._pixel_transform
+    src_from_dst = src_cam.cam_from_world @ dst_cam.world_from_cam
+    k_src = np.asarray(src_cam.K, np.float64)
+    k_dst = np.asarray(dst_cam.K, np.float64)
+    m = np.ascontiguousarray(k_src @ src_from_dst[:3, :3] @ np.linalg.inv(k_dst))
+    kt = np.ascontiguousarray(k_src @ src_from_dst[:3, 3])
+    dens_num = math.sqrt(k_src[0, 0] * k_src[1, 1])
+    dens_den = math.sqrt(k_dst[0, 0] * k_dst[1, 1])
+    hd, wd = dst_cam.height, dst_cam.width
+    image = np.empty((hd, wd, img.shape[2]), np.float32)
+    masks = [np.empty((hd, wd), np.bool_) for _ in range(4)]
+    weight = np.empty((hd, wd), np.float32)
+    density = np.empty((hd, wd), np.float32)
+    source = np.empty((hd, wd), np.int16)
+    feats = np.empty((src_cam.height, src_cam.width, 3), np.float64)  # 1/z, d/dx, d/dy
+    src_args = (sd, sm, src_mask is not None, float(config.slope_limit), feats)
+    _run_rows(kern.source_rows, src_args, sd.shape, config)
+    args = (
+        img,
+        feats,
+        dd,
+        dm,
+        dst_mask is not None,
+        m,
+        kt,
+        dens_num,
+        dens_den,
+        float(config.rel_depth_tol),
+        float(config.soft_depth),
+        float(config.min_weight),
+        image,
+        *masks,
+        weight,
+        density,
+        source,
+    )
+    _run_rows(kern.backward_rows, args, dd.shape, config)
+    return WarpResult(
+        image=image,
+        holes=masks[0],
+        outside=masks[1],
+        disoccluded=masks[2],
+        no_geometry=masks[3],
+        weight=weight,
+        density=density,
+        source=source,
+    )
 
 
 def forward(
