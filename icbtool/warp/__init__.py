@@ -7,6 +7,9 @@ numpy API (HWC arrays and :class:`~icbtool.camera.Camera` objects)::
     fwd = icb.warp.forward(src_image, src_depth, src_cam, dst_cam)
     both = icb.warp.combine([res_a, res_b]);  filled = icb.warp.inpaint(both)
 
+``backward`` runs a fused numba kernel (compiled on first use, cached on disk) unless
+``WarpConfig(backend="torch")``; both backends give the same result (tests/test_warp.py).
+
 torch API (BCHW, differentiable, batched): :mod:`icbtool.warp.functional`
 (``warp_backward``, ``warp_forward``, ``BackwardWarp``, ``ForwardWarp``). This package imports
 torch when first used (``import icbtool`` alone does not load it).
