@@ -109,23 +109,56 @@ def _nus(x, seed):
     return _rev32(_lk_perm(_rev32(x), seed))
 
 
+def _sobol1_rev_tables() -> np.ndarray:
+    """(4, 256) uint64: XOR of the bit-reversed direction numbers of the second Sobol dimension
+    (generator x + 1: w_0 = 1, w_{j+1} = w_j ^ (w_j << 1)) selected by each byte of the index."""
+    w, x = [], 1
+    for _ in range(32):
+        w.append(x)
+        x = (x ^ (x << 1)) & 0xFFFFFFFF
+    t = np.zeros((4, 256), np.uint64)
+    for k in range(4):
+        for b in range(256):
+            r = 0
+            for j in range(8):
+                if (b >> j) & 1:
+                    r ^= w[8 * k + j]
+            t[k, b] = r
+    return t
+
+
+_SOBOL1_REV = _sobol1_rev_tables()
+_B8 = np.uint64(8)
+_FF = np.uint64(0xFF)
+
+
+def _splitmix_int(x: int) -> int:
+    """splitmix64 finaliser on a Python int (as :func:`_mix`)."""
+    m = (1 << 64) - 1
+    x &= m
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & m
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & m
+    return x ^ (x >> 31)
+
+
+#: per-pair salts of the Sobol pair seeds (pairs 0 .. 63): mix((pair + 1) * golden ratio)
+_PAIR_SALT = np.array([_splitmix_int((p + 1) * 0x9E3779B97F4A7C15) for p in range(64)], np.uint64)
+
+
 @nb.njit(**_JIT)
 def _sobol1_rev(i):
-    """Bit-reversed second dimension of the Sobol sequence (generator x + 1): the direction
-    numbers reversed are w_0 = 1, w_{j+1} = w_j ^ (w_j << 1)."""
-    r = _U0
-    w = _U1
-    while i != _U0:
-        if (i & _U1) != _U0:
-            r = r ^ w
-        i = i >> _U1
-        w = (w ^ (w << _U1)) & _MASK32
-    return r
+    """Bit-reversed second dimension of the Sobol sequence (4 table lookups, no branches)."""
+    return (
+        _SOBOL1_REV[0, i & _FF]
+        ^ _SOBOL1_REV[1, (i >> _B8) & _FF]
+        ^ _SOBOL1_REV[2, (i >> _U16) & _FF]
+        ^ _SOBOL1_REV[3, (i >> np.uint64(24)) & _FF]
+    )
 
 
 @nb.njit(**_JIT)
 def _pair_seed(pixseed, pair):
-    return _mix(pixseed ^ _mix((np.uint64(pair) + _U1) * _GOLD))
+    return _mix(pixseed ^ _PAIR_SALT[pair])
 
 
 @nb.njit(**_JIT)
@@ -157,7 +190,7 @@ def _sobol1d(pixseed, sid, pair):
 
 
 #: the sobol sampler is used for the first LD_MAX_DEPTH vertices; deeper ones use hashes
-LD_MAX_DEPTH = 3
+LD_MAX_DEPTH = 2
 
 
 @nb.njit(**_JIT)
