@@ -120,6 +120,21 @@ def source_rows(src_depth, src_mask, has_src_mask, slope_limit, feats, row_lo, r
             feats[r, c, 2] = gy
 
 
+@nb.njit(inline="always", **_JIT)
+def _tap_weight(bw, t, z, lo, hi, rel_depth_tol, soft_depth):
+    """Bilinear weight ``bw`` of a tap whose extrapolated inverse depth is ``t``, times its depth
+    test against the point's depth ``z``: hard, ``|z t - 1| <= tol`` as the bounds ``lo``, ``hi``
+    on ``t`` (as functional.warp_backward), or the sigmoid of ``soft_depth`` width (if t > 0)."""
+    if soft_depth > 0.0:
+        if t <= 0.0:
+            return 0.0
+        rel = abs(t * z - 1.0)
+        return bw * (1.0 / (1.0 + math.exp(-(rel_depth_tol - rel) / soft_depth)))
+    if t >= lo and t <= hi:
+        return bw
+    return 0.0
+
+
 @nb.njit(**_JIT)
 def backward_rows(
     src_image,
@@ -180,7 +195,6 @@ def backward_rows(
             covered = inside and dvalid
             out_no_geometry[i, j] = not dvalid
             out_outside[i, j] = dvalid and not inside
-            acc[:] = 0.0
             wsum = 0.0
             if covered:
                 # four taps, border replicated (the outer half pixel is inside the frustum)
@@ -190,28 +204,39 @@ def backward_rows(
                 y0f = math.floor(y)
                 wx = x - x0f
                 wy = y - y0f
+                c0 = max(x0f, 0)
+                c1 = min(x0f + 1, ws - 1)
+                r0 = max(y0f, 0)
+                r1 = min(y0f + 1, hs - 1)
+                dx0 = x - c0
+                dx1 = x - c1
+                dy0 = y - r0
+                dy1 = y - r1
                 lo = (1.0 - rel_depth_tol) / z
                 hi = (1.0 + rel_depth_tol) / z
-                for a in range(2):
-                    rr = int(max(y0f, 0.0)) if a == 0 else int(min(y0f + 1.0, fhs - 1.0))
-                    wa = 1.0 - wy if a == 0 else wy
-                    for b in range(2):
-                        cc = int(max(x0f, 0.0)) if b == 0 else int(min(x0f + 1.0, fws - 1.0))
-                        bw = wa * (1.0 - wx if b == 0 else wx)
-                        # the tap's 1/z extrapolated along its own slope to the sample
-                        t = feats[rr, cc, 0]
-                        t = t + feats[rr, cc, 1] * (x - cc)
-                        t = t + feats[rr, cc, 2] * (y - rr)
-                        if soft_depth > 0.0:
-                            rel = abs(t * z - 1.0)
-                            s = 1.0 / (1.0 + math.exp(-(rel_depth_tol - rel) / soft_depth))
-                            w = bw * s if t > 0.0 else 0.0
-                        else:
-                            w = bw if (t >= lo and t <= hi) else 0.0
-                        if w != 0.0:
-                            wsum += w
-                            for ch in range(nc):
-                                acc[ch] += w * src_image[rr, cc, ch]
+                # each tap's 1/z extrapolated along its own slope to the sample, then tested
+                t00 = feats[r0, c0, 0] + feats[r0, c0, 1] * dx0 + feats[r0, c0, 2] * dy0
+                t01 = feats[r0, c1, 0] + feats[r0, c1, 1] * dx1 + feats[r0, c1, 2] * dy0
+                t10 = feats[r1, c0, 0] + feats[r1, c0, 1] * dx0 + feats[r1, c0, 2] * dy1
+                t11 = feats[r1, c1, 0] + feats[r1, c1, 1] * dx1 + feats[r1, c1, 2] * dy1
+                w00 = _tap_weight(
+                    (1.0 - wy) * (1.0 - wx), t00, z, lo, hi, rel_depth_tol, soft_depth
+                )
+                w01 = _tap_weight((1.0 - wy) * wx, t01, z, lo, hi, rel_depth_tol, soft_depth)
+                w10 = _tap_weight(wy * (1.0 - wx), t10, z, lo, hi, rel_depth_tol, soft_depth)
+                w11 = _tap_weight(wy * wx, t11, z, lo, hi, rel_depth_tol, soft_depth)
+                wsum = (w00 + w01) + (w10 + w11)
+                for ch in range(nc):
+                    val = 0.0  # failing taps are skipped (a non-finite value there is not read)
+                    if w00 != 0.0:
+                        val += w00 * src_image[r0, c0, ch]
+                    if w01 != 0.0:
+                        val += w01 * src_image[r0, c1, ch]
+                    if w10 != 0.0:
+                        val += w10 * src_image[r1, c0, ch]
+                    if w11 != 0.0:
+                        val += w11 * src_image[r1, c1, ch]
+                    acc[ch] = val
             ok = covered and wsum > min_weight
             out_holes[i, j] = not ok
             out_disoccluded[i, j] = covered and not ok
