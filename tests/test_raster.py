@@ -90,6 +90,22 @@ def test_bogus_backend_names():
             os.environ["ICBTOOL_GL_BACKEND"] = old
 
 
+def test_provoking_vertices_are_unique_and_keep_winding():
+    from icbtool.raster.renderer import _provoking
+
+    rng = np.random.default_rng(0)
+    faces = rng.integers(0, 40, size=(300, 3))  # many faces per vertex: duplicates needed
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])]
+    faces = faces[faces[:, 0] != faces[:, 2]]
+    out, src = _provoking(faces, 40)
+    assert len(np.unique(out[:, 2])) == len(out)  # every face has its own last vertex
+    np.testing.assert_array_equal(src[:40], np.arange(40))
+    orig = src[out]  # back to original vertices: a cyclic rotation of each face
+    rot = [np.roll(faces, k, axis=1) for k in range(3)]
+    assert np.all(np.any([np.all(orig == r, axis=1) for r in rot], axis=0))
+    assert len(src) < 40 + len(faces)
+
+
 # --------------------------------------------------------------------------- G-buffers
 @gl
 def test_plane_depth_position_normals():

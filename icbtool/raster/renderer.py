@@ -71,6 +71,41 @@ def _morton_order(points: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
+def _provoking(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Give every face a last (provoking) vertex used by no other face as its last vertex.
+
+    Faces keep their cyclic vertex order (so their winding): a face whose last vertex is taken
+    is rotated to end with one of its free vertices; if all three are taken, its last vertex is
+    duplicated.
+
+    Args:
+        faces: (F, 3) vertex indices.
+        n_vertices: V.
+
+    Returns:
+        (F, 3) int64 faces into the extended vertex list, and (V', ) int64: the original vertex
+        of each extended vertex (V' >= V; the first V are the originals).
+    """
+    claimed = bytearray(n_vertices)
+    extra: list[int] = []
+    out = faces.tolist()
+    for f in out:
+        a, b, c = f
+        if not claimed[c]:
+            claimed[c] = 1
+        elif not claimed[a]:
+            f[0], f[1], f[2] = b, c, a
+            claimed[a] = 1
+        elif not claimed[b]:
+            f[0], f[1], f[2] = c, a, b
+            claimed[b] = 1
+        else:
+            f[2] = n_vertices + len(extra)
+            extra.append(c)
+    src = np.concatenate([np.arange(n_vertices), np.asarray(extra, np.int64)])
+    return np.asarray(out, np.int64).reshape(-1, 3), src
+
+
 def _frustum_visible(clip_from_world: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """(C,) bool: boxes [lo, hi] (C, 3) not entirely outside one of the 6 clip planes."""
     m = clip_from_world
@@ -366,23 +401,16 @@ class Rasterizer:
         sc = self.scene
         self._vao = GL.glGenVertexArrays(1)
         GL.glBindVertexArray(self._vao)
-        # the rasterizer only needs positions; the resolve pass reads the other vertex data from
-        # a texture buffer (per vertex: (position, u), (normal, v))
-        pos = np.ascontiguousarray(sc.vertices, dtype=np.float32)
-        vbo = GL.glGenBuffers(1)
-        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, vbo)
-        GL.glBufferData(GL.GL_ARRAY_BUFFER, pos.nbytes, pos, GL.GL_STATIC_DRAW)
-        GL.glEnableVertexAttribArray(0)
-        GL.glVertexAttribPointer(0, 3, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
+        # the resolve pass reads the vertex data from a texture buffer (per vertex: (position, u),
+        # (normal, v)); the rasterizer gets positions only (below)
         uv = sc.uvs if self._has_tex else np.zeros((len(sc.vertices), 2), np.float32)
         verts = np.empty((len(sc.vertices), 2, 4), np.float32)
         verts[:, 0, :3], verts[:, 0, 3] = sc.vertices, uv[:, 0]
         verts[:, 1, :3], verts[:, 1, 3] = sc.normals, uv[:, 1]
         self._vert_tex, _ = self._buffer_texture(verts.reshape(-1, 4))
-        self._vbos = [vbo]
         # Faces sorted along a Morton curve and cut into clusters of CLUSTER_FACES, so that each
         # frame draws only the clusters whose bounding box meets the view frustum (a few draw
-        # calls of contiguous ranges; u_prim_base maps gl_PrimitiveID back to the face).
+        # calls of contiguous ranges).
         order = _morton_order(sc.vertices[sc.faces].mean(1))
         self._face_order = order
         tri = sc.vertices[sc.faces[order]]
@@ -391,7 +419,23 @@ class Rasterizer:
         self._cluster_count = np.minimum(CLUSTER_FACES, len(order) - starts)
         self._cluster_lo = np.minimum.reduceat(tri.min(1), starts).astype(np.float64)
         self._cluster_hi = np.maximum.reduceat(tri.max(1), starts).astype(np.float64)
-        idx = np.ascontiguousarray(sc.faces[order], dtype=np.uint32)
+        # The visibility pass learns each fragment's face from a flat vertex attribute (reading
+        # gl_PrimitiveID makes llvmpipe run an extra primitive-assembly stage: ~30 % of its
+        # vertex work): every face gets a provoking (last) vertex of its own, see _provoking.
+        idx, src = _provoking(sc.faces[order], len(sc.vertices))
+        rast = np.empty((len(src), 4), np.float32)
+        rast[:, :3] = sc.vertices[src]
+        rast[:, 3] = 0.0
+        rast[idx[:, 2], 3] = np.arange(1, len(idx) + 1, dtype=np.float32)  # face index + 1
+        vbo = GL.glGenBuffers(1)
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, vbo)
+        GL.glBufferData(GL.GL_ARRAY_BUFFER, rast.nbytes, rast, GL.GL_STATIC_DRAW)
+        GL.glEnableVertexAttribArray(0)
+        GL.glVertexAttribPointer(0, 3, GL.GL_FLOAT, GL.GL_FALSE, 16, ctypes.c_void_p(0))
+        GL.glEnableVertexAttribArray(1)
+        GL.glVertexAttribPointer(1, 1, GL.GL_FLOAT, GL.GL_FALSE, 16, ctypes.c_void_p(12))
+        self._vbos = [vbo]
+        idx = np.ascontiguousarray(idx, dtype=np.uint32)
         self._ebo = GL.glGenBuffers(1)
         GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, self._ebo)
         GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, idx.nbytes, idx, GL.GL_STATIC_DRAW)
@@ -721,9 +765,7 @@ class Rasterizer:
         prog = self._compile("vis.vert", "vis.frag", {})
         GL.glUseProgram(prog)
         self._set(prog, "u_clip_from_world", clip_from_world, "m4")
-        base_loc = self._loc(prog, "u_prim_base")
         for first, count in ranges:
-            GL.glUniform1i(base_loc, first)
             GL.glDrawElements(
                 GL.GL_TRIANGLES, 3 * count, GL.GL_UNSIGNED_INT, ctypes.c_void_p(12 * first)
             )

@@ -2,11 +2,11 @@
 // software rasterizer shades whole 4x4 blocks, so with small triangles most fragment work
 // would be wasted; resolve.frag then shades every pixel exactly once).
 // Output (GL_R32F, cleared to 0): +-(face index + 1), + for front faces, - for back faces
-// (exact in float32 below 2^24 faces).
-uniform int u_prim_base;  // index of this draw's first face
+// (exact in float32 below 2^24 faces). The face comes from a flat attribute of the face's own
+// provoking vertex (cheaper than gl_PrimitiveID on llvmpipe).
+flat in float v_face;
 layout(location = 0) out float o_id;
 
 void main() {
-    float id = float(gl_PrimitiveID + u_prim_base + 1);
-    o_id = gl_FrontFacing ? id : -id;
+    o_id = gl_FrontFacing ? v_face : -v_face;
 }
