@@ -120,7 +120,12 @@ def main() -> None:
         "icbtool_warp_backward_numpy_torch": lambda: warp.backward(
             image, depth, src_cam, depth, dst_cam, config=cfg_torch
         ),
-        "icbtool_warp_forward_numpy": lambda: warp.forward(image, depth, src_cam, dst_cam),
+        "icbtool_warp_forward_numpy_numba": lambda: warp.forward(
+            image, depth, src_cam, dst_cam, config=cfg_numba
+        ),
+        "icbtool_warp_forward_numpy_torch": lambda: warp.forward(
+            image, depth, src_cam, dst_cam, config=cfg_torch
+        ),
     }
     repeats = []
     for _ in tqdm(range(args.repeats), desc="repeats"):
@@ -186,7 +191,7 @@ def main() -> None:
     vals = [results[k]["median_ms"] for k in names]
     lo = [v - min(results[k]["median_ms_per_repeat"]) for k, v in zip(names, vals, strict=True)]
     hi = [max(results[k]["median_ms_per_repeat"]) - v for k, v in zip(names, vals, strict=True)]
-    fig, ax = plt.subplots(figsize=(9, 4.5))
+    fig, ax = plt.subplots(figsize=(10, 5))
     colors = ["gray" if k.startswith("kornia") else "tab:blue" for k in names]
     colors = ["tab:green" if "numba" in k else c for k, c in zip(names, colors, strict=True)]
     ax.barh(names, vals, xerr=[lo, hi], color=colors, capsize=3)

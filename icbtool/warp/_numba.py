@@ -252,3 +252,82 @@ def backward_rows(
                 out_weight[i, j] = 0.0
                 out_source[i, j] = -1
             out_density[i, j] = (dens_num * d) / (dens_den * z) if covered else 0.0
+
+
+@nb.njit(inline="always", **_JIT)
+def _splat_target(src_depth, src_mask, has_src_mask, m, kt, r, c):
+    """Where source pixel (r, c) lands in the target: (u, v, z, front) as in
+    functional.warp_forward (``front``: has geometry and lies in front of the target camera)."""
+    valid = _valid(src_depth, src_mask, has_src_mask, r, c)
+    d = np.float64(src_depth[r, c]) if valid else 1.0
+    u = c + 0.5
+    v = r + 0.5
+    q0 = (m[0, 0] * u + m[0, 1] * v + m[0, 2]) * d + kt[0]
+    q1 = (m[1, 0] * u + m[1, 1] * v + m[1, 2]) * d + kt[1]
+    q2 = (m[2, 0] * u + m[2, 1] * v + m[2, 2]) * d + kt[2]
+    front = valid and q2 > _Z_EPS
+    z = q2 if front else 1.0
+    return q0 / z, q1 / z, q2, front
+
+
+@nb.njit(**_JIT)
+def forward_splat(
+    src_image,
+    src_depth,
+    src_mask,
+    has_src_mask,
+    m,
+    kt,
+    footprint2,
+    zbuf,
+    out_image,
+    out_depth,
+    out_holes,
+):
+    """Forward warp (splat with a z-buffer) of a whole image, as functional.warp_forward: each
+    source pixel centre goes to the target pixel containing it (or, with ``footprint2``, to the
+    2x2 pixels around it); among points landing on one pixel the nearest wins (on exact ties,
+    the last in row-major source order). Single-threaded (splats of different rows collide).
+
+    Args:
+        src_image: (Hs, Ws, C) float32/64; src_depth: (Hs, Ws) float32/64.
+        src_mask: (Hs, Ws) bool, read if ``has_src_mask``.
+        m: (3, 3) float64 ``K_dst R K_src^-1``; kt: (3,) float64 ``K_dst t``.
+        zbuf: (Hd, Wd) float64 scratch. out_image: (Hd, Wd, C) float32; out_depth: (Hd, Wd)
+            float32; out_holes: (Hd, Wd) bool.
+    """
+    hs, ws, nc = src_image.shape
+    hd, wd = zbuf.shape
+    zbuf[:, :] = np.inf
+    half = 0.5 if footprint2 else 0.0
+    n_off = 2 if footprint2 else 1
+    for sweep in range(2):  # 1: nearest depth per target pixel, 2: the colour of the winner
+        for r in range(hs):
+            for c in range(ws):
+                u, v, z, front = _splat_target(src_depth, src_mask, has_src_mask, m, kt, r, c)
+                if not front:
+                    continue
+                bu = math.floor(min(max(u - half, -2.0), wd + 2.0))
+                bv = math.floor(min(max(v - half, -2.0), hd + 2.0))
+                for dv in range(n_off):
+                    i = bv + dv
+                    if i < 0 or i >= hd:
+                        continue
+                    for du in range(n_off):
+                        j = bu + du
+                        if j < 0 or j >= wd:
+                            continue
+                        if sweep == 0:
+                            if z < zbuf[i, j]:
+                                zbuf[i, j] = z
+                        elif z <= zbuf[i, j]:
+                            for ch in range(nc):
+                                out_image[i, j, ch] = src_image[r, c, ch]
+        if sweep == 0:
+            for i in range(hd):
+                for j in range(wd):
+                    hole = zbuf[i, j] == np.inf
+                    out_holes[i, j] = hole
+                    out_depth[i, j] = 0.0 if hole else zbuf[i, j]
+                    for ch in range(nc):
+                        out_image[i, j, ch] = 0.0

@@ -5,7 +5,8 @@ target depth unknown), ``icb.warp.combine`` (several references, per pixel) and
 ``icb.warp.inpaint`` (fill what is left, still reported in the masks). ``backward`` runs a fused
 numba kernel (:mod:`icbtool.warp._numba`) by default, or the torch function
 :func:`icbtool.warp.functional.warp_backward` under ``torch.inference_mode`` with
-``WarpConfig(backend="torch")``; ``forward`` wraps :func:`~icbtool.warp.functional.warp_forward`.
+``WarpConfig(backend="torch")``; ``forward`` likewise runs a numba splatting kernel, or
+:func:`~icbtool.warp.functional.warp_forward`.
 
 Invalid depth: pixels whose mask is 0 are "no geometry" whatever their depth. Without a mask,
 pixels with finite depth > 0 are geometry and the rest are not. With a mask, a pixel marked valid
@@ -62,7 +63,7 @@ class WarpConfig:
     :mod:`icbtool.warp._numba`, several times faster), ``torch`` (the differentiable
     :func:`~icbtool.warp.functional.warp_backward`, the reference), or ``auto`` = ``numba`` (the
     numpy API needs no gradients). Both give the same masks and images (to float rounding).
-    :func:`forward` always uses torch."""
+    Likewise for :func:`forward` (its numba kernel is single-threaded: splats collide)."""
     threads: int = 2
     """Threads of the numba backend (the target rows are split into this many ranges; small
     images use one)."""
@@ -82,7 +83,11 @@ class WarpConfig:
             raise ValueError(f"WarpConfig.dtype must be float32|float64, got {self.dtype!r}")
         if self.backend not in ("auto", "numba", "torch"):
             raise ValueError(f"WarpConfig.backend must be auto|numba|torch, got {self.backend!r}")
-        if isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1:
+        if (
+            isinstance(self.threads, bool)
+            or not isinstance(self.threads, (int, np.integer))
+            or self.threads < 1
+        ):
             raise ValueError(f"WarpConfig.threads must be an int >= 1, got {self.threads!r}")
 
 
@@ -464,13 +469,17 @@ def forward(
     Returns:
         A :class:`ForwardWarpResult` (image (Hd, Wd, C), depth (Hd, Wd, 1), holes (Hd, Wd)).
     """
+    src_image = _hwc(src_image, "src_image", src_cam)
+    src_depth = _depth(src_depth, "src_depth", src_cam)
+    src_mask = None if src_mask is None else _depth(src_mask, "src_mask", src_cam)
+    if not isinstance(config, WarpConfig):
+        raise TypeError(f"config must be a WarpConfig, got {type(config).__name__}")
+    if config.backend != "torch":
+        return _forward_numba(src_image, src_depth, src_cam, dst_cam, src_mask, config)
     import torch
 
     from icbtool.warp.functional import warp_forward
 
-    src_image = _hwc(src_image, "src_image", src_cam)
-    src_depth = _depth(src_depth, "src_depth", src_cam)
-    src_mask = None if src_mask is None else _depth(src_mask, "src_mask", src_cam)
     dt = _torch_dtype(config)
     with torch.inference_mode():
         out = warp_forward(
@@ -488,6 +497,29 @@ def forward(
             depth=out.depth[0].permute(1, 2, 0).numpy().astype(np.float32),
             holes=_np_map(out.holes),
         )
+
+
+def _forward_numba(src_image, src_depth, src_cam, dst_cam, src_mask, config) -> ForwardWarpResult:
+    """:func:`forward` through the numba splatting kernel (checked inputs)."""
+    kern = _numba_kernels()
+    dt = np.dtype(config.dtype)
+    img = np.ascontiguousarray(src_image, dt)
+    sd = np.ascontiguousarray(src_depth, dt).reshape(src_cam.height, src_cam.width)
+    sm = np.zeros((0, 0), np.bool_) if src_mask is None else _geometry_mask(sd, src_mask, "src")
+    dst_from_src = dst_cam.cam_from_world @ src_cam.world_from_cam
+    k_dst = np.asarray(dst_cam.K, np.float64)
+    m = np.ascontiguousarray(k_dst @ dst_from_src[:3, :3] @ np.linalg.inv(src_cam.K))
+    kt = np.ascontiguousarray(k_dst @ dst_from_src[:3, 3])
+    hd, wd = dst_cam.height, dst_cam.width
+    image = np.empty((hd, wd, img.shape[2]), np.float32)
+    depth = np.empty((hd, wd), np.float32)
+    holes = np.empty((hd, wd), np.bool_)
+    zbuf = np.empty((hd, wd), np.float64)
+    footprint2 = config.splat == "footprint2"
+    kern.forward_splat(
+        img, sd, sm, src_mask is not None, m, kt, footprint2, zbuf, image, depth, holes
+    )
+    return ForwardWarpResult(image=image, depth=depth[..., None], holes=holes)
 
 
 def combine(results: Sequence[WarpResult]) -> WarpResult:
