@@ -204,6 +204,7 @@ def main() -> int:
 
     from icbtool.cli._common import run_info, write_json
 
+    load_start = os.getloadavg()
     all_results, configs, skipped = [], {}, {}
     for backend in tqdm(args.backends.split(","), desc="backends"):
         env = {k: v for k, v in os.environ.items() if k not in ("PYOPENGL_PLATFORM",)}
@@ -240,6 +241,7 @@ def main() -> int:
             "results": all_results,
             "skipped_backends": skipped,
             "configs": configs,
+            "load_average_at_start": load_start,
             "load_average_at_end": os.getloadavg(),
             "run_info": run_info(),
         },
