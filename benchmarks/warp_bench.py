@@ -200,8 +200,9 @@ def main() -> None:
         ax.text(v, i, f" {v:.1f} ms", va="bottom")
     ax.invert_yaxis()
     ax.set_xlabel(
-        f"median ms ({args.repeats} repeats x {args.runs} interleaved runs; bars: spread of the "
-        f"repeat medians), {n}x{n}, {args.threads} threads"
+        f"ms at {n}x{n}, {args.threads} threads: median of {args.repeats} repeat medians "
+        f"({args.runs} interleaved runs each);\nwhiskers: min/max repeat median; "
+        f"load avg {load[0]:.1f} after"
     )
     ax.set_title("warp: icbtool (with hole masks) vs kornia warp_frame_depth (no mask)")
     fig.tight_layout()
