@@ -21,7 +21,6 @@ _SUBMODULES = (
     "prefetch",
     "metrics",
     "imageio",
-    "bench",
     "cli",
     "pipeline",
 )
