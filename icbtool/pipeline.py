@@ -29,6 +29,9 @@ import numpy as np
 
 from icbtool.camera import CameraPath
 
+#: The client's WRT-buffer (ICB.md section 2; the mask always comes with it).
+_WRT_BUFFERS = ("dl", "albedo", "normal_world", "depth")
+
 
 @dataclass(frozen=True)
 class LoopConfig:
@@ -191,7 +194,7 @@ def run_loop(
     import tempfile
 
     from icbtool import imageio, metrics, prefetch, raster, store, trace, warp
-    from icbtool.store.record import CRTBuffer, RecordMeta
+    from icbtool.store.record import CRTBuffer
 
     cfg = config or LoopConfig()
     path = _client_path(scene, cfg)
@@ -223,14 +226,14 @@ def run_loop(
                 cam = path.camera_at(float(t))
                 # 1. client raster
                 t0 = time.perf_counter()
-                wrt = rz.render(cam, buffers=("dl", "albedo", "normal_world", "depth"))
+                wrt = rz.render(cam, buffers=_WRT_BUFFERS)
                 raster_ms = 1e3 * (time.perf_counter() - t0)
                 # 2. cloud: the request sent T_IL ago
                 t_req = max(float(t) - cfg.latency_s, float(path.times[0]))
                 req_cam = path.camera_at(t_req)
                 if cfg.prefetch:
                     v_t, v_r = path.velocity_cam(t_req)
-                    near, far = _depth_range(wrt)
+                    near, far = _depth_range(wrt, prefetch)
                     ref_cam = prefetch.prefetch_camera(
                         req_cam, v_t, v_r, pcfg, depth_range=(near, far)
                     ).camera
@@ -245,8 +248,7 @@ def run_loop(
                     ref = hit.record
                 else:
                     t0 = time.perf_counter()
-                    rb = rz.render(ref_cam, buffers=("dl", "albedo", "normal_world", "depth"))
-                    tr = trace.render(
+                    ref = store.render_crt_buffer(
                         scene,
                         ref_cam,
                         trace.TraceConfig(
@@ -255,21 +257,11 @@ def run_loop(
                             max_depth=cfg.max_depth,
                             denoise=cfg.denoise,
                         ),
+                        rz,
+                        buffers=_WRT_BUFFERS,
+                        tags={"frame": k},
                     )
                     cloud_ms = 1e3 * (time.perf_counter() - t0)
-                    meta = RecordMeta.for_scene(
-                        scene, spp=cfg.spp, render_time_s=cloud_ms / 1e3, tags={"frame": k}
-                    )
-                    ref = CRTBuffer(
-                        camera=ref_cam,
-                        meta=meta,
-                        dl=rb.dl,
-                        albedo=rb.albedo,
-                        gi=tr.gi,
-                        normal_world=rb.normal_world,
-                        depth=rb.depth,
-                        mask=rb.mask,
-                    )
                     cache.put(ref)
                     report.cloud_renders += 1
                 # 3. client warp
@@ -354,11 +346,14 @@ def _round_fov(cam: Any, step_deg: float, max_fov_deg: float) -> Any:
     return cam.with_fov(fov, h, w)
 
 
-def _depth_range(wrt: Any) -> tuple[float, float]:
-    d = wrt.depth[..., 0][wrt.valid]
-    if d.size == 0:
+def _depth_range(wrt: Any, prefetch: Any) -> tuple[float, float]:
+    """The client's depth range for the prefetch camera; prefetch's default range when the
+    client sees no geometry."""
+    try:
+        near, far = prefetch.depth_range_from_depth(wrt.depth, wrt.mask)
+    except ValueError:
         return 0.1, 100.0
-    return float(max(d.min(), 1e-3)), float(max(d.max(), d.min() * 1.01 + 1e-3))
+    return max(near, 1e-3), far
 
 
 _EXPOSURE = 1.0

@@ -10,7 +10,14 @@ Example:
 Heavy modules (raster, trace) are imported by :func:`bake` only when it runs.
 """
 
-from icbtool.store.bake import BakeConfig, BakeReport, bake, cloud_camera
+from icbtool.store.bake import (
+    CRT_RASTER_BUFFERS,
+    BakeConfig,
+    BakeReport,
+    bake,
+    cloud_camera,
+    render_crt_buffer,
+)
 from icbtool.store.dataset import INPUT_CONFIGS, Dataset
 from icbtool.store.octree import OctreeGeometry, SceneOctree
 from icbtool.store.record import BUFFER_CHANNELS, BUFFER_NAMES, CRTBuffer, RecordMeta
@@ -34,6 +41,7 @@ from icbtool.store.store import (
 
 __all__ = [
     "BUFFER_CHANNELS",
+    "CRT_RASTER_BUFFERS",
     "BUFFER_NAMES",
     "FORMAT_VERSION",
     "INPUT_CONFIGS",
@@ -60,4 +68,5 @@ __all__ = [
     "camera_key",
     "cloud_camera",
     "open",
+    "render_crt_buffer",
 ]

@@ -185,6 +185,62 @@ def _trace_gbuffers(scene: Any, cam: Camera) -> dict[str, np.ndarray]:
     }
 
 
+#: The raster buffers a CRT-buffer holds (ICB.md section 2); the mask is always included.
+CRT_RASTER_BUFFERS: tuple[str, ...] = (
+    "dl",
+    "albedo",
+    "normal_world",
+    "normal_view",
+    "depth",
+    "position",
+    "mask",
+)
+
+
+def render_crt_buffer(
+    scene: Any,
+    cam: Camera,
+    trace_config: Any,
+    rasterizer: Any = None,
+    buffers: tuple[str, ...] = CRT_RASTER_BUFFERS,
+    tags: dict[str, Any] | None = None,
+) -> CRTBuffer:
+    """Render one CRT-buffer: raster G-buffers and DL, path-traced GI, metadata.
+
+    Args:
+        scene: an :class:`icbtool.scene.Scene`.
+        cam: the cloud camera.
+        trace_config: an :class:`icbtool.trace.TraceConfig` for the GI map.
+        rasterizer: an open :class:`icbtool.raster.Rasterizer` for ``scene``; None: the
+            G-buffers come from a primary Embree ray cast and DL from the tracer (no OpenGL).
+        buffers: raster buffers to keep (``mask`` is always kept); ignored without a rasterizer.
+        tags: tags of the record's :class:`RecordMeta`.
+
+    Returns:
+        A :class:`CRTBuffer` whose ``meta.render_time_s`` covers raster and trace.
+    """
+    from icbtool import trace
+
+    t0 = time.perf_counter()
+    if rasterizer is not None:
+        rb = rasterizer.render(cam, buffers=tuple(b for b in buffers if b != "mask"))
+        maps = {n: getattr(rb, n) for n in (*buffers, "mask")}
+        tr = trace.render(scene, cam, trace_config)
+    else:
+        tr = trace.render(scene, cam, trace_config)
+        maps = _trace_gbuffers(scene, cam)
+        maps["dl"] = tr.direct
+        maps["albedo"] = tr.albedo
+    maps["gi"] = tr.gi
+    meta = RecordMeta.for_scene(
+        scene,
+        spp=int(trace_config.spp),
+        render_time_s=time.perf_counter() - t0,
+        tags=dict(tags or {}),
+    )
+    return CRTBuffer(camera=cam, meta=meta, **maps)
+
+
 def bake(
     scene: Any,
     path: CameraPath | str,
@@ -253,44 +309,18 @@ def bake(
                 )
             )
         for i, cam in todo:
-            t1 = time.perf_counter()
             tcfg = trace.TraceConfig(
                 spp=cfg.spp, seed=cfg.seed + i, max_depth=cfg.max_depth, denoise=cfg.denoise
             )
-            if rasterizer is not None:
-                rb = rasterizer.render(cam)
-                maps = {
-                    n: getattr(rb, n)
-                    for n in (
-                        "dl",
-                        "albedo",
-                        "normal_world",
-                        "normal_view",
-                        "depth",
-                        "position",
-                        "mask",
-                    )
-                }
-                tr = trace.render(scene, cam, tcfg)
-            else:
-                tr = trace.render(scene, cam, tcfg)
-                maps = _trace_gbuffers(scene, cam)
-                maps["dl"] = tr.direct
-                maps["albedo"] = tr.albedo
-            maps["gi"] = tr.gi
-            dt = time.perf_counter() - t1
-            meta = RecordMeta.for_scene(
-                scene,
-                spp=int(cfg.spp),
-                render_time_s=dt,
-                tags={
-                    **cfg.tags,
-                    "path": path.name,
-                    "index": i,
-                    "cloud_camera": cfg.cloud_camera if camera_fn is None else "custom",
-                },
-            )
-            rendered.append(store.put(CRTBuffer(camera=cam, meta=meta, **maps)))
+            tags = {
+                **cfg.tags,
+                "path": path.name,
+                "index": i,
+                "cloud_camera": cfg.cloud_camera if camera_fn is None else "custom",
+            }
+            buf = render_crt_buffer(scene, cam, tcfg, rasterizer, tags=tags)
+            dt = buf.meta.render_time_s
+            rendered.append(store.put(buf))
             times.append(dt)
             if bar is not None:
                 bar.update(1)
