@@ -55,3 +55,12 @@ def test_loop_config_validation():
     scene = icb.scene.plane()
     with pytest.raises(ValueError, match="no camera path 'test'"):
         run_loop(scene, LoopConfig(frames=1), progress=False)
+
+
+def test_cli_unknown_scene_is_one_clear_line(capsys, tmp_path):
+    from icbtool.cli import main
+
+    assert main(["demo", "no_such_scene", "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["icbtool demo: error: scene file not found: no_such_scene"]
+    assert not (tmp_path / "summary.json").exists()

@@ -7,7 +7,7 @@ import json
 import os
 import platform
 import sys
-from dataclasses import asdict, fields, is_dataclass
+from dataclasses import fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,10 +26,7 @@ def load_scene(spec: str):
 
     if spec in sc.PROCEDURAL:
         return sc.PROCEDURAL[spec]()
-    load = getattr(sc, "load", None)
-    if load is None:
-        raise ValueError(f"unknown scene {spec!r}: not one of {sorted(sc.PROCEDURAL)}")
-    return load(spec)
+    return sc.load(spec)
 
 
 def run_info() -> dict[str, Any]:
@@ -99,4 +96,4 @@ def write_json(path: str | os.PathLike, data: Any) -> Path:
     return path
 
 
-__all__ = ["add_scene_argument", "asdict", "load_scene", "run_info", "to_jsonable", "write_json"]
+__all__ = ["add_scene_argument", "load_scene", "run_info", "to_jsonable", "write_json"]
