@@ -1,4 +1,4 @@
-"""The cloud path tracer for GI maps (Embree via embreex, numba wavefront kernels).
+"""The cloud path tracer for GI maps (numba kernels calling Embree 4, shipped by embreex).
 
 ``icb.trace.render_gi(scene, cam, spp=64)`` or ``icb.trace.render(scene, cam, TraceConfig(...))``.
 embreex is imported lazily (by :class:`icbtool.trace.embree.EmbreeScene`), numba on the first

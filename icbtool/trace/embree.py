@@ -5,8 +5,13 @@ over a few Python threads scales almost linearly with the cores (1.8-1.9x on 2 c
 
 embreex has no ``tnear``: rays always start at t = 0. :meth:`EmbreeScene.intersect` emulates
 ``tnear`` by moving the origin along the direction and adding ``tnear`` back to the hit distance.
-Callers that start rays on a surface should offset the origin themselves (see
-:func:`icbtool.trace.tracer.offset_origins`), which is more robust than a ``tnear``.
+Callers that start rays on a surface should offset the origin themselves along the geometric
+normal (as the tracer's kernels do, see ``_eps`` in :mod:`icbtool.trace.kernels`), which is more
+robust than a ``tnear``.
+
+The path tracer does not use this class: its kernels call Embree directly
+(:mod:`icbtool.trace.rtc`). It serves the rest of the library (camera walks, placement checks,
+tests) and the benchmarks.
 """
 
 from __future__ import annotations

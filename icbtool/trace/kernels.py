@@ -1,9 +1,10 @@
-"""numba kernels of the wavefront path tracer (one shading pass per path depth).
+"""numba kernels of the path tracer: whole paths per sample, Embree called from the kernel.
 
-The Python driver in :mod:`icbtool.trace.tracer` alternates Embree queries (which release the GIL
-and run on a few threads) with these kernels, which do all per-ray work: primary rays, hit
-attributes, textures, emission with MIS, next-event estimation (sun, point/spot, emissive
-triangles), cosine BSDF sampling, Russian roulette, compaction and accumulation.
+:func:`trace_paths` does all per-sample work: primary rays, closest hits and shadow rays (through
+Embree 4's C API, see :mod:`icbtool.trace.rtc` and :func:`call3`), hit attributes, textures,
+emission with MIS, next-event estimation (sun, point/spot, emissive triangles, sky), cosine BSDF
+sampling and Russian roulette. The driver in :mod:`icbtool.trace.tracer` runs it on a few Python
+threads (the kernels release the GIL) and merges the samples with :func:`accumulate_pass`.
 
 Random numbers are a pure function of (seed, pixel, sample index, dimension), never of the thread
 that computes them, so images do not depend on the number of threads. Two samplers:
@@ -26,6 +27,11 @@ import math
 
 import numba as nb
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.extending import intrinsic
+
+from icbtool.trace.rtc import RAYHIT_WORDS
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy", boundscheck=False)
 
@@ -201,41 +207,6 @@ def sample_base(seed_mix, pix, sid, out_base):
         out_base[i] = _mix(key * _GOLD + seed_mix)
 
 
-# ---------------------------------------------------------------------------------- camera
-@nb.njit(**_JIT)
-def primary_rays(
-    pix, sid, base, salts, width, intr, r_wc, pos, jitter, sampler, pixseed0, o32, d32, d64, lo, hi
-):
-    """Primary rays of (pixel, sample) pairs lo..hi-1 into o32, d32 (P, 3) float32 and d64.
-
-    intr = (fx, fy, cx, cy); r_wc (3, 3) world_from_cam rotation; pos (3,) camera centre.
-    """
-    for i in range(lo, hi):
-        if jitter:
-            if sampler == SAMPLER_SOBOL:
-                ps = _mix(pixseed0 ^ (np.uint64(pix[i]) * _GOLD))
-                jx, jy = _sobol2(ps, sid[i], 0)
-            else:
-                jx = _u01(base[i], salts[0])
-                jy = _u01(base[i], salts[1])
-        else:
-            jx = 0.5
-            jy = 0.5
-        u = np.float64(pix[i] % width) + jx
-        v = np.float64(pix[i] // width) + jy
-        x = (u - intr[2]) / intr[0]
-        y = (v - intr[3]) / intr[1]
-        nrm = math.sqrt(x * x + y * y + 1.0)
-        x /= nrm
-        y /= nrm
-        z = 1.0 / nrm
-        for k in range(3):
-            dk = r_wc[k, 0] * x + r_wc[k, 1] * y + r_wc[k, 2] * z
-            d64[i, k] = dk
-            d32[i, k] = dk
-            o32[i, k] = pos[k]
-
-
 # ---------------------------------------------------------------------------------- shading
 @nb.njit(**_JIT)
 def _sky(sky_kind, sky, dx, dy, dz):
@@ -267,24 +238,125 @@ def _eps(px, py, pz, t, diag):
     return 3e-5 * (mag + abs(t)) + 1e-6 * diag
 
 
+# ---------------------------------------------------------------------------------- embree
+@intrinsic
+def call3(typingctx, fn, a, b, c):
+    """Call the C function at integer address ``fn`` with three pointer arguments (no result).
+
+    The address is a run-time argument, so kernels that use this stay cacheable."""
+    sig = types.void(fn, a, b, c)
+
+    def codegen(context, builder, signature, args):
+        i8p = ir.IntType(8).as_pointer()
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i8p, i8p])
+        f = builder.inttoptr(args[0], fnty.as_pointer())
+        builder.call(f, [builder.inttoptr(x, i8p) for x in args[1:]])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+_F16 = np.uint64(15)
+_INVALID = np.uint32(0xFFFFFFFF)
+
+
 @nb.njit(**_JIT)
-def shade(
-    # path state (n alive paths)
-    idx,
-    d64,
-    thr,
-    pdf_prev,
-    from_first,
-    # hits
-    h_t,
-    h_prim,
-    h_u,
-    h_v,
-    # per-sample data (P)
+def _rayhit():
+    """A 16-byte aligned RTCRayHit: (uint32 words, float32 view, first word, its address)."""
+    buf = np.zeros(RAYHIT_WORDS + 4, np.uint32)
+    addr = np.uint64(buf.ctypes.data)
+    off = (np.uint64(16) - (addr & _F16)) & _F16
+    return buf, buf.view(np.float32), np.int64(off >> np.uint64(2)), addr + off
+
+
+@nb.njit(**_JIT)
+def _set_ray(w, f, k, ox, oy, oz, dx, dy, dz, tfar):
+    f[k] = ox
+    f[k + 1] = oy
+    f[k + 2] = oz
+    f[k + 3] = 0.0
+    f[k + 4] = dx
+    f[k + 5] = dy
+    f[k + 6] = dz
+    f[k + 7] = 0.0
+    f[k + 8] = tfar
+    w[k + 9] = _INVALID
+    w[k + 10] = 0
+    w[k + 11] = 0
+
+
+@nb.njit(**_JIT)
+def _intersect(rtc, fn, w, f, k, addr, ox, oy, oz, dx, dy, dz):
+    """Closest hit of one float32 ray: (t, prim or -1, u, v)."""
+    _set_ray(w, f, k, ox, oy, oz, dx, dy, dz, np.inf)
+    w[k + 17] = _INVALID
+    w[k + 18] = _INVALID
+    call3(fn, rtc, addr, _U0)
+    if w[k + 18] == _INVALID:
+        return f[k + 8], -1, np.float32(0.0), np.float32(0.0)
+    return f[k + 8], np.int64(w[k + 17]), f[k + 15], f[k + 16]
+
+
+@nb.njit(**_JIT)
+def _occluded(rtc, fn, w, f, k, addr, ox, oy, oz, dx, dy, dz, tfar):
+    """Whether anything lies on the float32 ray segment 0 < t < tfar."""
+    _set_ray(w, f, k, ox, oy, oz, dx, dy, dz, tfar)
+    call3(fn, rtc, addr, _U0)
+    return f[k + 8] == -np.inf
+
+
+@nb.njit(**_JIT)
+def rtc_intersect_batch(rtc, fn, o, d, t, prim, u, v, lo, hi):
+    """Closest hits of float32 rays lo..hi-1 (o, d (N, 3)) into t, prim (-1 = miss), u, v."""
+    w, f, k, addr = _rayhit()
+    for i in range(lo, hi):
+        a, b, c, e = _intersect(rtc, fn, w, f, k, addr, o[i, 0], o[i, 1], o[i, 2],
+                                d[i, 0], d[i, 1], d[i, 2])  # fmt: skip
+        t[i] = a
+        prim[i] = b
+        u[i] = c
+        v[i] = e
+
+
+@nb.njit(**_JIT)
+def rtc_occluded_batch(rtc, fn, o, d, tfar, out, lo, hi):
+    """Occlusion of float32 ray segments lo..hi-1 (0 < t < tfar) into out (True = blocked)."""
+    w, f, k, addr = _rayhit()
+    for i in range(lo, hi):
+        out[i] = _occluded(rtc, fn, w, f, k, addr, o[i, 0], o[i, 1], o[i, 2],
+                           d[i, 0], d[i, 1], d[i, 2], tfar[i])  # fmt: skip
+
+
+#: Samples per block; the threads of a pass take every n-th block (balanced, no false sharing).
+BLOCK = 256
+
+# iparams of trace_paths
+IP_LIMIT = 0
+IP_RR_DEPTH = 1
+IP_SAMPLER = 2
+IP_NEAREST = 3
+IP_SHADING_NORMALS = 4
+IP_WANT_AUX = 5
+IP_JITTER = 6
+IP_WIDTH = 7
+N_IPARAMS = 8
+
+
+@nb.njit(**_JIT)
+def trace_paths(
+    # embree: scene handle, rtcIntersect1, rtcOccluded1
+    rtc,
+    fn_isect,
+    fn_occl,
+    # samples (P): pixel, sample id, independent-sampler base; per-dimension salts
     pix,
     sid,
     base,
     salts,
+    # camera: (fx, fy, cx, cy), world_from_cam rotation (3, 3), centre (3,)
+    intr,
+    r_wc,
+    pos,
     # scene
     tri,
     fn,
@@ -305,452 +377,564 @@ def shade(
     punct,
     sky_kind,
     sky,
-    # parameters: ints = depth, limit, rr_depth, sampler, nearest, shading_normals, want_aux,
-    # shadow slots per path
+    # parameters (see IP_*), scene diagonal, Sobol pixel seed
     iparams,
     diag,
     pixseed0,
-    # outputs per sample
+    # outputs per sample (P): direct, gi, first hit, first-hit albedo and normal
     direct,
     gi,
     first_hit,
     alb_out,
     nrm_out,
-    # outputs per path: shadow slots (n * L) and the next ray
-    s_o,
-    s_d,
-    s_tf,
-    s_c,
-    s_dest,
-    n_o,
-    n_d,
-    n_thr,
-    n_pdf,
-    alive,
-    lo,
-    hi,
+    # (3,) rays traced by this part: primary, bounce, shadow
+    counts,
+    # ray log (benchmarks): o, d (C, 3), tfar (C,), kind (C,) 0 = closest hit, 1 = shadow;
+    # log_n (1,) entries used; C <= 1 turns logging off
+    log_o,
+    log_d,
+    log_tf,
+    log_kind,
+    log_n,
+    # this part's share: blocks part, part + n_parts, ...
+    part,
+    n_parts,
 ):
-    """Shade the hits of segment ``depth`` of paths lo..hi-1 (see module doc). In place.
+    """Trace one whole path per sample (every depth, shadow rays inline) for a share of samples.
 
-    Ranges of paths write disjoint outputs (each path owns its sample), so several threads can
-    shade disjoint ranges at once (the kernels release the GIL).
+    Outputs are per sample, so parts write disjoint rows: several threads can run parts at once
+    (the kernel releases the GIL). Per sample, contributions are added in a fixed order (emission
+    seen, then each light's shadow-tested sample: suns, point/spot, emitter), so images do not
+    depend on the number of parts.
 
     suns: (S, 6) direction, irradiance. punct: (Q, 12) position, intensity, axis, cos_in,
-    cos_out, is_spot. Shadow slots: L = S + Q + (1 if emitters) per path, s_dest 0 = unused.
+    cos_out, is_spot.
     """
-    depth = iparams[0]
-    limit = iparams[1]
-    rr_depth = iparams[2]
-    sampler = iparams[3]
-    nearest = iparams[4]
-    shading_normals = iparams[5]
-    want_aux = iparams[6]
+    limit = iparams[IP_LIMIT]
+    rr_depth = iparams[IP_RR_DEPTH]
+    sampler = iparams[IP_SAMPLER]
+    nearest = iparams[IP_NEAREST]
+    shading_normals = iparams[IP_SHADING_NORMALS]
+    want_aux = iparams[IP_WANT_AUX]
+    jitter = iparams[IP_JITTER]
+    width = iparams[IP_WIDTH]
     n_s = suns.shape[0]
     n_q = punct.shape[0]
     n_e = len(emit_faces)
-    L = iparams[7]  # shadow slots per path (>= n_s + n_q + (1 if n_e > 0 else 0), >= 1)
-    dim0 = 2 + depth * DIMS_PER_BOUNCE
-    pair0 = 1 + 3 * depth
-    for i in range(lo, hi):
-        s = idx[i]
-        alive[i] = False
-        for j in range(L):
-            s_dest[i * L + j] = DEST_NONE
-        dx = d64[i, 0]
-        dy = d64[i, 1]
-        dz = d64[i, 2]
-        t0 = thr[i, 0]
-        t1 = thr[i, 1]
-        t2 = thr[i, 2]
-        prim = h_prim[i]
-        if prim < 0:
-            if sky_kind != 0:
-                le = _sky(sky_kind, sky, dx, dy, dz)
+    log_cap = len(log_kind) if len(log_kind) > 1 else 0
+    w_, f_, k_, addr = _rayhit()
+    n_prim = 0
+    n_bounce = 0
+    n_shadow = 0
+    P = len(pix)
+    n_blocks = (P + BLOCK - 1) // BLOCK
+    for blk in range(part, n_blocks, n_parts):
+        for s in range(blk * BLOCK, min(P, (blk + 1) * BLOCK)):
+            ps_pix = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD))
+            # ---- primary ray
+            if jitter:
+                if sampler == SAMPLER_SOBOL:
+                    jx, jy = _sobol2(ps_pix, sid[s], 0)
+                else:
+                    jx = _u01(base[s], salts[0])
+                    jy = _u01(base[s], salts[1])
+            else:
+                jx = 0.5
+                jy = 0.5
+            cxp = (np.float64(pix[s] % width) + jx - intr[2]) / intr[0]
+            cyp = (np.float64(pix[s] // width) + jy - intr[3]) / intr[1]
+            nrm = math.sqrt(cxp * cxp + cyp * cyp + 1.0)
+            cxp /= nrm
+            cyp /= nrm
+            czp = 1.0 / nrm
+            dx = r_wc[0, 0] * cxp + r_wc[0, 1] * cyp + r_wc[0, 2] * czp
+            dy = r_wc[1, 0] * cxp + r_wc[1, 1] * cyp + r_wc[1, 2] * czp
+            dz = r_wc[2, 0] * cxp + r_wc[2, 1] * cyp + r_wc[2, 2] * czp
+            ox = np.float32(pos[0])
+            oy = np.float32(pos[1])
+            oz = np.float32(pos[2])
+            t0 = 1.0
+            t1 = 1.0
+            t2 = 1.0
+            pdf_prev = 0.0
+            from_first = False
+            for depth in range(1, limit + 1):
+                # ---- closest hit of segment `depth`
+                if log_cap and log_n[0] < log_cap:
+                    j = log_n[0]
+                    log_o[j, 0], log_o[j, 1], log_o[j, 2] = ox, oy, oz
+                    log_d[j, 0], log_d[j, 1], log_d[j, 2] = dx, dy, dz
+                    log_tf[j] = np.inf
+                    log_kind[j] = 0
+                    log_n[0] += 1
+                h_t, prim, h_u, h_v = _intersect(
+                    rtc,
+                    fn_isect,
+                    w_,
+                    f_,
+                    k_,
+                    addr,
+                    ox,
+                    oy,
+                    oz,
+                    np.float32(dx),
+                    np.float32(dy),
+                    np.float32(dz),
+                )
                 if depth == 1:
-                    direct[s, 0] += le[0] * t0
-                    direct[s, 1] += le[1] * t1
-                    direct[s, 2] += le[2] * t2
+                    n_prim += 1
                 else:
-                    gi[s, 0] += le[0] * t0
-                    gi[s, 1] += le[1] * t1
-                    gi[s, 2] += le[2] * t2
-            continue
-        b1 = np.float64(h_u[i])
-        b2 = np.float64(h_v[i])
-        th = np.float64(h_t[i])
-        w0 = 1.0 - b1 - b2
-        x0 = w0 * tri[prim, 0, 0] + b1 * tri[prim, 1, 0] + b2 * tri[prim, 2, 0]
-        x1 = w0 * tri[prim, 0, 1] + b1 * tri[prim, 1, 1] + b2 * tri[prim, 2, 1]
-        x2 = w0 * tri[prim, 0, 2] + b1 * tri[prim, 1, 2] + b2 * tri[prim, 2, 2]
-        g0 = fn[prim, 0]
-        g1 = fn[prim, 1]
-        g2 = fn[prim, 2]
-        cos_o = -(g0 * dx + g1 * dy + g2 * dz)
-        if g0 == 0 and g1 == 0 and g2 == 0:
-            g0, g1, g2 = -dx, -dy, -dz
-            cos_o = 1.0
-        front = cos_o > 0
-        if front:
-            nf0, nf1, nf2 = g0, g1, g2
-        else:
-            nf0, nf1, nf2 = -g0, -g1, -g2
-        if shading_normals:
-            a0 = w0 * vn[prim, 0, 0] + b1 * vn[prim, 1, 0] + b2 * vn[prim, 2, 0]
-            a1 = w0 * vn[prim, 0, 1] + b1 * vn[prim, 1, 1] + b2 * vn[prim, 2, 1]
-            a2 = w0 * vn[prim, 0, 2] + b1 * vn[prim, 1, 2] + b2 * vn[prim, 2, 2]
-            ln = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-            if ln > 1e-20:
-                ns0, ns1, ns2 = a0 / ln, a1 / ln, a2 / ln
-            else:
-                ns0, ns1, ns2 = nf0, nf1, nf2
-            if ns0 * nf0 + ns1 * nf1 + ns2 * nf2 < 0:
-                ns0, ns1, ns2 = -ns0, -ns1, -ns2
-        else:
-            ns0, ns1, ns2 = nf0, nf1, nf2
-        # ---- emission seen (one-sided)
-        e0 = face_emission[prim, 0]
-        e1 = face_emission[prim, 1]
-        e2 = face_emission[prim, 2]
-        if front and (e0 > 0 or e1 > 0 or e2 > 0):
-            if depth == 1:
-                direct[s, 0] += e0 * t0
-                direct[s, 1] += e1 * t1
-                direct[s, 2] += e2 * t2
-            else:
-                pl = (
-                    face_light_pmf[prim]
-                    / max(face_area[prim], 1e-300)
-                    * th
-                    * th
-                    / max(cos_o, 1e-12)
-                )
-                pb = pdf_prev[i]
-                w = pb * pb / max(pb * pb + pl * pl, 1e-300) if pl > 0 else 1.0
-                if from_first[i] and face_is_area[prim]:
-                    direct[s, 0] += e0 * t0 * w
-                    direct[s, 1] += e1 * t1 * w
-                    direct[s, 2] += e2 * t2 * w
+                    n_bounce += 1
+                if prim < 0:
+                    if sky_kind != 0:
+                        le = _sky(sky_kind, sky, dx, dy, dz)
+                        if depth == 1:
+                            direct[s, 0] += le[0] * t0
+                            direct[s, 1] += le[1] * t1
+                            direct[s, 2] += le[2] * t2
+                        else:
+                            gi[s, 0] += le[0] * t0
+                            gi[s, 1] += le[1] * t1
+                            gi[s, 2] += le[2] * t2
+                    break
+                b1 = np.float64(h_u)
+                b2 = np.float64(h_v)
+                th = np.float64(h_t)
+                w0 = 1.0 - b1 - b2
+                x0 = w0 * tri[prim, 0, 0] + b1 * tri[prim, 1, 0] + b2 * tri[prim, 2, 0]
+                x1 = w0 * tri[prim, 0, 1] + b1 * tri[prim, 1, 1] + b2 * tri[prim, 2, 1]
+                x2 = w0 * tri[prim, 0, 2] + b1 * tri[prim, 1, 2] + b2 * tri[prim, 2, 2]
+                g0 = fn[prim, 0]
+                g1 = fn[prim, 1]
+                g2 = fn[prim, 2]
+                cos_o = -(g0 * dx + g1 * dy + g2 * dz)
+                if g0 == 0 and g1 == 0 and g2 == 0:
+                    g0, g1, g2 = -dx, -dy, -dz
+                    cos_o = 1.0
+                front = cos_o > 0
+                if front:
+                    nf0, nf1, nf2 = g0, g1, g2
                 else:
-                    gi[s, 0] += e0 * t0 * w
-                    gi[s, 1] += e1 * t1 * w
-                    gi[s, 2] += e2 * t2 * w
-        # ---- albedo (texture with repeat)
-        al0 = face_albedo[prim, 0]
-        al1 = face_albedo[prim, 1]
-        al2 = face_albedo[prim, 2]
-        m = face_mat[prim]
-        if tex_off[m] >= 0:
-            uu = w0 * face_uv[prim, 0, 0] + b1 * face_uv[prim, 1, 0] + b2 * face_uv[prim, 2, 0]
-            vv = w0 * face_uv[prim, 0, 1] + b1 * face_uv[prim, 1, 1] + b2 * face_uv[prim, 2, 1]
-            th_ = tex_hw[m, 0]
-            tw_ = tex_hw[m, 1]
-            off = tex_off[m]
-            xx = uu * tw_ - 0.5
-            yy = (1.0 - vv) * th_ - 0.5
-            if nearest:
-                xi = np.int64(math.floor(xx + 0.5)) % tw_
-                yi = np.int64(math.floor(yy + 0.5)) % th_
-                p = off + (yi * tw_ + xi) * 3
-                al0 *= np.float64(tex_flat[p])
-                al1 *= np.float64(tex_flat[p + 1])
-                al2 *= np.float64(tex_flat[p + 2])
-            else:
-                fx0 = math.floor(xx)
-                fy0 = math.floor(yy)
-                fx = xx - fx0
-                fy = yy - fy0
-                xa = np.int64(fx0) % tw_
-                ya = np.int64(fy0) % th_
-                xb = (xa + 1) % tw_
-                yb = (ya + 1) % th_
-                p00 = off + (ya * tw_ + xa) * 3
-                p01 = off + (ya * tw_ + xb) * 3
-                p10 = off + (yb * tw_ + xa) * 3
-                p11 = off + (yb * tw_ + xb) * 3
-                ga = (1 - fy) * (1 - fx)
-                gb = (1 - fy) * fx
-                gc = fy * (1 - fx)
-                gd = fy * fx
-                al0 *= (ga * np.float64(tex_flat[p00]) + gb * np.float64(tex_flat[p01])) + (
-                    gc * np.float64(tex_flat[p10]) + gd * np.float64(tex_flat[p11])
-                )
-                al1 *= (ga * np.float64(tex_flat[p00 + 1]) + gb * np.float64(tex_flat[p01 + 1])) + (
-                    gc * np.float64(tex_flat[p10 + 1]) + gd * np.float64(tex_flat[p11 + 1])
-                )
-                al2 *= (ga * np.float64(tex_flat[p00 + 2]) + gb * np.float64(tex_flat[p01 + 2])) + (
-                    gc * np.float64(tex_flat[p10 + 2]) + gd * np.float64(tex_flat[p11 + 2])
-                )
-        if depth == 1:
-            first_hit[s] = True
-            if want_aux:
-                alb_out[s, 0] = al0
-                alb_out[s, 1] = al1
-                alb_out[s, 2] = al2
-                nrm_out[s, 0] = ns0
-                nrm_out[s, 1] = ns1
-                nrm_out[s, 2] = ns2
-        if depth >= limit:
-            continue
-        f0 = t0 * al0
-        f1 = t1 * al1
-        f2 = t2 * al2
-        if not (f0 > 0 or f1 > 0 or f2 > 0):
-            continue
-        eps = _eps(x0, x1, x2, th, diag)
-        xo0 = x0 + nf0 * eps
-        xo1 = x1 + nf1 * eps
-        xo2 = x2 + nf2 * eps
-        fo0 = f0 * _INV_PI
-        fo1 = f1 * _INV_PI
-        fo2 = f2 * _INV_PI
-        dest_dl = DEST_DIRECT if depth == 1 else DEST_GI
-        slot = i * L
-        # ---- suns
-        for j in range(n_s):
-            wi0 = -suns[j, 0]
-            wi1 = -suns[j, 1]
-            wi2 = -suns[j, 2]
-            c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
-            if c > 0 and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0:
-                s_o[slot, 0] = xo0
-                s_o[slot, 1] = xo1
-                s_o[slot, 2] = xo2
-                s_d[slot, 0] = wi0
-                s_d[slot, 1] = wi1
-                s_d[slot, 2] = wi2
-                s_tf[slot] = np.inf
-                s_c[slot, 0] = fo0 * suns[j, 3] * c
-                s_c[slot, 1] = fo1 * suns[j, 4] * c
-                s_c[slot, 2] = fo2 * suns[j, 5] * c
-                s_dest[slot] = dest_dl
-            slot += 1
-        # ---- point and spot lights
-        for j in range(n_q):
-            v0 = punct[j, 0] - x0
-            v1 = punct[j, 1] - x1
-            v2 = punct[j, 2] - x2
-            dist = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-            dd = max(dist, 1e-300)
-            wi0 = v0 / dd
-            wi1 = v1 / dd
-            wi2 = v2 / dd
-            c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
-            fall = 1.0
-            if punct[j, 11] > 0:
-                ca = -(wi0 * punct[j, 6] + wi1 * punct[j, 7] + wi2 * punct[j, 8])
-                xf = min(max((ca - punct[j, 10]) / (punct[j, 9] - punct[j, 10]), 0.0), 1.0)
-                fall = xf * xf * (3.0 - 2.0 * xf)
-            i0 = punct[j, 3] * fall
-            i1 = punct[j, 4] * fall
-            i2 = punct[j, 5] * fall
-            if (
-                c > 0
-                and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0
-                and dist > 0
-                and (i0 > 0 or i1 > 0 or i2 > 0)
-            ):
-                s_o[slot, 0] = xo0
-                s_o[slot, 1] = xo1
-                s_o[slot, 2] = xo2
-                s_d[slot, 0] = wi0
-                s_d[slot, 1] = wi1
-                s_d[slot, 2] = wi2
-                s_tf[slot] = dist * (1 - 1e-5) - eps
-                g = c / (dist * dist)
-                s_c[slot, 0] = fo0 * i0 * g
-                s_c[slot, 1] = fo1 * i1 * g
-                s_c[slot, 2] = fo2 * i2 * g
-                s_dest[slot] = dest_dl
-            slot += 1
-        # ---- emissive triangles (power-sampled, MIS with the BSDF)
-        use_ld = sampler == SAMPLER_SOBOL and depth <= LD_MAX_DEPTH
-        ps = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD)) if use_ld else _U0
-        if n_e > 0:
-            if use_ld:
-                ul = _sobol1d(ps, sid[s], pair0 + 1)
-                ra, r2 = _sobol2(ps, sid[s], pair0 + 2)
-            else:
-                ul = _u01(base[s], salts[dim0 + 2])
-                ra = _u01(base[s], salts[dim0 + 3])
-                r2 = _u01(base[s], salts[dim0 + 4])
-            # first k with cdf[k] > ul (searchsorted side='right')
-            lo = 0
-            hi = n_e
-            while lo < hi:
-                mid = (lo + hi) // 2
-                if emit_cdf[mid] <= ul:
-                    lo = mid + 1
+                    nf0, nf1, nf2 = -g0, -g1, -g2
+                if shading_normals:
+                    a0 = w0 * vn[prim, 0, 0] + b1 * vn[prim, 1, 0] + b2 * vn[prim, 2, 0]
+                    a1 = w0 * vn[prim, 0, 1] + b1 * vn[prim, 1, 1] + b2 * vn[prim, 2, 1]
+                    a2 = w0 * vn[prim, 0, 2] + b1 * vn[prim, 1, 2] + b2 * vn[prim, 2, 2]
+                    ln = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+                    if ln > 1e-20:
+                        ns0, ns1, ns2 = a0 / ln, a1 / ln, a2 / ln
+                    else:
+                        ns0, ns1, ns2 = nf0, nf1, nf2
+                    if ns0 * nf0 + ns1 * nf1 + ns2 * nf2 < 0:
+                        ns0, ns1, ns2 = -ns0, -ns1, -ns2
                 else:
-                    hi = mid
-            k = min(lo, n_e - 1)
-            lf = emit_faces[k]
-            r1 = math.sqrt(ra)
-            ca_ = r1 * (1 - r2)
-            cb_ = r1 * r2
-            y0 = (
-                tri[lf, 0, 0]
-                + ca_ * (tri[lf, 1, 0] - tri[lf, 0, 0])
-                + cb_ * (tri[lf, 2, 0] - tri[lf, 0, 0])
-            )
-            y1 = (
-                tri[lf, 0, 1]
-                + ca_ * (tri[lf, 1, 1] - tri[lf, 0, 1])
-                + cb_ * (tri[lf, 2, 1] - tri[lf, 0, 1])
-            )
-            y2 = (
-                tri[lf, 0, 2]
-                + ca_ * (tri[lf, 1, 2] - tri[lf, 0, 2])
-                + cb_ * (tri[lf, 2, 2] - tri[lf, 0, 2])
-            )
-            v0 = y0 - x0
-            v1 = y1 - x1
-            v2 = y2 - x2
-            dist = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-            dd = max(dist, 1e-300)
-            wi0 = v0 / dd
-            wi1 = v1 / dd
-            wi2 = v2 / dd
-            c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
-            cl = -(fn[lf, 0] * wi0 + fn[lf, 1] * wi1 + fn[lf, 2] * wi2)
-            if c > 0 and cl > 0 and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0 and dist > 0:
-                pl = face_light_pmf[lf] / face_area[lf] * dist * dist / cl
-                pb = c * _INV_PI
-                w = pl * pl / (pl * pl + pb * pb)
-                g = c * w / pl
-                eps_l = _eps(y0, y1, y2, dist, diag)
-                s_o[slot, 0] = xo0
-                s_o[slot, 1] = xo1
-                s_o[slot, 2] = xo2
-                s_d[slot, 0] = wi0
-                s_d[slot, 1] = wi1
-                s_d[slot, 2] = wi2
-                s_tf[slot] = max(dist - eps - eps_l, 0.0)
-                s_c[slot, 0] = fo0 * face_emission[lf, 0] * g
-                s_c[slot, 1] = fo1 * face_emission[lf, 1] * g
-                s_c[slot, 2] = fo2 * face_emission[lf, 2] * g
-                s_dest[slot] = DEST_DIRECT if (depth == 1 and face_is_area[lf]) else DEST_GI
-            slot += 1
-        # ---- bounce: cosine-weighted about the shading normal (Duff et al. basis)
-        if use_ld:
-            u1, u2 = _sobol2(ps, sid[s], pair0)
-        else:
-            u1 = _u01(base[s], salts[dim0])
-            u2 = _u01(base[s], salts[dim0 + 1])
-        sign = 1.0 if ns2 >= 0 else -1.0
-        a = -1.0 / (sign + ns2)
-        b = ns0 * ns1 * a
-        ta0 = 1 + sign * ns0 * ns0 * a
-        ta1 = sign * b
-        ta2 = -sign * ns0
-        tb0 = b
-        tb1 = sign + ns1 * ns1 * a
-        tb2 = -ns1
-        r = math.sqrt(u1)
-        phi = 2 * _PI * u2
-        zc = math.sqrt(max(0.0, 1 - u1))
-        rc = r * math.cos(phi)
-        rs = r * math.sin(phi)
-        wi0 = rc * ta0 + rs * tb0 + zc * ns0
-        wi1 = rc * ta1 + rs * tb1 + zc * ns1
-        wi2 = rc * ta2 + rs * tb2 + zc * ns2
-        below = wi0 * nf0 + wi1 * nf1 + wi2 * nf2
-        if below <= 0:
-            wi0 -= 2 * below * nf0
-            wi1 -= 2 * below * nf1
-            wi2 -= 2 * below * nf2
-        ln = math.sqrt(wi0 * wi0 + wi1 * wi1 + wi2 * wi2)
-        if ln > 1e-20:
-            wi0, wi1, wi2 = wi0 / ln, wi1 / ln, wi2 / ln
-        else:
-            wi0, wi1, wi2 = nf0, nf1, nf2
-        pdf = max(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1e-12) * _INV_PI
-        if depth + 1 > rr_depth:  # Russian roulette for the next segment
-            q = min(max(f0, max(f1, f2)), 0.95)
-            if not (_u01(base[s], salts[dim0 + 5]) < q):
-                continue
-            f0 /= q
-            f1 /= q
-            f2 /= q
-        alive[i] = True
-        n_o[i, 0] = xo0
-        n_o[i, 1] = xo1
-        n_o[i, 2] = xo2
-        n_d[i, 0] = wi0
-        n_d[i, 1] = wi1
-        n_d[i, 2] = wi2
-        n_thr[i, 0] = f0
-        n_thr[i, 1] = f1
-        n_thr[i, 2] = f2
-        n_pdf[i] = pdf
+                    ns0, ns1, ns2 = nf0, nf1, nf2
+                # ---- emission seen (one-sided)
+                e0 = face_emission[prim, 0]
+                e1 = face_emission[prim, 1]
+                e2 = face_emission[prim, 2]
+                if front and (e0 > 0 or e1 > 0 or e2 > 0):
+                    if depth == 1:
+                        direct[s, 0] += e0 * t0
+                        direct[s, 1] += e1 * t1
+                        direct[s, 2] += e2 * t2
+                    else:
+                        pl = (
+                            face_light_pmf[prim]
+                            / max(face_area[prim], 1e-300)
+                            * th
+                            * th
+                            / max(cos_o, 1e-12)
+                        )
+                        pb = pdf_prev
+                        w = pb * pb / max(pb * pb + pl * pl, 1e-300) if pl > 0 else 1.0
+                        if from_first and face_is_area[prim]:
+                            direct[s, 0] += e0 * t0 * w
+                            direct[s, 1] += e1 * t1 * w
+                            direct[s, 2] += e2 * t2 * w
+                        else:
+                            gi[s, 0] += e0 * t0 * w
+                            gi[s, 1] += e1 * t1 * w
+                            gi[s, 2] += e2 * t2 * w
+                # ---- albedo (texture with repeat)
+                al0 = face_albedo[prim, 0]
+                al1 = face_albedo[prim, 1]
+                al2 = face_albedo[prim, 2]
+                m = face_mat[prim]
+                if tex_off[m] >= 0:
+                    uu = (
+                        w0 * face_uv[prim, 0, 0]
+                        + b1 * face_uv[prim, 1, 0]
+                        + b2 * face_uv[prim, 2, 0]
+                    )
+                    vv = (
+                        w0 * face_uv[prim, 0, 1]
+                        + b1 * face_uv[prim, 1, 1]
+                        + b2 * face_uv[prim, 2, 1]
+                    )
+                    th_ = tex_hw[m, 0]
+                    tw_ = tex_hw[m, 1]
+                    off = tex_off[m]
+                    xx = uu * tw_ - 0.5
+                    yy = (1.0 - vv) * th_ - 0.5
+                    if nearest:
+                        xi = np.int64(math.floor(xx + 0.5)) % tw_
+                        yi = np.int64(math.floor(yy + 0.5)) % th_
+                        p = off + (yi * tw_ + xi) * 3
+                        al0 *= np.float64(tex_flat[p])
+                        al1 *= np.float64(tex_flat[p + 1])
+                        al2 *= np.float64(tex_flat[p + 2])
+                    else:
+                        fx0 = math.floor(xx)
+                        fy0 = math.floor(yy)
+                        fx = xx - fx0
+                        fy = yy - fy0
+                        xa = np.int64(fx0) % tw_
+                        ya = np.int64(fy0) % th_
+                        xb = (xa + 1) % tw_
+                        yb = (ya + 1) % th_
+                        p00 = off + (ya * tw_ + xa) * 3
+                        p01 = off + (ya * tw_ + xb) * 3
+                        p10 = off + (yb * tw_ + xa) * 3
+                        p11 = off + (yb * tw_ + xb) * 3
+                        ga = (1 - fy) * (1 - fx)
+                        gb = (1 - fy) * fx
+                        gc = fy * (1 - fx)
+                        gd = fy * fx
+                        al0 *= (ga * np.float64(tex_flat[p00]) + gb * np.float64(tex_flat[p01])) + (
+                            gc * np.float64(tex_flat[p10]) + gd * np.float64(tex_flat[p11])
+                        )
+                        al1 *= (
+                            ga * np.float64(tex_flat[p00 + 1]) + gb * np.float64(tex_flat[p01 + 1])
+                        ) + (
+                            gc * np.float64(tex_flat[p10 + 1]) + gd * np.float64(tex_flat[p11 + 1])
+                        )
+                        al2 *= (
+                            ga * np.float64(tex_flat[p00 + 2]) + gb * np.float64(tex_flat[p01 + 2])
+                        ) + (
+                            gc * np.float64(tex_flat[p10 + 2]) + gd * np.float64(tex_flat[p11 + 2])
+                        )
+                if depth == 1:
+                    first_hit[s] = True
+                    if want_aux:
+                        alb_out[s, 0] = al0
+                        alb_out[s, 1] = al1
+                        alb_out[s, 2] = al2
+                        nrm_out[s, 0] = ns0
+                        nrm_out[s, 1] = ns1
+                        nrm_out[s, 2] = ns2
+                if depth >= limit:
+                    break
+                f0 = t0 * al0
+                f1 = t1 * al1
+                f2 = t2 * al2
+                if not (f0 > 0 or f1 > 0 or f2 > 0):
+                    break
+                eps = _eps(x0, x1, x2, th, diag)
+                xo0 = x0 + nf0 * eps
+                xo1 = x1 + nf1 * eps
+                xo2 = x2 + nf2 * eps
+                so0 = np.float32(xo0)
+                so1 = np.float32(xo1)
+                so2 = np.float32(xo2)
+                fo0 = f0 * _INV_PI
+                fo1 = f1 * _INV_PI
+                fo2 = f2 * _INV_PI
+                to_direct_dl = depth == 1
+                dim0 = 2 + depth * DIMS_PER_BOUNCE
+                pair0 = 1 + 3 * depth
+                # ---- suns
+                for j in range(n_s):
+                    wi0 = -suns[j, 0]
+                    wi1 = -suns[j, 1]
+                    wi2 = -suns[j, 2]
+                    c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
+                    if c > 0 and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0:
+                        tf = np.float32(np.inf)
+                        if log_cap and log_n[0] < log_cap:
+                            _log_shadow(
+                                log_o,
+                                log_d,
+                                log_tf,
+                                log_kind,
+                                log_n,
+                                so0,
+                                so1,
+                                so2,
+                                wi0,
+                                wi1,
+                                wi2,
+                                tf,
+                            )
+                        n_shadow += 1
+                        if not _occluded(
+                            rtc,
+                            fn_occl,
+                            w_,
+                            f_,
+                            k_,
+                            addr,
+                            so0,
+                            so1,
+                            so2,
+                            np.float32(wi0),
+                            np.float32(wi1),
+                            np.float32(wi2),
+                            tf,
+                        ):
+                            _add(
+                                direct if to_direct_dl else gi,
+                                s,
+                                fo0 * suns[j, 3] * c,
+                                fo1 * suns[j, 4] * c,
+                                fo2 * suns[j, 5] * c,
+                            )
+                # ---- point and spot lights
+                for j in range(n_q):
+                    v0 = punct[j, 0] - x0
+                    v1 = punct[j, 1] - x1
+                    v2 = punct[j, 2] - x2
+                    dist = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+                    dd = max(dist, 1e-300)
+                    wi0 = v0 / dd
+                    wi1 = v1 / dd
+                    wi2 = v2 / dd
+                    c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
+                    fall = 1.0
+                    if punct[j, 11] > 0:
+                        ca = -(wi0 * punct[j, 6] + wi1 * punct[j, 7] + wi2 * punct[j, 8])
+                        xf = min(max((ca - punct[j, 10]) / (punct[j, 9] - punct[j, 10]), 0.0), 1.0)
+                        fall = xf * xf * (3.0 - 2.0 * xf)
+                    i0 = punct[j, 3] * fall
+                    i1 = punct[j, 4] * fall
+                    i2 = punct[j, 5] * fall
+                    if (
+                        c > 0
+                        and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0
+                        and dist > 0
+                        and (i0 > 0 or i1 > 0 or i2 > 0)
+                    ):
+                        tf = np.float32(dist * (1 - 1e-5) - eps)
+                        if log_cap and log_n[0] < log_cap:
+                            _log_shadow(
+                                log_o,
+                                log_d,
+                                log_tf,
+                                log_kind,
+                                log_n,
+                                so0,
+                                so1,
+                                so2,
+                                wi0,
+                                wi1,
+                                wi2,
+                                tf,
+                            )
+                        n_shadow += 1
+                        if not _occluded(
+                            rtc,
+                            fn_occl,
+                            w_,
+                            f_,
+                            k_,
+                            addr,
+                            so0,
+                            so1,
+                            so2,
+                            np.float32(wi0),
+                            np.float32(wi1),
+                            np.float32(wi2),
+                            tf,
+                        ):
+                            g = c / (dist * dist)
+                            _add(
+                                direct if to_direct_dl else gi,
+                                s,
+                                fo0 * i0 * g,
+                                fo1 * i1 * g,
+                                fo2 * i2 * g,
+                            )
+                # ---- emissive triangles (power-sampled, MIS with the BSDF)
+                use_ld = sampler == SAMPLER_SOBOL and depth <= LD_MAX_DEPTH
+                if n_e > 0:
+                    if use_ld:
+                        ul = _sobol1d(ps_pix, sid[s], pair0 + 1)
+                        ra, r2 = _sobol2(ps_pix, sid[s], pair0 + 2)
+                    else:
+                        ul = _u01(base[s], salts[dim0 + 2])
+                        ra = _u01(base[s], salts[dim0 + 3])
+                        r2 = _u01(base[s], salts[dim0 + 4])
+                    # first k with cdf[k] > ul (searchsorted side='right')
+                    a_ = 0
+                    b_ = n_e
+                    while a_ < b_:
+                        mid = (a_ + b_) // 2
+                        if emit_cdf[mid] <= ul:
+                            a_ = mid + 1
+                        else:
+                            b_ = mid
+                    lf = emit_faces[min(a_, n_e - 1)]
+                    r1 = math.sqrt(ra)
+                    ca_ = r1 * (1 - r2)
+                    cb_ = r1 * r2
+                    y0 = (
+                        tri[lf, 0, 0]
+                        + ca_ * (tri[lf, 1, 0] - tri[lf, 0, 0])
+                        + cb_ * (tri[lf, 2, 0] - tri[lf, 0, 0])
+                    )
+                    y1 = (
+                        tri[lf, 0, 1]
+                        + ca_ * (tri[lf, 1, 1] - tri[lf, 0, 1])
+                        + cb_ * (tri[lf, 2, 1] - tri[lf, 0, 1])
+                    )
+                    y2 = (
+                        tri[lf, 0, 2]
+                        + ca_ * (tri[lf, 1, 2] - tri[lf, 0, 2])
+                        + cb_ * (tri[lf, 2, 2] - tri[lf, 0, 2])
+                    )
+                    v0 = y0 - x0
+                    v1 = y1 - x1
+                    v2 = y2 - x2
+                    dist = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+                    dd = max(dist, 1e-300)
+                    wi0 = v0 / dd
+                    wi1 = v1 / dd
+                    wi2 = v2 / dd
+                    c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
+                    cl = -(fn[lf, 0] * wi0 + fn[lf, 1] * wi1 + fn[lf, 2] * wi2)
+                    if c > 0 and cl > 0 and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0 and dist > 0:
+                        pl = face_light_pmf[lf] / face_area[lf] * dist * dist / cl
+                        pb = c * _INV_PI
+                        w = pl * pl / (pl * pl + pb * pb)
+                        g = c * w / pl
+                        eps_l = _eps(y0, y1, y2, dist, diag)
+                        tf = np.float32(max(dist - eps - eps_l, 0.0))
+                        if log_cap and log_n[0] < log_cap:
+                            _log_shadow(
+                                log_o,
+                                log_d,
+                                log_tf,
+                                log_kind,
+                                log_n,
+                                so0,
+                                so1,
+                                so2,
+                                wi0,
+                                wi1,
+                                wi2,
+                                tf,
+                            )
+                        n_shadow += 1
+                        if not _occluded(
+                            rtc,
+                            fn_occl,
+                            w_,
+                            f_,
+                            k_,
+                            addr,
+                            so0,
+                            so1,
+                            so2,
+                            np.float32(wi0),
+                            np.float32(wi1),
+                            np.float32(wi2),
+                            tf,
+                        ):
+                            _add(
+                                direct if (to_direct_dl and face_is_area[lf]) else gi,
+                                s,
+                                fo0 * face_emission[lf, 0] * g,
+                                fo1 * face_emission[lf, 1] * g,
+                                fo2 * face_emission[lf, 2] * g,
+                            )
+                # ---- bounce: cosine-weighted about the shading normal (Duff et al. basis)
+                if use_ld:
+                    u1, u2 = _sobol2(ps_pix, sid[s], pair0)
+                else:
+                    u1 = _u01(base[s], salts[dim0])
+                    u2 = _u01(base[s], salts[dim0 + 1])
+                sign = 1.0 if ns2 >= 0 else -1.0
+                a = -1.0 / (sign + ns2)
+                b = ns0 * ns1 * a
+                ta0 = 1 + sign * ns0 * ns0 * a
+                ta1 = sign * b
+                ta2 = -sign * ns0
+                tb0 = b
+                tb1 = sign + ns1 * ns1 * a
+                tb2 = -ns1
+                r = math.sqrt(u1)
+                phi = 2 * _PI * u2
+                zc = math.sqrt(max(0.0, 1 - u1))
+                rc = r * math.cos(phi)
+                rs = r * math.sin(phi)
+                wi0 = rc * ta0 + rs * tb0 + zc * ns0
+                wi1 = rc * ta1 + rs * tb1 + zc * ns1
+                wi2 = rc * ta2 + rs * tb2 + zc * ns2
+                below = wi0 * nf0 + wi1 * nf1 + wi2 * nf2
+                if below <= 0:
+                    wi0 -= 2 * below * nf0
+                    wi1 -= 2 * below * nf1
+                    wi2 -= 2 * below * nf2
+                ln = math.sqrt(wi0 * wi0 + wi1 * wi1 + wi2 * wi2)
+                if ln > 1e-20:
+                    wi0, wi1, wi2 = wi0 / ln, wi1 / ln, wi2 / ln
+                else:
+                    wi0, wi1, wi2 = nf0, nf1, nf2
+                pdf = max(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1e-12) * _INV_PI
+                if depth + 1 > rr_depth:  # Russian roulette for the next segment
+                    q = min(max(f0, max(f1, f2)), 0.95)
+                    if not (_u01(base[s], salts[dim0 + 5]) < q):
+                        break
+                    f0 /= q
+                    f1 /= q
+                    f2 /= q
+                ox, oy, oz = so0, so1, so2
+                dx, dy, dz = wi0, wi1, wi2
+                t0, t1, t2 = f0, f1, f2
+                pdf_prev = pdf
+                from_first = depth == 1
+    counts[0] += n_prim
+    counts[1] += n_bounce
+    counts[2] += n_shadow
 
 
 @nb.njit(**_JIT)
-def compact_paths(alive, idx, n_o, n_d, n_thr, n_pdf, idx2, o32, d32, d64, thr, pdf):
-    """Copy the surviving paths, in order, into the output buffers; returns their count."""
-    j = 0
-    for i in range(len(alive)):
-        if alive[i]:
-            idx2[j] = idx[i]
-            for k in range(3):
-                o32[j, k] = n_o[i, k]
-                d32[j, k] = n_d[i, k]
-                d64[j, k] = n_d[i, k]
-                thr[j, k] = n_thr[i, k]
-            pdf[j] = n_pdf[i]
-            j += 1
-    return j
+def _add(out, s, a, b, c):
+    out[s, 0] += a
+    out[s, 1] += b
+    out[s, 2] += c
 
 
 @nb.njit(**_JIT)
-def compact_shadow(s_dest, s_o, s_d, s_tf, slots, o32, d32, tf):
-    """Copy the used shadow slots, in order, into the output buffers; returns their count."""
-    j = 0
-    for i in range(len(s_dest)):
-        if s_dest[i] != DEST_NONE:
-            slots[j] = i
-            for k in range(3):
-                o32[j, k] = s_o[i, k]
-                d32[j, k] = s_d[i, k]
-            tf[j] = s_tf[i]
-            j += 1
-    return j
-
-
-@nb.njit(**_JIT)
-def add_shadow(blocked, slots, n_per_path, idx, s_c, s_dest, direct, gi):
-    """Add the contributions of unblocked shadow rays to direct or gi (serial: no races)."""
-    for j in range(len(slots)):
-        if blocked[j]:
-            continue
-        sl = slots[j]
-        s = idx[sl // n_per_path]
-        if s_dest[sl] == DEST_DIRECT:
-            for k in range(3):
-                direct[s, k] += s_c[sl, k]
-        else:
-            for k in range(3):
-                gi[s, k] += s_c[sl, k]
-
-
-@nb.njit(**_JIT)
-def welford_add(pix, x, n, mean, m2):
-    """Merge samples x (P, C) of pixels pix (P,) into running count/mean/M2 (in place)."""
-    c = x.shape[1]
-    for i in range(len(pix)):
-        p = pix[i]
-        n[p] += 1
-        inv = 1.0 / n[p]
-        for k in range(c):
-            delta = x[i, k] - mean[p, k]
-            mean[p, k] += delta * inv
-            m2[p, k] += delta * (x[i, k] - mean[p, k])
+def _log_shadow(log_o, log_d, log_tf, log_kind, log_n, ox, oy, oz, dx, dy, dz, tf):
+    j = log_n[0]
+    log_o[j, 0], log_o[j, 1], log_o[j, 2] = ox, oy, oz
+    log_d[j, 0], log_d[j, 1], log_d[j, 2] = dx, dy, dz
+    log_tf[j] = tf
+    log_kind[j] = 1
+    log_n[0] += 1
 
 
 @nb.njit(**_JIT)
 def accumulate_pass(
-    pix, gi, direct, hit, alb, nrm, want_aux, lum_w,
-    n_g, mean_g, m2_g, n_d, mean_d, m2_d, hit_sum, alb_sum, nrm_sum,
-):  # fmt: skip
+    pix,
+    gi,
+    direct,
+    hit,
+    alb,
+    nrm,
+    want_aux,
+    lum_w,
+    n_g,
+    mean_g,
+    m2_g,
+    n_d,
+    mean_d,
+    m2_d,
+    hit_sum,
+    alb_sum,
+    nrm_sum,
+):
     """One pass's samples into the per-pixel statistics (in place): Welford mean/M2 of
     (gi rgb, gi luminance) and of direct, and sums of the hit flag, albedo and normal."""
     x = np.empty(4)
@@ -778,3 +962,64 @@ def accumulate_pass(
             for k in range(3):
                 alb_sum[p, k] += alb[i, k]
                 nrm_sum[p, k] += nrm[i, k]
+
+
+@nb.njit(**_JIT)
+def rel_error_lum(n, mean, m2, hit_sum, rel):
+    """Per-pixel relative standard error of the mean of channel 3 (GI luminance) into ``rel``
+    (inf where fewer than 2 samples); returns its mean over covered pixels (those whose samples
+    mostly hit geometry). The denominator is floored at 1 % of the mean covered luminance."""
+    npix = len(n)
+    tot = 0.0
+    cnt = 0
+    for p in range(npix):
+        if n[p] > 0 and hit_sum[p] > 0.5 * max(n[p], 1):
+            tot += abs(mean[p, 3])
+            cnt += 1
+    if cnt == 0:
+        rel[:] = 0.0
+        return 0.0
+    floor = max(1e-2 * (tot / cnt), 1e-12)
+    acc = 0.0
+    for p in range(npix):
+        k = n[p]
+        if k > 1:
+            r = math.sqrt(m2[p, 3] / (k - 1) / k) / max(abs(mean[p, 3]), floor)
+        else:
+            r = np.inf
+        rel[p] = r
+        if k > 0 and hit_sum[p] > 0.5 * max(k, 1):
+            acc += r
+    return acc / cnt
+
+
+@nb.njit(**_JIT)
+def finish(
+    n_g, mean_g, m2_g, mean_d, hit_sum, alb_sum, nrm_sum, want_aux,
+    gi, direct, var, mask, albedo, normal,
+):  # fmt: skip
+    """Per-pixel outputs (float32) from the statistics: gi and direct means, variance of the gi
+    mean, coverage mask, mean first-hit albedo and unit normal (0 where it cancels out)."""
+    for p in range(len(n_g)):
+        k = n_g[p]
+        kk = max(k, 1)
+        for c in range(3):
+            gi[p, c] = mean_g[p, c]
+            direct[p, c] = mean_d[p, c]
+            var[p, c] = m2_g[p, c] / max(k - 1, 1) / kk if k > 1 else 0.0
+        mask[p] = 1.0 if hit_sum[p] / kk > 0.5 else 0.0
+        if want_aux:
+            a0 = nrm_sum[p, 0] / kk
+            a1 = nrm_sum[p, 1] / kk
+            a2 = nrm_sum[p, 2] / kk
+            ln = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+            for c in range(3):
+                albedo[p, c] = alb_sum[p, c] / kk
+            if ln > 1e-20:
+                normal[p, 0] = a0 / ln
+                normal[p, 1] = a1 / ln
+                normal[p, 2] = a2 / ln
+            else:
+                normal[p, 0] = 0.0
+                normal[p, 1] = 0.0
+                normal[p, 2] = 0.0

@@ -1,10 +1,13 @@
-"""A progressive wavefront path tracer: GI maps (full - DL) with Embree and numba kernels.
+"""A progressive path tracer for GI maps (full - DL): numba kernels that call Embree directly.
 
-Per path depth, the driver here calls Embree (GIL-free, split over ``threads`` Python threads) and
-the numba kernels of :mod:`icbtool.trace.kernels` (also GIL-free, split over the same threads),
-which do all per-ray work. The kernels are compiled on first use and cached on disk (numba
-``cache=True``): about 15-25 s once per machine (or per change of ``kernels.py``), ~1 s to load
-the cache in a new process.
+Each pass traces one or more samples for a set of pixels. One numba kernel
+(:func:`icbtool.trace.kernels.trace_paths`) follows each sample's whole path, calling Embree 4's
+``rtcIntersect1``/``rtcOccluded1`` itself (:mod:`icbtool.trace.rtc`), so no Python runs per depth
+or per ray batch; ``threads`` Python threads run it on interleaved blocks of samples (it releases
+the GIL). The driver here accumulates per-pixel statistics between passes and decides when to
+stop. The kernels are compiled on first use and cached on disk (numba ``cache=True``): about
+15-25 s once per machine (or per change of ``kernels.py``), ~1 s to load the cache in a new
+process.
 
 Light transport: two-sided Lambertian surfaces (textured albedo), one-sided emissive faces, a
 directional sun, point and spot lights (delta lights: next-event estimation only), emissive
@@ -47,7 +50,6 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from icbtool.camera import Camera
     from icbtool.scene import Scene
-    from icbtool.trace.embree import EmbreeScene
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +137,7 @@ class TraceStats:
     """What a render cost and what it skipped."""
 
     time_s: dict[str, float] = field(default_factory=dict)
-    """Wall time per phase (setup, rng, primary, intersect, shadow, shade, accumulate, denoise)."""
+    """Wall time per phase: setup, rng, trace (paths: Embree + shading), accumulate, denoise."""
     rays: dict[str, int] = field(default_factory=lambda: {"primary": 0, "bounce": 0, "shadow": 0})
     """Rays traced by kind."""
     passes: int = 0
@@ -343,20 +345,14 @@ class _SceneData:
         return d
 
 
-def _normalize(a: np.ndarray, fallback: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(a, axis=1, keepdims=True)
-    ok = n > 1e-20
-    return np.where(ok, a / np.where(ok, n, 1.0), fallback)
-
-
 # ---------------------------------------------------------------------------------- tracer
 class _Tracer:
     def __init__(self, scene: Scene, cam: Camera, cfg: TraceConfig, stats: TraceStats) -> None:
-        from icbtool.trace.embree import EmbreeScene
+        from icbtool.trace.rtc import RtcScene
 
         t0 = time.perf_counter()
         self.scene, self.cam, self.cfg, self.stats = scene, cam, cfg, stats
-        self.es: EmbreeScene = EmbreeScene.from_scene(scene, robust=cfg.robust, threads=cfg.threads)
+        self.rtc = RtcScene.of(scene, robust=cfg.robust)
         self.sd = _SceneData.of(scene)
         sd = self.sd
         sk = stats.skipped
@@ -383,60 +379,26 @@ class _Tracer:
         self._pixseed = np.uint64(_mix_int(int(cfg.seed) ^ 0x5851F42D4C957F2D))
         stats.add_time("setup", time.perf_counter() - t0)
 
-    def _parallel(self, n: int, kernel, *args) -> None:
-        """Run ``kernel(*args, lo, hi)`` over [0, n) split into ``threads`` ranges (GIL-free)."""
-        k = max(1, min(self.cfg.threads, n // _MIN_ITEMS_PER_THREAD))
-        if k == 1:
-            kernel(*args, 0, n)
-            return
-        edges = np.linspace(0, n, k + 1).astype(np.int64)
-        pool = _pool(k)
-        futs = [pool.submit(kernel, *args, int(edges[i]), int(edges[i + 1])) for i in range(k)]
-        for f in futs:
-            f.result()
-
     # ------------------------------------------------------------------ one pass
-    def trace(self, pix: np.ndarray, sid: np.ndarray):
-        """Trace one sample for every (pixel, sample id) pair.
+    def trace(self, pix: np.ndarray, sid: np.ndarray, ray_log: dict | None = None):
+        """Trace one path for every (pixel, sample id) pair.
+
+        Args:
+            pix, sid: (P,) pixel index (row-major) and sample index.
+            ray_log: see :func:`render` (forces one thread).
 
         Returns:
             direct, gi (P, 3); hit (P,) bool; albedo, normal (P, 3) or None.
         """
-        from icbtool.trace import kernels as K
-
+        K = _kernels()
         cfg, sd, st, cam = self.cfg, self.sd, self.stats, self.cam
         P = len(pix)
         tt = time.perf_counter()
         pix = np.ascontiguousarray(pix, np.int64)
         sid = np.ascontiguousarray(sid, np.int64)
-        limit = cfg.depth_limit
-        salts = self._salts
         ws = self._ws
         base = ws.get("base", (P,), np.uint64)
         K.sample_base(self._seed_mix, pix, sid, base)
-        sampler = K.SAMPLER_SOBOL if cfg.sampler == "sobol" else K.SAMPLER_INDEPENDENT
-        # ping-pong path state buffers (A: this depth, B: the survivors)
-        o32 = ws.get("o32A", (P, 3), np.float32)
-        d32 = ws.get("d32A", (P, 3), np.float32)
-        d64 = ws.get("d64A", (P, 3), np.float64)
-        self._parallel(
-            P,
-            K.primary_rays,
-            pix,
-            sid,
-            base,
-            salts,
-            cam.width,
-            np.array([cam.fx, cam.fy, cam.cx, cam.cy], np.float64),
-            np.ascontiguousarray(cam.world_from_cam[:3, :3], np.float64),
-            np.ascontiguousarray(cam.position, np.float64),
-            bool(cfg.pixel_jitter),
-            sampler,
-            self._pixseed,
-            o32,
-            d32,
-            d64,
-        )
         st.add_time("rng", time.perf_counter() - tt)
         want_aux = cfg.aux or cfg.denoise
         # per-sample outputs (workspace views: valid until the next call)
@@ -445,99 +407,83 @@ class _Tracer:
         first_hit = ws.zeros("first_hit", (P,), np.bool_)
         alb_out = ws.zeros("alb", (P if want_aux else 1, 3), np.float64)
         nrm_out = ws.zeros("nrm", (P if want_aux else 1, 3), np.float64)
-        n_lights = len(sd.k_suns) + len(sd.k_punct) + (1 if len(sd.emit_faces) else 0)
-        nl = max(n_lights, 1)
-
-        idx = ws.get("idxA", (P,), np.int64)  # alive path -> sample
-        idx[:] = np.arange(P)
-        thr = ws.get("thrA", (P, 3), np.float64)
-        thr.fill(1.0)
-        pdf_prev = ws.get("pdfA", (P,), np.float64)  # pdf of the bsdf sample that led here
-        pdf_prev.fill(0.0)
-        from_first = np.zeros(P, np.bool_)  # the current ray left the first hit (DL split)
-        iparams = np.array(
-            [
-                0,
-                limit,
-                cfg.rr_depth,
-                sampler,
-                cfg.texture_filter == "nearest",
-                cfg.shading_normals,
-                want_aux,
-                nl,
-            ],
-            np.int64,
-        )
-        for depth in range(1, limit + 1):  # ray segment number `depth` arrives at vertex `depth`
-            n = len(idx)
-            if n == 0:
-                break
-            cur, nxt = ("A", "B") if depth % 2 else ("B", "A")
-            t0 = time.perf_counter()
-            h_t, h_prim, h_u, h_v = self.es.intersect_raw(
-                o32,
-                d32,
-                out=(
-                    ws.get("h_t", (n,), np.float32),
-                    ws.get("h_prim", (n,), np.int32),
-                    ws.get("h_u", (n,), np.float32),
-                    ws.get("h_v", (n,), np.float32),
-                ),
+        iparams = np.zeros(K.N_IPARAMS, np.int64)
+        iparams[K.IP_LIMIT] = cfg.depth_limit
+        iparams[K.IP_RR_DEPTH] = cfg.rr_depth
+        iparams[K.IP_SAMPLER] = K.SAMPLER_SOBOL if cfg.sampler == "sobol" else K.SAMPLER_INDEPENDENT
+        iparams[K.IP_NEAREST] = cfg.texture_filter == "nearest"
+        iparams[K.IP_SHADING_NORMALS] = cfg.shading_normals
+        iparams[K.IP_WANT_AUX] = want_aux
+        iparams[K.IP_JITTER] = cfg.pixel_jitter
+        iparams[K.IP_WIDTH] = cam.width
+        if ray_log is None:
+            log = (
+                np.zeros((1, 3), np.float32),
+                np.zeros((1, 3), np.float32),
+                np.zeros(1, np.float32),
+                np.zeros(1, np.int8),
+                np.zeros(1, np.int64),
             )
-            st.rays["primary" if depth == 1 else "bounce"] += n
-            st.add_time("intersect", time.perf_counter() - t0)
-            t0 = time.perf_counter()
-            s_o = ws.get("s_o", (n * nl, 3), np.float64)
-            s_d = ws.get("s_d", (n * nl, 3), np.float64)
-            s_tf = ws.get("s_tf", (n * nl,), np.float64)
-            s_c = ws.get("s_c", (n * nl, 3), np.float64)
-            s_dest = ws.get("s_dest", (n * nl,), np.int8)
-            n_o = ws.get("n_o", (n, 3), np.float64)
-            n_d = ws.get("n_d", (n, 3), np.float64)
-            n_thr = ws.get("n_thr", (n, 3), np.float64)
-            n_pdf = ws.get("n_pdf", (n,), np.float64)
-            alive = ws.get("alive", (n,), np.bool_)
-            iparams[0] = depth
-            self._parallel(
-                n, K.shade,
-                idx, d64, thr, pdf_prev, from_first,
-                h_t, h_prim, h_u, h_v,
-                pix, sid, base, salts,
-                sd.tri, sd.fn, sd.vn, sd.face_albedo, sd.face_emission, sd.k_face_mat,
-                sd.k_face_uv, sd.k_tex, sd.k_tex_off, sd.k_tex_hw, sd.face_light_pmf,
-                sd.face_area, sd.k_face_is_area, sd.k_emit_faces, sd.k_emit_cdf, sd.k_suns,
-                sd.k_punct, sd.k_sky_kind, sd.k_sky,
-                iparams, float(sd.diag), self._pixseed,
-                direct, gi, first_hit, alb_out, nrm_out,
-                s_o, s_d, s_tf, s_c, s_dest, n_o, n_d, n_thr, n_pdf, alive,
-            )  # fmt: skip
-            slots = ws.get("slots", (n * nl,), np.int64)
-            so32 = ws.get("so32", (n * nl, 3), np.float32)
-            sd32 = ws.get("sd32", (n * nl, 3), np.float32)
-            stf32 = ws.get("stf32", (n * nl,), np.float32)
-            m = K.compact_shadow(s_dest, s_o, s_d, s_tf, slots, so32, sd32, stf32)
-            st.add_time("shade", time.perf_counter() - t0)
-            if m:
-                t0 = time.perf_counter()
-                blocked = self.es.occluded_raw(so32[:m], sd32[:m], stf32[:m])
-                st.rays["shadow"] += m
-                st.add_time("shadow", time.perf_counter() - t0)
-                t0 = time.perf_counter()
-                K.add_shadow(blocked, slots[:m], nl, idx, s_c, s_dest, direct, gi)
-                st.add_time("shade", time.perf_counter() - t0)
-            t0 = time.perf_counter()
-            buf = [
-                ws.get(f"idx{nxt}", (n,), np.int64),
-                ws.get(f"o32{nxt}", (n, 3), np.float32),
-                ws.get(f"d32{nxt}", (n, 3), np.float32),
-                ws.get(f"d64{nxt}", (n, 3), np.float64),
-                ws.get(f"thr{nxt}", (n, 3), np.float64),
-                ws.get(f"pdf{nxt}", (n,), np.float64),
+        else:
+            log = (ray_log["o"], ray_log["d"], ray_log["tfar"], ray_log["kind"], ray_log["n"])
+        n_blocks = -(-P // K.BLOCK)
+        parts = 1 if ray_log is not None else max(1, min(cfg.threads, n_blocks))
+        counts = np.zeros((parts, 3), np.int64)
+        rs = self.rtc
+        args = (
+            rs.ptr,
+            rs.fn_intersect,
+            rs.fn_occluded,
+            pix,
+            sid,
+            base,
+            self._salts,
+            np.array([cam.fx, cam.fy, cam.cx, cam.cy], np.float64),
+            np.ascontiguousarray(cam.world_from_cam[:3, :3], np.float64),
+            np.ascontiguousarray(cam.position, np.float64),
+            sd.tri,
+            sd.fn,
+            sd.vn,
+            sd.face_albedo,
+            sd.face_emission,
+            sd.k_face_mat,
+            sd.k_face_uv,
+            sd.k_tex,
+            sd.k_tex_off,
+            sd.k_tex_hw,
+            sd.face_light_pmf,
+            sd.face_area,
+            sd.k_face_is_area,
+            sd.k_emit_faces,
+            sd.k_emit_cdf,
+            sd.k_suns,
+            sd.k_punct,
+            sd.k_sky_kind,
+            sd.k_sky,
+            iparams,
+            float(sd.diag),
+            self._pixseed,
+            direct,
+            gi,
+            first_hit,
+            alb_out,
+            nrm_out,
+        )
+        t0 = time.perf_counter()
+        if parts == 1:
+            K.trace_paths(*args, counts[0], *log, 0, 1)
+        else:
+            pool = _pool(parts)
+            futs = [
+                pool.submit(K.trace_paths, *args, counts[i], *log, i, parts) for i in range(parts)
             ]
-            k = K.compact_paths(alive, idx, n_o, n_d, n_thr, n_pdf, *buf)
-            idx, o32, d32, d64, thr, pdf_prev = (b[:k] for b in buf)
-            from_first = np.full(k, depth == 1)
-            st.add_time("shade", time.perf_counter() - t0)
+            for f in futs:
+                f.result()
+        st.add_time("trace", time.perf_counter() - t0)
+        c = counts.sum(0)
+        st.rays["primary"] += int(c[0])
+        st.rays["bounce"] += int(c[1])
+        st.rays["shadow"] += int(c[2])
         if not want_aux:
             alb_out = nrm_out = None
         return direct, gi, first_hit, alb_out, nrm_out
@@ -551,8 +497,8 @@ def _kernels():
 
 
 class _Workspace:
-    """Reusable buffers (fresh allocations page-fault on first touch, which cost more than the
-    shading itself); ``get`` returns a C-contiguous view of a buffer grown as needed."""
+    """Reusable buffers: fresh allocations page-fault on first touch, which costs about as much
+    as a 1-spp pass's shading; ``get`` returns a C-contiguous view of a buffer grown as needed."""
 
     def __init__(self) -> None:
         self._bufs: dict[str, np.ndarray] = {}
@@ -593,13 +539,11 @@ def _give_workspace(ws: _Workspace) -> None:
             _WS_FREE.append(ws)
 
 
-#: Kernel launches smaller than this are not split over threads.
-_MIN_ITEMS_PER_THREAD = 2048
 _POOL: ThreadPoolExecutor | None = None
 
 
 def _pool(k: int) -> ThreadPoolExecutor:
-    """A shared thread pool for the GIL-free shading kernels."""
+    """A shared thread pool for the GIL-free kernels."""
     global _POOL
     if _POOL is None or _POOL._max_workers < k:
         _POOL = ThreadPoolExecutor(max_workers=k, thread_name_prefix="icb-trace")
@@ -608,50 +552,30 @@ def _pool(k: int) -> ThreadPoolExecutor:
 
 # ---------------------------------------------------------------------------------- driver
 class _Accum:
-    """Per-pixel running mean and M2 (Welford/Chan) of C channels."""
+    """Per-pixel running mean and M2 (Welford/Chan) of C channels (workspace buffers)."""
 
-    def __init__(self, npix: int, c: int) -> None:
-        self.n = np.zeros(npix, np.int64)
-        self.mean = np.zeros((npix, c))
-        self.m2 = np.zeros((npix, c))
-
-    def add(self, pix: np.ndarray, x: np.ndarray) -> None:
-        """Merge a batch of samples x (P, C) of pixels pix (P,) (any number per pixel)."""
-        from icbtool.trace.kernels import welford_add
-
-        welford_add(
-            np.ascontiguousarray(pix, np.int64),
-            np.ascontiguousarray(x, np.float64),
-            self.n,
-            self.mean,
-            self.m2,
-        )
-
-    def var_of_mean(self) -> np.ndarray:
-        n = self.n[:, None].astype(np.float64)
-        return np.where(n > 1, self.m2 / np.maximum(n - 1, 1) / np.maximum(n, 1), 0.0)
+    def __init__(self, npix: int, c: int, ws: _Workspace, name: str) -> None:
+        self.n = ws.zeros(name + "_n", (npix,), np.int64)
+        self.mean = ws.zeros(name + "_mean", (npix, c), np.float64)
+        self.m2 = ws.zeros(name + "_m2", (npix, c), np.float64)
 
 
-def _rel_error(acc: _Accum, covered: np.ndarray) -> tuple[np.ndarray, float]:
-    """Per-pixel relative standard error of the GI luminance (channel 3) and its mean."""
-    mean = np.abs(acc.mean[:, 3])
-    se = np.sqrt(acc.var_of_mean()[:, 3])
-    sel = covered & (acc.n > 0)
-    if not sel.any():
-        return np.zeros(len(mean)), 0.0
-    floor = max(1e-2 * float(mean[sel].mean()), 1e-12)
-    rel = se / np.maximum(mean, floor)
-    rel = np.where(acc.n > 1, rel, np.inf)
-    return rel, float(np.mean(np.where(sel, rel, 0.0)[sel]))
-
-
-def render(scene: Scene, cam: Camera, config: TraceConfig | None = None) -> TraceResult:
+def render(
+    scene: Scene,
+    cam: Camera,
+    config: TraceConfig | None = None,
+    *,
+    ray_log: dict[str, np.ndarray] | None = None,
+) -> TraceResult:
     """Path trace one view progressively.
 
     Args:
         scene: the scene.
         cam: the camera (its height/width set the image size).
         config: :class:`TraceConfig` (default: ``TraceConfig()``).
+        ray_log: for benchmarks: {"o", "d": (C, 3) float32, "tfar": (C,) float32, "kind": (C,)
+            int8, "n": (1,) int64} receives the first C rays traced, in order (kind 0: closest
+            hit, 1: shadow ray), with ``n`` counting them; it makes the render single-threaded.
 
     Returns:
         :class:`TraceResult` with (H, W, C) float32 buffers.
@@ -674,12 +598,15 @@ def render(scene: Scene, cam: Camera, config: TraceConfig | None = None) -> Trac
     tracer = _Tracer(scene, cam, cfg, stats)
     H, W = cam.height, cam.width
     npix = H * W
-    acc_gi = _Accum(npix, 4)  # rgb + luminance
-    acc_dir = _Accum(npix, 3)
-    hit_sum = np.zeros(npix)
+    K = _kernels()
+    ws = tracer._ws
+    acc_gi = _Accum(npix, 4, ws, "acc_gi")  # rgb + luminance
+    acc_dir = _Accum(npix, 3, ws, "acc_dir")
+    hit_sum = ws.zeros("hit_sum", (npix,), np.float64)
     want_aux = cfg.aux or cfg.denoise
-    alb_sum = np.zeros((npix, 3)) if want_aux else None
-    nrm_sum = np.zeros((npix, 3)) if want_aux else None
+    alb_sum = ws.zeros("alb_sum", (npix if want_aux else 1, 3), np.float64)
+    nrm_sum = ws.zeros("nrm_sum", (npix if want_aux else 1, 3), np.float64)
+    rel = ws.get("rel", (npix,), np.float64)
     active = np.arange(npix)
     n_skipped_pixels = 0
     while True:
@@ -692,16 +619,29 @@ def render(scene: Scene, cam: Camera, config: TraceConfig | None = None) -> Trac
         pix = np.repeat(active, k).astype(np.int64)
         start = np.repeat(acc_gi.n[active], k)
         sid = start + (np.arange(len(pix)) - np.repeat(np.cumsum(k) - k, k))
-        direct, gi, hit, alb, nrm = tracer.trace(pix, sid)
+        direct, gi, hit, alb, nrm = tracer.trace(pix, sid, ray_log)
         t0 = time.perf_counter()
-        _kernels().accumulate_pass(
-            pix, gi, direct, hit, alb if want_aux else gi, nrm if want_aux else gi, want_aux,
-            _LUM, acc_gi.n, acc_gi.mean, acc_gi.m2, acc_dir.n, acc_dir.mean, acc_dir.m2,
-            hit_sum, alb_sum if want_aux else acc_dir.mean, nrm_sum if want_aux else acc_dir.mean,
-        )  # fmt: skip
+        K.accumulate_pass(
+            pix,
+            gi,
+            direct,
+            hit,
+            alb if want_aux else gi,
+            nrm if want_aux else gi,
+            want_aux,
+            _LUM,
+            acc_gi.n,
+            acc_gi.mean,
+            acc_gi.m2,
+            acc_dir.n,
+            acc_dir.mean,
+            acc_dir.m2,
+            hit_sum,
+            alb_sum,
+            nrm_sum,
+        )
         stats.passes += 1
-        covered = hit_sum > 0.5 * np.maximum(acc_gi.n, 1)
-        rel, mean_rel = _rel_error(acc_gi, covered)
+        mean_rel = float(K.rel_error_lum(acc_gi.n, acc_gi.mean, acc_gi.m2, hit_sum, rel))
         stats.rel_error = mean_rel
         elapsed = time.perf_counter() - t_start
         stats.error_history.append((elapsed, int(acc_gi.n.sum()), mean_rel))
@@ -723,23 +663,39 @@ def render(scene: Scene, cam: Camera, config: TraceConfig | None = None) -> Trac
         stats.skipped.append(
             f"adaptive: {n_skipped_pixels} of {npix} pixels below the target error stopped early"
         )
-    _give_workspace(tracer._ws)  # (lost on an exception: then it is simply garbage)
     # ---- outputs
-    n = np.maximum(acc_gi.n, 1)[:, None]
-    gi = acc_gi.mean[:, :3].reshape(H, W, 3).astype(np.float32)
-    direct = acc_dir.mean.reshape(H, W, 3).astype(np.float32)
-    var = acc_gi.var_of_mean()[:, :3].reshape(H, W, 3).astype(np.float32)
-    mask = (hit_sum / n[:, 0] > 0.5).reshape(H, W, 1).astype(np.float32)
-    albedo = normal = None
-    if want_aux:
-        albedo = (alb_sum / n).reshape(H, W, 3).astype(np.float32)
-        normal = _normalize(nrm_sum / n, np.zeros((1, 3))).reshape(H, W, 3).astype(np.float32)
+    t0 = time.perf_counter()
+    gi = np.empty((H, W, 3), np.float32)
+    direct = np.empty((H, W, 3), np.float32)
+    var = np.empty((H, W, 3), np.float32)
+    mask = np.empty((H, W, 1), np.float32)
+    albedo = np.empty((H, W, 3), np.float32) if want_aux else None
+    normal = np.empty((H, W, 3), np.float32) if want_aux else None
+    K.finish(
+        acc_gi.n,
+        acc_gi.mean,
+        acc_gi.m2,
+        acc_dir.mean,
+        hit_sum,
+        alb_sum,
+        nrm_sum,
+        want_aux,
+        gi.reshape(npix, 3),
+        direct.reshape(npix, 3),
+        var.reshape(npix, 3),
+        mask.reshape(npix),
+        (albedo if want_aux else gi).reshape(npix, 3),
+        (normal if want_aux else gi).reshape(npix, 3),
+    )
+    spp = acc_gi.n.reshape(H, W).astype(np.int32)
+    stats.samples = int(acc_gi.n.sum())
+    _give_workspace(ws)  # (lost on an exception: then it is simply garbage)
+    stats.add_time("accumulate", time.perf_counter() - t0)
     gi_raw = gi
     if cfg.denoise:
         t0 = time.perf_counter()
         gi = denoise(gi, albedo, normal)
         stats.add_time("denoise", time.perf_counter() - t0)
-    stats.samples = int(acc_gi.n.sum())
     stats.time_s["total"] = time.perf_counter() - t_start
     log.info(
         "trace: %dx%d, %d passes, %.1f spp mean, %.2f s, %.2f Mrays/s, rel.err %.4f (%s)",
@@ -757,7 +713,7 @@ def render(scene: Scene, cam: Camera, config: TraceConfig | None = None) -> Trac
         direct=direct,
         full=(direct + gi).astype(np.float32),
         variance=var,
-        spp=acc_gi.n.reshape(H, W).astype(np.int32),
+        spp=spp,
         mask=mask,
         albedo=albedo,
         normal=normal,

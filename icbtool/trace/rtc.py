@@ -1,0 +1,220 @@
+"""Embree 4 called directly from the tracer's numba kernels (no Python per ray batch).
+
+embreex (the Python binding) ships Embree 4 as a shared library; this module opens that same
+library with ctypes, builds a triangle BVH of a :class:`~icbtool.scene.Scene` and hands its
+handle and the addresses of ``rtcIntersect1`` / ``rtcOccluded1`` to the kernels, which call them
+through :func:`call3` (an LLVM indirect call: the kernels stay cacheable, since no address is
+baked into the compiled code). This lets one kernel trace whole paths (the "megakernel" of
+:mod:`icbtool.trace.kernels`) instead of a Python loop over path depths.
+
+The ray layout (``RTCRayHit``, Embree 4, 16-byte aligned) as 32-bit words:
+``ray``: 0-2 org, 3 tnear, 4-6 dir, 7 time, 8 tfar, 9 mask, 10 id, 11 flags;
+``hit``: 12-14 Ng, 15 u, 16 v, 17 primID, 18 geomID, 19 instID. :class:`RtcScene` checks it on a
+known ray when it is built, so a library with another layout fails loudly, never silently.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import glob
+import os
+import threading
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    from icbtool.scene import Scene
+
+#: Words of one RTCRayHit (80 bytes in Embree 4.4; room for a larger hit record).
+RAYHIT_WORDS = 32
+INVALID_ID = 0xFFFFFFFF
+
+_RTC_SCENE_FLAG_ROBUST = 1 << 2
+_RTC_BUILD_QUALITY_HIGH = 2
+_RTC_GEOMETRY_TYPE_TRIANGLE = 0
+_RTC_BUFFER_TYPE_INDEX = 0
+_RTC_BUFFER_TYPE_VERTEX = 1
+_RTC_FORMAT_UINT3 = 0x5003
+_RTC_FORMAT_FLOAT3 = 0x9003
+
+_LIB: ctypes.CDLL | None = None
+_LOCK = threading.Lock()
+
+
+def library_path() -> str:
+    """Path of the Embree 4 shared library bundled with embreex (or ``$ICBTOOL_EMBREE_LIB``)."""
+    env = os.environ.get("ICBTOOL_EMBREE_LIB")
+    if env:
+        return env
+    try:
+        import embreex
+    except ImportError as e:  # pragma: no cover - a core dependency
+        raise ImportError(
+            "icbtool.trace needs embreex (it ships Embree 4): pip install embreex"
+        ) from e
+    root = os.path.dirname(os.path.dirname(os.path.abspath(embreex.__file__)))
+    found = sorted(glob.glob(os.path.join(root, "embreex.libs", "libembree4*.so*")))
+    found += sorted(glob.glob(os.path.join(os.path.dirname(embreex.__file__), "*embree4*")))
+    found = [f for f in found if not f.endswith((".py", ".pyx", ".pxd"))]
+    if not found:
+        raise ImportError(
+            f"no Embree 4 library found beside embreex in {root}; set ICBTOOL_EMBREE_LIB to the "
+            "path of libembree4.so"
+        )
+    return found[0]
+
+
+def _lib() -> ctypes.CDLL:
+    global _LIB
+    with _LOCK:
+        if _LIB is None:
+            lib = ctypes.CDLL(library_path())
+            vp = ctypes.c_void_p
+            sigs = {
+                "rtcNewDevice": (vp, [ctypes.c_char_p]),
+                "rtcReleaseDevice": (None, [vp]),
+                "rtcGetDeviceError": (ctypes.c_int, [vp]),
+                "rtcNewScene": (vp, [vp]),
+                "rtcReleaseScene": (None, [vp]),
+                "rtcSetSceneFlags": (None, [vp, ctypes.c_int]),
+                "rtcSetSceneBuildQuality": (None, [vp, ctypes.c_int]),
+                "rtcNewGeometry": (vp, [vp, ctypes.c_int]),
+                "rtcSetNewGeometryBuffer": (
+                    vp,
+                    [
+                        vp,
+                        ctypes.c_int,
+                        ctypes.c_uint,
+                        ctypes.c_int,
+                        ctypes.c_size_t,
+                        ctypes.c_size_t,
+                    ],
+                ),
+                "rtcCommitGeometry": (None, [vp]),
+                "rtcAttachGeometry": (ctypes.c_uint, [vp, vp]),
+                "rtcReleaseGeometry": (None, [vp]),
+                "rtcCommitScene": (None, [vp]),
+                "rtcIntersect1": (None, [vp, vp, vp]),
+                "rtcOccluded1": (None, [vp, vp, vp]),
+            }
+            for name, (res, args) in sigs.items():
+                fn = getattr(lib, name)
+                fn.restype, fn.argtypes = res, args
+            _LIB = lib
+        return _LIB
+
+
+class RtcScene:
+    """An Embree 4 BVH over one triangle mesh, for the numba kernels.
+
+    Args:
+        vertices: (V, 3) float world positions.
+        faces: (F, 3) int vertex indices (F >= 1).
+        robust: Embree's robust (watertight) traversal.
+
+    Attributes:
+        ptr: the ``RTCScene`` handle (an integer address).
+        fn_intersect, fn_occluded: addresses of ``rtcIntersect1`` and ``rtcOccluded1``.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, robust: bool = True) -> None:
+        v = np.ascontiguousarray(vertices, np.float32)
+        f = np.ascontiguousarray(faces, np.uint32)
+        if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+            raise ValueError(f"need vertices (V, 3) and faces (F>0, 3), got {v.shape}, {f.shape}")
+        lib = _lib()
+        self._lib = lib
+        self.robust = bool(robust)
+        self._device = lib.rtcNewDevice(b"verbose=0")
+        if not self._device:
+            raise RuntimeError("Embree: rtcNewDevice failed")
+        self.ptr = 0
+        sc = lib.rtcNewScene(self._device)
+        if self.robust:
+            lib.rtcSetSceneFlags(sc, _RTC_SCENE_FLAG_ROBUST)
+        lib.rtcSetSceneBuildQuality(sc, _RTC_BUILD_QUALITY_HIGH)
+        geom = lib.rtcNewGeometry(self._device, _RTC_GEOMETRY_TYPE_TRIANGLE)
+        # Embree reads up to 16 bytes from the last vertex: pad the vertex buffer by one vertex
+        vb = lib.rtcSetNewGeometryBuffer(
+            geom, _RTC_BUFFER_TYPE_VERTEX, 0, _RTC_FORMAT_FLOAT3, 12, len(v) + 1
+        )
+        ib = lib.rtcSetNewGeometryBuffer(
+            geom, _RTC_BUFFER_TYPE_INDEX, 0, _RTC_FORMAT_UINT3, 12, len(f)
+        )
+        if not vb or not ib:
+            raise RuntimeError(f"Embree: buffer allocation failed (error {self._error()})")
+        ctypes.memmove(vb, v.ctypes.data, v.nbytes)
+        ctypes.memmove(ib, f.ctypes.data, f.nbytes)
+        lib.rtcCommitGeometry(geom)
+        lib.rtcAttachGeometry(sc, geom)
+        lib.rtcReleaseGeometry(geom)
+        lib.rtcCommitScene(sc)
+        self.ptr = int(sc)
+        err = self._error()
+        if err:
+            raise RuntimeError(f"Embree: building the scene failed (error {err})")
+        self.fn_intersect = int(ctypes.cast(lib.rtcIntersect1, ctypes.c_void_p).value)
+        self.fn_occluded = int(ctypes.cast(lib.rtcOccluded1, ctypes.c_void_p).value)
+        self.n_triangles = len(f)
+
+    def _error(self) -> int:
+        return int(self._lib.rtcGetDeviceError(self._device))
+
+    def __del__(self) -> None:  # pragma: no cover - interpreter shutdown order varies
+        try:
+            if self.ptr:
+                self._lib.rtcReleaseScene(self.ptr)
+            if self._device:
+                self._lib.rtcReleaseDevice(self._device)
+        except Exception:
+            pass
+
+    @classmethod
+    def of(cls, scene: Scene, robust: bool = True) -> RtcScene:
+        """The (cached in ``scene._cache``, self-checked) Embree scene of ``scene``'s mesh."""
+        key = f"rtc_robust={bool(robust)}"
+        rs = scene._cache.get(key)
+        if rs is None:
+            rs = cls(scene.vertices, scene.faces, robust=robust)
+            _self_check()
+            scene._cache[key] = rs
+        return rs
+
+
+_CHECKED = False
+
+
+def _self_check() -> None:
+    """Trace one known ray through the kernels' Embree path; raise if the layout is wrong."""
+    global _CHECKED
+    if _CHECKED:
+        return
+    from icbtool.trace import kernels as K
+
+    rs = RtcScene(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32), np.array([[0, 1, 2]]))
+    o = np.array([[0.25, 0.5, 2.0], [2.0, 2.0, 2.0]], np.float32)
+    d = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]], np.float32)
+    t, u, v = np.zeros(2, np.float32), np.zeros(2, np.float32), np.zeros(2, np.float32)
+    prim, occ = np.zeros(2, np.int32), np.zeros(2, np.bool_)
+    K.rtc_intersect_batch(rs.ptr, rs.fn_intersect, o, d, t, prim, u, v, 0, 2)
+    K.rtc_occluded_batch(rs.ptr, rs.fn_occluded, o, d, np.full(2, np.inf, np.float32), occ, 0, 2)
+    ok = (
+        prim[0] == 0
+        and prim[1] == -1
+        and abs(t[0] - 2.0) < 1e-6
+        and abs(u[0] - 0.25) < 1e-6
+        and abs(v[0] - 0.5) < 1e-6
+        and occ[0]
+        and not occ[1]
+    )
+    if not ok:
+        raise RuntimeError(
+            f"Embree library {library_path()} does not answer a known ray as expected "
+            f"(prim {prim}, t {t}, u {u}, v {v}, occluded {occ}): its RTCRayHit layout differs "
+            "from Embree 4.4's"
+        )
+    _CHECKED = True
+
+
+__all__ = ["RAYHIT_WORDS", "RtcScene", "library_path"]
