@@ -59,6 +59,63 @@ def test_embree_threads_agree():
     assert np.array_equal(a.t, b.t) and np.array_equal(a.prim, b.prim)
 
 
+@pytest.mark.parametrize("robust", [True, False])
+def test_direct_embree_calls_agree_with_embreex(robust):
+    """The kernels' own Embree calls (icbtool.trace.rtc) answer as embreex does: exactly in
+    robust mode; without it, rays through shared edges may go either way (other BVH build)."""
+    from icbtool.trace import kernels as K
+    from icbtool.trace.rtc import RtcScene
+
+    scene = icb.scene.boxes_on_floor(n_boxes=12, seed=4)
+    rng = np.random.default_rng(0)
+    lo, hi = scene.bounds
+    n = 20_000
+    o = (lo + (hi - lo) * rng.uniform(0.05, 0.95, (n, 3))).astype(np.float32)
+    d = rng.normal(size=(n, 3))
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    es = EmbreeScene(scene.vertices, scene.faces, robust=robust)
+    rs = RtcScene(scene.vertices, scene.faces, robust=robust)
+    t, prim = np.empty(n, np.float32), np.empty(n, np.int32)
+    u, v = np.empty(n, np.float32), np.empty(n, np.float32)
+    K.rtc_intersect_batch(rs.ptr, rs.fn_intersect, o, d, t, prim, u, v, 0, n)
+    t2, prim2, u2, v2 = es.intersect_raw(o, d)
+    assert 0.2 < (prim >= 0).mean() < 1.0  # both hits and misses are tested
+    same = prim == prim2
+    if not robust:  # coplanar faces (box bottoms on the floor) may swap: same distance, though
+        both = (prim >= 0) & (prim2 >= 0)
+        assert ((prim >= 0) == (prim2 >= 0)).mean() > 0.9995
+        assert (np.abs(t - t2)[both] <= 1e-5 * t2[both]).mean() > 0.9995
+        o, d, t, prim, u, prim2, t2, u2 = (x[same] for x in (o, d, t, prim, u, prim2, t2, u2))
+        n = len(o)
+    assert np.array_equal(prim, prim2)
+    hit = prim >= 0
+    assert np.array_equal(t[hit], t2[hit]) and np.array_equal(u[hit], u2[hit])
+    tf = np.where(hit, t * 0.5, 1e30).astype(np.float32)
+    blocked = np.empty(n, np.bool_)
+    K.rtc_occluded_batch(rs.ptr, rs.fn_occluded, o, d, tf, blocked, 0, n)
+    theirs = es.occluded_raw(o, d, tf.copy())
+    assert np.array_equal(blocked, theirs) if robust else (blocked == theirs).mean() > 0.999
+    assert not blocked[hit].any()  # half way to the closest hit nothing is in the way
+
+
+def test_wrong_embree_library_is_a_clear_error(monkeypatch, tmp_path):
+    import icbtool.trace.rtc as rtc
+
+    monkeypatch.setattr(rtc, "_LIB", None)
+    monkeypatch.setenv("ICBTOOL_EMBREE_LIB", str(tmp_path / "missing.so"))
+    with pytest.raises(ImportError, match="missing.so"):
+        rtc.RtcScene(np.eye(3), [[0, 1, 2]])
+    import ctypes.util
+
+    libm = ctypes.util.find_library("m")
+    monkeypatch.setenv("ICBTOOL_EMBREE_LIB", libm)
+    with pytest.raises(ImportError, match="not an Embree 4 library"):
+        rtc.RtcScene(np.eye(3), [[0, 1, 2]])
+    monkeypatch.setattr(rtc, "_LIB", None)  # (restored by monkeypatch, too)
+    with pytest.raises(ValueError, match="faces"):
+        rtc.RtcScene(np.eye(3), np.zeros((0, 3), int))
+
+
 # ------------------------------------------------------------------------------ known answers
 def test_white_furnace_converges():
     """Closed sphere, albedo a, emission E: full = E / (1 - a) = 2, GI = E a / (1 - a) = 1."""

@@ -69,7 +69,11 @@ def _lib() -> ctypes.CDLL:
     global _LIB
     with _LOCK:
         if _LIB is None:
-            lib = ctypes.CDLL(library_path())
+            path = library_path()
+            try:
+                lib = ctypes.CDLL(path)
+            except OSError as e:
+                raise ImportError(f"cannot load the Embree library {path}: {e}") from e
             vp = ctypes.c_void_p
             sigs = {
                 "rtcNewDevice": (vp, [ctypes.c_char_p]),
@@ -99,7 +103,10 @@ def _lib() -> ctypes.CDLL:
                 "rtcOccluded1": (None, [vp, vp, vp]),
             }
             for name, (res, args) in sigs.items():
-                fn = getattr(lib, name)
+                try:
+                    fn = getattr(lib, name)
+                except AttributeError as e:
+                    raise ImportError(f"{path} is not an Embree 4 library: no {name}") from e
                 fn.restype, fn.argtypes = res, args
             _LIB = lib
         return _LIB
