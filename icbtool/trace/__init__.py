@@ -7,6 +7,8 @@ render, pyoidn only to denoise.
 
 from icbtool.trace.tracer import (
     HARD_MAX_DEPTH,
+    SKY_MIS_PEAK,
+    SkyTable,
     TraceConfig,
     TraceResult,
     TraceStats,
@@ -17,6 +19,8 @@ from icbtool.trace.tracer import (
 
 __all__ = [
     "HARD_MAX_DEPTH",
+    "SKY_MIS_PEAK",
+    "SkyTable",
     "TraceConfig",
     "TraceResult",
     "TraceStats",

@@ -327,6 +327,79 @@ def rtc_occluded_batch(rtc, fn, o, d, tfar, out, lo, hi):
                            d[i, 0], d[i, 1], d[i, 2], tfar[i])  # fmt: skip
 
 
+# ---------------------------------------------------------------------------------- sky table
+@nb.njit(**_JIT)
+def _cdf_pick(cdf, u):
+    """(first index k with cdf[k] > u, the remainder of u within that cell in [0, 1))."""
+    n = len(cdf)
+    a = 0
+    b = n
+    while a < b:
+        mid = (a + b) // 2
+        if cdf[mid] <= u:
+            a = mid + 1
+        else:
+            b = mid
+    k = min(a, n - 1)
+    lo = cdf[k - 1] if k > 0 else 0.0
+    width = cdf[k] - lo
+    r = (u - lo) / width if width > 0 else 0.5
+    return k, min(max(r, 0.0), 0.9999999999999999)
+
+
+@nb.njit(**_JIT)
+def _sky_sample(frame, marg, cond, pdf, u1, u2):
+    """A direction drawn from the sky table and its density: (dx, dy, dz, pdf)."""
+    nc, nphi = pdf.shape
+    i, rc = _cdf_pick(marg, u1)
+    j, rp = _cdf_pick(cond[i], u2)
+    c = -1.0 + (i + rc) * (2.0 / nc)
+    phi = (j + rp) * (2.0 * _PI / nphi)
+    sn = math.sqrt(max(0.0, 1.0 - c * c))
+    x = sn * math.cos(phi)
+    y = sn * math.sin(phi)
+    d0 = x * frame[0, 0] + y * frame[1, 0] + c * frame[2, 0]
+    d1 = x * frame[0, 1] + y * frame[1, 1] + c * frame[2, 1]
+    d2 = x * frame[0, 2] + y * frame[1, 2] + c * frame[2, 2]
+    return d0, d1, d2, pdf[i, j]
+
+
+@nb.njit(**_JIT)
+def _sky_pdf(frame, pdf, dx, dy, dz):
+    """Density of the sky table's sampling at the unit direction (dx, dy, dz)."""
+    nc, nphi = pdf.shape
+    c = dx * frame[2, 0] + dy * frame[2, 1] + dz * frame[2, 2]
+    i = min(max(np.int64((c + 1.0) * 0.5 * nc), 0), nc - 1)
+    j = 0
+    if nphi > 1:
+        phi = math.atan2(
+            dx * frame[1, 0] + dy * frame[1, 1] + dz * frame[1, 2],
+            dx * frame[0, 0] + dy * frame[0, 1] + dz * frame[0, 2],
+        )
+        if phi < 0:
+            phi += 2.0 * _PI
+        j = min(max(np.int64(phi * (nphi / (2.0 * _PI))), 0), nphi - 1)
+    return pdf[i, j]
+
+
+@nb.njit(**_JIT)
+def sky_sample_batch(frame, marg, cond, pdf, u, out_d, out_pdf):
+    """:func:`_sky_sample` for uniform pairs u (N, 2) (tests and tools)."""
+    for n in range(len(u)):
+        d0, d1, d2, p = _sky_sample(frame, marg, cond, pdf, u[n, 0], u[n, 1])
+        out_d[n, 0] = d0
+        out_d[n, 1] = d1
+        out_d[n, 2] = d2
+        out_pdf[n] = p
+
+
+@nb.njit(**_JIT)
+def sky_pdf_batch(frame, pdf, d, out):
+    """:func:`_sky_pdf` for unit directions d (N, 3) (tests and tools)."""
+    for n in range(len(d)):
+        out[n] = _sky_pdf(frame, pdf, d[n, 0], d[n, 1], d[n, 2])
+
+
 #: Samples per block; the threads of a pass take every n-th block (balanced, no false sharing).
 BLOCK = 256
 
@@ -339,7 +412,11 @@ IP_SHADING_NORMALS = 4
 IP_WANT_AUX = 5
 IP_JITTER = 6
 IP_WIDTH = 7
-N_IPARAMS = 8
+IP_SKY_MIS = 8
+N_IPARAMS = 9
+
+#: Sobol pairs of the sky light sample (vertices 1 .. LD_MAX_DEPTH): after the other dimensions
+SKY_PAIR0 = 1 + 3 * (LD_MAX_DEPTH + 1)
 
 
 @nb.njit(**_JIT)
@@ -377,6 +454,11 @@ def trace_paths(
     punct,
     sky_kind,
     sky,
+    # sky importance table (see icbtool.trace.tracer.SkyTable)
+    sky_frame,
+    sky_marg,
+    sky_cond,
+    sky_pdf,
     # parameters (see IP_*), scene diagonal, Sobol pixel seed
     iparams,
     diag,
@@ -418,6 +500,7 @@ def trace_paths(
     want_aux = iparams[IP_WANT_AUX]
     jitter = iparams[IP_JITTER]
     width = iparams[IP_WIDTH]
+    sky_mis = iparams[IP_SKY_MIS] != 0 and sky_kind != 0
     n_s = suns.shape[0]
     n_q = punct.shape[0]
     n_e = len(emit_faces)
@@ -493,9 +576,17 @@ def trace_paths(
                             direct[s, 1] += le[1] * t1
                             direct[s, 2] += le[2] * t2
                         else:
-                            gi[s, 0] += le[0] * t0
-                            gi[s, 1] += le[1] * t1
-                            gi[s, 2] += le[2] * t2
+                            w = 1.0
+                            if sky_mis:  # MIS weight of the BSDF sample against the sky sample
+                                psk = _sky_pdf(sky_frame, sky_pdf, dx, dy, dz)
+                                w = (
+                                    pdf_prev
+                                    * pdf_prev
+                                    / max(pdf_prev * pdf_prev + psk * psk, 1e-300)
+                                )
+                            gi[s, 0] += le[0] * t0 * w
+                            gi[s, 1] += le[1] * t1 * w
+                            gi[s, 2] += le[2] * t2 * w
                     break
                 b1 = np.float64(h_u)
                 b2 = np.float64(h_v)
@@ -847,6 +938,54 @@ def trace_paths(
                                 fo1 * face_emission[lf, 1] * g,
                                 fo2 * face_emission[lf, 2] * g,
                             )
+                # ---- sky (importance-sampled from its table, MIS with the BSDF); always gi
+                if sky_mis:
+                    if use_ld:
+                        us1, us2 = _sobol2(ps_pix, sid[s], SKY_PAIR0 + depth)
+                    else:
+                        us1 = _u01(base[s], salts[dim0 + 6])
+                        us2 = _u01(base[s], salts[dim0 + 7])
+                    wi0, wi1, wi2, psk = _sky_sample(
+                        sky_frame, sky_marg, sky_cond, sky_pdf, us1, us2
+                    )
+                    c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
+                    if psk > 0 and c > 0 and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0:
+                        pb = c * _INV_PI
+                        g = c * (psk / (psk * psk + pb * pb))  # c * w / psk, w = power heuristic
+                        tf = np.float32(np.inf)
+                        if log_cap and log_n[0] < log_cap:
+                            _log_shadow(
+                                log_o,
+                                log_d,
+                                log_tf,
+                                log_kind,
+                                log_n,
+                                so0,
+                                so1,
+                                so2,
+                                wi0,
+                                wi1,
+                                wi2,
+                                tf,
+                            )
+                        n_shadow += 1
+                        if not _occluded(
+                            rtc,
+                            fn_occl,
+                            w_,
+                            f_,
+                            k_,
+                            addr,
+                            so0,
+                            so1,
+                            so2,
+                            np.float32(wi0),
+                            np.float32(wi1),
+                            np.float32(wi2),
+                            tf,
+                        ):
+                            le = _sky(sky_kind, sky, wi0, wi1, wi2)
+                            _add(gi, s, fo0 * le[0] * g, fo1 * le[1] * g, fo2 * le[2] * g)
                 # ---- bounce: cosine-weighted about the shading normal (Duff et al. basis)
                 if use_ld:
                     u1, u2 = _sobol2(ps_pix, sid[s], pair0)

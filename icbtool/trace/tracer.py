@@ -12,8 +12,9 @@ process.
 Light transport: two-sided Lambertian surfaces (textured albedo), one-sided emissive faces, a
 directional sun, point and spot lights (delta lights: next-event estimation only), emissive
 triangles (next-event estimation sampled by power, combined with BSDF sampling by multiple
-importance sampling, power heuristic) and a sky (reached by cosine-weighted BSDF sampling, which
-is a good importance function for a smooth sky; no sky light sampling, so no MIS is needed).
+importance sampling, power heuristic) and a sky (one light sample per vertex drawn from a table
+of its luminance, :class:`SkyTable`, combined with BSDF sampling by MIS; or BSDF sampling alone
+for a smooth sky, see ``TraceConfig.sky_sampling``).
 
 The DL/GI split (fixed system-wide): ``direct`` = emission of the first visible surface + direct
 light at the first hit from the scene's directional, point, spot and *area* lights (the emissive
@@ -55,6 +56,8 @@ log = logging.getLogger(__name__)
 
 #: Upper bound on the path depth even with ``max_depth = -1`` (no hang on albedo-1 scenes).
 HARD_MAX_DEPTH = 1024
+#: ``sky_sampling='auto'`` samples the sky (MIS) when its peak/mean luminance exceeds this.
+SKY_MIS_PEAK = 2.5
 _LUM = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -95,6 +98,14 @@ class TraceConfig:
     """Embree robust (watertight) mode."""
     aux: bool = True
     """Compute the first-hit albedo and normal buffers (forced on by ``denoise``)."""
+    sky_sampling: Literal["auto", "mis", "bsdf"] = "auto"
+    """How paths find the sky: 'mis' adds one sky light sample per vertex (importance-sampled
+    from a table of the sky's luminance) combined with BSDF sampling by MIS (power heuristic);
+    'bsdf' relies on cosine BSDF sampling alone; 'auto' uses 'mis' only for a peaked sky (the
+    brightest direction more than :data:`SKY_MIS_PEAK` times the sky's mean luminance). A smooth
+    sky is found by cosine sampling as well as by a light sample, which would only add a shadow
+    ray per vertex: on Sponza's sky (peak 2.0) MIS cut the GI variance by 1 % for 1.3x the time;
+    on a 400:1 zenith/horizon sky (peak 3.0) by 47 % for 1.2x the time."""
     sampler: Literal["sobol", "independent"] = "sobol"
     """Random numbers: 'sobol' (shuffled Owen-scrambled Sobol pairs per pixel for the pixel area,
     BSDF and light dimensions; unbiased, lower variance) or 'independent' (a hash per dimension)."""
@@ -123,6 +134,8 @@ class TraceConfig:
             raise bad("texture_filter", "must be 'bilinear' or 'nearest'")
         if self.sampler not in ("sobol", "independent"):
             raise bad("sampler", "must be 'sobol' or 'independent'")
+        if self.sky_sampling not in ("auto", "mis", "bsdf"):
+            raise bad("sky_sampling", "must be 'auto', 'mis' or 'bsdf'")
         if self.adaptive and self.target_error is None:
             raise ValueError("TraceConfig.adaptive needs a target_error (the per-pixel threshold)")
 
@@ -218,6 +231,96 @@ def _salts(seed: int, n_dims: int) -> np.ndarray:
         [_mix_int(int(seed) * 0x632BE59BD9B4E019 + (dim + 1) * _GOLD) for dim in range(n_dims)],
         np.uint64,
     )
+
+
+# ---------------------------------------------------------------------------------- sky
+@dataclass(frozen=True)
+class SkyTable:
+    """A piecewise-constant importance function over the sphere, proportional to a sky's luminance.
+
+    Cells are equal in ``c = d . up`` (rows, from -1 to 1) and in the azimuth ``phi`` (columns,
+    about ``up`` from ``t1`` towards ``t2``), so every cell covers the same solid angle
+    ``4 pi / (nc * nphi)``. Skies that do not depend on the azimuth (uniform, gradient) get one
+    column. Sampling inverts the marginal (rows) and conditional (columns) CDFs, reusing the
+    remainder of each uniform number for the position within the cell; ``pdf`` is exact for it.
+
+    Attributes:
+        frame: (3, 3) rows t1, t2, up.
+        marg_cdf: (nc,) CDF over rows (last = 1).
+        cond_cdf: (nc, nphi) CDF over columns per row (last = 1).
+        pdf: (nc, nphi) density per unit solid angle of a direction in each cell.
+    """
+
+    frame: np.ndarray
+    marg_cdf: np.ndarray
+    cond_cdf: np.ndarray
+    pdf: np.ndarray
+
+    @staticmethod
+    def empty() -> SkyTable:
+        return SkyTable(np.eye(3), np.ones(1), np.ones((1, 1)), np.zeros((1, 1)))
+
+    @staticmethod
+    def of(sky: Any, nc: int = 256, nphi: int | None = None, supersample: int = 4) -> SkyTable:
+        """The table of ``sky`` (``sky.radiance(dirs)``, ``sky.up``, ``sky.kind``)."""
+        up = np.asarray(sky.up, np.float64)
+        up = up / np.linalg.norm(up)
+        a = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        t1 = np.cross(up, a)
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(up, t1)
+        if nphi is None:
+            nphi = 1 if sky.kind in ("uniform", "gradient") else 2 * nc
+        ss = supersample
+        c = -1.0 + (np.arange(nc * ss) + 0.5) / (nc * ss) * 2.0
+        ph = (np.arange(nphi * ss) + 0.5) / (nphi * ss) * 2.0 * np.pi
+        C, PH = np.meshgrid(c, ph, indexing="ij")
+        sn = np.sqrt(np.maximum(0.0, 1.0 - C * C))
+        dirs = (sn * np.cos(PH))[..., None] * t1 + (sn * np.sin(PH))[..., None] * t2
+        dirs += C[..., None] * up
+        lum = np.asarray(sky.radiance(dirs), np.float64) @ _LUM
+        v = np.maximum(lum, 0.0).reshape(nc, ss, nphi, ss).mean(axis=(1, 3))
+        total = v.sum()
+        if not total > 0:
+            return SkyTable.empty()
+        p = v / total
+        marg = p.sum(1)
+        marg_cdf = np.cumsum(marg)
+        marg_cdf /= marg_cdf[-1]
+        cond = np.where(marg[:, None] > 0, p / np.maximum(marg[:, None], 1e-300), 1.0 / nphi)
+        cond_cdf = np.cumsum(cond, axis=1)
+        cond_cdf /= cond_cdf[:, -1:]
+        pdf = p / (4.0 * np.pi / (nc * nphi))
+        return SkyTable(
+            np.ascontiguousarray(np.stack([t1, t2, up])),
+            np.ascontiguousarray(marg_cdf),
+            np.ascontiguousarray(cond_cdf),
+            np.ascontiguousarray(pdf),
+        )
+
+    @property
+    def peak(self) -> float:
+        """Brightest cell's luminance over the mean over the sphere (1 = uniform)."""
+        return float(self.pdf.max() * 4.0 * np.pi)
+
+    def sample(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Directions (N, 3) and their pdf (N,) for uniform numbers u (N, 2) (as the kernels)."""
+        from icbtool.trace.kernels import sky_sample_batch
+
+        u = np.ascontiguousarray(u, np.float64)
+        d = np.empty((len(u), 3))
+        pdf = np.empty(len(u))
+        sky_sample_batch(self.frame, self.marg_cdf, self.cond_cdf, self.pdf, u, d, pdf)
+        return d, pdf
+
+    def pdf_of(self, d: np.ndarray) -> np.ndarray:
+        """Density (N,) of unit directions d (N, 3) (as the kernels evaluate it for MIS)."""
+        from icbtool.trace.kernels import sky_pdf_batch
+
+        d = np.ascontiguousarray(d, np.float64)
+        out = np.empty(len(d))
+        sky_pdf_batch(self.frame, self.pdf, d, out)
+        return out
 
 
 # ---------------------------------------------------------------------------------- scene data
@@ -326,11 +429,13 @@ class _SceneData:
         self.k_punct = np.array(rows, np.float64).reshape(-1, 12)
         self.k_sky_kind = 0
         self.k_sky = np.zeros((4, 3))
+        self.k_sky_table = SkyTable.empty()
         if self.sky is not None:
             self.k_sky_kind = 1 if self.sky.kind == "uniform" else 2
             self.k_sky = np.array(
                 [self.sky.zenith, self.sky.horizon, self.sky.ground, self.sky.up], np.float64
             )
+            self.k_sky_table = SkyTable.of(self.sky)
         for name in ("tri", "fn", "vn", "face_albedo", "face_emission", "face_light_pmf"):
             setattr(self, name, np.ascontiguousarray(getattr(self, name), np.float64))
         self.face_area = np.ascontiguousarray(self.face_area, np.float64)
@@ -368,6 +473,18 @@ class _Tracer:
             sk.append("emitter sampling: no emissive triangle with positive area")
         if sd.sky is None:
             sk.append("sky: none (black environment)")
+        mode = cfg.sky_sampling
+        if mode == "auto" and sd.sky is not None:
+            peak = sd.k_sky_table.peak
+            mode = "mis" if peak > SKY_MIS_PEAK else "bsdf"
+            if mode == "bsdf":
+                sk.append(
+                    f"sky light sampling: smooth sky (peak/mean luminance {peak:.2f} <= "
+                    f"{SKY_MIS_PEAK}): cosine BSDF sampling finds it as well"
+                )
+        elif mode == "bsdf" and sd.sky is not None:
+            sk.append("sky light sampling: sky_sampling='bsdf'")
+        self.sky_mis = mode == "mis" and sd.sky is not None
         if not (cfg.aux or cfg.denoise):
             sk.append("aux buffers (albedo, normal): not asked for")
         for s in sk:
@@ -416,6 +533,7 @@ class _Tracer:
         iparams[K.IP_WANT_AUX] = want_aux
         iparams[K.IP_JITTER] = cfg.pixel_jitter
         iparams[K.IP_WIDTH] = cam.width
+        iparams[K.IP_SKY_MIS] = self.sky_mis
         if ray_log is None:
             log = (
                 np.zeros((1, 3), np.float32),
@@ -460,6 +578,10 @@ class _Tracer:
             sd.k_punct,
             sd.k_sky_kind,
             sd.k_sky,
+            sd.k_sky_table.frame,
+            sd.k_sky_table.marg_cdf,
+            sd.k_sky_table.cond_cdf,
+            sd.k_sky_table.pdf,
             iparams,
             float(sd.diag),
             self._pixseed,
@@ -756,6 +878,8 @@ def render_gi(scene: Scene, cam: Camera, spp: int = 64, seed: int = 0, **kwargs:
 
 __all__ = [
     "HARD_MAX_DEPTH",
+    "SKY_MIS_PEAK",
+    "SkyTable",
     "TraceConfig",
     "TraceResult",
     "TraceStats",
