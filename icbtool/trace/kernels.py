@@ -208,7 +208,7 @@ def sample_base(seed_mix, pix, sid, out_base):
 
 
 # ---------------------------------------------------------------------------------- shading
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _sky(sky_kind, sky, dx, dy, dz):
     """Sky radiance along (dx, dy, dz); sky = [zenith, horizon, ground, up] (float32 values)."""
     if sky_kind == 1:
@@ -232,7 +232,7 @@ def _sky(sky_kind, sky, dx, dy, dz):
     )
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _eps(px, py, pz, t, diag):
     mag = max(abs(px), max(abs(py), abs(pz)))
     return 3e-5 * (mag + abs(t)) + 1e-6 * diag
@@ -269,7 +269,7 @@ def _rayhit():
     return buf, buf.view(np.float32), np.int64(off >> np.uint64(2)), addr + off
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _set_ray(w, f, k, ox, oy, oz, dx, dy, dz, tfar):
     f[k] = ox
     f[k + 1] = oy
@@ -285,7 +285,7 @@ def _set_ray(w, f, k, ox, oy, oz, dx, dy, dz, tfar):
     w[k + 11] = 0
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _intersect(rtc, fn, w, f, k, addr, ox, oy, oz, dx, dy, dz):
     """Closest hit of one float32 ray: (t, prim or -1, u, v)."""
     _set_ray(w, f, k, ox, oy, oz, dx, dy, dz, np.inf)
@@ -297,7 +297,7 @@ def _intersect(rtc, fn, w, f, k, addr, ox, oy, oz, dx, dy, dz):
     return f[k + 8], np.int64(w[k + 17]), f[k + 15], f[k + 16]
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _occluded(rtc, fn, w, f, k, addr, ox, oy, oz, dx, dy, dz, tfar):
     """Whether anything lies on the float32 ray segment 0 < t < tfar."""
     _set_ray(w, f, k, ox, oy, oz, dx, dy, dz, tfar)
@@ -328,31 +328,32 @@ def rtc_occluded_batch(rtc, fn, o, d, tfar, out, lo, hi):
 
 
 # ---------------------------------------------------------------------------------- sky table
-@nb.njit(**_JIT)
-def _cdf_pick(cdf, u):
-    """(first index k with cdf[k] > u, the remainder of u within that cell in [0, 1))."""
-    n = len(cdf)
+@nb.njit(inline="always", **_JIT)
+def _cdf_pick(cdf, row, u):
+    """(first index k with cdf[row, k] > u, the remainder of u within that cell in [0, 1))."""
+    n = cdf.shape[1]
     a = 0
     b = n
     while a < b:
         mid = (a + b) // 2
-        if cdf[mid] <= u:
+        if cdf[row, mid] <= u:
             a = mid + 1
         else:
             b = mid
     k = min(a, n - 1)
-    lo = cdf[k - 1] if k > 0 else 0.0
-    width = cdf[k] - lo
+    lo = cdf[row, k - 1] if k > 0 else 0.0
+    width = cdf[row, k] - lo
     r = (u - lo) / width if width > 0 else 0.5
     return k, min(max(r, 0.0), 0.9999999999999999)
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _sky_sample(frame, marg, cond, pdf, u1, u2):
-    """A direction drawn from the sky table and its density: (dx, dy, dz, pdf)."""
+    """A direction drawn from the sky table and its density: (dx, dy, dz, pdf).
+    marg: (1, nc) row CDF; cond: (nc, nphi) column CDFs."""
     nc, nphi = pdf.shape
-    i, rc = _cdf_pick(marg, u1)
-    j, rp = _cdf_pick(cond[i], u2)
+    i, rc = _cdf_pick(marg, 0, u1)
+    j, rp = _cdf_pick(cond, i, u2)
     c = -1.0 + (i + rc) * (2.0 / nc)
     phi = (j + rp) * (2.0 * _PI / nphi)
     sn = math.sqrt(max(0.0, 1.0 - c * c))
@@ -364,7 +365,7 @@ def _sky_sample(frame, marg, cond, pdf, u1, u2):
     return d0, d1, d2, pdf[i, j]
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _sky_pdf(frame, pdf, dx, dy, dz):
     """Density of the sky table's sampling at the unit direction (dx, dy, dz)."""
     nc, nphi = pdf.shape
@@ -504,8 +505,9 @@ def trace_paths(
     n_s = suns.shape[0]
     n_q = punct.shape[0]
     n_e = len(emit_faces)
-    log_cap = len(log_kind) if len(log_kind) > 1 else 0
-    w_, f_, k_, addr = _rayhit()
+    log = (log_o, log_d, log_tf, log_kind, log_n)
+    ray = _rayhit()
+    w_, f_, k_, addr = ray
     n_prim = 0
     n_bounce = 0
     n_shadow = 0
@@ -543,26 +545,10 @@ def trace_paths(
             from_first = False
             for depth in range(1, limit + 1):
                 # ---- closest hit of segment `depth`
-                if log_cap and log_n[0] < log_cap:
-                    j = log_n[0]
-                    log_o[j, 0], log_o[j, 1], log_o[j, 2] = ox, oy, oz
-                    log_d[j, 0], log_d[j, 1], log_d[j, 2] = dx, dy, dz
-                    log_tf[j] = np.inf
-                    log_kind[j] = 0
-                    log_n[0] += 1
+                _log_ray(log, 0, ox, oy, oz, dx, dy, dz, np.float32(np.inf))
+                dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
                 h_t, prim, h_u, h_v = _intersect(
-                    rtc,
-                    fn_isect,
-                    w_,
-                    f_,
-                    k_,
-                    addr,
-                    ox,
-                    oy,
-                    oz,
-                    np.float32(dx),
-                    np.float32(dy),
-                    np.float32(dz),
+                    rtc, fn_isect, w_, f_, k_, addr, ox, oy, oz, dx32, dy32, dz32
                 )
                 if depth == 1:
                     n_prim += 1
@@ -682,8 +668,8 @@ def trace_paths(
                         fy = yy - fy0
                         xa = np.int64(fx0) % tw_
                         ya = np.int64(fy0) % th_
-                        xb = (xa + 1) % tw_
-                        yb = (ya + 1) % th_
+                        xb = xa + 1 if xa + 1 < tw_ else 0
+                        yb = ya + 1 if ya + 1 < th_ else 0
                         p00 = off + (ya * tw_ + xa) * 3
                         p01 = off + (ya * tw_ + xb) * 3
                         p10 = off + (yb * tw_ + xa) * 3
@@ -742,39 +728,12 @@ def trace_paths(
                     c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
                     if c > 0 and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0:
                         tf = np.float32(np.inf)
-                        if log_cap and log_n[0] < log_cap:
-                            _log_shadow(
-                                log_o,
-                                log_d,
-                                log_tf,
-                                log_kind,
-                                log_n,
-                                so0,
-                                so1,
-                                so2,
-                                wi0,
-                                wi1,
-                                wi2,
-                                tf,
-                            )
                         n_shadow += 1
-                        if not _occluded(
-                            rtc,
-                            fn_occl,
-                            w_,
-                            f_,
-                            k_,
-                            addr,
-                            so0,
-                            so1,
-                            so2,
-                            np.float32(wi0),
-                            np.float32(wi1),
-                            np.float32(wi2),
-                            tf,
-                        ):
-                            _add(
-                                direct if to_direct_dl else gi,
+                        if _visible(rtc, fn_occl, ray, log, so0, so1, so2, wi0, wi1, wi2, tf):
+                            _add_to(
+                                direct,
+                                gi,
+                                to_direct_dl,
                                 s,
                                 fo0 * suns[j, 3] * c,
                                 fo1 * suns[j, 4] * c,
@@ -806,40 +765,13 @@ def trace_paths(
                         and (i0 > 0 or i1 > 0 or i2 > 0)
                     ):
                         tf = np.float32(dist * (1 - 1e-5) - eps)
-                        if log_cap and log_n[0] < log_cap:
-                            _log_shadow(
-                                log_o,
-                                log_d,
-                                log_tf,
-                                log_kind,
-                                log_n,
-                                so0,
-                                so1,
-                                so2,
-                                wi0,
-                                wi1,
-                                wi2,
-                                tf,
-                            )
                         n_shadow += 1
-                        if not _occluded(
-                            rtc,
-                            fn_occl,
-                            w_,
-                            f_,
-                            k_,
-                            addr,
-                            so0,
-                            so1,
-                            so2,
-                            np.float32(wi0),
-                            np.float32(wi1),
-                            np.float32(wi2),
-                            tf,
-                        ):
+                        if _visible(rtc, fn_occl, ray, log, so0, so1, so2, wi0, wi1, wi2, tf):
                             g = c / (dist * dist)
-                            _add(
-                                direct if to_direct_dl else gi,
+                            _add_to(
+                                direct,
+                                gi,
+                                to_direct_dl,
                                 s,
                                 fo0 * i0 * g,
                                 fo1 * i1 * g,
@@ -900,39 +832,12 @@ def trace_paths(
                         g = c * w / pl
                         eps_l = _eps(y0, y1, y2, dist, diag)
                         tf = np.float32(max(dist - eps - eps_l, 0.0))
-                        if log_cap and log_n[0] < log_cap:
-                            _log_shadow(
-                                log_o,
-                                log_d,
-                                log_tf,
-                                log_kind,
-                                log_n,
-                                so0,
-                                so1,
-                                so2,
-                                wi0,
-                                wi1,
-                                wi2,
-                                tf,
-                            )
                         n_shadow += 1
-                        if not _occluded(
-                            rtc,
-                            fn_occl,
-                            w_,
-                            f_,
-                            k_,
-                            addr,
-                            so0,
-                            so1,
-                            so2,
-                            np.float32(wi0),
-                            np.float32(wi1),
-                            np.float32(wi2),
-                            tf,
-                        ):
-                            _add(
-                                direct if (to_direct_dl and face_is_area[lf]) else gi,
+                        if _visible(rtc, fn_occl, ray, log, so0, so1, so2, wi0, wi1, wi2, tf):
+                            _add_to(
+                                direct,
+                                gi,
+                                to_direct_dl and face_is_area[lf],
                                 s,
                                 fo0 * face_emission[lf, 0] * g,
                                 fo1 * face_emission[lf, 1] * g,
@@ -953,39 +858,18 @@ def trace_paths(
                         pb = c * _INV_PI
                         g = c * (psk / (psk * psk + pb * pb))  # c * w / psk, w = power heuristic
                         tf = np.float32(np.inf)
-                        if log_cap and log_n[0] < log_cap:
-                            _log_shadow(
-                                log_o,
-                                log_d,
-                                log_tf,
-                                log_kind,
-                                log_n,
-                                so0,
-                                so1,
-                                so2,
-                                wi0,
-                                wi1,
-                                wi2,
-                                tf,
-                            )
                         n_shadow += 1
-                        if not _occluded(
-                            rtc,
-                            fn_occl,
-                            w_,
-                            f_,
-                            k_,
-                            addr,
-                            so0,
-                            so1,
-                            so2,
-                            np.float32(wi0),
-                            np.float32(wi1),
-                            np.float32(wi2),
-                            tf,
-                        ):
+                        if _visible(rtc, fn_occl, ray, log, so0, so1, so2, wi0, wi1, wi2, tf):
                             le = _sky(sky_kind, sky, wi0, wi1, wi2)
-                            _add(gi, s, fo0 * le[0] * g, fo1 * le[1] * g, fo2 * le[2] * g)
+                            _add_to(
+                                direct,
+                                gi,
+                                False,
+                                s,
+                                fo0 * le[0] * g,
+                                fo1 * le[1] * g,
+                                fo2 * le[2] * g,
+                            )
                 # ---- bounce: cosine-weighted about the shading normal (Duff et al. basis)
                 if use_ld:
                     u1, u2 = _sobol2(ps_pix, sid[s], pair0)
@@ -1037,21 +921,40 @@ def trace_paths(
     counts[2] += n_shadow
 
 
-@nb.njit(**_JIT)
-def _add(out, s, a, b, c):
-    out[s, 0] += a
-    out[s, 1] += b
-    out[s, 2] += c
+@nb.njit(inline="always", **_JIT)
+def _add_to(direct, gi, to_direct, s, a, b, c):
+    """Add (a, b, c) to sample s of ``direct`` or ``gi`` (no array-valued expression: in a
+    loop run by several threads, those cost atomic reference counts on shared arrays)."""
+    if to_direct:
+        direct[s, 0] += a
+        direct[s, 1] += b
+        direct[s, 2] += c
+    else:
+        gi[s, 0] += a
+        gi[s, 1] += b
+        gi[s, 2] += c
 
 
-@nb.njit(**_JIT)
-def _log_shadow(log_o, log_d, log_tf, log_kind, log_n, ox, oy, oz, dx, dy, dz, tf):
+@nb.njit(inline="always", **_JIT)
+def _log_ray(log, kind, ox, oy, oz, dx, dy, dz, tf):
+    """Append a ray to the benchmark log (o, d, tfar, kind, n) unless it is off (C <= 1) or full."""
+    log_o, log_d, log_tf, log_kind, log_n = log
     j = log_n[0]
-    log_o[j, 0], log_o[j, 1], log_o[j, 2] = ox, oy, oz
-    log_d[j, 0], log_d[j, 1], log_d[j, 2] = dx, dy, dz
-    log_tf[j] = tf
-    log_kind[j] = 1
-    log_n[0] += 1
+    if len(log_kind) > 1 and j < len(log_kind):
+        log_o[j, 0], log_o[j, 1], log_o[j, 2] = ox, oy, oz
+        log_d[j, 0], log_d[j, 1], log_d[j, 2] = dx, dy, dz
+        log_tf[j] = tf
+        log_kind[j] = kind
+        log_n[0] += 1
+
+
+@nb.njit(inline="always", **_JIT)
+def _visible(rtc, fn_occl, ray, log, ox, oy, oz, dx, dy, dz, tf):
+    """Shadow ray from the float32 origin along the unit (dx, dy, dz) up to ``tf``: unblocked?"""
+    _log_ray(log, 1, ox, oy, oz, dx, dy, dz, tf)
+    w, f, k, addr = ray
+    dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
+    return not _occluded(rtc, fn_occl, w, f, k, addr, ox, oy, oz, dx32, dy32, dz32, tf)
 
 
 @nb.njit(**_JIT)

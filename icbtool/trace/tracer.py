@@ -310,7 +310,7 @@ class SkyTable:
         u = np.ascontiguousarray(u, np.float64)
         d = np.empty((len(u), 3))
         pdf = np.empty(len(u))
-        sky_sample_batch(self.frame, self.marg_cdf, self.cond_cdf, self.pdf, u, d, pdf)
+        sky_sample_batch(self.frame, self.marg_cdf[None], self.cond_cdf, self.pdf, u, d, pdf)
         return d, pdf
 
     def pdf_of(self, d: np.ndarray) -> np.ndarray:
@@ -579,7 +579,7 @@ class _Tracer:
             sd.k_sky_kind,
             sd.k_sky,
             sd.k_sky_table.frame,
-            sd.k_sky_table.marg_cdf,
+            sd.k_sky_table.marg_cdf[None],
             sd.k_sky_table.cond_cdf,
             sd.k_sky_table.pdf,
             iparams,
