@@ -1,7 +1,10 @@
 """Rays per second of the path tracer (primary, bounce, shadow) next to raw Embree on the same rays.
 
-The tracer runs once with a recording EmbreeScene; the recorded ray batches are then replayed
-through EmbreeScene alone, so the difference is the cost of our shading code (numpy).
+The tracer runs once normally (timed, 2 threads) and once more, single-threaded, recording every
+ray it traces (``render(..., ray_log=...)``: same seed, so the same rays). The recorded rays are
+then replayed through Embree alone, two ways: embreex's batched ``scene.run`` (EmbreeScene, 2
+threads) and the tracer's own direct Embree calls without shading (icbtool.trace.rtc, 2 threads).
+The difference between the tracer's time and the replay is the cost of our shading code.
 
     .venv/bin/python benchmarks/trace_throughput.py [--size 256] [--spp 8]
 
@@ -13,6 +16,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -21,7 +25,9 @@ import numpy as np
 import icbtool as icb
 from icbtool.cli._common import run_info, write_json
 from icbtool.trace import TraceConfig
+from icbtool.trace import kernels as K
 from icbtool.trace.embree import EmbreeScene
+from icbtool.trace.rtc import RtcScene
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -32,79 +38,107 @@ def sponza():
     return icb.scene.load(REPO / "data" / "scenes" / "sponza.toml")
 
 
-class Recorder:
-    """Wraps an EmbreeScene, keeping every batch (kind, origins, directions, tfar)."""
-
-    def __init__(self, es: EmbreeScene) -> None:
-        self.es, self.log = es, []
-        self.first = True
-
-    def intersect(self, o, d, tnear=0.0, tfar=None, threads=None):
-        self.log.append(("intersect", np.array(o, np.float32), np.array(d, np.float32), None))
-        return self.es.intersect(o, d, tnear, tfar, threads)
-
-    def intersect_raw(self, o, d, threads=None, out=None):
-        self.log.append(("intersect", np.array(o, np.float32), np.array(d, np.float32), None))
-        return self.es.intersect_raw(o, d, threads, out=out)
-
-    def occluded_raw(self, o, d, tfar, threads=None):
-        self.log.append(
-            ("occluded", np.array(o, np.float32), np.array(d, np.float32), np.array(tfar))
-        )
-        return self.es.occluded_raw(o, d, tfar, threads)
-
-    def occluded(self, o, d, tfar, threads=None):
-        self.log.append(
-            (
-                "occluded",
-                np.array(o, np.float32),
-                np.array(d, np.float32),
-                np.array(tfar, np.float32),
-            )
-        )
-        return self.es.occluded(o, d, tfar, threads)
+def record(scene, cam, cfg, capacity: int) -> dict[str, np.ndarray]:
+    """The rays of one render, in tracing order."""
+    log = {
+        "o": np.zeros((capacity, 3), np.float32),
+        "d": np.zeros((capacity, 3), np.float32),
+        "tfar": np.zeros(capacity, np.float32),
+        "kind": np.zeros(capacity, np.int8),
+        "n": np.zeros(1, np.int64),
+    }
+    icb.trace.render(scene, cam, cfg, ray_log=log)
+    n = int(log["n"][0])
+    if n >= capacity:
+        raise RuntimeError(f"ray log full ({capacity} rays): raise the capacity")
+    return {k: v[:n] for k, v in log.items() if k != "n"}
 
 
-def bench(scene, cam, cfg) -> dict:
-    from icbtool.trace import tracer as tr
+def replay_embreex(es: EmbreeScene, rays: dict, threads: int = 2) -> dict[str, float]:
+    """Seconds embreex needs for the closest-hit and the shadow rays of ``rays``."""
+    out = {}
+    for name, kind in (("intersect", 0), ("shadow", 1)):
+        sel = rays["kind"] == kind
+        o = np.ascontiguousarray(rays["o"][sel])
+        d = np.ascontiguousarray(rays["d"][sel])
+        t0 = time.perf_counter()
+        if kind == 0:
+            es.intersect_raw(o, d, threads)
+        else:
+            es.occluded_raw(o, d, np.ascontiguousarray(rays["tfar"][sel]), threads)
+        out[name] = time.perf_counter() - t0
+    return out
 
-    es = EmbreeScene.from_scene(scene, robust=cfg.robust, threads=cfg.threads)
-    rec = Recorder(es)
-    key = f"embree_robust={cfg.robust}"
+
+def replay_direct(rs: RtcScene, rays: dict, threads: int = 2) -> dict[str, float]:
+    """Seconds the tracer's direct Embree calls need for the same rays (no shading)."""
+    pool = ThreadPoolExecutor(threads)
+    out = {}
+    for name, kind in (("intersect", 0), ("shadow", 1)):
+        sel = rays["kind"] == kind
+        o = np.ascontiguousarray(rays["o"][sel])
+        d = np.ascontiguousarray(rays["d"][sel])
+        n = len(o)
+        edges = np.linspace(0, n, threads + 1).astype(np.int64)
+        t, prim = np.empty(n, np.float32), np.empty(n, np.int32)
+        u, v, blocked = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.bool_)
+        tf = np.ascontiguousarray(rays["tfar"][sel])
+        t0 = time.perf_counter()
+        if kind == 0:
+            fut = [
+                pool.submit(
+                    K.rtc_intersect_batch,
+                    rs.ptr,
+                    rs.fn_intersect,
+                    o,
+                    d,
+                    t,
+                    prim,
+                    u,
+                    v,
+                    int(edges[i]),
+                    int(edges[i + 1]),
+                )
+                for i in range(threads)
+            ]
+        else:
+            fut = [
+                pool.submit(
+                    K.rtc_occluded_batch,
+                    rs.ptr,
+                    rs.fn_occluded,
+                    o,
+                    d,
+                    tf,
+                    blocked,
+                    int(edges[i]),
+                    int(edges[i + 1]),
+                )
+                for i in range(threads)
+            ]
+        for f in fut:
+            f.result()
+        out[name] = time.perf_counter() - t0
+    pool.shutdown()
+    return out
+
+
+def bench(scene, cam, cfg, repeats: int = 3) -> dict:
     t0 = time.perf_counter()
-    res = icb.trace.render(scene, cam, replace(cfg, spp=1))  # warm-up (JIT cache, scene data)
+    icb.trace.render(scene, cam, replace(cfg, spp=1))  # warm-up (JIT cache, scene data, BVH)
     warmup_s = time.perf_counter() - t0
-    scene._cache[key] = rec
-    try:
-        res = tr.render(scene, cam, cfg)
-    finally:
-        scene._cache[key] = es
+    runs = [icb.trace.render(scene, cam, cfg) for _ in range(repeats)]
+    res = min(runs, key=lambda r: r.stats.time_s["total"])
     st = res.stats
-    t0 = time.perf_counter()
-    kinds = {"primary": 0.0, "bounce": 0.0, "shadow": 0.0}
-    counts = {"primary": 0, "bounce": 0, "shadow": 0}
-    first_per_pass = True
-    for kind, o, d, tf in rec.log:
-        t1 = time.perf_counter()
-        if kind == "intersect":
-            es.intersect_raw(o, d)
-        else:
-            es.occluded_raw(o, d, tf.copy())
-        dt = time.perf_counter() - t1
-        if kind == "occluded":
-            name = "shadow"
-        else:
-            # the first intersect batch of each pass is the primary rays: their count is H*W*k
-            name = "primary" if first_per_pass else "bounce"
-        if kind == "intersect":
-            first_per_pass = False
-        kinds[name] += dt
-        counts[name] += len(o)
-        if kind == "intersect" and len(o) == 0:
-            first_per_pass = True
-    replay = time.perf_counter() - t0
-    # primary/bounce split is not marked in the log across passes: use the tracer's own counts
+    rays = record(scene, cam, cfg, capacity=int(st.total_rays * 1.05) + 1024)
+    n_logged = len(rays["kind"])
+    es = EmbreeScene.from_scene(scene, robust=cfg.robust, threads=2)
+    rs = RtcScene.of(scene, robust=cfg.robust)
+    emb = min((replay_embreex(es, rays) for _ in range(repeats)), key=lambda x: sum(x.values()))
+    dirc = min((replay_direct(rs, rays) for _ in range(repeats)), key=lambda x: sum(x.values()))
     total_rays = st.total_rays
+    n_isect = st.rays["primary"] + st.rays["bounce"]
+    t_trace = st.time_s["total"]
     return {
         "scene": scene.name,
         "size": [cam.height, cam.width],
@@ -112,25 +146,20 @@ def bench(scene, cam, cfg) -> dict:
         "spp": cfg.spp,
         "warmup_render_s": warmup_s,
         "load_average_1min": os.getloadavg()[0],
-        "tracer_total_s": st.time_s["total"],
+        "tracer_total_s": t_trace,
         "tracer_time_s": st.time_s,
         "rays": st.rays,
-        "tracer_Mrays_per_s": total_rays / st.time_s["total"] / 1e6,
-        "embree_replay_s": replay,
-        "embree_replay_Mrays_per_s": total_rays / replay / 1e6,
-        "embree_share_of_tracer_time": replay / st.time_s["total"],
-        "replay_by_kind_Mrays_per_s": {
-            "intersect": (st.rays["primary"] + st.rays["bounce"])
-            / max(kinds["primary"] + kinds["bounce"], 1e-9)
-            / 1e6,
-            "shadow": st.rays["shadow"] / max(kinds["shadow"], 1e-9) / 1e6,
+        "rays_logged_for_replay": n_logged,
+        "tracer_Mrays_per_s": total_rays / t_trace / 1e6,
+        "embreex_replay_s": emb,
+        "embreex_replay_Mrays_per_s": n_logged / sum(emb.values()) / 1e6,
+        "embreex_replay_by_kind_Mrays_per_s": {
+            "intersect": n_isect / emb["intersect"] / 1e6,
+            "shadow": st.rays["shadow"] / emb["shadow"] / 1e6,
         },
-        "tracer_by_kind_Mrays_per_s_embree_only": {
-            "intersect": (st.rays["primary"] + st.rays["bounce"])
-            / max(st.time_s.get("intersect", 0), 1e-9)
-            / 1e6,
-            "shadow": st.rays["shadow"] / max(st.time_s.get("shadow", 0), 1e-9) / 1e6,
-        },
+        "direct_embree_replay_s": dirc,
+        "direct_embree_replay_Mrays_per_s": n_logged / sum(dirc.values()) / 1e6,
+        "embree_share_of_tracer_time": sum(dirc.values()) / t_trace,
     }
 
 
@@ -158,7 +187,8 @@ def main() -> None:
                 k: row[k]
                 for k in (
                     "tracer_Mrays_per_s",
-                    "embree_replay_Mrays_per_s",
+                    "embreex_replay_Mrays_per_s",
+                    "direct_embree_replay_Mrays_per_s",
                     "embree_share_of_tracer_time",
                 )
             },
@@ -177,12 +207,20 @@ def main() -> None:
     fig, ax = plt.subplots(figsize=(6, 3.5))
     x = np.arange(len(rows))
     ax.bar(
-        x - 0.2,
+        x - 0.27,
         [r["tracer_Mrays_per_s"] for r in rows],
-        0.4,
+        0.27,
         label="tracer (all rays, incl. shading)",
     )
-    ax.bar(x + 0.2, [r["embree_replay_Mrays_per_s"] for r in rows], 0.4, label="EmbreeScene replay")
+    ax.bar(
+        x,
+        [r["direct_embree_replay_Mrays_per_s"] for r in rows],
+        0.27,
+        label="Embree alone (direct calls)",
+    )
+    ax.bar(
+        x + 0.27, [r["embreex_replay_Mrays_per_s"] for r in rows], 0.27, label="embreex scene.run"
+    )
     ax.set_xticks(x, [f"{r['scene']}\n{r['triangles']} tris" for r in rows])
     ax.set_ylabel("Mrays/s (2 threads)")
     ax.set_title(f"{args.size}x{args.size}, {args.spp} spp, max_depth 8")

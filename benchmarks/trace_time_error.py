@@ -8,11 +8,15 @@ references is reported as `reference_gap`. Mitsuba cannot split DL/GI, so "full"
 
     .venv/bin/python benchmarks/trace_time_error.py [--size 256] [--ref-spp 1024]
 
-Variants of ours: raw (default sampler, sobol), raw_independent (hash sampler), denoised (GI
+Variants of ours: raw (default config: sobol sampler, robust Embree), raw_fast (robust=False, as
+Mitsuba's default), raw_independent (hash sampler), denoised (GI
 denoised with OIDN + albedo/normal, as the system uses it: DL comes from the raster), denoised_full
 (direct + GI denoised together) and adaptive. The first render (numba JIT or cache load) is a
 warm-up, not counted; Mitsuba's kernel cache is warmed by one untimed render per spp. The target
-check gives, per Mitsuba point (T, E), the time our curve needs to reach E, divided by T.
+check gives, per Mitsuba point (T, E), the time our curve needs to reach E, divided by T. The
+Embree floor gives, per Mitsuba point, the time Embree alone (no shading) needs for the rays of our
+cheapest raw render that reaches E, divided by T: above 0.5 no shading code could meet the target
+there.
 
 Writes benchmarks/results/trace/time_error.{json,png}. Mitsuba is a benchmark peer only.
 """
@@ -21,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -32,6 +37,10 @@ import icbtool as icb
 from icbtool.cli._common import run_info, write_json
 from icbtool.imageio import to_display
 from icbtool.trace import TraceConfig
+from icbtool.trace.rtc import RtcScene
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from trace_throughput import record, replay_direct  # noqa: E402  (a sibling benchmark script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -237,6 +246,17 @@ def time_to_reach(curve: list[dict], err: float, metric: str) -> float | None:
     return None
 
 
+def floor_ratios(curves: dict, floor: list[dict], metric: str) -> list[float | None]:
+    """For each Mitsuba point (T, E): the Embree-only time of our cheapest raw render that
+    reaches E, over T. Above 0.5 the target is out of reach at that point for any shading code
+    (with our sampling), since Embree alone on those rays takes more than half of T."""
+    out = []
+    for p in curves["mitsuba"]:
+        ok = [f for f, c in zip(floor, curves["ours_raw"]) if c[metric] <= p[metric]]
+        out.append(None if not ok else min(f["time_s"] for f in ok) / p["time_s"])
+    return out
+
+
 def target_check(curves: dict, metric: str) -> dict:
     """For each Mitsuba point (T, E): our time to reach E divided by T (target: <= 0.5)."""
     out = {}
@@ -320,6 +340,7 @@ def main() -> None:
         print(f"{name}: alignment best shift {align['full']['best_shift_dy_dx']}", flush=True)
         keys = (
             "ours_raw",
+            "ours_raw_fast",
             "ours_raw_independent",
             "ours_denoised",
             "ours_denoised_full",
@@ -327,12 +348,18 @@ def main() -> None:
             "mitsuba",
         )
         curves = {k: [] for k in keys}
+        embree_floor = []
+        rtc = RtcScene.of(scene)
         for spp in tqdm(spps, desc=name):
             cfg = TraceConfig(spp=spp, seed=spp, **base)
             r = ours(scene, cam, cfg, args.repeats)
             curves["ours_raw"].append(
                 {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
             )
+            # the floor: Embree alone (direct calls, 2 threads) on exactly this render's rays
+            rays = record(scene, cam, cfg, capacity=int(r.stats.total_rays * 1.05) + 1024)
+            floor = min(sum(replay_direct(rtc, rays).values()) for _ in range(args.repeats))
+            embree_floor.append({"spp": spp, "time_s": floor, "rays": len(rays["kind"])})
             # the GI-only denoised image from the same render (the system's use: DL is rastered)
             gi_dn, t_dn = timed(
                 lambda r=r: icb.trace.denoise(r.gi_raw, r.albedo, r.normal), args.repeats
@@ -353,6 +380,10 @@ def main() -> None:
                     "time_s": r.stats.time_s["total"] + t_dn,
                     **errors(ref_full, full_dn),
                 }
+            )
+            r = ours(scene, cam, replace(cfg, robust=False), args.repeats)
+            curves["ours_raw_fast"].append(
+                {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
             )
             r = ours(scene, cam, replace(cfg, sampler="independent"), args.repeats)
             curves["ours_raw_independent"].append(
@@ -395,6 +426,12 @@ def main() -> None:
             "reference_mean_mitsuba": float(ref_mi.mean()),
             "alignment_ours_vs_mitsuba": align,
             "target_rmse": target_check(curves, "rmse"),
+            "embree_floor": {
+                "what": "Embree alone (direct calls, 2 threads, no shading) on the rays of our "
+                "raw render at each spp: no shading code can make that render faster",
+                "points": embree_floor,
+                "floor_ratio_per_mitsuba_point": floor_ratios(curves, embree_floor, "rmse"),
+            },
             "target_flip": target_check(curves, "flip"),
             "load_average_1min_end": os.getloadavg()[0],
             "curves": curves,
