@@ -552,12 +552,20 @@ def test_reused_workspaces_do_not_leak_between_renders():
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
 
 
-def test_textured_lookup_wraps_and_matches_bilinear_formula():
+@pytest.mark.parametrize("texels", ["8bit", "float"])
+def test_textured_lookup_wraps_and_matches_bilinear_formula(texels):
     """A textured quad with uvs far outside [0, 1] under a uniform sky: the traced first-hit
-    albedo equals the repeat-wrapped bilinear lookup at each pixel's hit point."""
+    albedo equals the repeat-wrapped bilinear lookup at each pixel's hit point. Textures from
+    8-bit images are stored as uint8 codes into the sRGB levels (exact); others as float32."""
+    from icbtool.scene.load import decode_texture
+    from icbtool.trace.tracer import _SceneData
+
     b = SceneBuilder("tex")
     rng = np.random.default_rng(0)
-    tex = rng.uniform(0.1, 0.9, (5, 7, 3)).astype(np.float32)
+    if texels == "8bit":
+        tex = decode_texture(rng.integers(0, 256, (5, 7, 3), dtype=np.uint8))
+    else:
+        tex = rng.uniform(0.1, 0.9, (5, 7, 3)).astype(np.float32)
     m = b.material("t", albedo=(1, 1, 1), texture=tex)
     b.add_quad((-1, 0, 1), (2, 0, 0), (0, 0, -2), m)
     b.sky = Sky((1.0, 1.0, 1.0))
@@ -577,6 +585,9 @@ def test_textured_lookup_wraps_and_matches_bilinear_formula():
     )
     cam = Camera.look_at((0, 2, 0.001), (0, 0, 0), (0, 0, -1), fov_y_deg=40, height=12, width=12)
     res = render(sc, cam, TraceConfig(spp=1, pixel_jitter=False, max_depth=1))
+    sd = _SceneData.of(sc)
+    assert sd.k_tex.dtype == (np.uint8 if texels == "8bit" else np.float32)
+    assert len(sd.k_tex_lut) == (256 if texels == "8bit" else 0)
     o, d, _ = cam.rays()
     hits = EmbreeScene.from_scene(sc).intersect(o.reshape(-1, 3), d.reshape(-1, 3))
     assert hits.hit.all()

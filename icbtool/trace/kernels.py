@@ -233,6 +233,14 @@ def _sky(sky_kind, sky, dx, dy, dz):
 
 
 @nb.njit(inline="always", **_JIT)
+def _texel(tex, lut, p):
+    """Texel value p: tex holds codes into lut (8/16-bit textures), or values if lut is empty."""
+    if len(lut) > 0:
+        return np.float64(lut[np.int64(tex[p])])
+    return np.float64(tex[p])
+
+
+@nb.njit(inline="always", **_JIT)
 def _eps(px, py, pz, t, diag):
     mag = max(abs(px), max(abs(py), abs(pz)))
     return 3e-5 * (mag + abs(t)) + 1e-6 * diag
@@ -444,6 +452,7 @@ def trace_paths(
     face_mat,
     face_uv,
     tex_flat,
+    tex_lut,
     tex_off,
     tex_hw,
     face_light_pmf,
@@ -658,9 +667,9 @@ def trace_paths(
                         xi = np.int64(math.floor(xx + 0.5)) % tw_
                         yi = np.int64(math.floor(yy + 0.5)) % th_
                         p = off + (yi * tw_ + xi) * 3
-                        al0 *= np.float64(tex_flat[p])
-                        al1 *= np.float64(tex_flat[p + 1])
-                        al2 *= np.float64(tex_flat[p + 2])
+                        al0 *= _texel(tex_flat, tex_lut, p)
+                        al1 *= _texel(tex_flat, tex_lut, p + 1)
+                        al2 *= _texel(tex_flat, tex_lut, p + 2)
                     else:
                         fx0 = math.floor(xx)
                         fy0 = math.floor(yy)
@@ -678,18 +687,26 @@ def trace_paths(
                         gb = (1 - fy) * fx
                         gc = fy * (1 - fx)
                         gd = fy * fx
-                        al0 *= (ga * np.float64(tex_flat[p00]) + gb * np.float64(tex_flat[p01])) + (
-                            gc * np.float64(tex_flat[p10]) + gd * np.float64(tex_flat[p11])
+                        al0 *= (
+                            ga * _texel(tex_flat, tex_lut, p00)
+                            + gb * _texel(tex_flat, tex_lut, p01)
+                        ) + (
+                            gc * _texel(tex_flat, tex_lut, p10)
+                            + gd * _texel(tex_flat, tex_lut, p11)
                         )
                         al1 *= (
-                            ga * np.float64(tex_flat[p00 + 1]) + gb * np.float64(tex_flat[p01 + 1])
+                            ga * _texel(tex_flat, tex_lut, p00 + 1)
+                            + gb * _texel(tex_flat, tex_lut, p01 + 1)
                         ) + (
-                            gc * np.float64(tex_flat[p10 + 1]) + gd * np.float64(tex_flat[p11 + 1])
+                            gc * _texel(tex_flat, tex_lut, p10 + 1)
+                            + gd * _texel(tex_flat, tex_lut, p11 + 1)
                         )
                         al2 *= (
-                            ga * np.float64(tex_flat[p00 + 2]) + gb * np.float64(tex_flat[p01 + 2])
+                            ga * _texel(tex_flat, tex_lut, p00 + 2)
+                            + gb * _texel(tex_flat, tex_lut, p01 + 2)
                         ) + (
-                            gc * np.float64(tex_flat[p10 + 2]) + gd * np.float64(tex_flat[p11 + 2])
+                            gc * _texel(tex_flat, tex_lut, p10 + 2)
+                            + gd * _texel(tex_flat, tex_lut, p11 + 2)
                         )
                 if depth == 1:
                     first_hit[s] = True

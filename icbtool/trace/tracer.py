@@ -225,6 +225,22 @@ def _mix_int(x: int) -> int:
 _DIMS_PER_BOUNCE = 8
 
 
+def _encode_texels(texels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(codes, lut) with ``lut[codes] == texels`` exactly: uint8 codes into the 256 sRGB-decoded
+    levels when every texel is one of them (textures loaded from 8-bit images), which cuts the
+    texture memory the tracer reads at random 4x (Sponza: 53 -> 13 MB); else the float32 texels
+    and an empty lut."""
+    from icbtool.scene.load import decode_texture
+
+    lut = decode_texture(np.arange(256, dtype=np.uint8).reshape(1, 256))[0, :, 0]
+    lut = np.ascontiguousarray(lut, np.float32)
+    if np.all(np.diff(lut) > 0):
+        codes = np.clip(np.searchsorted(lut, texels), 0, 255)
+        if np.array_equal(lut[codes], texels):
+            return codes.astype(np.uint8), lut
+    return np.ascontiguousarray(texels, np.float32), np.zeros(0, np.float32)
+
+
 def _salts(seed: int, n_dims: int) -> np.ndarray:
     """(n_dims,) uint64 per-dimension salts of the independent sampler."""
     return np.array(
@@ -409,7 +425,9 @@ class _SceneData:
             self.k_tex_hw[m] = t.shape[:2]
             chunks.append(t.ravel())
             off += t.size
-        self.k_tex = np.concatenate(chunks) if chunks else np.zeros(1, np.float32)
+        self.k_tex, self.k_tex_lut = _encode_texels(
+            np.concatenate(chunks) if chunks else np.zeros(1, np.float32)
+        )
         self.k_face_is_area = np.ascontiguousarray(self.face_is_area_light, np.bool_)
         self.k_emit_faces = np.ascontiguousarray(self.emit_faces, np.int64)
         self.k_emit_cdf = (
@@ -567,6 +585,7 @@ class _Tracer:
             sd.k_face_mat,
             sd.k_face_uv,
             sd.k_tex,
+            sd.k_tex_lut,
             sd.k_tex_off,
             sd.k_tex_hw,
             sd.face_light_pmf,
