@@ -447,8 +447,8 @@ def trace_paths(
     tri,
     fn,
     vn,
-    face_albedo,
-    face_emission,
+    mat_albedo,
+    mat_emission,
     face_mat,
     face_uv,
     tex_flat,
@@ -590,9 +590,9 @@ def trace_paths(
                 x0 = w0 * tri[prim, 0, 0] + b1 * tri[prim, 1, 0] + b2 * tri[prim, 2, 0]
                 x1 = w0 * tri[prim, 0, 1] + b1 * tri[prim, 1, 1] + b2 * tri[prim, 2, 1]
                 x2 = w0 * tri[prim, 0, 2] + b1 * tri[prim, 1, 2] + b2 * tri[prim, 2, 2]
-                g0 = fn[prim, 0]
-                g1 = fn[prim, 1]
-                g2 = fn[prim, 2]
+                g0 = np.float64(fn[prim, 0])
+                g1 = np.float64(fn[prim, 1])
+                g2 = np.float64(fn[prim, 2])
                 cos_o = -(g0 * dx + g1 * dy + g2 * dz)
                 if g0 == 0 and g1 == 0 and g2 == 0:
                     g0, g1, g2 = -dx, -dy, -dz
@@ -616,9 +616,10 @@ def trace_paths(
                 else:
                     ns0, ns1, ns2 = nf0, nf1, nf2
                 # ---- emission seen (one-sided)
-                e0 = face_emission[prim, 0]
-                e1 = face_emission[prim, 1]
-                e2 = face_emission[prim, 2]
+                m = face_mat[prim]
+                e0 = mat_emission[m, 0]
+                e1 = mat_emission[m, 1]
+                e2 = mat_emission[m, 2]
                 if front and (e0 > 0 or e1 > 0 or e2 > 0):
                     if depth == 1:
                         direct[s, 0] += e0 * t0
@@ -643,10 +644,9 @@ def trace_paths(
                             gi[s, 1] += e1 * t1 * w
                             gi[s, 2] += e2 * t2 * w
                 # ---- albedo (texture with repeat)
-                al0 = face_albedo[prim, 0]
-                al1 = face_albedo[prim, 1]
-                al2 = face_albedo[prim, 2]
-                m = face_mat[prim]
+                al0 = mat_albedo[m, 0]
+                al1 = mat_albedo[m, 1]
+                al2 = mat_albedo[m, 2]
                 if tex_off[m] >= 0:
                     uu = (
                         w0 * face_uv[prim, 0, 0]
@@ -818,19 +818,19 @@ def trace_paths(
                     ca_ = r1 * (1 - r2)
                     cb_ = r1 * r2
                     y0 = (
-                        tri[lf, 0, 0]
-                        + ca_ * (tri[lf, 1, 0] - tri[lf, 0, 0])
-                        + cb_ * (tri[lf, 2, 0] - tri[lf, 0, 0])
+                        np.float64(tri[lf, 0, 0])
+                        + ca_ * (np.float64(tri[lf, 1, 0]) - np.float64(tri[lf, 0, 0]))
+                        + cb_ * (np.float64(tri[lf, 2, 0]) - np.float64(tri[lf, 0, 0]))
                     )
                     y1 = (
-                        tri[lf, 0, 1]
-                        + ca_ * (tri[lf, 1, 1] - tri[lf, 0, 1])
-                        + cb_ * (tri[lf, 2, 1] - tri[lf, 0, 1])
+                        np.float64(tri[lf, 0, 1])
+                        + ca_ * (np.float64(tri[lf, 1, 1]) - np.float64(tri[lf, 0, 1]))
+                        + cb_ * (np.float64(tri[lf, 2, 1]) - np.float64(tri[lf, 0, 1]))
                     )
                     y2 = (
-                        tri[lf, 0, 2]
-                        + ca_ * (tri[lf, 1, 2] - tri[lf, 0, 2])
-                        + cb_ * (tri[lf, 2, 2] - tri[lf, 0, 2])
+                        np.float64(tri[lf, 0, 2])
+                        + ca_ * (np.float64(tri[lf, 1, 2]) - np.float64(tri[lf, 0, 2]))
+                        + cb_ * (np.float64(tri[lf, 2, 2]) - np.float64(tri[lf, 0, 2]))
                     )
                     v0 = y0 - x0
                     v1 = y1 - x1
@@ -856,9 +856,9 @@ def trace_paths(
                                 gi,
                                 to_direct_dl and face_is_area[lf],
                                 s,
-                                fo0 * face_emission[lf, 0] * g,
-                                fo1 * face_emission[lf, 1] * g,
-                                fo2 * face_emission[lf, 2] * g,
+                                fo0 * mat_emission[face_mat[lf], 0] * g,
+                                fo1 * mat_emission[face_mat[lf], 1] * g,
+                                fo2 * mat_emission[face_mat[lf], 2] * g,
                             )
                 # ---- sky (importance-sampled from its table, MIS with the BSDF); always gi
                 if sky_mis:

@@ -410,8 +410,17 @@ class _SceneData:
         """Contiguous arrays for the numba kernels."""
         F = len(scene.faces)
         self.k_face_mat = np.ascontiguousarray(self.face_material, np.int64)
+        # per-face geometry as float32 (the scene stores float32: exact, half the memory the
+        # kernel reads at random); albedo and emission per material (a tiny, cached table)
+        self.k_tri = np.ascontiguousarray(self.tri, np.float32)
+        self.k_fn = np.ascontiguousarray(self.fn, np.float32)
+        self.k_vn = np.ascontiguousarray(self.vn, np.float32)
+        self.k_mat_albedo = np.ascontiguousarray(self.mat_albedo, np.float64)
+        self.k_mat_emission = np.ascontiguousarray(self.mat_emission, np.float64)
         self.k_face_uv = (
-            np.zeros((1, 3, 2)) if self.face_uv is None else np.ascontiguousarray(self.face_uv)
+            np.zeros((1, 3, 2), np.float32)
+            if self.face_uv is None
+            else np.ascontiguousarray(self.face_uv, np.float32)
         )
         M = len(scene.materials)
         self.k_tex_off = np.full(M, -1, np.int64)
@@ -577,11 +586,11 @@ class _Tracer:
             np.array([cam.fx, cam.fy, cam.cx, cam.cy], np.float64),
             np.ascontiguousarray(cam.world_from_cam[:3, :3], np.float64),
             np.ascontiguousarray(cam.position, np.float64),
-            sd.tri,
-            sd.fn,
-            sd.vn,
-            sd.face_albedo,
-            sd.face_emission,
+            sd.k_tri,
+            sd.k_fn,
+            sd.k_vn,
+            sd.k_mat_albedo,
+            sd.k_mat_emission,
             sd.k_face_mat,
             sd.k_face_uv,
             sd.k_tex,
