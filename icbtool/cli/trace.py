@@ -38,6 +38,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--denoise", action="store_true", help="denoise gi with Open Image Denoise")
     p.add_argument("--max-depth", type=int, default=8, help="max path depth (-1 = unbounded)")
+    p.add_argument(
+        "--sky-sampling",
+        choices=("auto", "mis", "bsdf"),
+        default="auto",
+        help="sky light samples with MIS ('auto': only for a peaked sky)",
+    )
+    p.add_argument("--sampler", choices=("sobol", "independent"), default="sobol")
+    p.add_argument(
+        "--fast-embree",
+        action="store_true",
+        help="Embree without robust mode (~15 %% faster; a ray may slip through a shared edge)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--height", type=int, default=None)
@@ -80,6 +92,9 @@ def run(args: argparse.Namespace) -> int:
         adaptive=args.adaptive,
         denoise=args.denoise,
         threads=args.threads,
+        sky_sampling=args.sky_sampling,
+        sampler=args.sampler,
+        robust=not args.fast_embree,
     )
     scene = load_scene(args.scene)
     cams = _cameras(scene, args.camera, args.every)
