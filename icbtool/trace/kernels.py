@@ -241,6 +241,25 @@ def _texel(tex, lut, p):
 
 
 @nb.njit(inline="always", **_JIT)
+def _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd):
+    """One channel of a bilinear lookup: texels p00..p11 with weights ga..gd."""
+    return (ga * _texel(tex, lut, p00) + gb * _texel(tex, lut, p01)) + (
+        gc * _texel(tex, lut, p10) + gd * _texel(tex, lut, p11)
+    )
+
+
+@nb.njit(inline="always", **_JIT)
+def _towards(x0, x1, x2, y0, y1, y2):
+    """Unit direction from point x to point y, and their distance: (w0, w1, w2, dist)."""
+    v0 = y0 - x0
+    v1 = y1 - x1
+    v2 = y2 - x2
+    dist = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    dd = max(dist, 1e-300)
+    return v0 / dd, v1 / dd, v2 / dd, dist
+
+
+@nb.njit(inline="always", **_JIT)
 def _eps(px, py, pz, t, diag):
     mag = max(abs(px), max(abs(py), abs(pz)))
     return 3e-5 * (mag + abs(t)) + 1e-6 * diag
@@ -687,26 +706,12 @@ def trace_paths(
                         gb = (1 - fy) * fx
                         gc = fy * (1 - fx)
                         gd = fy * fx
-                        al0 *= (
-                            ga * _texel(tex_flat, tex_lut, p00)
-                            + gb * _texel(tex_flat, tex_lut, p01)
-                        ) + (
-                            gc * _texel(tex_flat, tex_lut, p10)
-                            + gd * _texel(tex_flat, tex_lut, p11)
+                        al0 *= _bilerp(tex_flat, tex_lut, p00, p01, p10, p11, ga, gb, gc, gd)
+                        al1 *= _bilerp(
+                            tex_flat, tex_lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd
                         )
-                        al1 *= (
-                            ga * _texel(tex_flat, tex_lut, p00 + 1)
-                            + gb * _texel(tex_flat, tex_lut, p01 + 1)
-                        ) + (
-                            gc * _texel(tex_flat, tex_lut, p10 + 1)
-                            + gd * _texel(tex_flat, tex_lut, p11 + 1)
-                        )
-                        al2 *= (
-                            ga * _texel(tex_flat, tex_lut, p00 + 2)
-                            + gb * _texel(tex_flat, tex_lut, p01 + 2)
-                        ) + (
-                            gc * _texel(tex_flat, tex_lut, p10 + 2)
-                            + gd * _texel(tex_flat, tex_lut, p11 + 2)
+                        al2 *= _bilerp(
+                            tex_flat, tex_lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd
                         )
                 if depth == 1:
                     first_hit[s] = True
@@ -758,14 +763,9 @@ def trace_paths(
                             )
                 # ---- point and spot lights
                 for j in range(n_q):
-                    v0 = punct[j, 0] - x0
-                    v1 = punct[j, 1] - x1
-                    v2 = punct[j, 2] - x2
-                    dist = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-                    dd = max(dist, 1e-300)
-                    wi0 = v0 / dd
-                    wi1 = v1 / dd
-                    wi2 = v2 / dd
+                    wi0, wi1, wi2, dist = _towards(
+                        x0, x1, x2, punct[j, 0], punct[j, 1], punct[j, 2]
+                    )
                     c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
                     fall = 1.0
                     if punct[j, 11] > 0:
@@ -832,14 +832,7 @@ def trace_paths(
                         + ca_ * (np.float64(tri[lf, 1, 2]) - np.float64(tri[lf, 0, 2]))
                         + cb_ * (np.float64(tri[lf, 2, 2]) - np.float64(tri[lf, 0, 2]))
                     )
-                    v0 = y0 - x0
-                    v1 = y1 - x1
-                    v2 = y2 - x2
-                    dist = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-                    dd = max(dist, 1e-300)
-                    wi0 = v0 / dd
-                    wi1 = v1 / dd
-                    wi2 = v2 / dd
+                    wi0, wi1, wi2, dist = _towards(x0, x1, x2, y0, y1, y2)
                     c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
                     cl = -(fn[lf, 0] * wi0 + fn[lf, 1] * wi1 + fn[lf, 2] * wi2)
                     if c > 0 and cl > 0 and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0 and dist > 0:
