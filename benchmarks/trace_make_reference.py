@@ -33,7 +33,7 @@ def main() -> None:
     scene = icb.scene.cornell_box()
     cam = scene.default_camera.resized(SIZE, SIZE)
     cfg = TraceConfig(spp=args.spp, **REF_CONFIG)
-    res = icb.trace.render(scene, cam, cfg)
+    res = icb.trace.render(scene, cam, cfg, progress=True)
     OUT.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
         OUT,

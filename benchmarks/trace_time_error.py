@@ -351,7 +351,7 @@ def main() -> None:
             ref_direct = z["ours_direct"]
             print(f"{name}: references from {cache}", flush=True)
         else:
-            ref_ours = icb.trace.render(scene, cam, ref_cfg)
+            ref_ours = icb.trace.render(scene, cam, ref_cfg, progress=True)
             ref_full, ref_direct = ref_ours.full, ref_ours.direct
             print(f"{name}: our reference {time.perf_counter() - t0:.1f} s", flush=True)
             ref_mi = mitsuba_reference(scene, cam, args.ref_spp, 1000, MAX_DEPTH)

@@ -220,6 +220,18 @@ def test_adaptive_and_target_error_and_time_budget():
     _finite_nonneg(res)
 
 
+def test_progress_callback_sees_every_pass_and_bar_runs(capsys):
+    scene = icb.scene.cornell_box()
+    cam = scene.default_camera.resized(16, 16)
+    seen = []
+    res = render(scene, cam, TraceConfig(spp=10, spp_per_pass=4),
+                 progress=lambda st: seen.append(st.error_history[-1][1]))  # fmt: skip
+    assert seen == [16 * 16 * 4, 16 * 16 * 8, 16 * 16 * 10] and res.stats.passes == 3
+    quiet = render(scene, cam, TraceConfig(spp=10, spp_per_pass=4), progress=True)
+    assert np.array_equal(quiet.gi, res.gi)  # a progress bar changes nothing
+    assert "trace 16x16" in capsys.readouterr().err
+
+
 def test_denoise_runs_and_keeps_raw():
     pytest.importorskip("pyoidn")
     scene = icb.scene.cornell_box()

@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     for name, cam in tqdm(cams, desc="trace", disable=len(cams) < 2):
         if args.height or args.width:
             cam = cam.resized(args.height or cam.height, args.width or cam.width)
-        res = render(scene, cam, cfg)
+        res = render(scene, cam, cfg, progress=len(cams) == 1)
         d = out / name if len(cams) > 1 else out
         d.mkdir(parents=True, exist_ok=True)
         for key in ("gi", "direct", "full", "variance"):

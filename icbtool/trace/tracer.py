@@ -42,6 +42,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
@@ -716,6 +717,7 @@ def render(
     config: TraceConfig | None = None,
     *,
     ray_log: dict[str, np.ndarray] | None = None,
+    progress: bool | Callable[[TraceStats], None] = False,
 ) -> TraceResult:
     """Path trace one view progressively.
 
@@ -726,6 +728,9 @@ def render(
         ray_log: for benchmarks: {"o", "d": (C, 3) float32, "tfar": (C,) float32, "kind": (C,)
             int8, "n": (1,) int64} receives the first C rays traced, in order (kind 0: closest
             hit, 1: shadow ray), with ``n`` counting them; it makes the render single-threaded.
+        progress: True shows a progress bar (mean spp, relative error) on stderr; a callable
+            is called with the :class:`TraceStats` after every pass (``stats.error_history[-1]``
+            is (seconds, samples, relative error) so far).
 
     Returns:
         :class:`TraceResult` with (H, W, C) float32 buffers.
@@ -759,6 +764,11 @@ def render(
     rel = ws.get("rel", (npix,), np.float64)
     active = np.arange(npix)
     n_skipped_pixels = 0
+    bar = None
+    if progress is True:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.spp, desc=f"trace {W}x{H}", unit="spp", leave=False)
     while True:
         remaining = cfg.spp - acc_gi.n[active]
         active = active[remaining > 0]
@@ -796,6 +806,11 @@ def render(
         elapsed = time.perf_counter() - t_start
         stats.error_history.append((elapsed, int(acc_gi.n.sum()), mean_rel))
         stats.add_time("accumulate", time.perf_counter() - t0)
+        if bar is not None:
+            bar.n = round(stats.error_history[-1][1] / npix, 2)
+            bar.set_postfix(rel_err=f"{mean_rel:.4f}", refresh=True)
+        elif callable(progress):
+            progress(stats)
         if cfg.target_error is not None and mean_rel <= cfg.target_error and stats.passes >= 2:
             stats.stop_reason = "target_error"
             break
@@ -809,6 +824,8 @@ def render(
             if len(active) == 0:
                 stats.stop_reason = "converged"
                 break
+    if bar is not None:
+        bar.close()
     if n_skipped_pixels:
         stats.skipped.append(
             f"adaptive: {n_skipped_pixels} of {npix} pixels below the target error stopped early"
