@@ -30,6 +30,8 @@ from icbtool.trace.embree import EmbreeScene
 from icbtool.trace.rtc import RtcScene
 
 REPO = Path(__file__).resolve().parents[1]
+#: ray kinds of the tracer's ray log
+KINDS = (("primary", 0), ("bounce", 2), ("shadow", 1))
 OUT = REPO / "benchmarks" / "results" / "trace"
 
 
@@ -55,14 +57,14 @@ def record(scene, cam, cfg, capacity: int) -> dict[str, np.ndarray]:
 
 
 def replay_embreex(es: EmbreeScene, rays: dict, threads: int = 2) -> dict[str, float]:
-    """Seconds embreex needs for the closest-hit and the shadow rays of ``rays``."""
+    """Seconds embreex needs for the camera, bounce and shadow rays of ``rays``."""
     out = {}
-    for name, kind in (("intersect", 0), ("shadow", 1)):
+    for name, kind in KINDS:
         sel = rays["kind"] == kind
         o = np.ascontiguousarray(rays["o"][sel])
         d = np.ascontiguousarray(rays["d"][sel])
         t0 = time.perf_counter()
-        if kind == 0:
+        if kind != 1:
             es.intersect_raw(o, d, threads)
         else:
             es.occluded_raw(o, d, np.ascontiguousarray(rays["tfar"][sel]), threads)
@@ -74,7 +76,7 @@ def replay_direct(rs: RtcScene, rays: dict, threads: int = 2) -> dict[str, float
     """Seconds the tracer's direct Embree calls need for the same rays (no shading)."""
     pool = ThreadPoolExecutor(threads)
     out = {}
-    for name, kind in (("intersect", 0), ("shadow", 1)):
+    for name, kind in KINDS:
         sel = rays["kind"] == kind
         o = np.ascontiguousarray(rays["o"][sel])
         d = np.ascontiguousarray(rays["d"][sel])
@@ -84,7 +86,7 @@ def replay_direct(rs: RtcScene, rays: dict, threads: int = 2) -> dict[str, float
         u, v, blocked = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.bool_)
         tf = np.ascontiguousarray(rays["tfar"][sel])
         t0 = time.perf_counter()
-        if kind == 0:
+        if kind != 1:
             fut = [
                 pool.submit(
                     K.rtc_intersect_batch,
@@ -137,7 +139,6 @@ def bench(scene, cam, cfg, repeats: int = 3) -> dict:
     emb = min((replay_embreex(es, rays) for _ in range(repeats)), key=lambda x: sum(x.values()))
     dirc = min((replay_direct(rs, rays) for _ in range(repeats)), key=lambda x: sum(x.values()))
     total_rays = st.total_rays
-    n_isect = st.rays["primary"] + st.rays["bounce"]
     t_trace = st.time_s["total"]
     return {
         "scene": scene.name,
@@ -153,9 +154,9 @@ def bench(scene, cam, cfg, repeats: int = 3) -> dict:
         "tracer_Mrays_per_s": total_rays / t_trace / 1e6,
         "embreex_replay_s": emb,
         "embreex_replay_Mrays_per_s": n_logged / sum(emb.values()) / 1e6,
-        "embreex_replay_by_kind_Mrays_per_s": {
-            "intersect": n_isect / emb["intersect"] / 1e6,
-            "shadow": st.rays["shadow"] / emb["shadow"] / 1e6,
+        "embreex_replay_by_kind_Mrays_per_s": {k: st.rays[k] / emb[k] / 1e6 for k in st.rays},
+        "direct_embree_replay_by_kind_Mrays_per_s": {
+            k: st.rays[k] / dirc[k] / 1e6 for k in st.rays
         },
         "direct_embree_replay_s": dirc,
         "direct_embree_replay_Mrays_per_s": n_logged / sum(dirc.values()) / 1e6,

@@ -500,7 +500,7 @@ def trace_paths(
     nrm_out,
     # (3,) rays traced by this part: primary, bounce, shadow
     counts,
-    # ray log (benchmarks): o, d (C, 3), tfar (C,), kind (C,) 0 = closest hit, 1 = shadow;
+    # ray log (benchmarks): o, d (C, 3), tfar (C,), kind (C,) 0 = camera, 1 = shadow, 2 = bounce;
     # log_n (1,) entries used; C <= 1 turns logging off
     log_o,
     log_d,
@@ -573,7 +573,7 @@ def trace_paths(
             from_first = False
             for depth in range(1, limit + 1):
                 # ---- closest hit of segment `depth`
-                _log_ray(log, 0, ox, oy, oz, dx, dy, dz, np.float32(np.inf))
+                _log_ray(log, 0 if depth == 1 else 2, ox, oy, oz, dx, dy, dz, np.float32(np.inf))
                 dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
                 h_t, prim, h_u, h_v = _intersect(
                     rtc, fn_isect, w_, f_, k_, addr, ox, oy, oz, dx32, dy32, dz32

@@ -726,8 +726,9 @@ def render(
         cam: the camera (its height/width set the image size).
         config: :class:`TraceConfig` (default: ``TraceConfig()``).
         ray_log: for benchmarks: {"o", "d": (C, 3) float32, "tfar": (C,) float32, "kind": (C,)
-            int8, "n": (1,) int64} receives the first C rays traced, in order (kind 0: closest
-            hit, 1: shadow ray), with ``n`` counting them; it makes the render single-threaded.
+            int8, "n": (1,) int64} receives the first C rays traced, in order (kind 0: camera
+            ray, 1: shadow ray, 2: bounce ray), with ``n`` counting them; it makes the render
+            single-threaded.
         progress: True shows a progress bar (mean spp, relative error) on stderr; a callable
             is called with the :class:`TraceStats` after every pass (``stats.error_history[-1]``
             is (seconds, samples, relative error) so far).
