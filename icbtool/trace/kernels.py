@@ -462,7 +462,10 @@ def trace_paths(
     intr,
     r_wc,
     pos,
-    # scene
+    # scene: per face (F) float32 corners (F, 3, 3), geometric normal (F, 3), corner normals
+    # (F, 3, 3); per material (M) albedo, emission (M, 3) float64; material (F,), corner uvs
+    # (F, 3, 2) float32; texels (codes into tex_lut, or values if it is empty), per-material
+    # offset into them (-1: untextured) and (h, w)
     tri,
     fn,
     vn,
@@ -474,11 +477,13 @@ def trace_paths(
     tex_lut,
     tex_off,
     tex_hw,
+    # emitters: pmf (F,), area (F,), part of an AreaLight (F,), emissive faces (E,), their CDF
     face_light_pmf,
     face_area,
     face_is_area,
     emit_faces,
     emit_cdf,
+    # delta lights (see below); sky: 0 none, 1 uniform, 2 gradient, [zenith, horizon, ground, up]
     suns,
     punct,
     sky_kind,
@@ -515,8 +520,8 @@ def trace_paths(
 
     Outputs are per sample, so parts write disjoint rows: several threads can run parts at once
     (the kernel releases the GIL). Per sample, contributions are added in a fixed order (emission
-    seen, then each light's shadow-tested sample: suns, point/spot, emitter), so images do not
-    depend on the number of parts.
+    seen, then each light's shadow-tested sample: suns, point/spot, emitter, sky), so images do
+    not depend on the number of parts.
 
     suns: (S, 6) direction, irradiance. punct: (Q, 12) position, intensity, axis, cos_in,
     cos_out, is_spot.
