@@ -232,14 +232,20 @@ def test_progress_callback_sees_every_pass_and_bar_runs(capsys):
     assert "trace 16x16" in capsys.readouterr().err
 
 
-def test_denoise_runs_and_keeps_raw():
+@pytest.mark.parametrize("quality", ["high", "fast"])
+def test_denoise_runs_and_keeps_raw(quality):
     pytest.importorskip("pyoidn")
     scene = icb.scene.cornell_box()
     cam = scene.default_camera.resized(32, 32)
-    res = render(scene, cam, TraceConfig(spp=4, denoise=True))
+    res = render(scene, cam, TraceConfig(spp=4, denoise=True, denoise_quality=quality))
     assert res.gi is not res.gi_raw and np.all(np.isfinite(res.gi)) and res.gi.min() >= 0
     # denoised image is smoother than the raw one
     assert np.abs(np.diff(res.gi, axis=1)).mean() < np.abs(np.diff(res.gi_raw, axis=1)).mean()
+    if quality == "fast":  # another network than 'high', the same raw samples
+        high = render(scene, cam, TraceConfig(spp=4, denoise=True))
+        assert np.array_equal(high.gi_raw, res.gi_raw) and not np.array_equal(high.gi, res.gi)
+        with pytest.raises(ValueError, match="denoise_quality"):
+            TraceConfig(denoise=True, denoise_quality="best")
 
 
 # ------------------------------------------------------------------------------ DL vs raster

@@ -37,6 +37,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--adaptive", action="store_true", help="adaptive sampling (needs --target-error)"
     )
     p.add_argument("--denoise", action="store_true", help="denoise gi with Open Image Denoise")
+    p.add_argument(
+        "--denoise-quality",
+        choices=("high", "balanced", "fast"),
+        default="high",
+        help="OIDN quality ('fast': about half the time)",
+    )
     p.add_argument("--max-depth", type=int, default=8, help="max path depth (-1 = unbounded)")
     p.add_argument(
         "--sky-sampling",
@@ -91,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
         target_error=args.target_error,
         adaptive=args.adaptive,
         denoise=args.denoise,
+        denoise_quality=args.denoise_quality,
         threads=args.threads,
         sky_sampling=args.sky_sampling,
         sampler=args.sampler,

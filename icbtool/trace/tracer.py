@@ -87,6 +87,10 @@ class TraceConfig:
     """Passes over every pixel before adaptive sampling starts."""
     denoise: bool = False
     """Denoise ``gi`` (and ``full``) with Open Image Denoise using the first-hit albedo/normal."""
+    denoise_quality: Literal["high", "balanced", "fast"] = "high"
+    """OIDN's quality setting. 'fast' takes half the time at 256x256 on the CPU (60 vs 120 ms)
+    for about the same error (Cornell/Sponza at 4 spp: RMSE 0.0568/0.0320 vs 0.0568/0.0316,
+    FLIP 0.043/0.083 vs 0.044/0.080); 'balanced' gave the same images as 'high' here."""
     pixel_jitter: bool = True
     """Box-filter pixels by jittering primary rays; False samples pixel centres (like a raster)."""
     shading_normals: bool = True
@@ -135,6 +139,8 @@ class TraceConfig:
             raise bad("texture_filter", "must be 'bilinear' or 'nearest'")
         if self.sampler not in ("sobol", "independent"):
             raise bad("sampler", "must be 'sobol' or 'independent'")
+        if self.denoise_quality not in ("high", "balanced", "fast"):
+            raise bad("denoise_quality", "must be 'high', 'balanced' or 'fast'")
         if self.sky_sampling not in ("auto", "mis", "bsdf"):
             raise bad("sky_sampling", "must be 'auto', 'mis' or 'bsdf'")
         if self.adaptive and self.target_error is None:
@@ -862,7 +868,7 @@ def render(
     gi_raw = gi
     if cfg.denoise:
         t0 = time.perf_counter()
-        gi = denoise(gi, albedo, normal)
+        gi = denoise(gi, albedo, normal, quality=cfg.denoise_quality)
         stats.add_time("denoise", time.perf_counter() - t0)
     stats.time_s["total"] = time.perf_counter() - t_start
     log.info(
@@ -892,7 +898,10 @@ def render(
 
 
 def denoise(
-    color: np.ndarray, albedo: np.ndarray | None = None, normal: np.ndarray | None = None
+    color: np.ndarray,
+    albedo: np.ndarray | None = None,
+    normal: np.ndarray | None = None,
+    quality: Literal["high", "balanced", "fast"] = "high",
 ) -> np.ndarray:
     """Open Image Denoise (pyoidn, HDR) with optional first-hit albedo/normal aux buffers.
 
@@ -900,6 +909,7 @@ def denoise(
         color: (H, W, 3) linear HDR, >= 0.
         albedo: (H, W, 3) in [0, 1] or None.
         normal: (H, W, 3) in [-1, 1] or None (needs albedo too).
+        quality: OIDN's quality setting (see ``TraceConfig.denoise_quality``).
 
     Returns:
         (H, W, 3) float32.
@@ -913,7 +923,9 @@ def denoise(
     c = np.ascontiguousarray(np.maximum(color, 0), np.float32)
     a = None if albedo is None else np.ascontiguousarray(np.clip(albedo, 0, 1), np.float32)
     nn = None if (normal is None or a is None) else np.ascontiguousarray(normal, np.float32)
-    out = pyoidn.denoise(c, a, nn, hdr=True)
+    if quality not in ("high", "balanced", "fast"):
+        raise ValueError(f"denoise quality must be 'high', 'balanced' or 'fast', got {quality!r}")
+    out = pyoidn.denoise(c, a, nn, hdr=True, quality=quality)
     return np.maximum(np.asarray(out, np.float32), 0.0)
 
 
