@@ -1,0 +1,96 @@
+"""Open Image Denoise quality settings: time against error of the denoised GI.
+
+Renders each scene once (256x256, default config, 4 spp), denoises the GI with OIDN's 'high',
+'balanced' and 'fast' quality (first-hit albedo + normal), and scores direct + denoised GI against
+the tracer's own 1024-spp reference (cached by benchmarks/trace_time_error.py, or rendered here).
+
+    .venv/bin/python benchmarks/denoise_quality.py [--spp 4] [--repeats 5]
+
+Writes benchmarks/results/trace/denoise_quality.{json,png}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import icbtool as icb
+from icbtool.cli._common import run_info, write_json
+from icbtool.trace import TraceConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from trace_time_error import MAX_DEPTH, REF_CACHE, errors, sponza  # noqa: E402
+
+OUT = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "trace"
+QUALITIES = ("high", "balanced", "fast")
+
+
+def reference(name: str, scene, cam, ref_spp: int = 1024) -> np.ndarray:
+    cache = REF_CACHE / f"{name}_{cam.width}_{ref_spp}.npz"
+    if cache.is_file():
+        return np.load(cache)["ours_full"]
+    cfg = TraceConfig(spp=ref_spp, seed=1000, sampler="independent", max_depth=MAX_DEPTH,
+                      rr_depth=4, spp_per_pass=4)  # fmt: skip
+    return icb.trace.render(scene, cam, cfg, progress=True).full
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--spp", type=int, default=4)
+    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--repeats", type=int, default=5)
+    args = ap.parse_args()
+    rows = []
+    for name in ("cornell_box", "sponza"):
+        try:
+            scene = icb.scene.cornell_box() if name == "cornell_box" else sponza()
+        except (FileNotFoundError, ValueError) as e:
+            print(f"{name} unavailable: {e}")
+            continue
+        cam = scene.default_camera.resized(args.size, args.size)
+        ref = reference(name, scene, cam)
+        cfg = TraceConfig(spp=args.spp, seed=args.spp, max_depth=MAX_DEPTH, rr_depth=4)
+        r = icb.trace.render(scene, cam, cfg)
+        raw = {"scene": name, "quality": "none (raw)", "denoise_ms": 0.0}
+        rows.append({**raw, **errors(ref, r.full)})
+        for q in QUALITIES:
+            icb.trace.denoise(r.gi_raw, r.albedo, r.normal, quality=q)  # loads the weights
+            best, out = np.inf, None
+            for _ in range(args.repeats):
+                t0 = time.perf_counter()
+                out = icb.trace.denoise(r.gi_raw, r.albedo, r.normal, quality=q)
+                best = min(best, time.perf_counter() - t0)
+            row = {"scene": name, "quality": q, "denoise_ms": 1e3 * best}
+            rows.append({**row, **errors(ref, r.direct + out)})
+        for row in rows[-4:]:
+            print(f"{name} {row['quality']:>10}: {row['denoise_ms']:6.1f} ms, "
+                  f"RMSE {row['rmse']:.4f}, FLIP {row['flip']:.4f}")  # fmt: skip
+    OUT.mkdir(parents=True, exist_ok=True)
+    write_json(OUT / "denoise_quality.json", {"args": vars(args), "rows": rows,
+                                               "run_info": run_info()})  # fmt: skip
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = sorted({r["scene"] for r in rows})
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
+    for ax, key in zip(axes, ("denoise_ms", "rmse", "flip")):
+        for i, sc in enumerate(scenes):
+            sel = [r for r in rows if r["scene"] == sc]
+            ax.bar(np.arange(len(sel)) + 0.4 * i, [r[key] for r in sel], 0.4, label=sc)
+            ax.set_xticks(np.arange(len(sel)) + 0.2, [r["quality"] for r in sel], fontsize=8)
+        ax.set_title(key)
+    axes[0].legend()
+    fig.suptitle(f"OIDN quality, {args.size}x{args.size}, {args.spp} spp GI")
+    fig.tight_layout()
+    fig.savefig(OUT / "denoise_quality.png", dpi=100)
+    print(f"wrote {OUT / 'denoise_quality.json'}")
+
+
+if __name__ == "__main__":
+    main()
