@@ -564,6 +564,22 @@ def test_threads_split_kernels_and_embree_deterministic(sampler):
     assert np.array_equal(a.albedo, b.albedo) and np.array_equal(a.variance, b.variance)
 
 
+def test_passes_split_into_calls_give_the_same_image(monkeypatch):
+    """Large passes are traced in calls of MAX_SAMPLES_PER_CALL samples: any split (here one
+    that cuts through pixels' samples and kernel blocks) gives the same image, bit for bit."""
+    from icbtool.trace import tracer
+
+    scene = icb.scene.cornell_box()
+    cam = scene.default_camera.resized(24, 24)
+    cfg = TraceConfig(spp=7, spp_per_pass=3, seed=4)
+    a = render(scene, cam, cfg)
+    monkeypatch.setattr(tracer, "MAX_SAMPLES_PER_CALL", 1001)
+    b = render(scene, cam, cfg)
+    for name in ("gi", "direct", "variance", "albedo", "normal", "mask", "spp"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert a.stats.rays == b.stats.rays
+
+
 def test_reused_workspaces_do_not_leak_between_renders():
     """Buffers are reused across renders: a render in between (another scene, size, lights)
     must not change the result of the same render repeated."""

@@ -59,6 +59,9 @@ log = logging.getLogger(__name__)
 HARD_MAX_DEPTH = 1024
 #: ``sky_sampling='auto'`` samples the sky (MIS) when its peak/mean luminance exceeds this.
 SKY_MIS_PEAK = 2.5
+#: Samples traced per kernel call: a pass over a large image is split into calls of this many
+#: (the per-sample buffers take ~110 bytes a sample: ~115 MB at this size).
+MAX_SAMPLES_PER_CALL = 1 << 20
 _LUM = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -786,27 +789,33 @@ def render(
         pix = np.repeat(active, k).astype(np.int64)
         start = np.repeat(acc_gi.n[active], k)
         sid = start + (np.arange(len(pix)) - np.repeat(np.cumsum(k) - k, k))
-        direct, gi, hit, alb, nrm = tracer.trace(pix, sid, ray_log)
+        # a pass is traced in chunks of at most MAX_SAMPLES_PER_CALL samples (bounded memory at
+        # any image size); samples are merged in the same order, so chunking changes nothing
+        for a in range(0, len(pix), MAX_SAMPLES_PER_CALL):
+            pc, sc_ = pix[a : a + MAX_SAMPLES_PER_CALL], sid[a : a + MAX_SAMPLES_PER_CALL]
+            direct, gi, hit, alb, nrm = tracer.trace(pc, sc_, ray_log)
+            t0 = time.perf_counter()
+            K.accumulate_pass(
+                pc,
+                gi,
+                direct,
+                hit,
+                alb if want_aux else gi,
+                nrm if want_aux else gi,
+                want_aux,
+                _LUM,
+                acc_gi.n,
+                acc_gi.mean,
+                acc_gi.m2,
+                acc_dir.n,
+                acc_dir.mean,
+                acc_dir.m2,
+                hit_sum,
+                alb_sum,
+                nrm_sum,
+            )
+            stats.add_time("accumulate", time.perf_counter() - t0)
         t0 = time.perf_counter()
-        K.accumulate_pass(
-            pix,
-            gi,
-            direct,
-            hit,
-            alb if want_aux else gi,
-            nrm if want_aux else gi,
-            want_aux,
-            _LUM,
-            acc_gi.n,
-            acc_gi.mean,
-            acc_gi.m2,
-            acc_dir.n,
-            acc_dir.mean,
-            acc_dir.m2,
-            hit_sum,
-            alb_sum,
-            nrm_sum,
-        )
         stats.passes += 1
         mean_rel = float(K.rel_error_lum(acc_gi.n, acc_gi.mean, acc_gi.m2, hit_sum, rel))
         stats.rel_error = mean_rel
