@@ -23,7 +23,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -56,6 +56,8 @@ class LoopConfig:
     """Path-tracing samples per pixel of the cloud's GI maps."""
     denoise: bool = True
     """Denoise the GI maps the cloud serves (OIDN with albedo and normal)."""
+    denoise_quality: Literal["high", "balanced", "fast"] = "high"
+    """OIDN quality of the served maps ('fast': about half the denoising time)."""
     max_depth: int = 8
     """Longest traced path (segments)."""
     alpha_pos: float = 0.1
@@ -88,6 +90,11 @@ class LoopConfig:
             raise ValueError(f"LoopConfig.fov_step_deg must be in [0, 30), got {self.fov_step_deg}")
         if self.alpha_pos <= 0 or self.alpha_dir <= 0:
             raise ValueError("LoopConfig.alpha_pos and alpha_dir must be > 0")
+        if self.denoise_quality not in ("high", "balanced", "fast"):
+            raise ValueError(
+                "LoopConfig.denoise_quality must be 'high', 'balanced' or 'fast', "
+                f"got {self.denoise_quality!r}"
+            )
 
 
 @dataclass
@@ -256,6 +263,7 @@ def run_loop(
                             seed=cfg.seed + 1000 + k,
                             max_depth=cfg.max_depth,
                             denoise=cfg.denoise,
+                            denoise_quality=cfg.denoise_quality,
                         ),
                         rz,
                         buffers=_WRT_BUFFERS,

@@ -52,6 +52,8 @@ def test_loop_config_validation():
         LoopConfig(frames=0)
     with pytest.raises(ValueError, match="latency_s"):
         LoopConfig(latency_s=-1.0)
+    with pytest.raises(ValueError, match="denoise_quality"):
+        LoopConfig(denoise_quality="best")
     scene = icb.scene.plane()
     with pytest.raises(ValueError, match="no camera path 'test'"):
         run_loop(scene, LoopConfig(frames=1), progress=False)

@@ -10,6 +10,7 @@ import sys
 import tempfile
 import textwrap
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from scipy.spatial.transform import Rotation
 
+import icbtool as icb
 import icbtool.store as S
 from icbtool.camera import Camera
 
@@ -576,6 +578,23 @@ def _tiny_scene():
         poses.append(m)
     scene.paths["tiny"] = CameraPath(np.arange(3.0), np.stack(poses), base, "tiny")
     return scene
+
+
+def test_bake_denoise_quality_reaches_the_tracer(tmp_path):
+    pytest.importorskip("pyoidn")
+    scene = _tiny_scene()
+    with pytest.raises(ValueError, match="denoise_quality"):
+        S.BakeConfig(denoise_quality="best")
+    cfg = S.BakeConfig(spp=2, gbuffer="trace", progress=False, limit=1, denoise=True,
+                       denoise_quality="fast")  # fmt: skip
+    with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as store:
+        (rid,) = S.bake(scene, "tiny", store, cfg).rendered
+        rec = store.get(rid)
+    cam = scene.paths["tiny"].cameras()[0]
+    tcfg = icb.trace.TraceConfig(spp=2, seed=0, denoise=True, denoise_quality="fast")
+    fast = icb.trace.render(scene, cam, tcfg)
+    high = icb.trace.render(scene, cam, replace(tcfg, denoise_quality="high"))
+    assert np.array_equal(rec.gi, fast.gi) and not np.array_equal(rec.gi, high.gi)
 
 
 def test_bake_without_gl_is_resumable(tmp_path):

@@ -39,6 +39,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--truth-spp", type=int, default=128, help="samples per pixel of the truth")
     p.add_argument("--no-prefetch", action="store_true", help="reference at the old camera")
     p.add_argument("--no-denoise", action="store_true", help="serve raw (noisy) GI maps")
+    p.add_argument(
+        "--denoise-quality",
+        choices=("high", "balanced", "fast"),
+        default="high",
+        help="OIDN quality ('fast': about half the denoising time)",
+    )
     p.add_argument("--fresh", action="store_true", help="empty the cloud cache first")
 
 
@@ -76,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
         truth_spp=args.truth_spp,
         prefetch=not args.no_prefetch,
         denoise=not args.no_denoise,
+        denoise_quality=args.denoise_quality,
     )
     report = pipeline.run_loop(scene, cfg, out_dir=out)
     s = report.summary()

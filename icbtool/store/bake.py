@@ -35,6 +35,8 @@ class BakeConfig:
     """Longest traced path (segments), as :class:`icbtool.trace.TraceConfig`."""
     denoise: bool = False
     """Denoise GI with OIDN (the stored GI is then the denoised one)."""
+    denoise_quality: Literal["high", "balanced", "fast"] = "high"
+    """OIDN quality ('fast': about half the denoising time, see TraceConfig.denoise_quality)."""
     gbuffer: Literal["raster", "trace"] = "raster"
     """Where DL and the G-buffers come from: the OpenGL rasterizer (the system's design), or a
     primary Embree ray cast at pixel centres plus the tracer's direct light (no OpenGL needed)."""
@@ -74,6 +76,11 @@ class BakeConfig:
         if self.gbuffer not in ("raster", "trace"):
             raise ValueError(
                 f"BakeConfig.gbuffer must be 'raster' or 'trace', got {self.gbuffer!r}"
+            )
+        if self.denoise_quality not in ("high", "balanced", "fast"):
+            raise ValueError(
+                "BakeConfig.denoise_quality must be 'high', 'balanced' or 'fast', "
+                f"got {self.denoise_quality!r}"
             )
         if self.cloud_camera not in ("same", "wider", "prefetch"):
             raise ValueError(
@@ -310,7 +317,11 @@ def bake(
             )
         for i, cam in todo:
             tcfg = trace.TraceConfig(
-                spp=cfg.spp, seed=cfg.seed + i, max_depth=cfg.max_depth, denoise=cfg.denoise
+                spp=cfg.spp,
+                seed=cfg.seed + i,
+                max_depth=cfg.max_depth,
+                denoise=cfg.denoise,
+                denoise_quality=cfg.denoise_quality,
             )
             tags = {
                 **cfg.tags,
