@@ -356,34 +356,25 @@ class _SceneData:
     def __init__(self, scene: Scene) -> None:
         v = scene.vertices.astype(np.float64)
         f = scene.faces
-        self.tri = v[f]  # (F, 3, 3)
-        self.e1 = self.tri[:, 1] - self.tri[:, 0]
-        self.e2 = self.tri[:, 2] - self.tri[:, 0]
-        self.fn = scene.face_normals.astype(np.float64)
-        self.vn = scene.normals.astype(np.float64)[f]  # (F, 3, 3)
+        self.tri = v[f]  # (F, 3, 3) float64 (area-light matching below)
         self.face_material = scene.face_material
         self.mat_albedo = np.stack([m.albedo for m in scene.materials]).astype(np.float64)
         self.mat_emission = np.stack([m.emission for m in scene.materials]).astype(np.float64)
         self.textures = {i: m.texture for i, m in enumerate(scene.materials) if m.is_textured}
-        self.face_uv = None if scene.uvs is None else scene.uvs.astype(np.float64)[f]
-        self.face_albedo = self.mat_albedo[self.face_material]
         self.face_emission = self.mat_emission[self.face_material]
-        self.face_textured = np.array([m.is_textured for m in scene.materials])[self.face_material]
-        b = scene.bounds
-        self.extent = float(np.max(np.abs(b)))
         self.diag = max(scene.diagonal, 1e-30)
         # emitters: all emissive faces with positive area, sampled by power
         area = scene.face_areas
         power = area * (self.face_emission @ _LUM)
         emit = np.flatnonzero((power > 0) & np.isfinite(power))
         self.emit_faces = emit
-        self.face_light_pmf = np.zeros(len(f))
+        self.face_light_pmf = np.zeros(len(f))  # float64, contiguous
         if len(emit):
             p = power[emit] / power[emit].sum()
             self.face_light_pmf[emit] = p
             self.emit_cdf = np.cumsum(p)
             self.emit_cdf[-1] = 1.0
-        self.face_area = area
+        self.face_area = np.ascontiguousarray(area, np.float64)
         # faces belonging to an AreaLight (their light is "direct"); others' light is GI
         self.face_is_area_light = np.zeros(len(f), bool)
         emissive = np.flatnonzero(np.any(self.face_emission > 0, axis=1))
@@ -420,24 +411,26 @@ class _SceneData:
         """Contiguous arrays for the numba kernels."""
         F = len(scene.faces)
         self.k_face_mat = np.ascontiguousarray(self.face_material, np.int64)
-        # per-face geometry as float32 (the scene stores float32: exact, half the memory the
-        # kernel reads at random); albedo and emission per material (a tiny, cached table)
-        self.k_tri = np.ascontiguousarray(self.tri, np.float32)
-        self.k_fn = np.ascontiguousarray(self.fn, np.float32)
-        self.k_vn = np.ascontiguousarray(self.vn, np.float32)
+        # per-face geometry as the scene stores it (float32: half the memory the kernel reads at
+        # random); albedo and emission per material (a tiny, cached table)
+        f = scene.faces
+        self.k_tri = np.ascontiguousarray(scene.vertices[f], np.float32)
+        self.k_fn = np.ascontiguousarray(scene.face_normals, np.float32)
+        self.k_vn = np.ascontiguousarray(scene.normals[f], np.float32)
         self.k_mat_albedo = np.ascontiguousarray(self.mat_albedo, np.float64)
         self.k_mat_emission = np.ascontiguousarray(self.mat_emission, np.float64)
+        has_uv = scene.uvs is not None
         self.k_face_uv = (
-            np.zeros((1, 3, 2), np.float32)
-            if self.face_uv is None
-            else np.ascontiguousarray(self.face_uv, np.float32)
+            np.ascontiguousarray(scene.uvs[f], np.float32)
+            if has_uv
+            else np.zeros((1, 3, 2), np.float32)
         )
         M = len(scene.materials)
         self.k_tex_off = np.full(M, -1, np.int64)
         self.k_tex_hw = np.ones((M, 2), np.int64)
         chunks, off = [], 0
         for m, tex in self.textures.items():
-            if self.face_uv is None:
+            if not has_uv:
                 continue  # no uvs: the texture cannot be looked up (the material albedo is used)
             t = np.ascontiguousarray(tex, np.float32)
             self.k_tex_off[m] = off
@@ -473,10 +466,7 @@ class _SceneData:
                 [self.sky.zenith, self.sky.horizon, self.sky.ground, self.sky.up], np.float64
             )
             self.k_sky_table = SkyTable.of(self.sky)
-        for name in ("tri", "fn", "vn", "face_albedo", "face_emission", "face_light_pmf"):
-            setattr(self, name, np.ascontiguousarray(getattr(self, name), np.float64))
-        self.face_area = np.ascontiguousarray(self.face_area, np.float64)
-        assert self.tri.shape == (F, 3, 3)
+        assert self.k_tri.shape == (F, 3, 3)
 
     @classmethod
     def of(cls, scene: Scene) -> _SceneData:
