@@ -23,11 +23,12 @@ import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
 from icbtool.camera import CameraPath
+from icbtool.trace.tracer import DenoiseQuality, check_denoise_quality
 
 #: The client's WRT-buffer (ICB.md section 2; the mask always comes with it).
 _WRT_BUFFERS = ("dl", "albedo", "normal_world", "depth")
@@ -56,7 +57,7 @@ class LoopConfig:
     """Path-tracing samples per pixel of the cloud's GI maps."""
     denoise: bool = True
     """Denoise the GI maps the cloud serves (OIDN with albedo and normal)."""
-    denoise_quality: Literal["high", "balanced", "fast"] = "high"
+    denoise_quality: DenoiseQuality = "high"
     """OIDN quality of the served maps ('fast': about half the denoising time)."""
     max_depth: int = 8
     """Longest traced path (segments)."""
@@ -90,11 +91,7 @@ class LoopConfig:
             raise ValueError(f"LoopConfig.fov_step_deg must be in [0, 30), got {self.fov_step_deg}")
         if self.alpha_pos <= 0 or self.alpha_dir <= 0:
             raise ValueError("LoopConfig.alpha_pos and alpha_dir must be > 0")
-        if self.denoise_quality not in ("high", "balanced", "fast"):
-            raise ValueError(
-                "LoopConfig.denoise_quality must be 'high', 'balanced' or 'fast', "
-                f"got {self.denoise_quality!r}"
-            )
+        check_denoise_quality(self.denoise_quality, "LoopConfig.denoise_quality")
 
 
 @dataclass

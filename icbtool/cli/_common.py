@@ -20,6 +20,17 @@ def add_scene_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_denoise_quality_argument(p: argparse.ArgumentParser) -> None:
+    from icbtool.trace.tracer import DENOISE_QUALITIES
+
+    p.add_argument(
+        "--denoise-quality",
+        choices=DENOISE_QUALITIES,
+        default="high",
+        help="OIDN quality ('fast': about half the denoising time)",
+    )
+
+
 def load_scene(spec: str):
     """A procedural scene by name, else a file through :func:`icbtool.scene.load`."""
     from icbtool import scene as sc

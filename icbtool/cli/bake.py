@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from icbtool.cli._common import add_scene_argument, load_scene
+from icbtool.cli._common import add_denoise_quality_argument, add_scene_argument, load_scene
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -36,12 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stride", type=int, default=1, help="bake every n-th camera")
     p.add_argument("--limit", type=int, default=None, help="at most this many cameras")
     p.add_argument("--denoise", action="store_true", help="denoise GI with OIDN")
-    p.add_argument(
-        "--denoise-quality",
-        choices=("high", "balanced", "fast"),
-        default="high",
-        help="OIDN quality ('fast': about half the denoising time)",
-    )
+    add_denoise_quality_argument(p)
     p.set_defaults(func=_run)
 
 

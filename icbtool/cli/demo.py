@@ -12,7 +12,7 @@ import json
 import time
 from pathlib import Path
 
-from icbtool.cli._common import load_scene
+from icbtool.cli._common import add_denoise_quality_argument, load_scene
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -39,12 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--truth-spp", type=int, default=128, help="samples per pixel of the truth")
     p.add_argument("--no-prefetch", action="store_true", help="reference at the old camera")
     p.add_argument("--no-denoise", action="store_true", help="serve raw (noisy) GI maps")
-    p.add_argument(
-        "--denoise-quality",
-        choices=("high", "balanced", "fast"),
-        default="high",
-        help="OIDN quality ('fast': about half the denoising time)",
-    )
+    add_denoise_quality_argument(p)
     p.add_argument("--fresh", action="store_true", help="empty the cloud cache first")
 
 

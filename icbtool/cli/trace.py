@@ -7,7 +7,13 @@ import logging
 from dataclasses import asdict
 from pathlib import Path
 
-from icbtool.cli._common import add_scene_argument, load_scene, run_info, write_json
+from icbtool.cli._common import (
+    add_denoise_quality_argument,
+    add_scene_argument,
+    load_scene,
+    run_info,
+    write_json,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -37,12 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--adaptive", action="store_true", help="adaptive sampling (needs --target-error)"
     )
     p.add_argument("--denoise", action="store_true", help="denoise gi with Open Image Denoise")
-    p.add_argument(
-        "--denoise-quality",
-        choices=("high", "balanced", "fast"),
-        default="high",
-        help="OIDN quality ('fast': about half the time)",
-    )
+    add_denoise_quality_argument(p)
     p.add_argument("--max-depth", type=int, default=8, help="max path depth (-1 = unbounded)")
     p.add_argument(
         "--sky-sampling",

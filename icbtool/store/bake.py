@@ -21,6 +21,7 @@ import numpy as np
 
 from icbtool.camera import Camera, CameraPath
 from icbtool.store.record import CRTBuffer, RecordMeta
+from icbtool.trace.tracer import DenoiseQuality, check_denoise_quality
 
 
 @dataclass(frozen=True)
@@ -35,7 +36,7 @@ class BakeConfig:
     """Longest traced path (segments), as :class:`icbtool.trace.TraceConfig`."""
     denoise: bool = False
     """Denoise GI with OIDN (the stored GI is then the denoised one)."""
-    denoise_quality: Literal["high", "balanced", "fast"] = "high"
+    denoise_quality: DenoiseQuality = "high"
     """OIDN quality ('fast': about half the denoising time, see TraceConfig.denoise_quality)."""
     gbuffer: Literal["raster", "trace"] = "raster"
     """Where DL and the G-buffers come from: the OpenGL rasterizer (the system's design), or a
@@ -77,11 +78,7 @@ class BakeConfig:
             raise ValueError(
                 f"BakeConfig.gbuffer must be 'raster' or 'trace', got {self.gbuffer!r}"
             )
-        if self.denoise_quality not in ("high", "balanced", "fast"):
-            raise ValueError(
-                "BakeConfig.denoise_quality must be 'high', 'balanced' or 'fast', "
-                f"got {self.denoise_quality!r}"
-            )
+        check_denoise_quality(self.denoise_quality, "BakeConfig.denoise_quality")
         if self.cloud_camera not in ("same", "wider", "prefetch"):
             raise ValueError(
                 "BakeConfig.cloud_camera must be 'same', 'wider' or 'prefetch', "
