@@ -199,12 +199,12 @@ def _sobol1d(pixseed, sid, pair):
 LD_MAX_DEPTH = 2
 
 
-@nb.njit(**_JIT)
-def sample_base(seed_mix, pix, sid, out_base):
-    """Per-sample hash base of the independent sampler (as the numpy tracer's ``_Rng``)."""
-    for i in range(len(pix)):
-        key = (np.uint64(pix[i]) << _U24) ^ np.uint64(sid[i])
-        out_base[i] = _mix(key * _GOLD + seed_mix)
+@nb.njit(inline="always", **_JIT)
+def _sample_base(seed_mix, pix, sid):
+    """Hash base of one (pixel, sample) for the independent sampler (as the numpy tracer's
+    ``_Rng``): its dimension d is ``_u01(base, salts[d])``."""
+    key = (np.uint64(pix) << _U24) ^ np.uint64(sid)
+    return _mix(key * _GOLD + seed_mix)
 
 
 # ---------------------------------------------------------------------------------- shading
@@ -453,10 +453,10 @@ def trace_paths(
     rtc,
     fn_isect,
     fn_occl,
-    # samples (P): pixel, sample id, independent-sampler base; per-dimension salts
+    # samples (P): pixel, sample id; seed of the per-sample hashes, per-dimension salts
     pix,
     sid,
-    base,
+    seed_mix,
     salts,
     # camera: (fx, fy, cx, cy), world_from_cam rotation (3, 3), centre (3,)
     intr,
@@ -549,13 +549,14 @@ def trace_paths(
     for blk in range(part, n_blocks, n_parts):
         for s in range(blk * BLOCK, min(P, (blk + 1) * BLOCK)):
             ps_pix = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD))
+            base_s = _sample_base(seed_mix, pix[s], sid[s])
             # ---- primary ray
             if jitter:
                 if sampler == SAMPLER_SOBOL:
                     jx, jy = _sobol2(ps_pix, sid[s], 0)
                 else:
-                    jx = _u01(base[s], salts[0])
-                    jy = _u01(base[s], salts[1])
+                    jx = _u01(base_s, salts[0])
+                    jy = _u01(base_s, salts[1])
             else:
                 jx = 0.5
                 jy = 0.5
@@ -806,9 +807,9 @@ def trace_paths(
                         ul = _sobol1d(ps_pix, sid[s], pair0 + 1)
                         ra, r2 = _sobol2(ps_pix, sid[s], pair0 + 2)
                     else:
-                        ul = _u01(base[s], salts[dim0 + 2])
-                        ra = _u01(base[s], salts[dim0 + 3])
-                        r2 = _u01(base[s], salts[dim0 + 4])
+                        ul = _u01(base_s, salts[dim0 + 2])
+                        ra = _u01(base_s, salts[dim0 + 3])
+                        r2 = _u01(base_s, salts[dim0 + 4])
                     # first k with cdf[k] > ul (searchsorted side='right')
                     a_ = 0
                     b_ = n_e
@@ -863,8 +864,8 @@ def trace_paths(
                     if use_ld:
                         us1, us2 = _sobol2(ps_pix, sid[s], SKY_PAIR0 + depth)
                     else:
-                        us1 = _u01(base[s], salts[dim0 + 6])
-                        us2 = _u01(base[s], salts[dim0 + 7])
+                        us1 = _u01(base_s, salts[dim0 + 6])
+                        us2 = _u01(base_s, salts[dim0 + 7])
                     wi0, wi1, wi2, psk = _sky_sample(
                         sky_frame, sky_marg, sky_cond, sky_pdf, us1, us2
                     )
@@ -889,8 +890,8 @@ def trace_paths(
                 if use_ld:
                     u1, u2 = _sobol2(ps_pix, sid[s], pair0)
                 else:
-                    u1 = _u01(base[s], salts[dim0])
-                    u2 = _u01(base[s], salts[dim0 + 1])
+                    u1 = _u01(base_s, salts[dim0])
+                    u2 = _u01(base_s, salts[dim0 + 1])
                 sign = 1.0 if ns2 >= 0 else -1.0
                 a = -1.0 / (sign + ns2)
                 b = ns0 * ns1 * a
@@ -921,7 +922,7 @@ def trace_paths(
                 pdf = max(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1e-12) * _INV_PI
                 if depth + 1 > rr_depth:  # Russian roulette for the next segment
                     q = min(max(f0, max(f1, f2)), 0.95)
-                    if not (_u01(base[s], salts[dim0 + 5]) < q):
+                    if not (_u01(base_s, salts[dim0 + 5]) < q):
                         break
                     f0 /= q
                     f1 /= q

@@ -171,7 +171,7 @@ class TraceStats:
     """What a render cost and what it skipped."""
 
     time_s: dict[str, float] = field(default_factory=dict)
-    """Wall time per phase: setup, rng, trace (paths: Embree + shading), accumulate, denoise."""
+    """Wall time per phase: setup, trace (paths: Embree + shading), accumulate, denoise."""
     rays: dict[str, int] = field(default_factory=lambda: {"primary": 0, "bounce": 0, "shadow": 0})
     """Rays traced by kind."""
     passes: int = 0
@@ -548,13 +548,9 @@ class _Tracer:
         K = _kernels()
         cfg, sd, st, cam = self.cfg, self.sd, self.stats, self.cam
         P = len(pix)
-        tt = time.perf_counter()
         pix = np.ascontiguousarray(pix, np.int64)
         sid = np.ascontiguousarray(sid, np.int64)
         ws = self._ws
-        base = ws.get("base", (P,), np.uint64)
-        K.sample_base(self._seed_mix, pix, sid, base)
-        st.add_time("rng", time.perf_counter() - tt)
         want_aux = cfg.aux or cfg.denoise
         # per-sample outputs (workspace views: valid until the next call)
         direct = ws.zeros("direct", (P, 3), np.float64)
@@ -592,7 +588,7 @@ class _Tracer:
             rs.fn_occluded,
             pix,
             sid,
-            base,
+            self._seed_mix,
             self._salts,
             np.array([cam.fx, cam.fy, cam.cx, cam.cy], np.float64),
             np.ascontiguousarray(cam.world_from_cam[:3, :3], np.float64),
