@@ -297,7 +297,8 @@ def _rayhit():
 
 
 @nb.njit(inline="always", **_JIT)
-def _set_ray(w, f, k, ox, oy, oz, dx, dy, dz, tfar):
+def _set_ray(ray, ox, oy, oz, dx, dy, dz, tfar):
+    w, f, k, _ = ray
     f[k] = ox
     f[k + 1] = oy
     f[k + 2] = oz
@@ -313,9 +314,11 @@ def _set_ray(w, f, k, ox, oy, oz, dx, dy, dz, tfar):
 
 
 @nb.njit(inline="always", **_JIT)
-def _intersect(rtc, fn, w, f, k, addr, ox, oy, oz, dx, dy, dz):
-    """Closest hit of one float32 ray: (t, prim or -1, u, v)."""
-    _set_ray(w, f, k, ox, oy, oz, dx, dy, dz, np.inf)
+def _intersect(rtc, fn, ray, ox, oy, oz, dx, dy, dz):
+    """Closest hit of one float32 ray (in the RTCRayHit ``ray`` of :func:`_rayhit`):
+    (t, prim or -1, u, v)."""
+    w, f, k, addr = ray
+    _set_ray(ray, ox, oy, oz, dx, dy, dz, np.inf)
     w[k + 17] = _INVALID
     w[k + 18] = _INVALID
     call3(fn, rtc, addr, _U0)
@@ -325,9 +328,10 @@ def _intersect(rtc, fn, w, f, k, addr, ox, oy, oz, dx, dy, dz):
 
 
 @nb.njit(inline="always", **_JIT)
-def _occluded(rtc, fn, w, f, k, addr, ox, oy, oz, dx, dy, dz, tfar):
+def _occluded(rtc, fn, ray, ox, oy, oz, dx, dy, dz, tfar):
     """Whether anything lies on the float32 ray segment 0 < t < tfar."""
-    _set_ray(w, f, k, ox, oy, oz, dx, dy, dz, tfar)
+    w, f, k, addr = ray
+    _set_ray(ray, ox, oy, oz, dx, dy, dz, tfar)
     call3(fn, rtc, addr, _U0)
     return f[k + 8] == -np.inf
 
@@ -335,10 +339,9 @@ def _occluded(rtc, fn, w, f, k, addr, ox, oy, oz, dx, dy, dz, tfar):
 @nb.njit(**_JIT)
 def rtc_intersect_batch(rtc, fn, o, d, t, prim, u, v, lo, hi):
     """Closest hits of float32 rays lo..hi-1 (o, d (N, 3)) into t, prim (-1 = miss), u, v."""
-    w, f, k, addr = _rayhit()
+    ray = _rayhit()
     for i in range(lo, hi):
-        a, b, c, e = _intersect(rtc, fn, w, f, k, addr, o[i, 0], o[i, 1], o[i, 2],
-                                d[i, 0], d[i, 1], d[i, 2])  # fmt: skip
+        a, b, c, e = _intersect(rtc, fn, ray, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2])
         t[i] = a
         prim[i] = b
         u[i] = c
@@ -348,10 +351,11 @@ def rtc_intersect_batch(rtc, fn, o, d, t, prim, u, v, lo, hi):
 @nb.njit(**_JIT)
 def rtc_occluded_batch(rtc, fn, o, d, tfar, out, lo, hi):
     """Occlusion of float32 ray segments lo..hi-1 (0 < t < tfar) into out (True = blocked)."""
-    w, f, k, addr = _rayhit()
+    ray = _rayhit()
     for i in range(lo, hi):
-        out[i] = _occluded(rtc, fn, w, f, k, addr, o[i, 0], o[i, 1], o[i, 2],
-                           d[i, 0], d[i, 1], d[i, 2], tfar[i])  # fmt: skip
+        out[i] = _occluded(
+            rtc, fn, ray, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], tfar[i]
+        )
 
 
 # ---------------------------------------------------------------------------------- sky table
@@ -540,7 +544,6 @@ def trace_paths(
     n_e = len(emit_faces)
     log = (log_o, log_d, log_tf, log_kind, log_n)
     ray = _rayhit()
-    w_, f_, k_, addr = ray
     n_prim = 0
     n_bounce = 0
     n_shadow = 0
@@ -581,9 +584,7 @@ def trace_paths(
                 # ---- closest hit of segment `depth`
                 _log_ray(log, 0 if depth == 1 else 2, ox, oy, oz, dx, dy, dz, np.float32(np.inf))
                 dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
-                h_t, prim, h_u, h_v = _intersect(
-                    rtc, fn_isect, w_, f_, k_, addr, ox, oy, oz, dx32, dy32, dz32
-                )
+                h_t, prim, h_u, h_v = _intersect(rtc, fn_isect, ray, ox, oy, oz, dx32, dy32, dz32)
                 if depth == 1:
                     n_prim += 1
                 else:
@@ -968,9 +969,8 @@ def _log_ray(log, kind, ox, oy, oz, dx, dy, dz, tf):
 def _visible(rtc, fn_occl, ray, log, ox, oy, oz, dx, dy, dz, tf):
     """Shadow ray from the float32 origin along the unit (dx, dy, dz) up to ``tf``: unblocked?"""
     _log_ray(log, 1, ox, oy, oz, dx, dy, dz, tf)
-    w, f, k, addr = ray
     dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
-    return not _occluded(rtc, fn_occl, w, f, k, addr, ox, oy, oz, dx32, dy32, dz32, tf)
+    return not _occluded(rtc, fn_occl, ray, ox, oy, oz, dx32, dy32, dz32, tf)
 
 
 @nb.njit(**_JIT)
