@@ -40,8 +40,9 @@ def sponza():
     return icb.scene.load(REPO / "data" / "scenes" / "sponza.toml")
 
 
-def record(scene, cam, cfg, capacity: int) -> dict[str, np.ndarray]:
-    """The rays of one render, in tracing order."""
+def record(scene, cam, cfg, capacity: int) -> dict[str, dict[str, np.ndarray]]:
+    """The rays of one render by kind (primary, bounce, shadow): contiguous o, d (N, 3) and
+    tfar (N,) float32, in tracing order within each kind."""
     log = {
         "o": np.zeros((capacity, 3), np.float32),
         "d": np.zeros((capacity, 3), np.float32),
@@ -53,72 +54,48 @@ def record(scene, cam, cfg, capacity: int) -> dict[str, np.ndarray]:
     n = int(log["n"][0])
     if n >= capacity:
         raise RuntimeError(f"ray log full ({capacity} rays): raise the capacity")
-    return {k: v[:n] for k, v in log.items() if k != "n"}
+    sel = {name: log["kind"][:n] == kind for name, kind in KINDS}
+    return {
+        name: {k: np.ascontiguousarray(log[k][:n][m]) for k in ("o", "d", "tfar")}
+        for name, m in sel.items()
+    }
+
+
+def n_rays(rays: dict[str, dict[str, np.ndarray]]) -> int:
+    return sum(len(r["tfar"]) for r in rays.values())
 
 
 def replay_embreex(es: EmbreeScene, rays: dict, threads: int = 2) -> dict[str, float]:
-    """Seconds embreex needs for the camera, bounce and shadow rays of ``rays``."""
+    """Seconds embreex needs for each kind of :func:`record`'s rays."""
     out = {}
-    for name, kind in KINDS:
-        sel = rays["kind"] == kind
-        o = np.ascontiguousarray(rays["o"][sel])
-        d = np.ascontiguousarray(rays["d"][sel])
+    for name, r in rays.items():
         t0 = time.perf_counter()
-        if kind != 1:
-            es.intersect_raw(o, d, threads)
+        if name == "shadow":
+            es.occluded_raw(r["o"], r["d"], r["tfar"].copy(), threads)
         else:
-            es.occluded_raw(o, d, np.ascontiguousarray(rays["tfar"][sel]), threads)
+            es.intersect_raw(r["o"], r["d"], threads)
         out[name] = time.perf_counter() - t0
     return out
 
 
 def replay_direct(rs: RtcScene, rays: dict, threads: int = 2) -> dict[str, float]:
-    """Seconds the tracer's direct Embree calls need for the same rays (no shading)."""
+    """Seconds the tracer's direct Embree calls need for each kind of rays (no shading)."""
     pool = ThreadPoolExecutor(threads)
     out = {}
-    for name, kind in KINDS:
-        sel = rays["kind"] == kind
-        o = np.ascontiguousarray(rays["o"][sel])
-        d = np.ascontiguousarray(rays["d"][sel])
+    for name, r in rays.items():
+        o, d, tf = r["o"], r["d"], r["tfar"]
         n = len(o)
         edges = np.linspace(0, n, threads + 1).astype(np.int64)
-        t, prim = np.empty(n, np.float32), np.empty(n, np.int32)
-        u, v, blocked = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.bool_)
-        tf = np.ascontiguousarray(rays["tfar"][sel])
+        parts = [(int(edges[i]), int(edges[i + 1])) for i in range(threads)]
         t0 = time.perf_counter()
-        if kind != 1:
-            fut = [
-                pool.submit(
-                    K.rtc_intersect_batch,
-                    rs.ptr,
-                    rs.fn_intersect,
-                    o,
-                    d,
-                    t,
-                    prim,
-                    u,
-                    v,
-                    int(edges[i]),
-                    int(edges[i + 1]),
-                )
-                for i in range(threads)
-            ]
+        if name == "shadow":
+            blocked = np.empty(n, np.bool_)
+            args = (K.rtc_occluded_batch, rs.ptr, rs.fn_occluded, o, d, tf, blocked)
         else:
-            fut = [
-                pool.submit(
-                    K.rtc_occluded_batch,
-                    rs.ptr,
-                    rs.fn_occluded,
-                    o,
-                    d,
-                    tf,
-                    blocked,
-                    int(edges[i]),
-                    int(edges[i + 1]),
-                )
-                for i in range(threads)
-            ]
-        for f in fut:
+            t, prim = np.empty(n, np.float32), np.empty(n, np.int32)
+            u, v = np.empty(n, np.float32), np.empty(n, np.float32)
+            args = (K.rtc_intersect_batch, rs.ptr, rs.fn_intersect, o, d, t, prim, u, v)
+        for f in [pool.submit(*args, lo, hi) for lo, hi in parts]:
             f.result()
         out[name] = time.perf_counter() - t0
     pool.shutdown()
@@ -133,7 +110,7 @@ def bench(scene, cam, cfg, repeats: int = 3) -> dict:
     res = min(runs, key=lambda r: r.stats.time_s["total"])
     st = res.stats
     rays = record(scene, cam, cfg, capacity=int(st.total_rays * 1.05) + 1024)
-    n_logged = len(rays["kind"])
+    n_logged = n_rays(rays)
     es = EmbreeScene.from_scene(scene, robust=cfg.robust, threads=2)
     rs = RtcScene.of(scene, robust=cfg.robust)
     emb = min((replay_embreex(es, rays) for _ in range(repeats)), key=lambda x: sum(x.values()))

@@ -41,7 +41,7 @@ from icbtool.trace import TraceConfig
 from icbtool.trace.rtc import RtcScene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from trace_throughput import record, replay_direct  # noqa: E402  (a sibling benchmark script)
+from trace_throughput import n_rays, record, replay_direct  # noqa: E402  (a sibling benchmark script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -407,7 +407,7 @@ def main() -> None:
                 {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
             )
             curves["mitsuba"].append({"spp": spp, "time_s": t_mi, **errors(ref_mi, img)})
-            embree_floor.append({"spp": spp, "time_s": floor, "rays": len(rays["kind"])})
+            embree_floor.append({"spp": spp, "time_s": floor, "rays": n_rays(rays)})
             # the GI-only denoised image from the same render (the system's use: DL is rastered)
             gi_dn, t_dn = timed(
                 lambda r=r: icb.trace.denoise(r.gi_raw, r.albedo, r.normal), args.repeats
