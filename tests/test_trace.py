@@ -705,8 +705,7 @@ def test_sky_table_is_normalised_and_sampling_follows_its_pdf(which):
 @pytest.mark.parametrize("sky_sampling", ["bsdf", "mis"])
 def test_plane_under_gradient_sky_matches_analytic_gi(sky_sampling):
     """Open plane facing up: GI = albedo * 2 int_0^1 L(c) c dc = albedo * (h + 0.8 (z - h))."""
-    scene = icb.scene.plane(sun_direction=None)
-    scene.sky = Sky(kind="gradient", **PEAKY_SKY)
+    scene = _with_sky(icb.scene.plane(sun_direction=None), Sky(kind="gradient", **PEAKY_SKY))
     cam = scene.default_camera.resized(16, 16)
     cfg = TraceConfig(spp=64, sampler="independent", sky_sampling=sky_sampling, seed=5)
     res = render(scene, cam, cfg)
@@ -731,8 +730,7 @@ def test_sky_mis_unbiased_and_less_noisy_where_cosine_sampling_misses_the_sky(sc
         scene = b_.build(default_camera=Camera.look_at((3, 0, 0), (0, 0, 0), (0, 1, 0), 40, 24, 24))
     else:
         scene = icb.scene.boxes_on_floor(n_boxes=6, seed=1, sun_irradiance=0.0)
-    scene.sky = Sky(kind="gradient", **PEAKY_SKY)
-    scene._cache.clear()
+    scene = _with_sky(scene, Sky(kind="gradient", **PEAKY_SKY))
     cam = scene.default_camera.resized(24, 24)
     base = TraceConfig(spp=32, sampler="independent", seed=2)
     a = render(scene, cam, replace(base, sky_sampling="bsdf"))
@@ -755,8 +753,7 @@ def test_sky_sampling_auto_skips_smooth_skies():
     res = render(uniform, cam, TraceConfig(spp=2))
     assert any("sky light sampling: smooth sky" in s for s in res.stats.skipped)
     assert res.stats.rays["shadow"] == 0
-    peaked = icb.scene.plane(sun_direction=None)
-    peaked.sky = Sky(kind="gradient", **PEAKY_SKY)
+    peaked = _with_sky(icb.scene.plane(sun_direction=None), Sky(kind="gradient", **PEAKY_SKY))
     assert SkyTable.of(peaked.sky).peak > SKY_MIS_PEAK
     res = render(peaked, cam, TraceConfig(spp=2))
     assert not any("sky light sampling" in s for s in res.stats.skipped)
