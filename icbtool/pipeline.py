@@ -388,7 +388,7 @@ def _write_frame(path: Path, wrt: Any, w: Any, final: np.ndarray, truth: Any, im
 def _write_report(out: Path, report: LoopReport) -> None:
     import csv
 
-    from icbtool.cli._common import run_info, write_json
+    from icbtool.provenance import run_info, write_json
 
     write_json(out / "config.json", {"loop": asdict(report.config), "run": run_info()})
     write_json(out / "summary.json", report.summary())

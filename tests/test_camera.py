@@ -13,11 +13,9 @@ from icbtool.camera import (
     Camera,
     CameraPath,
     CameraPlacementError,
-    check_camera,
     look_at_pose,
-    random_walk,
 )
-from icbtool.scene import SceneBuilder
+from icbtool.scene import SceneBuilder, check_camera, random_walk
 
 # --------------------------------------------------------------------------- Camera: known answers
 

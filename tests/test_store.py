@@ -576,8 +576,8 @@ def _tiny_scene():
         m = np.array(base.world_from_cam)
         m[:3, 3] += [dx, 0, 0]
         poses.append(m)
-    scene.paths["tiny"] = CameraPath(np.arange(3.0), np.stack(poses), base, "tiny")
-    return scene
+    tiny = CameraPath(np.arange(3.0), np.stack(poses), base, "tiny")
+    return replace(scene, paths={**scene.paths, "tiny": tiny})
 
 
 def test_bake_denoise_quality_reaches_the_tracer(tmp_path):

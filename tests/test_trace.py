@@ -369,9 +369,7 @@ def _scaled_cam(cam: Camera, s: float) -> Camera:
 
 
 def _with_sky(scene: Scene, sky: Sky) -> Scene:
-    scene.sky = sky
-    scene._cache.clear()
-    return scene
+    return replace(scene, sky=sky)
 
 
 def _closed_box(albedo: float) -> Scene:

@@ -46,6 +46,13 @@ def _check_rigid(m: np.ndarray, name: str) -> None:
         raise ValueError(f"{name} last row must be [0, 0, 0, 1], got {m[3].tolist()}")
 
 
+class CameraPlacementError(ValueError):
+    """A camera sits inside geometry or too close to a surface; the message says where.
+
+    Raised by :func:`icbtool.scene.check_camera` and :func:`icbtool.scene.random_walk`.
+    """
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """A pinhole camera (OpenCV axes, pixel centres at half-integers; see module docstring).

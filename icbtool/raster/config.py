@@ -10,28 +10,14 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from icbtool.camera import Camera
 
-#: Every buffer the rasterizer can produce, with its channel count.
-BUFFER_CHANNELS: dict[str, int] = {
-    "dl": 3,
-    "albedo": 3,
-    "normal_world": 3,
-    "normal_view": 3,
-    "depth": 1,
-    "position": 3,
-    "mask": 1,
-}
-BUFFER_NAMES: tuple[str, ...] = tuple(BUFFER_CHANNELS)
+from icbtool.buffers import BUFFERS, CHANNELS, RASTER_BUFFERS, check_names
+
+#: Every buffer the rasterizer can produce, with its channel count (see :mod:`icbtool.buffers`).
+BUFFER_CHANNELS: dict[str, int] = {n: CHANNELS[n] for n in RASTER_BUFFERS}
+BUFFER_NAMES: tuple[str, ...] = RASTER_BUFFERS
 
 #: How each buffer is previewed by :func:`icbtool.imageio.preview`.
-PREVIEW_KIND: dict[str, str] = {
-    "dl": "color",
-    "albedo": "color",
-    "normal_world": "normal",
-    "normal_view": "normal",
-    "depth": "depth",
-    "position": "position",
-    "mask": "mask",
-}
+PREVIEW_KIND: dict[str, str] = {n: BUFFERS[n].preview for n in RASTER_BUFFERS}
 
 
 def check_buffers(buffers: tuple[str, ...] | list[str] | str | None) -> tuple[str, ...]:
@@ -45,9 +31,7 @@ def check_buffers(buffers: tuple[str, ...] | list[str] | str | None) -> tuple[st
     if isinstance(buffers, str):
         buffers = [b.strip() for b in buffers.split(",") if b.strip()]
     names = set(buffers)
-    unknown = sorted(names - set(BUFFER_NAMES))
-    if unknown:
-        raise ValueError(f"unknown raster buffer(s) {unknown}; choose from {list(BUFFER_NAMES)}")
+    check_names(list(names), BUFFER_NAMES, "raster")
     if not names:
         raise ValueError(f"no raster buffer requested; choose from {list(BUFFER_NAMES)}")
     return tuple(b for b in BUFFER_NAMES if b in names)

@@ -27,6 +27,7 @@ from icbtool.scene.types import (
     vertex_normals,
 )
 from icbtool.scene.validate import SceneError, SceneRepairWarning
+from icbtool.scene.walk import check_camera, random_walk, surroundings
 
 __all__ = [
     "PROCEDURAL",
@@ -40,9 +41,12 @@ __all__ = [
     "Sky",
     "SpotLight",
     "boxes_on_floor",
+    "check_camera",
     "cornell_box",
     "cornell_camera",
     "plane",
+    "random_walk",
+    "surroundings",
     "vertex_normals",
     "load",
     "load_mesh",

@@ -46,11 +46,12 @@ description file; ``${VAR}`` and ``${VAR:-default}`` expand environment variable
     speed = 1.4
     # orbit: center, radius, height, n, duration_s, start_deg, sweep_deg, look_height, up
     # random_walk: n, seed, speed, dt, height_range, clearance, lookahead, turn_rate_deg,
-    #   pitch_range_deg, max_floor_step, start (see icbtool.camera.walk.random_walk)
+    #   pitch_range_deg, max_floor_step, start (see icbtool.scene.walk.random_walk)
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import tomllib
@@ -240,10 +241,9 @@ class SceneDescription:
         scene = load_mesh(mesh, name=name, **mesh_kw)
         lights = list(overrides.get("lights", self.lights))
         scene = add_area_lights(scene, [lt for lt in lights if isinstance(lt, AreaLight)])
-        scene.lights = lights
-        scene.sky = overrides.get("sky", self.sky)
-        scene.source = where
-        scene._cache.clear()
+        scene = dataclasses.replace(
+            scene, lights=lights, sky=overrides.get("sky", self.sky), source=where
+        )
         try:
             intr = Intrinsics(
                 float(overrides.get("fov_y_deg", self.intrinsics.fov_y_deg)),
@@ -254,10 +254,16 @@ class SceneDescription:
             raise SceneError(f"{where}: bad camera override: {e}") from None
         size_override = {k: overrides[k] for k in _CAMERA_KEYS if k in overrides}
         if self.default_camera is not None:
-            scene.default_camera = _default_camera(self.default_camera, intr, size_override, where)
+            scene = dataclasses.replace(
+                scene,
+                default_camera=_default_camera(self.default_camera, intr, size_override, where),
+            )
         if overrides.get("with_paths", True):
-            for pname, spec in self.paths.items():
-                scene.paths[pname] = _build_path(scene, pname, spec, intr, size_override, where)
+            paths = {
+                pname: _build_path(scene, pname, spec, intr, size_override, where)
+                for pname, spec in self.paths.items()
+            }
+            scene = dataclasses.replace(scene, paths=paths)
         return scene
 
 
@@ -320,7 +326,7 @@ def _default_camera(spec: dict, intr: Intrinsics, size_override: dict, where: st
 
 def _build_path(scene: Scene, pname: str, spec: dict, intr, size_override: dict, where: str):
     from icbtool.camera import CameraPath
-    from icbtool.camera.walk import random_walk
+    from icbtool.scene.walk import random_walk
 
     cam = _intr_for(spec, intr, size_override, where, f"[paths.{pname}]", _PATH_CAMERA_KEYS)
     kind = spec["type"]

@@ -17,6 +17,7 @@ Missing normals are computed (area-weighted); what is validated and what is repa
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import warnings
@@ -83,12 +84,7 @@ def load(path: str | os.PathLike, **overrides: Any) -> Scene:
         )
     mesh_kw = {k: v for k, v in overrides.items() if k in MESH_OPTIONS}
     scene = load_mesh(p, **mesh_kw)
-    for k in SCENE_FIELDS:
-        if k in overrides:
-            setattr(scene, k, overrides[k] if k != "lights" else list(overrides[k]))
-    if "lights" in overrides or "sky" in overrides:
-        scene._cache.clear()
-    return scene
+    return dataclasses.replace(scene, **{k: overrides[k] for k in SCENE_FIELDS if k in overrides})
 
 
 def load_mesh(

@@ -21,10 +21,14 @@ from __future__ import annotations
 
 import hashlib
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
+
+from icbtool.scene.derived import derived
 
 if TYPE_CHECKING:  # pragma: no cover
     from icbtool.camera import Camera, CameraPath
@@ -248,9 +252,14 @@ class Sky:
 Light = DirectionalLight | PointLight | SpotLight | AreaLight
 
 
-@dataclass(eq=False)
+@dataclass(frozen=True, eq=False)
 class Scene:
     """One merged triangle mesh with per-face materials, lights, sky and named camera paths.
+
+    A Scene is immutable: its arrays are read-only, ``materials`` and ``lights`` are tuples and
+    ``paths`` a read-only mapping. Change one through a copy, ``dataclasses.replace(scene,
+    lights=...)`` (validated again). Data derived from it (Embree BVHs, the tracer's arrays,
+    hashes) is cached outside it, in :mod:`icbtool.scene.derived`.
 
     Attributes:
         name: scene name.
@@ -259,10 +268,10 @@ class Scene:
         normals: (V, 3) float32 unit shading normals.
         uvs: (V, 2) float32 texture coordinates, or None when no material is textured.
         face_material: (F,) int32 index into ``materials``.
-        materials: the materials.
-        lights: analytic and area lights (area lights are also in the mesh).
+        materials: the materials (a tuple).
+        lights: analytic and area lights (a tuple; area lights are also in the mesh).
         sky: environment radiance, or None (black).
-        paths: named camera paths (e.g. "train", "test").
+        paths: named camera paths (e.g. "train", "test"), a read-only mapping.
         default_camera: a good first view, or None.
         up: (3,) world up axis.
         source: where the scene came from (file path or "procedural:<name>").
@@ -273,15 +282,14 @@ class Scene:
     faces: np.ndarray
     normals: np.ndarray
     face_material: np.ndarray
-    materials: list[Material]
+    materials: Sequence[Material]
     uvs: np.ndarray | None = None
-    lights: list[Light] = field(default_factory=list)
+    lights: Sequence[Light] = ()
     sky: Sky | None = None
-    paths: dict[str, CameraPath] = field(default_factory=dict)
+    paths: Mapping[str, CameraPath] = field(default_factory=dict)
     default_camera: Camera | None = None
     up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
     source: str = ""
-    _cache: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         where = f"scene '{self.name}'" + (f" ({self.source})" if self.source else "")
@@ -300,7 +308,7 @@ class Scene:
                 f"{where}: face indices out of range [0, {len(v) - 1}]: "
                 f"min {f.min()}, max {f.max()}"
             )
-        f = f.astype(np.int32)
+        f = f.astype(np.int32, copy=False)
         n = np.ascontiguousarray(self.normals, dtype=np.float32)
         if n.shape != v.shape or not np.all(np.isfinite(n)):
             raise ValueError(f"{where}: normals must be finite (V, 3) like vertices, got {n.shape}")
@@ -313,13 +321,19 @@ class Scene:
             uv = np.ascontiguousarray(self.uvs, dtype=np.float32)
             if uv.shape != (len(v), 2) or not np.all(np.isfinite(uv)):
                 raise ValueError(f"{where}: uvs must be finite (V, 2), got {uv.shape}")
-            self.uvs = uv
+            uv.setflags(write=False)
+            object.__setattr__(self, "uvs", uv)
         elif any(m.is_textured for m in self.materials):
             raise ValueError(f"{where}: textured materials need uvs")
-        self.vertices, self.faces, self.normals, self.face_material = v, f, n, fm
-        self.up = np.array(_unit(self.up, f"{where} up"))
-        self.materials = list(self.materials)
-        self.lights = list(self.lights)
+        for name, a in (("vertices", v), ("faces", f), ("normals", n), ("face_material", fm)):
+            if a is getattr(self, name) and a.flags.writeable:
+                a = a.copy()  # the caller's array stays theirs (and writeable)
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+        object.__setattr__(self, "up", _unit(self.up, f"{where} up"))
+        object.__setattr__(self, "materials", tuple(self.materials))
+        object.__setattr__(self, "lights", tuple(self.lights))
+        object.__setattr__(self, "paths", MappingProxyType(dict(self.paths)))
 
     # ------------------------------------------------------------------ derived
     @property
@@ -350,23 +364,26 @@ class Scene:
     @property
     def face_normals(self) -> np.ndarray:
         """(F, 3) float32 unit geometric normals (zero for degenerate faces)."""
-        if "face_normals" not in self._cache:
-            tri = self.vertices[self.faces].astype(np.float64)
-            n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+
+        def build() -> np.ndarray:
+            n = self._face_cross()
             ln = np.linalg.norm(n, axis=1, keepdims=True)
-            self._cache["face_normals"] = np.where(ln > 0, n / np.maximum(ln, 1e-300), 0).astype(
-                np.float32
-            )
-        return self._cache["face_normals"]
+            return _readonly(np.where(ln > 0, n / np.maximum(ln, 1e-300), 0).astype(np.float32))
+
+        return derived(self, "face_normals", build)
 
     @property
     def face_areas(self) -> np.ndarray:
         """(F,) float64 triangle areas."""
-        if "face_areas" not in self._cache:
-            tri = self.vertices[self.faces].astype(np.float64)
-            n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-            self._cache["face_areas"] = 0.5 * np.linalg.norm(n, axis=1)
-        return self._cache["face_areas"]
+        return derived(
+            self,
+            "face_areas",
+            lambda: _readonly(0.5 * np.linalg.norm(self._face_cross(), axis=1)),
+        )
+
+    def _face_cross(self) -> np.ndarray:
+        tri = self.vertices[self.faces].astype(np.float64)
+        return np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
 
     def lights_of(self, kind: str) -> list[Light]:
         """The lights of one kind: 'directional', 'point', 'spot' or 'area'."""
@@ -375,21 +392,22 @@ class Scene:
     @property
     def content_hash(self) -> str:
         """SHA-256 (hex) of geometry, materials, lights and sky: equal hash, same rendering."""
-        if "hash" not in self._cache:
-            h = hashlib.sha256()
-            for a in (self.vertices, self.faces, self.normals, self.face_material):
-                h.update(np.ascontiguousarray(a).tobytes())
-            if self.uvs is not None:
-                h.update(self.uvs.tobytes())
-            for m in self.materials:
-                h.update(m.name.encode())
-                h.update(m.albedo.tobytes())
-                h.update(m.emission.tobytes())
-                if m.texture is not None:
-                    h.update(np.ascontiguousarray(m.texture).tobytes())
-            h.update(self.light_hash.encode())
-            self._cache["hash"] = h.hexdigest()
-        return self._cache["hash"]
+        return derived(self, "content_hash", self._content_hash)
+
+    def _content_hash(self) -> str:
+        h = hashlib.sha256()
+        for a in (self.vertices, self.faces, self.normals, self.face_material):
+            h.update(np.ascontiguousarray(a).tobytes())
+        if self.uvs is not None:
+            h.update(self.uvs.tobytes())
+        for m in self.materials:
+            h.update(m.name.encode())
+            h.update(m.albedo.tobytes())
+            h.update(m.emission.tobytes())
+            if m.texture is not None:
+                h.update(np.ascontiguousarray(m.texture).tobytes())
+        h.update(self.light_hash.encode())
+        return h.hexdigest()
 
     @property
     def light_hash(self) -> str:
@@ -407,6 +425,11 @@ class Scene:
             f"{len(self.lights)} lights, sky={'yes' if self.sky else 'no'}, "
             f"paths={sorted(self.paths)})"
         )
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
 
 
 def _light_key(obj: Any) -> tuple:

@@ -12,7 +12,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from icbtool.store.record import BUFFER_CHANNELS
+from icbtool.buffers import CHANNELS as BUFFER_CHANNELS
 
 #: The input configurations A-J of ICB.md section 5 (albedo and DL always first).
 INPUT_CONFIGS: dict[str, tuple[str, ...]] = {

@@ -25,22 +25,14 @@ from typing import Any
 
 import numpy as np
 
+from icbtool.buffers import BUFFERS, CHANNELS
 from icbtool.camera import Camera
 
 PAYLOAD_MAGIC = b"ICBP"
 PAYLOAD_VERSION = 1
 
-#: Buffer name -> number of channels. The order is the payload order.
-BUFFER_CHANNELS: dict[str, int] = {
-    "dl": 3,
-    "albedo": 3,
-    "gi": 3,
-    "normal_world": 3,
-    "normal_view": 3,
-    "depth": 1,
-    "position": 3,
-    "mask": 1,
-}
+#: Buffer name -> number of channels (:mod:`icbtool.buffers`). The order is the payload order.
+BUFFER_CHANNELS: dict[str, int] = CHANNELS
 BUFFER_NAMES: tuple[str, ...] = tuple(BUFFER_CHANNELS)
 
 
@@ -157,22 +149,10 @@ class CRTBuffer:
         if not isinstance(self.meta, RecordMeta):
             raise ValueError(f"CRTBuffer.meta must be a RecordMeta, got {type(self.meta)}")
         h, w = self.camera.height, self.camera.width
-        for name, c in BUFFER_CHANNELS.items():
+        for name, spec in BUFFERS.items():
             a = getattr(self, name)
-            if a is None:
-                continue
-            a = np.asarray(a)
-            if a.ndim == 2 and c == 1:
-                a = a[..., None]
-            if a.shape != (h, w, c):
-                raise ValueError(
-                    f"CRTBuffer.{name} must be (H, W, {c}) = ({h}, {w}, {c}) to match the camera, "
-                    f"got {a.shape}"
-                )
-            if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.bool_):
-                raise ValueError(f"CRTBuffer.{name} must be a float array, got dtype {a.dtype}")
-            a = np.ascontiguousarray(a, dtype=np.float32)
-            setattr(self, name, a)
+            if a is not None:
+                setattr(self, name, spec.check(a, h, w, "CRTBuffer"))
 
     @property
     def present(self) -> tuple[str, ...]:

@@ -1,7 +1,7 @@
 """The cloud path tracer for GI maps (numba kernels calling Embree 4, shipped by embreex).
 
 ``icb.trace.render_gi(scene, cam, spp=64)`` or ``icb.trace.render(scene, cam, TraceConfig(...))``.
-embreex is imported lazily (by :class:`icbtool.trace.embree.EmbreeScene`), numba on the first
+embreex is imported lazily (by :class:`icbtool.scene.raycast.EmbreeScene`), numba on the first
 render, pyoidn only to denoise.
 """
 

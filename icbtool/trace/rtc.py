@@ -179,14 +179,16 @@ class RtcScene:
 
     @classmethod
     def of(cls, scene: Scene, robust: bool = True) -> RtcScene:
-        """The (cached in ``scene._cache``, self-checked) Embree scene of ``scene``'s mesh."""
-        key = f"rtc_robust={bool(robust)}"
-        rs = scene._cache.get(key)
-        if rs is None:
+        """The self-checked Embree scene of ``scene``'s mesh (cached:
+        :mod:`icbtool.scene.derived`)."""
+        from icbtool.scene.derived import derived
+
+        def build() -> RtcScene:
             rs = cls(scene.vertices, scene.faces, robust=robust)
             _self_check()
-            scene._cache[key] = rs
-        return rs
+            return rs
+
+        return derived(scene, f"rtc_robust={bool(robust)}", build)
 
 
 _CHECKED = False

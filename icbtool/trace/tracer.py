@@ -362,7 +362,7 @@ class SkyTable:
 
 # ---------------------------------------------------------------------------------- scene data
 class _SceneData:
-    """Per-scene arrays the tracer needs (cached in ``scene._cache``)."""
+    """Per-scene arrays the tracer needs (cached: :mod:`icbtool.scene.derived`)."""
 
     def __init__(self, scene: Scene) -> None:
         v = scene.vertices.astype(np.float64)
@@ -481,11 +481,9 @@ class _SceneData:
 
     @classmethod
     def of(cls, scene: Scene) -> _SceneData:
-        d = scene._cache.get("trace_data")
-        if d is None:
-            d = cls(scene)
-            scene._cache["trace_data"] = d
-        return d
+        from icbtool.scene.derived import derived
+
+        return derived(scene, "trace_data", lambda: cls(scene))
 
 
 # ---------------------------------------------------------------------------------- tracer

@@ -1,7 +1,8 @@
 """Scene-aware camera motion: a collision-free random walk, and a "camera inside a wall" check.
 
-Both cast rays against the scene with :class:`icbtool.trace.embree.EmbreeScene` (imported lazily:
-importing this module stays cheap).
+Both cast rays against the scene with :class:`icbtool.scene.raycast.EmbreeScene` (imported lazily:
+importing this module stays cheap). They live with the scene, not the camera: the camera package
+knows nothing about geometry.
 
 The walk is a person walking on the scene's floors: a horizontal heading that turns smoothly
 (an Ornstein-Uhlenbeck turn rate), eye height above the floor found by a ray cast straight down,
@@ -17,19 +18,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from icbtool.camera.camera import Camera, pose_from_forward
+from icbtool.camera.camera import Camera, CameraPlacementError, pose_from_forward
 from icbtool.camera.path import CameraPath
 
 if TYPE_CHECKING:  # pragma: no cover
     from icbtool.scene import Scene
 
 
-class CameraPlacementError(ValueError):
-    """A camera sits inside geometry or too close to a surface; the message says where."""
-
-
 def _embree(scene: Scene):
-    from icbtool.trace.embree import EmbreeScene
+    from icbtool.scene.raycast import EmbreeScene
 
     return EmbreeScene.from_scene(scene)
 
