@@ -1,6 +1,9 @@
 """The ICB loop in one process: a client moving along a camera path, a cloud with a cache.
 
-For every client frame at time ``t`` (ICB.md section 6, without the network yet):
+:func:`run_loop` is a thin driver over the system's objects (:mod:`icbtool.system`): a
+:class:`~icbtool.system.Client` asks an in-process :class:`~icbtool.system.Cloud` (its
+:class:`~icbtool.system.GISource`) for GI. For every client frame at time ``t`` (ICB.md
+section 6, without the network yet):
 
 1. The client rasterizes its WRT-buffer (DL, albedo, normals, depth) at its camera ``c(t)``.
 2. The cloud answers the request the client sent ``T_IL`` earlier: from the client's camera and
@@ -19,7 +22,6 @@ score the frame (SSIM on the display scale).
 from __future__ import annotations
 
 import json
-import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -28,10 +30,9 @@ from typing import Any
 import numpy as np
 
 from icbtool.camera import CameraPath
+from icbtool.system.client import ClientConfig
+from icbtool.system.cloud import CloudConfig
 from icbtool.trace.tracer import DenoiseQuality, check_denoise_quality
-
-#: The client's WRT-buffer (ICB.md section 2; the mask always comes with it).
-_WRT_BUFFERS = ("dl", "albedo", "normal_world", "depth")
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,27 @@ class LoopConfig:
             raise ValueError("LoopConfig.alpha_pos and alpha_dir must be > 0")
         check_denoise_quality(self.denoise_quality, "LoopConfig.denoise_quality")
 
+    def cloud_config(self) -> CloudConfig:
+        """The cloud's part of this configuration."""
+        return CloudConfig(
+            prefetch=self.prefetch,
+            latency_s=self.latency_s,
+            fov_step_deg=self.fov_step_deg,
+            spp=self.spp,
+            denoise=self.denoise,
+            denoise_quality=self.denoise_quality,
+            max_depth=self.max_depth,
+            alpha_pos=self.alpha_pos,
+            alpha_dir=self.alpha_dir,
+            seed=self.seed,
+        )
+
+    def client_config(self) -> ClientConfig:
+        """The client's part of this configuration."""
+        return ClientConfig(
+            combine_previous=self.combine_previous, inpaint=self.inpaint, gi_weight=self.gi_weight
+        )
+
 
 @dataclass
 class FrameStats:
@@ -135,13 +157,15 @@ class LoopReport:
         return float(np.mean([f.cache_hit for f in self.frames])) if self.frames else 0.0
 
     def summary(self) -> dict[str, Any]:
-        """Aggregates: hit rate, mean hole ratios, mean SSIMs, mean stage times."""
+        """Aggregates: hit rate, mean hole ratios and SSIM/MSE against the truth, and per stage
+        the median time and the first call's time apart (the first frame pays one-time costs:
+        kernel compilation, shader builds, cache warm-up, which a mean would smear over all)."""
 
         def mean(key: str) -> float | None:
             vals = [getattr(f, key) for f in self.frames if getattr(f, key) is not None]
             return float(np.mean(vals)) if vals else None
 
-        return {
+        out: dict[str, Any] = {
             "scene": self.scene,
             "frames": len(self.frames),
             "cloud_renders": self.cloud_renders,
@@ -153,16 +177,40 @@ class LoopReport:
             "mean_ssim_dl_only_vs_truth": mean("ssim_dl_only"),
             "mean_mse_final_vs_truth": mean("mse_final"),
             "mean_mse_dl_only_vs_truth": mean("mse_dl_only"),
-            "mean_raster_ms": mean("raster_ms"),
-            "mean_lookup_ms": mean("lookup_ms"),
-            "mean_cloud_render_ms_on_miss": float(
-                np.mean([f.cloud_render_ms for f in self.frames if not f.cache_hit])
-            )
-            if any(not f.cache_hit for f in self.frames)
-            else None,
-            "mean_warp_ms": mean("warp_ms"),
-            "total_s": self.total_s,
         }
+        misses = [f for f in self.frames if not f.cache_hit]
+        for stage, frames in (
+            ("raster_ms", self.frames),
+            ("lookup_ms", self.frames),
+            ("cloud_render_ms", misses),
+            ("warp_ms", self.frames),
+        ):
+            t = timing_summary([getattr(f, stage) for f in frames])
+            name = stage.removesuffix("_ms") + ("_on_miss" if stage == "cloud_render_ms" else "")
+            out[f"median_{name}_ms"] = t["median"]
+            out[f"first_{name}_ms"] = t["first"]
+            out[f"median_{name}_ms_after_first"] = t["median_after_first"]
+        out["total_s"] = self.total_s
+        return out
+
+
+def timing_summary(times_ms: list[float]) -> dict[str, float | None]:
+    """Median of all calls, the first call, and the median of the calls after the first.
+
+    Args:
+        times_ms: per-call times in call order.
+
+    Returns:
+        ``{"median", "first", "median_after_first"}`` (None where there are too few calls).
+    """
+    if not times_ms:
+        return {"median": None, "first": None, "median_after_first": None}
+    rest = times_ms[1:]
+    return {
+        "median": float(np.median(times_ms)),
+        "first": float(times_ms[0]),
+        "median_after_first": float(np.median(rest)) if rest else None,
+    }
 
 
 def _client_path(scene: Any, cfg: LoopConfig) -> CameraPath:
@@ -182,7 +230,8 @@ def run_loop(
     store_dir: str | Path | None = None,
     progress: bool = True,
 ) -> LoopReport:
-    """Run the client/cloud loop along a path (see module docstring).
+    """Drive a :class:`~icbtool.system.Client` along a path against an in-process
+    :class:`~icbtool.system.Cloud` (see module docstring).
 
     Args:
         scene: an :class:`icbtool.scene.Scene` with the named path.
@@ -191,14 +240,14 @@ def run_loop(
             ``config.json``; None writes nothing.
         store_dir: the cloud's cache (an :func:`icbtool.store.open` directory); default
             ``out_dir / "cache"``, or a temporary directory when ``out_dir`` is None.
+        progress: show a progress bar.
 
     Returns:
         A :class:`LoopReport`.
     """
     import tempfile
 
-    from icbtool import imageio, metrics, prefetch, raster, store, trace, warp
-    from icbtool.store.record import CRTBuffer
+    from icbtool import imageio, metrics, raster, system, trace
 
     cfg = config or LoopConfig()
     path = _client_path(scene, cfg)
@@ -213,8 +262,6 @@ def run_loop(
     if out is not None:
         (out / "frames").mkdir(parents=True, exist_ok=True)
     times = np.linspace(path.times[0], path.times[-1], cfg.frames)
-    pcfg = prefetch.PrefetchConfig(latency_s=max(cfg.latency_s, 1e-9))
-    scfg = store.StoreConfig(alpha_pos=cfg.alpha_pos, alpha_dir=cfg.alpha_dir)
     report = LoopReport(scene.name, cfg)
     t_start = time.perf_counter()
     bar = None
@@ -222,90 +269,31 @@ def run_loop(
         from tqdm import tqdm
 
         bar = tqdm(total=cfg.frames, desc=f"icb loop {scene.name}", unit="frame")
-    prev_ref: CRTBuffer | None = None
     try:
-        with raster.Rasterizer(scene) as rz, store.open(store_dir, scfg) as cache:
-            cache.register_scene(scene)
+        with (
+            raster.Rasterizer(scene) as rz,
+            system.Cloud(scene, store_dir, cfg.cloud_config(), rasterizer=rz) as cloud,
+            system.Client(scene, cloud, cfg.client_config(), rasterizer=rz) as client,
+        ):
             for k, t in enumerate(times):
                 cam = path.camera_at(float(t))
-                # 1. client raster
-                t0 = time.perf_counter()
-                wrt = rz.render(cam, buffers=_WRT_BUFFERS)
-                raster_ms = 1e3 * (time.perf_counter() - t0)
-                # 2. cloud: the request sent T_IL ago
+                # the request the client sent T_IL ago
                 t_req = max(float(t) - cfg.latency_s, float(path.times[0]))
-                req_cam = path.camera_at(t_req)
-                if cfg.prefetch:
-                    v_t, v_r = path.velocity_cam(t_req)
-                    near, far = _depth_range(wrt, prefetch)
-                    ref_cam = prefetch.prefetch_camera(
-                        req_cam, v_t, v_r, pcfg, depth_range=(near, far)
-                    ).camera
-                    ref_cam = _round_fov(ref_cam, cfg.fov_step_deg, pcfg.max_fov_deg)
-                else:
-                    ref_cam = req_cam
-                t0 = time.perf_counter()
-                hit = cache.lookup(ref_cam, scene=scene, intrinsics="covering")
-                lookup_ms = 1e3 * (time.perf_counter() - t0)
-                cloud_ms = 0.0
-                if hit is not None:
-                    ref = hit.record
-                else:
-                    t0 = time.perf_counter()
-                    ref = store.render_crt_buffer(
-                        scene,
-                        ref_cam,
-                        trace.TraceConfig(
-                            spp=cfg.spp,
-                            seed=cfg.seed + 1000 + k,
-                            max_depth=cfg.max_depth,
-                            denoise=cfg.denoise,
-                            denoise_quality=cfg.denoise_quality,
-                        ),
-                        rz,
-                        buffers=_WRT_BUFFERS,
-                        tags={"frame": k},
-                    )
-                    cloud_ms = 1e3 * (time.perf_counter() - t0)
-                    cache.put(ref)
-                    report.cloud_renders += 1
-                # 3. client warp
-                t0 = time.perf_counter()
-                w_cur = warp.backward(
-                    ref.gi, ref.depth, ref.camera, wrt.depth, cam, ref.mask, wrt.mask
-                )
-                results = [w_cur]
-                if cfg.combine_previous and prev_ref is not None and prev_ref is not ref:
-                    results.append(
-                        warp.backward(
-                            prev_ref.gi,
-                            prev_ref.depth,
-                            prev_ref.camera,
-                            wrt.depth,
-                            cam,
-                            prev_ref.mask,
-                            wrt.mask,
-                        )
-                    )
-                both = warp.combine(results) if len(results) > 1 else w_cur
-                hole_combined = both.hole_ratio
-                if cfg.inpaint:
-                    both = warp.inpaint(both, depth=wrt.depth)
-                warp_ms = 1e3 * (time.perf_counter() - t0)
-                gi = both.image
-                final = wrt.dl + cfg.gi_weight * gi
-                prev_ref = ref
+                v_t, v_r = path.velocity_cam(t_req)
+                request = system.GIRequest(path.camera_at(t_req), v_t, v_r, t_req, seq=k)
+                fr = client.frame(cam, request)
+                ref = fr.reply.reference
                 fs = FrameStats(
                     index=k,
                     time_s=float(t),
-                    cache_hit=hit is not None,
+                    cache_hit=fr.reply.cache_hit,
                     reference_fov_y_deg=ref.camera.fov_y_deg,
-                    raster_ms=raster_ms,
-                    lookup_ms=lookup_ms,
-                    cloud_render_ms=cloud_ms,
-                    warp_ms=warp_ms,
-                    hole_ratio=w_cur.hole_ratio,
-                    hole_ratio_combined=hole_combined,
+                    raster_ms=fr.raster_ms,
+                    lookup_ms=fr.reply.timings_ms.get("lookup", 0.0),
+                    cloud_render_ms=fr.reply.timings_ms.get("render", 0.0),
+                    warp_ms=fr.warp_ms,
+                    hole_ratio=fr.warped.hole_ratio,
+                    hole_ratio_combined=fr.hole_ratio_combined,
                 )
                 truth = None
                 if cfg.truth_every and k % cfg.truth_every == 0:
@@ -316,17 +304,25 @@ def run_loop(
                             spp=cfg.truth_spp, seed=cfg.seed + 5000 + k, max_depth=cfg.max_depth
                         ),
                     )
-                    fs.ssim_final = metrics.ssim(final, truth.full)
-                    fs.ssim_gi = metrics.ssim(gi, truth.gi)
-                    fs.ssim_dl_only = metrics.ssim(wrt.dl, truth.full)
-                    fs.mse_final = metrics.mse(final, truth.full)
-                    fs.mse_dl_only = metrics.mse(wrt.dl, truth.full)
+                    fs.ssim_final = metrics.ssim(fr.final, truth.full)
+                    fs.ssim_gi = metrics.ssim(fr.gi, truth.gi)
+                    fs.ssim_dl_only = metrics.ssim(fr.wrt.dl, truth.full)
+                    fs.mse_final = metrics.mse(fr.final, truth.full)
+                    fs.mse_dl_only = metrics.mse(fr.wrt.dl, truth.full)
                 report.frames.append(fs)
                 if out is not None:
-                    _write_frame(out / "frames" / f"{k:03d}.png", wrt, both, final, truth, imageio)
+                    _write_frame(
+                        out / "frames" / f"{k:03d}.png",
+                        fr.wrt,
+                        fr.combined,
+                        fr.final,
+                        truth,
+                        imageio,
+                    )
                 if bar is not None:
                     bar.update(1)
                     bar.set_postfix(hit=fs.cache_hit, holes=f"{fs.hole_ratio_combined:.3f}")
+            report.cloud_renders = cloud.renders
     finally:
         if bar is not None:
             bar.close()
@@ -336,29 +332,6 @@ def run_loop(
     if out is not None:
         _write_report(out, report)
     return report
-
-
-def _round_fov(cam: Any, step_deg: float, max_fov_deg: float) -> Any:
-    """``cam`` with its vertical FOV rounded up to a multiple of ``step_deg`` (capped), the
-    resolution scaled to keep the pixel density at the centre."""
-    if step_deg <= 0:
-        return cam
-    fov = min(math.ceil(cam.fov_y_deg / step_deg - 1e-9) * step_deg, max_fov_deg)
-    if fov <= cam.fov_y_deg:
-        return cam
-    scale = math.tan(math.radians(fov) / 2) / math.tan(math.radians(cam.fov_y_deg) / 2)
-    h, w = round(cam.height * scale), round(cam.width * scale)
-    return cam.with_fov(fov, h, w)
-
-
-def _depth_range(wrt: Any, prefetch: Any) -> tuple[float, float]:
-    """The client's depth range for the prefetch camera; prefetch's default range when the
-    client sees no geometry."""
-    try:
-        near, far = prefetch.depth_range_from_depth(wrt.depth, wrt.mask)
-    except ValueError:
-        return 0.1, 100.0
-    return max(near, 1e-3), far
 
 
 _EXPOSURE = 1.0

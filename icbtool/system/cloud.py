@@ -1,0 +1,190 @@
+"""The cloud: the full-detail scene, the octree CRT-buffer cache and the path tracer.
+
+For a :class:`~icbtool.system.messages.GIRequest` (ICB.md sections 3, 4 and 6):
+
+1. predict where the client can be after the latency: the prefetch camera (wider FOV, pulled
+   back; :func:`icbtool.prefetch.prefetch_camera`), its FOV rounded up to a step so that a stored
+   reference covers the slightly different FOVs of the next requests;
+2. look that camera up in the octree cache (a similar camera whose FOV covers it is a hit);
+3. on a miss, render a CRT-buffer there (raster G-buffers + path-traced GI, optionally
+   denoised) and store it.
+
+Every step is timed in the reply.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from icbtool.buffers import WRT_BUFFERS
+from icbtool.camera import Camera
+from icbtool.system.messages import GIReply, GIRequest
+from icbtool.system.source import GISource
+from icbtool.trace.tracer import DenoiseQuality, check_denoise_quality
+
+log = logging.getLogger(__name__)
+
+#: The prefetch camera's depth range when the client sent none (it sees no geometry).
+DEFAULT_DEPTH_RANGE = (0.1, 100.0)
+
+
+@dataclass(frozen=True)
+class CloudConfig:
+    """How the :class:`Cloud` answers requests."""
+
+    prefetch: bool = True
+    """Render at the prefetch camera (else at the request's camera)."""
+    latency_s: float = 0.1
+    """Interaction latency T_IL the prefetch camera must cover."""
+    fov_step_deg: float = 2.0
+    """Round the prefetch FOV up to a multiple of this (0: no rounding)."""
+    spp: int = 16
+    """Path-tracing samples per pixel of the GI maps."""
+    denoise: bool = True
+    """Denoise the GI maps (OIDN with albedo and normal)."""
+    denoise_quality: DenoiseQuality = "high"
+    """OIDN quality ('fast': about half the denoising time)."""
+    max_depth: int = 8
+    """Longest traced path (segments)."""
+    alpha_pos: float = 0.1
+    """Cache position threshold (scene units)."""
+    alpha_dir: float = 0.01
+    """Cache direction threshold on 1 - dot (0.01 = 8.1 degrees)."""
+    seed: int = 0
+    """Base seed: a render for request ``seq`` uses ``seed + 1000 + seq``."""
+
+    def __post_init__(self) -> None:
+        for k in ("spp", "max_depth"):
+            v = getattr(self, k)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"CloudConfig.{k} must be an integer >= 1, got {v!r}")
+        if not (math.isfinite(self.latency_s) and self.latency_s >= 0):
+            raise ValueError(f"CloudConfig.latency_s must be finite and >= 0, got {self.latency_s}")
+        if not 0.0 <= self.fov_step_deg < 30.0:
+            raise ValueError(
+                f"CloudConfig.fov_step_deg must be in [0, 30), got {self.fov_step_deg}"
+            )
+        if not (self.alpha_pos > 0 and self.alpha_dir > 0):
+            raise ValueError("CloudConfig.alpha_pos and alpha_dir must be > 0")
+        check_denoise_quality(self.denoise_quality, "CloudConfig.denoise_quality")
+
+
+class Cloud(GISource):
+    """The in-process cloud: answers GI requests from its cache or by rendering.
+
+    Args:
+        scene: the full-detail :class:`icbtool.scene.Scene`.
+        store: an open :class:`icbtool.store.Store`, or a directory to open one in (closed with
+            the cloud).
+        config: :class:`CloudConfig`.
+        rasterizer: an open :class:`icbtool.raster.Rasterizer` of ``scene`` to share (one GL
+            context per process is cheapest); None opens one on the first render.
+
+    Example:
+        >>> with Cloud(scene, "out/cache") as cloud:  # doctest: +SKIP
+        ...     reply = cloud.request(GIRequest(camera, v_t, v_r, time_s=0.0))
+    """
+
+    kind = "cloud"
+
+    def __init__(
+        self,
+        scene: Any,
+        store: Any,
+        config: CloudConfig | None = None,
+        rasterizer: Any = None,
+    ) -> None:
+        from icbtool import prefetch
+        from icbtool import store as store_mod
+
+        self.scene = scene
+        self.config = cfg = config or CloudConfig()
+        self._prefetch_cfg = prefetch.PrefetchConfig(latency_s=max(cfg.latency_s, 1e-9))
+        self._own_store = isinstance(store, (str, os.PathLike))
+        scfg = store_mod.StoreConfig(alpha_pos=cfg.alpha_pos, alpha_dir=cfg.alpha_dir)
+        self.store = store_mod.open(store, scfg) if self._own_store else store
+        self.store.register_scene(scene)
+        self._rasterizer = rasterizer
+        self._own_rasterizer = False
+        self.renders = 0
+
+    # ------------------------------------------------------------------ the prefetch camera
+    def reference_camera(self, req: GIRequest) -> Camera:
+        """The camera the cloud renders (or looks up) for ``req``."""
+        from icbtool import prefetch
+
+        if not self.config.prefetch:
+            return req.camera
+        depth_range = req.depth_range or DEFAULT_DEPTH_RANGE
+        cam = prefetch.prefetch_camera(
+            req.camera, req.velocity_t, req.velocity_r, self._prefetch_cfg, depth_range=depth_range
+        ).camera
+        return round_fov(cam, self.config.fov_step_deg, self._prefetch_cfg.max_fov_deg)
+
+    # ------------------------------------------------------------------ GISource
+    def request(self, req: GIRequest, wrt: Any = None) -> GIReply:
+        """Answer ``req`` from the cache, or render and store a new reference."""
+        ref_cam = self.reference_camera(req)
+        t0 = time.perf_counter()
+        hit = self.store.lookup(ref_cam, scene=self.scene, intrinsics="covering")
+        lookup_ms = 1e3 * (time.perf_counter() - t0)
+        if hit is not None:
+            return GIReply(hit.record, True, {"lookup": lookup_ms, "render": 0.0}, req.seq)
+        t0 = time.perf_counter()
+        ref = self.render(ref_cam, req.seq)
+        render_ms = 1e3 * (time.perf_counter() - t0)
+        self.store.put(ref)
+        return GIReply(ref, False, {"lookup": lookup_ms, "render": render_ms}, req.seq)
+
+    def render(self, camera: Camera, seq: int = 0) -> Any:
+        """Render a CRT-buffer (the client's WRT-buffers + path-traced GI) at ``camera``."""
+        from icbtool import raster, trace
+        from icbtool.store import render_crt_buffer
+
+        cfg = self.config
+        if self._rasterizer is None:
+            self._rasterizer = raster.Rasterizer(self.scene)
+            self._own_rasterizer = True
+        self.renders += 1
+        return render_crt_buffer(
+            self.scene,
+            camera,
+            trace.TraceConfig(
+                spp=cfg.spp,
+                seed=cfg.seed + 1000 + seq,
+                max_depth=cfg.max_depth,
+                denoise=cfg.denoise,
+                denoise_quality=cfg.denoise_quality,
+            ),
+            self._rasterizer,
+            buffers=WRT_BUFFERS,
+            tags={"frame": seq},
+        )
+
+    def close(self) -> None:
+        if self._own_rasterizer and self._rasterizer is not None:
+            self._rasterizer.close()
+            self._rasterizer = None
+        if self._own_store:
+            self.store.close()
+
+
+def round_fov(cam: Camera, step_deg: float, max_fov_deg: float) -> Camera:
+    """``cam`` with its vertical FOV rounded up to a multiple of ``step_deg`` (capped at
+    ``max_fov_deg``), the resolution scaled to keep the pixel density at the centre."""
+    if step_deg <= 0:
+        return cam
+    fov = min(math.ceil(cam.fov_y_deg / step_deg - 1e-9) * step_deg, max_fov_deg)
+    if fov <= cam.fov_y_deg:
+        return cam
+    scale = math.tan(math.radians(fov) / 2) / math.tan(math.radians(cam.fov_y_deg) / 2)
+    h, w = round(cam.height * scale), round(cam.width * scale)
+    return cam.with_fov(fov, h, w)
+
+
+__all__ = ["DEFAULT_DEPTH_RANGE", "Cloud", "CloudConfig", "round_fov"]
