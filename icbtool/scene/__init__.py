@@ -15,6 +15,7 @@ from icbtool.scene.procedural import (
     white_furnace,
 )
 from icbtool.scene.types import (
+    LIGHT_TYPES,
     AreaLight,
     DirectionalLight,
     Light,
@@ -24,12 +25,15 @@ from icbtool.scene.types import (
     SceneBuilder,
     Sky,
     SpotLight,
+    light_parameters,
     vertex_normals,
 )
 from icbtool.scene.validate import SceneError, SceneRepairWarning
 from icbtool.scene.walk import check_camera, random_walk, surroundings
 
 __all__ = [
+    "LIGHT_TYPES",
+    "light_parameters",
     "PROCEDURAL",
     "AreaLight",
     "DirectionalLight",

@@ -62,26 +62,20 @@ from typing import Any
 import numpy as np
 
 from icbtool.scene.types import (
+    LIGHT_TYPES,
     AreaLight,
-    DirectionalLight,
     Light,
     Material,
-    PointLight,
     Scene,
     Sky,
-    SpotLight,
+    light_parameters,
 )
 from icbtool.scene.validate import SceneError, check_file
 
 _SCENE_KEYS = {"name", "mesh", "scale", "up_axis", "translation", "flip_v", "textures"}
 _CAMERA_KEYS = {"fov_y_deg", "height", "width"}
 _TOP_KEYS = {"scene", "camera", "lights", "sky", "default_camera", "paths"}
-_LIGHT_KEYS = {
-    "directional": ({"direction", "irradiance"}, {"name"}),
-    "point": ({"position", "intensity"}, {"name"}),
-    "spot": ({"position", "direction", "intensity"}, {"name", "inner_deg", "outer_deg"}),
-    "area": ({"corner", "edge_u", "edge_v", "radiance"}, {"name"}),
-}
+_LIGHT_KEYS = {kind: light_parameters(kind) for kind in LIGHT_TYPES}
 _SKY_KEYS = {"type", "zenith", "horizon", "ground", "up"}
 _DEFAULT_CAMERA_KEYS = {"eye", "target", "up"} | _CAMERA_KEYS
 #: Per-path intrinsics keys (``height`` is an orbit parameter, so image sizes are spelled out).
@@ -353,14 +347,9 @@ def _light(spec: Any, i: int, where: str) -> Light:
             f"{where}: [[lights]] entry {i}: unknown type {kind!r}; one of {sorted(_LIGHT_KEYS)}"
         )
     req, opt = _LIGHT_KEYS[kind]
-    kw = _check_keys(spec, req | opt | {"type"}, where, f"lights {i} ({kind})", req)
+    kw = _check_keys(spec, set(req | opt | {"type"}), where, f"lights {i} ({kind})", set(req))
     kw.pop("type")
-    cls = {
-        "directional": DirectionalLight,
-        "point": PointLight,
-        "spot": SpotLight,
-        "area": AreaLight,
-    }[kind]
+    cls = LIGHT_TYPES[kind]
     kw.setdefault("name", f"{kind}{i}")
     try:
         return cls(**kw)

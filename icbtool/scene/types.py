@@ -251,6 +251,31 @@ class Sky:
 
 Light = DirectionalLight | PointLight | SpotLight | AreaLight
 
+#: Every light type by its ``kind``: the one place a light type is declared. Its parameters are
+#: the dataclass's fields (those without a default are required), read by the scene description,
+#: the hashes and the renderers alike.
+LIGHT_TYPES: dict[str, type] = {
+    "directional": DirectionalLight,
+    "point": PointLight,
+    "spot": SpotLight,
+    "area": AreaLight,
+}
+
+
+def light_parameters(kind: str) -> tuple[frozenset[str], frozenset[str]]:
+    """(required, optional) parameter names of the light type ``kind`` (``kind`` excluded).
+
+    Raises:
+        KeyError: an unknown kind.
+    """
+    from dataclasses import MISSING, fields
+
+    fs = [f for f in fields(LIGHT_TYPES[kind]) if f.name != "kind"]
+    required = frozenset(
+        f.name for f in fs if f.default is MISSING and f.default_factory is MISSING
+    )
+    return required, frozenset(f.name for f in fs) - required
+
 
 @dataclass(frozen=True, eq=False)
 class Scene:
