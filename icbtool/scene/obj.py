@@ -46,6 +46,8 @@ surface reflects all the energy the original reflects or transmits,
 
 from __future__ import annotations
 
+import itertools
+import re
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -133,12 +135,96 @@ def _floats(path: Path, tokens: list[bytes], lines: list[int], width: int, what:
         raise  # pragma: no cover - a token that float() takes but numpy does not
 
 
-def parse_obj(path: str | Path, data: bytes | None = None) -> ObjMesh:
+class _Statements:
+    """The non-geometry statements (materials, smoothing, libraries, skipped ones) of a file."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.mtllibs: list[str] = []
+        self.mat_names: list[str] = []
+        self.mat_index: dict[str, int] = {}
+        self.cur_mat = -1
+        self.cur_s = 0
+        self.skipped: dict[str, int] = {}
+
+    def handle(self, key: bytes, parts: list[bytes], lineno: int) -> bool:
+        """Apply one statement; True when it changed the material or smoothing state."""
+        if key == b"usemtl":
+            name = b" ".join(parts[1:]).decode("utf-8", "replace") or "default"
+            if name not in self.mat_index:
+                self.mat_index[name] = len(self.mat_names)
+                self.mat_names.append(name)
+            self.cur_mat = self.mat_index[name]
+            return True
+        if key == b"s":
+            arg = parts[1].lower() if len(parts) > 1 else b"off"
+            if arg in (b"off", b"0"):
+                self.cur_s = 0
+            else:
+                try:
+                    self.cur_s = int(arg)
+                except ValueError:
+                    raise SceneError(
+                        f"{self.path}:{lineno}: smoothing group must be an integer or 'off', got "
+                        f"{arg.decode(errors='replace')!r}"
+                    ) from None
+            return True
+        if key == b"mtllib":
+            # several files on one line; a single name with spaces is kept if it is a file
+            names = [x.decode("utf-8", "replace") for x in parts[1:]]
+            whole = " ".join(names)
+            if len(names) > 1 and (self.path.parent / whole).is_file():
+                names = [whole]
+            self.mtllibs += names
+        elif key in _HARMLESS:
+            pass
+        elif key == b"l":
+            self._skip("line element(s) 'l'")
+        elif key == b"p":
+            self._skip("point element(s) 'p'")
+        elif key in _FREEFORM:
+            self._skip("free-form curve/surface statement(s)")
+        else:
+            self._skip(f"unknown statement(s) '{key.decode(errors='replace')[:20]}'")
+        return False
+
+    def _skip(self, what: str) -> None:
+        self.skipped[what] = self.skipped.get(what, 0) + 1
+
+    def warn(self) -> None:
+        if self.skipped:
+            repair_warning(
+                str(self.path),
+                "ignored "
+                + ", ".join(f"{n} {k}" for k, n in self.skipped.items())
+                + " (unsupported)",
+            )
+
+
+@dataclass
+class _Scan:
+    """Everything read from the file before indices are resolved."""
+
+    pos: np.ndarray  # (Nv, 3)
+    tex: np.ndarray  # (Nt, 2)
+    nrm: np.ndarray  # (Nn, 3)
+    idx: np.ndarray  # (C, 3) v, vt, vn per corner as written, 0 = absent
+    counts: np.ndarray  # (P,) corners per polygon
+    f_line: np.ndarray  # (P,) 1-based line
+    state: np.ndarray  # (P, 5) nv, nvt, nvn before the face, material, smoothing group
+
+
+_COMMENT = re.compile(rb"#[^\r\n]*")
+
+
+def parse_obj(path: str | Path, data: bytes | None = None, *, fast: bool = True) -> ObjMesh:
     """Parse an OBJ file (see the module docstring for what is read and the rules).
 
     Args:
         path: the .obj file (named in messages; read unless ``data`` is given).
         data: the file's bytes, if already read.
+        fast: try the vectorised reader first (any irregular file, and every error, goes
+            through the line-by-line reader, which gives the same result).
 
     Returns:
         The triangulated :class:`ObjMesh`.
@@ -151,6 +237,131 @@ def parse_obj(path: str | Path, data: bytes | None = None) -> ObjMesh:
         data = p.read_bytes()
     if b"\x00" in data[:65536]:
         raise SceneError(f"{p}: not a text OBJ file (contains NUL bytes): corrupt or binary")
+    st = _Statements(p)
+    scan = _scan_fast(p, data, st) if fast else None
+    if scan is None:
+        st = _Statements(p)
+        scan = _scan_lines(p, data, st)
+    st.warn()
+    return _build(p, scan, st)
+
+
+def _scan_fast(p: Path, data: bytes, st: _Statements) -> _Scan | None:
+    """Vectorised reading of a regular file (one statement per line, keyword first, uniform
+    number of coordinates); None when the file is irregular (then :func:`_scan_lines`)."""
+    if b"\\" in data:
+        return None  # line continuations (or odd names): the generic reader
+    if b"#" in data:
+        data = _COMMENT.sub(b"", data)
+    lines = data.splitlines()
+    heads = np.array([x[:2] for x in lines], dtype="S2")
+    is_v = (heads == b"v ") | (heads == b"v\t")
+    is_vt = heads == b"vt"
+    is_vn = heads == b"vn"
+    is_f = (heads == b"f ") | (heads == b"f\t")
+    ev_line, ev_mat, ev_s = [-1], [-1], [0]
+    for i in np.flatnonzero(~(is_v | is_vt | is_vn | is_f)).tolist():
+        parts = lines[i].split()
+        if not parts:
+            continue
+        if parts[0] in (b"v", b"vt", b"vn", b"f"):
+            return None  # indented or unusual geometry statement
+        if st.handle(parts[0], parts, i + 1):
+            ev_line.append(i)
+            ev_mat.append(st.cur_mat)
+            ev_s.append(st.cur_s)
+    f_idx = np.flatnonzero(is_f)
+    if not is_v.any() or len(f_idx) == 0:
+        return None
+    pos = _block(lines, is_v, b"v", (3,))
+    tex = _block(lines, is_vt, b"vt", (2, 3, 1)) if is_vt.any() else np.zeros((0, 2))
+    nrm = _block(lines, is_vn, b"vn", (3,)) if is_vn.any() else np.zeros((0, 3))
+    if pos is None or tex is None or nrm is None:
+        return None
+    f_lines = [lines[i] for i in f_idx.tolist()]
+    parts = list(map(bytes.split, f_lines))
+    counts = np.fromiter(map(len, parts), np.int64, len(parts)) - 1
+    if counts.min() < 3:
+        return None
+    corners = list(itertools.chain.from_iterable(x[1:] for x in parts))
+    idx = _corners_fast(corners)
+    if idx is None:
+        return None
+    ev = np.searchsorted(np.asarray(ev_line), f_idx) - 1
+    state = np.column_stack(
+        [
+            np.cumsum(is_v)[f_idx],
+            np.cumsum(is_vt)[f_idx],
+            np.cumsum(is_vn)[f_idx],
+            np.asarray(ev_mat)[ev],
+            np.asarray(ev_s)[ev],
+        ]
+    ).astype(np.int64)
+    return _Scan(pos, tex, nrm, idx, counts, f_idx + 1, state)
+
+
+def _block(lines: list[bytes], mask: np.ndarray, key: bytes, widths: tuple[int, ...]):
+    """(N, widths[0]) float64 of the lines in ``mask`` if each has the same count (one of
+    ``widths``) of numbers after ``key``; else None."""
+    n = int(mask.sum())
+    toks = b" ".join([lines[i] for i in np.flatnonzero(mask).tolist()]).split()
+    for w in widths:
+        if len(toks) != (w + 1) * n:
+            continue
+        if toks[0 :: w + 1].count(key) != n:
+            return None
+        del toks[0 :: w + 1]
+        try:
+            vals = np.fromiter(map(float, toks), np.float64, len(toks)).reshape(n, w)
+        except ValueError:
+            return None
+        out = np.zeros((n, widths[0]))
+        k = min(w, widths[0])
+        out[:, :k] = vals[:, :k]
+        return out
+    return None
+
+
+def _corners_fast(tok: list[bytes]) -> np.ndarray | None:
+    """(C, 3) int64 (v, vt, vn) of corner tokens (0 = absent), or None if irregular."""
+    n = len(tok)
+    nslash = np.fromiter(map(bytes.count, tok, itertools.repeat(b"/")), np.int64, n)
+    dbl = np.fromiter(map(bytes.count, tok, itertools.repeat(b"//")), np.int64, n) > 0
+    if (nslash > 2).any():
+        return None
+    out = np.zeros((n, 3), np.int64)
+    obj = None
+    for sel, sep, cols in (
+        ((nslash == 0), b"/", [0]),
+        ((nslash == 1), b"/", [0, 1]),
+        ((nslash == 2) & ~dbl, b"/", [0, 1, 2]),
+        ((nslash == 2) & dbl, b"//", [0, 2]),
+    ):
+        m = int(sel.sum())
+        if m == 0:
+            continue
+        if m == n:
+            group = tok
+        else:
+            obj = np.array(tok, dtype=object) if obj is None else obj
+            group = obj[sel].tolist()
+        text = b" ".join(group).replace(sep, b" ")
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")  # junk: an exception on every numpy version
+                vals = np.fromstring(text, dtype=np.int64, sep=" ")
+        except (ValueError, DeprecationWarning):
+            return None
+        if len(vals) != len(cols) * m:
+            return None  # empty parts such as "1/" or "1/2/"
+        if (vals == 0).any():
+            return None  # a literal index 0: the line-by-line reader names the line
+        out[np.ix_(np.flatnonzero(sel), cols)] = vals.reshape(m, len(cols))
+    return out
+
+
+def _scan_lines(p: Path, data: bytes, st: _Statements) -> _Scan:
+    """The generic line-by-line reader (every error is raised from here, naming file:line)."""
     v_tok: list[bytes] = []
     v_line: list[int] = []
     vt_tok: list[bytes] = []
@@ -161,12 +372,6 @@ def parse_obj(path: str | Path, data: bytes | None = None) -> ObjMesh:
     f_n: list[int] = []  # corners per polygon
     f_line: list[int] = []
     f_state: list[tuple[int, int, int, int, int]] = []  # (nv, nvt, nvn, material, smoothing)
-    mtllibs: list[str] = []
-    mat_names: list[str] = []
-    mat_index: dict[str, int] = {}
-    cur_mat = -1
-    cur_s = 0
-    skipped: dict[str, int] = {}
     for lineno, raw in _logical_lines(data):
         if b"#" in raw:
             raw = raw.split(b"#", 1)[0]
@@ -188,7 +393,7 @@ def parse_obj(path: str | Path, data: bytes | None = None) -> ObjMesh:
             f_tok += parts[1:]
             f_n.append(len(parts) - 1)
             f_line.append(lineno)
-            f_state.append((len(v_line), len(vt_line), len(vn_line), cur_mat, cur_s))
+            f_state.append((len(v_line), len(vt_line), len(vn_line), st.cur_mat, st.cur_s))
         elif key == b"vt":
             if len(parts) < 2:
                 raise SceneError(f"{p}:{lineno}: texture coordinate without numbers")
@@ -199,59 +404,26 @@ def parse_obj(path: str | Path, data: bytes | None = None) -> ObjMesh:
                 raise SceneError(f"{p}:{lineno}: normal needs 3 coordinates: {raw.strip()!r}")
             vn_tok += parts[1:4]
             vn_line.append(lineno)
-        elif key == b"usemtl":
-            name = b" ".join(parts[1:]).decode("utf-8", "replace") or "default"
-            if name not in mat_index:
-                mat_index[name] = len(mat_names)
-                mat_names.append(name)
-            cur_mat = mat_index[name]
-        elif key == b"s":
-            arg = parts[1].lower() if len(parts) > 1 else b"off"
-            if arg in (b"off", b"0"):
-                cur_s = 0
-            else:
-                try:
-                    cur_s = int(arg)
-                except ValueError:
-                    raise SceneError(
-                        f"{p}:{lineno}: smoothing group must be an integer or 'off', got "
-                        f"{arg.decode(errors='replace')!r}"
-                    ) from None
-        elif key == b"mtllib":
-            # several files on one line; a name with spaces is rare but kept if it is one file
-            names = [x.decode("utf-8", "replace") for x in parts[1:]]
-            whole = " ".join(names)
-            if len(names) > 1 and (p.parent / whole).is_file():
-                names = [whole]
-            mtllibs += names
-        elif key in _HARMLESS:
-            continue
-        elif key == b"l":
-            skipped["line element(s) 'l'"] = skipped.get("line element(s) 'l'", 0) + 1
-        elif key == b"p":
-            skipped["point element(s) 'p'"] = skipped.get("point element(s) 'p'", 0) + 1
-        elif key in _FREEFORM:
-            k = "free-form curve/surface statement(s)"
-            skipped[k] = skipped.get(k, 0) + 1
         else:
-            k = f"unknown statement(s) '{key.decode(errors='replace')[:20]}'"
-            skipped[k] = skipped.get(k, 0) + 1
-    if skipped:
-        repair_warning(
-            str(p),
-            "ignored " + ", ".join(f"{n} {k}" for k, n in skipped.items()) + " (unsupported)",
-        )
+            st.handle(key, parts, lineno)
     if not v_line or not f_n:
         raise SceneError(f"{p}: empty mesh ({len(v_line)} vertices, {len(f_n)} faces)")
-
     pos = _floats(p, v_tok, v_line, 3, "vertex")
     tex = _floats(p, vt_tok, vt_line, 2, "texture") if vt_line else np.zeros((0, 2))
     nrm = _floats(p, vn_tok, vn_line, 3, "normal") if vn_line else np.zeros((0, 3))
-
     counts = np.asarray(f_n, np.int64)
-    state = np.asarray(f_state, np.int64).reshape(-1, 5)
     corner_face = np.repeat(np.arange(len(counts)), counts)
-    idx = _corner_indices(p, f_tok, f_line, corner_face)  # (C, 3), 0 = absent
+    idx = _corner_indices(p, f_tok, f_line, corner_face)
+    state = np.asarray(f_state, np.int64).reshape(-1, 5)
+    return _Scan(pos, tex, nrm, idx, counts, np.asarray(f_line, np.int64), state)
+
+
+def _build(p: Path, scan: _Scan, st: _Statements) -> ObjMesh:
+    """Resolve indices, split vertices, triangulate (see the module docstring)."""
+    pos, tex, nrm, idx = scan.pos, scan.tex, scan.nrm, scan.idx
+    counts, state, f_line = scan.counts, scan.state, scan.f_line
+    mat_names, mat_index, mtllibs = st.mat_names, st.mat_index, st.mtllibs
+    corner_face = np.repeat(np.arange(len(counts)), counts)
     resolved = np.empty_like(idx)
     kinds = ((len(pos), "vertex"), (len(tex), "texture"), (len(nrm), "normal"))
     for k, (total, what) in enumerate(kinds):
@@ -341,6 +513,12 @@ def _corner_indices(
             "is not v, v/vt, v//vn or v/vt/vn"
         )
     cols = []
+    for c, s in enumerate(split):
+        if any(x.lstrip(b"+-").lstrip(b"0") == b"" and x != b"" for x in s):
+            raise SceneError(
+                f"{p}:{f_line[corner_face[c]]}: face index 0 out of range in corner "
+                f"{tokens[c].decode(errors='replace')!r} (OBJ indices start at 1)"
+            )
     for k in range(3):
         col = [s[k] if len(s) > k and s[k] else b"0" for s in split]
         try:
