@@ -554,3 +554,64 @@ def _gltf_material_json(gltf: dict[str, Any] | None, name: str) -> dict[str, Any
         return {}
     found = [m for m in gltf.get("materials", []) if isinstance(m, dict) and m.get("name") == name]
     return found[0] if len(found) == 1 else {}
+
+
+# --------------------------------------------------------------------------- default light
+#: Irradiance (W/m^2, white) of the default sun of :func:`with_default_light`.
+DEFAULT_SUN_IRRADIANCE = 2.5
+#: Radiances of the default gradient sky of :func:`with_default_light` (zenith, horizon, ground).
+DEFAULT_SKY_RADIANCE = ((0.35, 0.45, 0.6), (0.6, 0.6, 0.6), (0.15, 0.15, 0.15))
+
+
+def has_light(scene: Scene) -> bool:
+    """True when the scene has a light, a sky or an emissive face."""
+    return bool(scene.lights) or scene.sky is not None or len(scene.emissive_faces) > 0
+
+
+def with_default_light(scene: Scene) -> Scene:
+    """The scene itself if it has any light; else a copy lit by the documented default light.
+
+    A bare mesh (no lights, no sky, no emissive faces) would render black. The default light
+    is a sun and a sky, both defined relative to ``scene.up``:
+
+    * a :class:`DirectionalLight` "default_sun" of :data:`DEFAULT_SUN_IRRADIANCE` W/m^2 (white)
+      travelling along ``normalize(-up - 0.5 * front + 0.3 * right)``, where ``front`` is the
+      side the automatic camera stands on (:func:`icbtool.camera.camera.default_view_direction`)
+      and ``right`` its right: it comes from above, from the front and a little from the left,
+      so the faces the default camera sees are lit and cast visible shadows;
+    * a gradient :class:`Sky` (:data:`DEFAULT_SKY_RADIANCE`: blue-grey zenith, grey horizon,
+      dark ground), which lights the shadows through the path tracer's GI.
+
+    A note is logged (logger ``icbtool.scene.load``, level WARNING) when the light is added.
+
+    Args:
+        scene: the scene (never modified).
+
+    Returns:
+        ``scene`` unchanged, or a new Scene (``dataclasses.replace``) with the light.
+    """
+    from icbtool.camera.camera import default_view_direction
+    from icbtool.scene.types import DirectionalLight, Sky
+
+    if has_light(scene):
+        return scene
+    up = np.asarray(scene.up, np.float64)
+    view = default_view_direction(up)
+    front = -(view - (view @ up) * up)
+    front /= np.linalg.norm(front)
+    right = np.cross(view, up)
+    right /= np.linalg.norm(right)
+    sun = DirectionalLight(
+        direction=-up - 0.5 * front + 0.3 * right,
+        irradiance=np.full(3, DEFAULT_SUN_IRRADIANCE),
+        name="default_sun",
+    )
+    zenith, horizon, ground = DEFAULT_SKY_RADIANCE
+    sky = Sky(zenith=zenith, horizon=horizon, ground=ground, kind="gradient", up=up)
+    log.warning(
+        "scene '%s' has no light (no lights, sky or emissive faces): using the default sun "
+        "(%.3g W/m^2) and gradient sky (icbtool.scene.with_default_light)",
+        scene.name,
+        DEFAULT_SUN_IRRADIANCE,
+    )
+    return replace_scene(scene, lights=[sun], sky=sky)
