@@ -332,7 +332,8 @@ def _obj_part(p: Path, data: bytes, materials: _MaterialTable) -> tuple:
         )
     index = np.array([materials.obj_index(n, library.get(n)) for n in mesh.material_names])
     fm = index[mesh.face_material]
-    return mesh.vertices, mesh.faces, mesh.normals, mesh.uvs, fm, ~mesh.normal_given
+    computed_bad = ~mesh.normal_given & ~np.isfinite(mesh.normals).all(axis=1)
+    return mesh.vertices, mesh.faces, mesh.normals, mesh.uvs, fm, computed_bad
 
 
 # --------------------------------------------------------------------------- trimesh

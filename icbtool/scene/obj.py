@@ -17,10 +17,12 @@ What it reads:
   files (on one line or several lines).
 * ``s`` smoothing groups decide the normals of faces without ``vn`` (our rule): with ``s off``/
   ``s 0`` (the default) each polygon is flat (its corners are separate vertices whose normal is
-  the polygon's area-weighted normal), so a box's corners are never smoothed across 90 degrees;
-  within a smoothing group ``s N`` the corners sharing a position share a vertex and get the
-  area-weighted average normal of that group's faces (OBJ's meaning of a smoothing group). Faces
-  with ``vn`` use the file's normals.
+  the polygon's normal), so a box's corners are never smoothed across 90 degrees; within a
+  smoothing group ``s N`` the corners sharing a position share a vertex whose normal is the sum
+  of the area-weighted normals of that group's polygons around it (OBJ's meaning of a smoothing
+  group; whole polygons count, not their triangles, so the diagonal a quad is split along does
+  not bias it). A polygon's normal is its Newell normal (exact for planar polygons). Faces with
+  ``vn`` use the file's normals.
 * ``l``, ``p`` and free-form curves/surfaces (``curv``, ``surf``, ``cstype``...) are skipped
   with one :class:`~icbtool.scene.validate.SceneRepairWarning` giving their counts; so are
   unknown statements.
@@ -82,7 +84,8 @@ class ObjMesh:
     Attributes:
         vertices: (V, 3) float64 positions, one per unique corner (see the module docstring).
         faces: (F, 3) int64 indices into ``vertices``.
-        normals: (V, 3) float64 file normals; rows where ``normal_given`` is False are NaN.
+        normals: (V, 3) float64 unit normals: the file's where ``normal_given``, else computed
+            from the polygons (see the module docstring); NaN where they cannot be (zero area).
         normal_given: (V,) bool, True where the file gives the vertex a ``vn``.
         uvs: (V, 2) float64, or None when no face corner has a ``vt``.
         face_material: (F,) int32 index into ``material_names``.
@@ -475,7 +478,24 @@ def _build(p: Path, scan: _Scan, st: _Statements) -> ObjMesh:
         has_t = uniq[:, 1] >= 0
         uvs[has_t] = tex[uniq[has_t, 1]]
 
-    faces, tri_poly = _triangulate(pos[resolved[:, 0]], corner_vertex, counts)
+    corner_pos = pos[resolved[:, 0]]
+    faces, tri_poly = _triangulate(corner_pos, corner_vertex, counts)
+    # computed normals (corners without vn): sum of the area-weighted (Newell) normals of the
+    # polygons sharing the vertex; a flat polygon's own vertices get exactly its normal
+    need = ~has_n
+    if need.any():
+        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        nxt = np.arange(len(corner_pos)) + 1
+        last = start + counts - 1
+        nxt[last] = start
+        poly_n = np.zeros((len(counts), 3))
+        np.add.at(poly_n, corner_face, np.cross(corner_pos, corner_pos[nxt]))
+        acc = np.zeros((len(uniq), 3))
+        sel = ~(resolved[:, 2] >= 0)
+        np.add.at(acc, corner_vertex[sel], poly_n[corner_face[sel]])
+        ln = np.linalg.norm(acc, axis=1)
+        ok = need & (ln > 0)
+        normals[ok] = acc[ok] / ln[ok, None]
     mats = state[:, 3]
     if (mats < 0).any():
         if "default" not in mat_index:
