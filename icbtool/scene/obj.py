@@ -479,23 +479,11 @@ def _build(p: Path, scan: _Scan, st: _Statements) -> ObjMesh:
         uvs[has_t] = tex[uniq[has_t, 1]]
 
     corner_pos = pos[resolved[:, 0]]
-    faces, tri_poly = _triangulate(corner_pos, corner_vertex, counts)
-    # computed normals (corners without vn): sum of the area-weighted (Newell) normals of the
-    # polygons sharing the vertex; a flat polygon's own vertices get exactly its normal
-    need = ~has_n
-    if need.any():
-        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        nxt = np.arange(len(corner_pos)) + 1
-        last = start + counts - 1
-        nxt[last] = start
-        poly_n = np.zeros((len(counts), 3))
-        np.add.at(poly_n, corner_face, np.cross(corner_pos, corner_pos[nxt]))
-        acc = np.zeros((len(uniq), 3))
-        sel = ~(resolved[:, 2] >= 0)
-        np.add.at(acc, corner_vertex[sel], poly_n[corner_face[sel]])
-        ln = np.linalg.norm(acc, axis=1)
-        ok = need & (ln > 0)
-        normals[ok] = acc[ok] / ln[ok, None]
+    with np.errstate(invalid="ignore", over="ignore"):  # NaN/Inf positions: reported later
+        faces, tri_poly = _triangulate(corner_pos, corner_vertex, counts)
+        normals = _computed_normals(
+            normals, has_n, corner_pos, corner_face, corner_vertex, counts, resolved[:, 2] < 0
+        )
     mats = state[:, 3]
     if (mats < 0).any():
         if "default" not in mat_index:
@@ -518,6 +506,33 @@ def _build(p: Path, scan: _Scan, st: _Statements) -> ObjMesh:
         mtllibs=mtllibs,
         face_line=np.asarray(f_line, np.int64)[tri_poly],
     )
+
+
+def _computed_normals(
+    normals: np.ndarray,
+    has_n: np.ndarray,
+    corner_pos: np.ndarray,
+    corner_face: np.ndarray,
+    corner_vertex: np.ndarray,
+    counts: np.ndarray,
+    no_vn: np.ndarray,
+) -> np.ndarray:
+    """Fill the rows of ``normals`` without a file normal (see the module docstring): the sum
+    of the area-weighted (Newell) normals of the polygons sharing the vertex, normalised."""
+    need = ~has_n
+    if not need.any():
+        return normals
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    nxt = np.arange(len(corner_pos)) + 1
+    nxt[start + counts - 1] = start
+    poly_n = np.zeros((len(counts), 3))
+    np.add.at(poly_n, corner_face, np.cross(corner_pos, corner_pos[nxt]))
+    acc = np.zeros((len(normals), 3))
+    np.add.at(acc, corner_vertex[no_vn], poly_n[corner_face[no_vn]])
+    ln = np.linalg.norm(acc, axis=1)
+    ok = need & (ln > 0) & np.isfinite(ln)
+    normals[ok] = acc[ok] / ln[ok, None]
+    return normals
 
 
 def _corner_indices(
