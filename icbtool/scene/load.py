@@ -106,9 +106,9 @@ def load(path: str | os.PathLike, **overrides: Any) -> Scene:
         )
     mesh_kw = {k: v for k, v in overrides.items() if k in MESH_OPTIONS}
     scene = load_mesh(p, **mesh_kw)
-    fields = {k: overrides[k] for k in SCENE_FIELDS if k in overrides}
+    fields = {k: overrides[k] for k in SCENE_FIELDS if k in overrides}  # they replace the file's
     if "lights" in fields:
-        fields["lights"] = list(fields["lights"]) + list(scene.lights)  # keep the file's lights
+        fields["lights"] = list(fields["lights"])
     if fields:
         scene = replace_scene(scene, **fields)
     return scene
