@@ -129,6 +129,72 @@ class Camera:
         return cls.from_fov(fov_y_deg, height, width, look_at_pose(eye, target, up))
 
     @classmethod
+    def frame(
+        cls,
+        bounds: ArrayLike,
+        *,
+        up: ArrayLike = (0.0, 1.0, 0.0),
+        fov_y_deg: float = 45.0,
+        height: int = 256,
+        width: int = 256,
+        view_direction: ArrayLike | None = None,
+        margin: float = 1.0,
+    ) -> Camera:
+        """A centred camera whose view just contains a bounding box's (or a sphere's) sphere.
+
+        The camera looks at the sphere's centre along ``view_direction`` from the distance at
+        which the sphere's tangent cone has the half-angle of the narrower field of view
+        (``distance = margin * radius / sin(min(fov_y, fov_x) / 2)``), so the sphere touches the
+        top and bottom edges of the image (or the left and right ones when the image is taller
+        than wide) and lies inside it.
+
+        Args:
+            bounds: (2, 3) axis-aligned box ``[min, max]`` (its circumscribed sphere is framed),
+                or (4,) sphere ``(cx, cy, cz, radius)``.
+            up: (3,) world direction shown up in the image.
+            fov_y_deg: vertical field of view in degrees, in (0, 180).
+            height: image height in pixels.
+            width: image width in pixels.
+            view_direction: (3,) direction the camera looks along (any length); default
+                :func:`default_view_direction` of ``up`` (from the front, slightly above).
+            margin: >= 1 pulls the camera back by this factor (1: the sphere just fits).
+
+        Returns:
+            The camera.
+
+        Raises:
+            ValueError: bad bounds (wrong shape, NaN, min > max, zero size), bad margin, or a
+                view direction parallel to ``up``.
+        """
+        b = np.asarray(bounds, dtype=np.float64)
+        if b.shape == (2, 3):
+            if not np.all(np.isfinite(b)) or np.any(b[1] < b[0]):
+                raise ValueError(f"Camera.frame: bounds must be finite [min, max]: {b.tolist()}")
+            centre, radius = b.mean(0), 0.5 * float(np.linalg.norm(b[1] - b[0]))
+        elif b.shape == (4,):
+            if not np.all(np.isfinite(b)):
+                raise ValueError(f"Camera.frame: sphere must be finite, got {b.tolist()}")
+            centre, radius = b[:3], float(b[3])
+        else:
+            raise ValueError(
+                f"Camera.frame: bounds must be a (2, 3) box or a (4,) sphere, got shape {b.shape}"
+            )
+        if not radius > 0:
+            raise ValueError(f"Camera.frame: the bounds have zero size (radius {radius})")
+        if not (math.isfinite(margin) and margin >= 1.0):
+            raise ValueError(f"Camera.frame: margin must be >= 1, got {margin}")
+        up_v = _as_vec3(up, "up")
+        d = default_view_direction(up_v) if view_direction is None else view_direction
+        d = _as_vec3(d, "view_direction")
+        if np.linalg.norm(d) < 1e-12:
+            raise ValueError("Camera.frame: view_direction must be non-zero")
+        d = d / np.linalg.norm(d)
+        cam = cls.from_fov(fov_y_deg, height, width)
+        half = math.radians(min(cam.fov_y_deg, cam.fov_x_deg)) / 2.0
+        distance = margin * radius / math.sin(half)
+        return cam.with_pose(look_at_pose(centre - distance * d, centre, up_v))
+
+    @classmethod
     def from_K(
         cls, K: ArrayLike, height: int, width: int, world_from_cam: ArrayLike | None = None
     ) -> Camera:
@@ -418,3 +484,20 @@ def pose_from_forward(eye: ArrayLike, forward: ArrayLike, up: ArrayLike = (0, 1,
     """(4, 4) ``world_from_cam`` at ``eye`` looking along ``forward``."""
     eye = _as_vec3(eye, "eye")
     return look_at_pose(eye, eye + _as_vec3(forward, "forward"), up)
+
+
+def default_view_direction(up: ArrayLike = (0.0, 1.0, 0.0)) -> np.ndarray:
+    """(3,) unit direction of a "from the front, slightly above" view for a world ``up``.
+
+    The front is the world axis least aligned with ``up`` in the order z, x, y (for +y up: the
+    camera stands on the +z side), made horizontal; the view looks back along it and down at
+    about 17 degrees: ``normalize(-(front + 0.3 * up))``.
+    """
+    u = _as_vec3(up, "up")
+    u = u / np.linalg.norm(u)
+    axes = np.eye(3)[[2, 0, 1]]
+    front = axes[int(np.argmin(np.abs(axes @ u)))]
+    front = front - (front @ u) * u
+    front /= np.linalg.norm(front)
+    d = -(front + 0.3 * u)
+    return d / np.linalg.norm(d)

@@ -10,7 +10,14 @@ from typing import Any
 
 import numpy as np
 
-from icbtool.cli._common import add_scene_argument, load_scene, run_info, write_json
+from icbtool.cli._common import (
+    add_scene_argument,
+    add_up_axis_argument,
+    load_scene,
+    run_info,
+    select_cameras,
+    write_json,
+)
 
 
 def register(subparsers: Any) -> None:
@@ -40,43 +47,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--shadow-map-size", type=int, default=None)
     p.add_argument("--area-samples", type=int, default=None)
     p.add_argument("--no-png", action="store_true", help="write EXR only")
+    add_up_axis_argument(p)
     p.set_defaults(func=run)
-
-
-def _fallback_camera(scene: Any) -> Any:
-    from icbtool.camera import Camera
-
-    b = scene.bounds
-    centre = b.mean(0)
-    eye = centre + np.array([0.0, 0.3, 1.2]) * scene.diagonal
-    return Camera.look_at(eye, centre, (0, 1, 0), fov_y_deg=45, height=256, width=256)
-
-
-def _cameras(scene: Any, args: argparse.Namespace) -> tuple[list[Any], str]:
-    if args.every < 1:
-        raise ValueError(f"--every must be >= 1, got {args.every}")
-    spec = args.camera
-    if spec == "default":
-        cams = [scene.default_camera or _fallback_camera(scene)]
-    elif spec.startswith("path:"):
-        name = spec[5:]
-        if name not in scene.paths:
-            raise ValueError(
-                f"scene '{scene.name}' has no camera path {name!r}; it has {sorted(scene.paths)}"
-            )
-        cams = scene.paths[name].cameras()[:: args.every]
-    else:
-        raise ValueError(f"--camera must be 'default' or 'path:NAME', got {spec!r}")
-    out = []
-    for c in cams:
-        if args.fov is not None:
-            c = c.with_fov(args.fov)
-        if args.height is not None or args.width is not None:
-            h = args.height or round(c.height * (args.width / c.width))
-            w = args.width or round(c.width * (args.height / c.height))
-            c = c.resized(int(h), int(w))
-        out.append(c)
-    return out, spec
 
 
 def run(args: argparse.Namespace) -> int:
@@ -92,8 +64,11 @@ def run(args: argparse.Namespace) -> int:
     if args.area_samples is not None:
         kw["area_samples"] = args.area_samples
     config = raster.RasterConfig(**kw)
-    scene = load_scene(args.scene)
-    cams, spec = _cameras(scene, args)
+    scene = load_scene(args.scene, args.up_axis, default_light=True)
+    spec = args.camera
+    cams = [
+        c for _, c in select_cameras(scene, spec, args.every, args.height, args.width, args.fov)
+    ]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     frames = []

@@ -10,8 +10,10 @@ from pathlib import Path
 from icbtool.cli._common import (
     add_denoise_quality_argument,
     add_scene_argument,
+    add_up_axis_argument,
     load_scene,
     run_info,
+    select_cameras,
     write_json,
 )
 
@@ -61,25 +63,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--height", type=int, default=None)
     p.add_argument("--width", type=int, default=None)
+    add_up_axis_argument(p)
     p.set_defaults(func=run)
-
-
-def _cameras(scene, spec: str, every: int):
-    if every < 1:
-        raise ValueError(f"--every must be >= 1, got {every}")
-    if spec == "default":
-        if scene.default_camera is None:
-            raise ValueError(f"scene '{scene.name}' has no default camera: use --camera path:NAME")
-        return [("default", scene.default_camera)]
-    if spec.startswith("path:"):
-        name = spec[5:]
-        if name not in scene.paths:
-            raise ValueError(
-                f"scene '{scene.name}' has no camera path {name!r}: available {sorted(scene.paths)}"
-            )
-        cams = scene.paths[name].cameras()
-        return [(f"{name}_{i:04d}", c) for i, c in enumerate(cams) if i % every == 0]
-    raise ValueError(f"--camera must be 'default' or path:NAME, got {spec!r}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -104,14 +89,12 @@ def run(args: argparse.Namespace) -> int:
         sampler=args.sampler,
         robust=not args.fast_embree,
     )
-    scene = load_scene(args.scene)
-    cams = _cameras(scene, args.camera, args.every)
+    scene = load_scene(args.scene, args.up_axis, default_light=True)
+    cams = select_cameras(scene, args.camera, args.every, args.height, args.width)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     views = []
     for name, cam in tqdm(cams, desc="trace", disable=len(cams) < 2):
-        if args.height or args.width:
-            cam = cam.resized(args.height or cam.height, args.width or cam.width)
         res = render(scene, cam, cfg, progress=len(cams) == 1)
         d = out / name if len(cams) > 1 else out
         d.mkdir(parents=True, exist_ok=True)

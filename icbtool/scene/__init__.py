@@ -5,7 +5,8 @@
 """
 
 from icbtool.scene.description import SceneDescription, read_description
-from icbtool.scene.load import load, load_mesh
+from icbtool.scene.load import has_light, load, load_mesh, with_default_light
+from icbtool.scene.obj import MaterialApproximationWarning
 from icbtool.scene.procedural import (
     PROCEDURAL,
     boxes_on_floor,
@@ -39,6 +40,7 @@ __all__ = [
     "DirectionalLight",
     "Light",
     "Material",
+    "MaterialApproximationWarning",
     "PointLight",
     "Scene",
     "SceneBuilder",
@@ -52,8 +54,10 @@ __all__ = [
     "random_walk",
     "surroundings",
     "vertex_normals",
+    "has_light",
     "load",
     "load_mesh",
+    "with_default_light",
     "read_description",
     "SceneDescription",
     "SceneError",

@@ -1,15 +1,31 @@
 """Load scenes from files: a TOML scene description, or a bare mesh (OBJ+MTL, glTF/GLB, PLY).
 
 Everything is merged into ONE :class:`~icbtool.scene.types.Scene` (one vertex/face array, a
-material per face). Parsing is trimesh's (``process=False``: vertices are neither merged nor
-reordered); materials are read as follows:
+material per face). Materials are read as follows:
 
-* OBJ: the MTL is parsed here: ``Kd`` (linear albedo, multiplies ``map_Kd``), ``Ke`` (emitted
-  radiance), ``map_Kd`` (an sRGB image, decoded to linear float32). uvs are OBJ's ``vt`` as they
-  are: uv (0, 0) is the bottom-left of the image, the Scene convention.
-* glTF/GLB: ``baseColorFactor`` (linear; trimesh stores it as 8 bits), ``emissiveFactor``,
-  ``baseColorTexture`` (sRGB). trimesh flips glTF's top-left uv origin to bottom-left on load.
+* OBJ + MTL: our own strict parser, :mod:`icbtool.scene.obj` (negative indices, tabs, n-gons,
+  smoothing groups, several ``mtllib``; errors name ``file:line``). ``Kd`` (linear albedo,
+  multiplies ``map_Kd``), ``Ke`` (emitted radiance), ``map_Kd`` (an sRGB image, decoded to linear
+  float32); mirrors, glass, glossy and transparent materials become the nearest diffuse material
+  with a :class:`~icbtool.scene.obj.MaterialApproximationWarning` (rule in that module). uvs are
+  OBJ's ``vt`` as they are: uv (0, 0) is the bottom-left of the image, the Scene convention.
+* glTF/GLB (geometry, node transforms, primitives and uvs through trimesh, ``process=False``):
+  ``baseColorFactor`` (linear; trimesh stores it as 8 bits), ``emissiveFactor`` (times
+  ``KHR_materials_emissive_strength``), ``baseColorTexture`` (sRGB). trimesh flips glTF's top-left
+  uv origin to bottom-left on load. What icbtool cannot render is approximated with a
+  ``MaterialApproximationWarning`` naming the material: an ``emissiveTexture`` drops the
+  material's emission (the renderers have no emission textures, and spreading
+  ``emissiveFactor`` over the whole surface would make e.g. a helmet glow white); metals
+  (``metallicFactor`` > 0.5; 1 when absent, the glTF default) and ``KHR_materials_transmission``
+  (> 0) become diffuse with their base colour as albedo. ``KHR_lights_punctual`` lights are read
+  from the file's JSON (:mod:`icbtool.scene.gltf`).
 * PLY: geometry only; one default material (albedo 0.8). Vertex colours are ignored (warned).
+
+Up axis: glTF is +y by its specification. For OBJ and PLY, ``up_axis="auto"`` (the default)
+guesses from the data (:func:`guess_up_axis`): "z" when the area of faces perpendicular to z
+(floors, roofs, table tops of a z-up file) exceeds twice that perpendicular to y and twice that
+perpendicular to x, else "y" (the OBJ convention: an ambiguous mesh keeps it).
+``up_axis="y"``/"z"/"x" overrides the guess.
 
 Missing normals are computed (area-weighted); what is validated and what is repaired is listed in
 :mod:`icbtool.scene.validate`.
@@ -18,14 +34,15 @@ Missing normals are computed (area-weighted); what is validated and what is repa
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
-import re
 import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from icbtool.scene.obj import MtlMaterial, material_warning, parse_mtl, parse_obj
 from icbtool.scene.types import Material, Scene, vertex_normals
 from icbtool.scene.validate import (
     DESCRIPTION_SUFFIXES,
@@ -34,10 +51,11 @@ from icbtool.scene.validate import (
     check_albedo,
     check_arrays,
     check_file,
-    check_obj_text,
     ply_header_counts,
     repair_warning,
 )
+
+log = logging.getLogger(__name__)
 
 #: Rotations taking a file's up axis to +y (proper rotations, handedness kept).
 UP_AXIS_ROTATIONS: dict[str, np.ndarray] = {
@@ -45,6 +63,11 @@ UP_AXIS_ROTATIONS: dict[str, np.ndarray] = {
     "z": np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]),  # (x, y, z) -> (x, z, -y)
     "x": np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]),  # (x, y, z) -> (-y, x, z)
 }
+
+#: Accepted ``up_axis`` values ("auto": glTF "y", OBJ/PLY guessed by :func:`guess_up_axis`).
+UP_AXES = ("auto", "y", "z", "x")
+#: Area ratio by which z-perpendicular faces must outweigh the others for ``auto`` to pick "z".
+Z_UP_AREA_RATIO = 2.0
 
 #: Keyword arguments accepted by :func:`load_mesh` besides the path.
 MESH_OPTIONS = ("name", "scale", "up_axis", "translation", "textures", "flip_v")
@@ -92,7 +115,7 @@ def load_mesh(
     *,
     name: str | None = None,
     scale: float = 1.0,
-    up_axis: str = "y",
+    up_axis: str = "auto",
     translation: Any = (0.0, 0.0, 0.0),
     textures: bool = True,
     flip_v: bool = False,
@@ -105,7 +128,8 @@ def load_mesh(
         path: .obj (with its .mtl), .gltf, .glb or .ply.
         name: scene name (default: the file stem).
         scale: uniform scale (> 0) to world units (metres).
-        up_axis: the file's up axis, "y" (no change), "z" or "x"; rotated to +y.
+        up_axis: the file's up axis, "y" (no change), "z" or "x", rotated to +y; "auto": "y" for
+            glTF (its specification), guessed for OBJ/PLY (see :func:`guess_up_axis`).
         translation: (3,) world offset applied after scaling.
         textures: decode texture images (False: base colours only, faster).
         flip_v: replace v by 1 - v, for files whose uv origin is the image's TOP-left (against
@@ -113,7 +137,8 @@ def load_mesh(
             flipped texture coordinates). See the Scene uv convention in types.py.
 
     Returns:
-        The merged Scene (``source`` = the path).
+        The merged Scene (``source`` = the path); glTF ``KHR_lights_punctual`` lights are in
+        ``lights``.
 
     Raises:
         FileNotFoundError, SceneError: see :mod:`icbtool.scene.validate`.
@@ -122,28 +147,31 @@ def load_mesh(
     scale = float(scale)
     if not np.isfinite(scale) or scale <= 0:
         raise SceneError(f"{p}: scale must be a finite number > 0, got {scale}")
-    if up_axis not in UP_AXIS_ROTATIONS:
-        raise SceneError(
-            f"{p}: up_axis must be one of {sorted(UP_AXIS_ROTATIONS)}, got {up_axis!r}"
-        )
+    if up_axis not in UP_AXES:
+        raise SceneError(f"{p}: up_axis must be one of {list(UP_AXES)}, got {up_axis!r}")
     t = np.asarray(translation, dtype=np.float64).reshape(-1)
     if t.shape != (3,) or not np.all(np.isfinite(t)):
         raise SceneError(f"{p}: translation must be a finite 3-vector, got {translation!r}")
     suffix = p.suffix.lower()
     data = p.read_bytes()
     ply_counts = None
-    if suffix == ".obj":
-        check_obj_text(p, data)
-    elif suffix == ".ply":
-        ply_counts = ply_header_counts(p, data)
-    elif suffix == ".glb" and not data.startswith(b"glTF"):
-        raise SceneError(f"{p}: not a GLB file (missing 'glTF' magic): corrupt")
-
-    tm_scene = _trimesh_load(p)
+    lights: list = []
     materials = _MaterialTable(p, textures)
     if suffix == ".obj":
-        materials.mtl = _read_obj_mtls(p, data)
-    parts = _collect_parts(p, tm_scene, materials)
+        parts = [_obj_part(p, data, materials)]
+    else:
+        if suffix == ".ply":
+            ply_counts = ply_header_counts(p, data)
+        elif suffix == ".glb" and not data.startswith(b"glTF"):
+            raise SceneError(f"{p}: not a GLB file (missing 'glTF' magic): corrupt")
+        tm_scene = _trimesh_load(p)
+        if suffix in (".gltf", ".glb"):
+            from icbtool.scene.gltf import read_gltf_json, read_punctual_lights
+
+            materials.gltf = read_gltf_json(p, data)
+        parts = _collect_parts(p, tm_scene, materials)
+        if suffix in (".gltf", ".glb"):
+            lights = read_punctual_lights(p, materials.gltf)
     if ply_counts is not None:
         nv = sum(len(x[0]) for x in parts)
         nf = sum(len(x[1]) for x in parts)
@@ -157,7 +185,7 @@ def load_mesh(
     offsets = np.cumsum([0] + [len(x[0]) for x in parts])
     verts = np.concatenate([x[0] for x in parts]).astype(np.float64)
     faces = np.concatenate([x[1] + o for x, o in zip(parts, offsets[:-1])])
-    fm = np.concatenate([np.full(len(x[1]), x[4], np.int32) for x in parts])
+    fm = np.concatenate([x[4] for x in parts]).astype(np.int32)
     normals = None
     if any(x[2] is not None for x in parts):
         normals = np.concatenate(
@@ -171,23 +199,34 @@ def load_mesh(
 
     if uvs is not None and flip_v:
         uvs[:, 1] = 1.0 - uvs[:, 1]
+    if up_axis == "auto":
+        up_axis = "y" if suffix in (".gltf", ".glb") else guess_up_axis(verts, faces)
+        if up_axis != "y":
+            log.info("%s: guessed up axis %s from the geometry (override: up_axis='y')", p, up_axis)
     rot = UP_AXIS_ROTATIONS[up_axis]
     with np.errstate(invalid="ignore", over="ignore"):  # NaN/Inf vertices: reported below
         verts = scale * verts @ rot.T + t
     if normals is not None:
         normals = normals @ rot.T
     where = str(p)
+    to_compute = np.concatenate([x[5] for x in parts])  # no normal in the file: computed below
+    if normals is not None:
+        normals[to_compute] = (0.0, 0.0, 1.0)  # placeholder, not a "repair"
+        if to_compute.all():
+            normals = None
     v, f, n, uv, fm = check_arrays(where, verts, faces, normals, uvs, fm)
     computed = vertex_normals(v, f)
     if n is None:
         n = computed
     else:
-        bad = ~np.isfinite(n).all(axis=1)  # parts without normals, or rows check_arrays rejected
+        bad = ~np.isfinite(n).all(axis=1) | to_compute  # not in the file, or rejected
         n[bad] = computed[bad]
     mats = materials.materials
     if uv is None and any(m.is_textured for m in mats):
         repair_warning(where, "textured materials but no texture coordinates: textures dropped")
         mats = [Material(m.name, m.albedo, m.emission) for m in mats]
+    if lights:
+        lights = [_transform_light(lt, scale * rot, t) for lt in lights]
     return Scene(
         name=name or p.stem,
         vertices=v,
@@ -196,8 +235,82 @@ def load_mesh(
         face_material=fm,
         materials=mats,
         uvs=uv,
+        lights=lights,
         source=str(p),
     )
+
+
+def guess_up_axis(vertices: np.ndarray, faces: np.ndarray) -> str:
+    """Guess a mesh file's up axis from its geometry: "z" or "y" (never "x").
+
+    The rule: floors, ceilings, roofs and table tops are perpendicular to the up axis. Faces
+    whose unit normal is within ~25 degrees of an axis (``|n . axis| > 0.9``) count, by area, for
+    that axis; "z" is returned when the z area exceeds :data:`Z_UP_AREA_RATIO` times both the y
+    and the x area, otherwise "y" (the OBJ/glTF convention, also for meshes without dominant
+    planes such as a scanned statue). Too little data also gives "y": fewer than 12 triangles, or
+    a flat mesh (smallest extent < 5 % of the largest).
+
+    Args:
+        vertices: (V, 3) positions in the file's coordinates.
+        faces: (F, 3) vertex indices.
+
+    Returns:
+        "z" or "y".
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    if len(f) < 12 or f.min() < 0 or f.max() >= len(v):
+        return "y"
+    with np.errstate(invalid="ignore"):
+        ext = v[np.unique(f)].max(0) - v[np.unique(f)].min(0)
+    if not np.all(np.isfinite(ext)) or ext.min() < 0.05 * ext.max():
+        return "y"  # a flat mesh says nothing about up
+    with np.errstate(invalid="ignore", over="ignore"):
+        tri = v[f]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        area = np.linalg.norm(n, axis=1)
+        cos = np.abs(n) / np.maximum(area, 1e-300)[:, None]
+    area = np.where(np.isfinite(area), area, 0.0)
+    by_axis = [(area * (cos[:, k] > 0.9)).sum() for k in range(3)]
+    ax, ay, az = by_axis
+    return "z" if az > Z_UP_AREA_RATIO * max(ay, ax) and az > 0 else "y"
+
+
+def _transform_light(light: Any, linear: np.ndarray, t: np.ndarray) -> Any:
+    """A light mapped by ``x -> linear @ x + t`` (scale and up-axis rotation)."""
+
+    changes: dict[str, Any] = {}
+    if hasattr(light, "position"):
+        changes["position"] = linear @ light.position + t
+    if hasattr(light, "direction"):
+        changes["direction"] = linear @ light.direction
+    return dataclasses.replace(light, **changes) if changes else light
+
+
+# --------------------------------------------------------------------------- OBJ
+def _obj_part(p: Path, data: bytes, materials: _MaterialTable) -> tuple:
+    """(vertices, faces, normals (NaN rows = compute), uvs|None, face materials) of an OBJ."""
+    mesh = parse_obj(p, data)
+    library: dict[str, MtlMaterial] = {}
+    found = False
+    for fname in mesh.mtllibs:
+        mtl = p.parent / fname.replace("\\", "/")
+        if not mtl.is_file():
+            repair_warning(str(p), f"material library {mtl} not found: default materials")
+            continue
+        found = True
+        library.update(parse_mtl(mtl))
+    missing = [n for n in mesh.material_names if n != "default" and n not in library]
+    if missing and (found or not mesh.mtllibs):
+        where = "the material libraries" if found else "a material library (no mtllib)"
+        repair_warning(
+            str(p),
+            f"material(s) {missing} not found in {where}: default albedo 0.8",
+        )
+    index = np.array([materials.obj_index(n, library.get(n)) for n in mesh.material_names])
+    fm = index[mesh.face_material]
+    computed_bad = ~mesh.normal_given & ~np.isfinite(mesh.normals).all(axis=1)
+    return mesh.vertices, mesh.faces, mesh.normals, mesh.uvs, fm, computed_bad
 
 
 # --------------------------------------------------------------------------- trimesh
@@ -221,7 +334,8 @@ def _trimesh_load(p: Path):
 
 
 def _collect_parts(p: Path, tm_scene, materials: _MaterialTable) -> list[tuple]:
-    """(vertices, faces, normals|None, uvs|None, material index) per geometry instance."""
+    """(vertices, faces, normals|None, uvs|None, (F,) materials, (V,) normal missing) per
+    geometry instance."""
     import trimesh
 
     parts = []
@@ -251,7 +365,8 @@ def _collect_parts(p: Path, tm_scene, materials: _MaterialTable) -> list[tuple]:
         if uv is not None:
             uv = np.asarray(uv, np.float64)
         mat = materials.index_for(gname, visual)
-        parts.append((v, f, n, uv, mat))
+        missing = np.full(len(v), n is None)
+        parts.append((v, f, n, uv, np.full(len(f), mat, np.int32), missing))
     if not parts:
         raise SceneError(f"{p}: empty mesh: no triangles")
     return parts
@@ -290,7 +405,7 @@ class _MaterialTable:
         self.textures = textures
         self.materials: list[Material] = []
         self.by_key: dict[Any, int] = {}
-        self.mtl: dict[str, dict[str, Any]] | None = None
+        self.gltf: dict[str, Any] | None = None  # the glTF JSON, for what trimesh does not keep
         self.tex_cache: dict[Any, tuple[np.ndarray | None, str | None]] = {}
 
     def _add(self, key: Any, mat: Material) -> int:
@@ -327,23 +442,27 @@ class _MaterialTable:
             self.tex_cache[key] = (tex, key)
         return self.tex_cache[key][0]
 
+    def obj_index(self, name: str, spec: MtlMaterial | None) -> int:
+        """The material index of an OBJ ``usemtl`` name with its MTL entry (or None)."""
+        if name in self.by_key:
+            return self.by_key[name]
+        if spec is None:
+            return self._add(name, Material(name or "default"))
+        where = str(self.path)
+        albedo, approx = spec.diffuse()
+        if approx:
+            material_warning(where, name, approx)
+        albedo = check_albedo(where, name, albedo)
+        emission = np.maximum(spec.Ke, 0.0)
+        tex = tex_path = None
+        if self.textures and spec.map_Kd is not None:
+            tex = self._texture_file(spec.map_Kd, name)
+            tex_path = str(spec.map_Kd) if tex is not None else None
+        return self._add(name, Material(name, albedo, emission, tex, tex_path))
+
     def index_for(self, gname: str, visual: Any) -> int:
         mat = getattr(visual, "material", None)
         where = str(self.path)
-        if self.mtl is not None:  # OBJ: our own MTL reading
-            name = getattr(mat, "name", None) or gname
-            if name in self.by_key:
-                return self.by_key[name]
-            spec = self.mtl.get(name)
-            if spec is None:
-                return self._add(name, Material(name or "default"))
-            albedo = check_albedo(where, name, spec.get("Kd", np.full(3, 0.8)))
-            emission = np.maximum(spec.get("Ke", np.zeros(3)), 0.0)
-            tex = tex_path = None
-            if self.textures and spec.get("map_Kd") is not None:
-                tex = self._texture_file(spec["map_Kd"], name)
-                tex_path = str(spec["map_Kd"]) if tex is not None else None
-            return self._add(name, Material(name, albedo, emission, tex, tex_path))
         if mat is not None and hasattr(mat, "baseColorFactor"):  # glTF PBR
             key = ("pbr", id(mat))
             if key in self.by_key:
@@ -358,6 +477,11 @@ class _MaterialTable:
             albedo = check_albedo(where, name, albedo)
             ef = getattr(mat, "emissiveFactor", None)
             emission = np.zeros(3) if ef is None else np.maximum(np.asarray(ef, float)[:3], 0)
+            spec = _gltf_material_json(self.gltf, name)
+            ext = spec.get("extensions", {}) if isinstance(spec, dict) else {}
+            strength = ext.get("KHR_materials_emissive_strength", {}).get("emissiveStrength")
+            if strength is not None and float(strength) >= 0:
+                emission = emission * float(strength)
             tex = None
             img = getattr(mat, "baseColorTexture", None)
             if self.textures and img is not None:
@@ -365,8 +489,30 @@ class _MaterialTable:
                     tex = decode_texture(img)
                 except Exception as e:  # noqa: BLE001
                     repair_warning(where, f"material '{name}': texture unreadable ({e})")
-            if getattr(mat, "emissiveTexture", None) is not None:
-                repair_warning(where, f"material '{name}': emissiveTexture ignored (unsupported)")
+            approx = []
+            if getattr(mat, "emissiveTexture", None) is not None or "emissiveTexture" in spec:
+                if np.any(emission > 0):
+                    approx.append(
+                        f"emissiveTexture not supported: emission {np.round(emission, 4).tolist()}"
+                        " dropped (it would cover the whole surface)"
+                    )
+                emission = np.zeros(3)
+            pbr = spec.get("pbrMetallicRoughness", {}) if spec else {}
+            metallic = pbr.get("metallicFactor") if spec else getattr(mat, "metallicFactor", None)
+            metallic = 1.0 if metallic is None else float(metallic)  # glTF default: 1
+            if metallic > METALLIC_THRESHOLD:
+                approx.append(
+                    f"metal (metallicFactor {metallic:g}) rendered as diffuse with its base colour "
+                    f"{np.round(albedo, 4).tolist()} as albedo"
+                )
+            transmission = ext.get("KHR_materials_transmission", {}).get("transmissionFactor", 0)
+            if float(transmission) > 0:
+                approx.append(
+                    f"transmission (KHR_materials_transmission {float(transmission):g}) rendered "
+                    f"as opaque diffuse with its base colour {np.round(albedo, 4).tolist()}"
+                )
+            if approx:
+                material_warning(where, name, "; ".join(approx))
             return self._add(key, Material(name, albedo, emission, tex, None))
         # PLY, or anything without a material
         if getattr(visual, "kind", None) in ("vertex", "face"):
@@ -376,50 +522,74 @@ class _MaterialTable:
         return self._add("default", Material(self.path.stem))
 
 
-_MTLLIB = re.compile(rb"(?m)^mtllib[ \t]+([^\r\n]+)")
+#: glTF materials with a metallicFactor above this are approximated as diffuse (with a warning).
+METALLIC_THRESHOLD = 0.5
 
 
-def _read_obj_mtls(obj_path: Path, data: bytes) -> dict[str, dict[str, Any]]:
-    """Parse the MTL files named by ``mtllib`` lines: {name: {Kd, Ke, map_Kd}}."""
-    out: dict[str, dict[str, Any]] = {}
-    for m in _MTLLIB.findall(data):
-        fname = m.decode("utf-8", "replace").strip()
-        mtl = obj_path.parent / fname.replace("\\", "/")
-        if not mtl.is_file():
-            repair_warning(str(obj_path), f"material library {mtl} not found: default materials")
-            continue
-        out.update(parse_mtl(mtl))
-    return out
+def _gltf_material_json(gltf: dict[str, Any] | None, name: str) -> dict[str, Any]:
+    """The glTF JSON material named ``name`` ({} when unknown or not a glTF file)."""
+    if not gltf:
+        return {}
+    found = [m for m in gltf.get("materials", []) if isinstance(m, dict) and m.get("name") == name]
+    return found[0] if len(found) == 1 else {}
 
 
-def parse_mtl(path: Path) -> dict[str, dict[str, Any]]:
-    """Read ``newmtl`` blocks: ``Kd``/``Ke`` as (3,) float arrays, ``map_Kd`` as a Path.
+# --------------------------------------------------------------------------- default light
+#: Irradiance (W/m^2, white) of the default sun of :func:`with_default_light`.
+DEFAULT_SUN_IRRADIANCE = 2.5
+#: Radiances of the default gradient sky of :func:`with_default_light` (zenith, horizon, ground).
+DEFAULT_SKY_RADIANCE = ((0.35, 0.45, 0.6), (0.6, 0.6, 0.6), (0.15, 0.15, 0.15))
 
-    Raises:
-        SceneError: a colour line with non-numbers.
+
+def has_light(scene: Scene) -> bool:
+    """True when the scene has a light, a sky or an emissive face."""
+    return bool(scene.lights) or scene.sky is not None or len(scene.emissive_faces) > 0
+
+
+def with_default_light(scene: Scene) -> Scene:
+    """The scene itself if it has any light; else a copy lit by the documented default light.
+
+    A bare mesh (no lights, no sky, no emissive faces) would render black. The default light
+    is a sun and a sky, both defined relative to ``scene.up``:
+
+    * a :class:`DirectionalLight` "default_sun" of :data:`DEFAULT_SUN_IRRADIANCE` W/m^2 (white)
+      travelling along ``normalize(-up - 0.5 * front + 0.3 * right)``, where ``front`` is the
+      side the automatic camera stands on (:func:`icbtool.camera.camera.default_view_direction`)
+      and ``right`` its right: it comes from above, from the front and a little from the left,
+      so the faces the default camera sees are lit and cast visible shadows;
+    * a gradient :class:`Sky` (:data:`DEFAULT_SKY_RADIANCE`: blue-grey zenith, grey horizon,
+      dark ground), which lights the shadows through the path tracer's GI.
+
+    A note is logged (logger ``icbtool.scene.load``, level WARNING) when the light is added.
+
+    Args:
+        scene: the scene (never modified).
+
+    Returns:
+        ``scene`` unchanged, or a new Scene (``dataclasses.replace``) with the light.
     """
-    mats: dict[str, dict[str, Any]] = {}
-    cur: dict[str, Any] | None = None
-    text = path.read_text(encoding="utf-8", errors="replace")
-    for lineno, line in enumerate(text.splitlines(), 1):
-        parts = line.strip().split()
-        if not parts or parts[0].startswith("#"):
-            continue
-        key = parts[0]
-        if key == "newmtl":
-            cur = mats.setdefault(" ".join(parts[1:]), {})
-        elif cur is None:
-            continue
-        elif key in ("Kd", "Ke"):
-            try:
-                vals = [float(x) for x in parts[1:4]]
-            except ValueError:
-                raise SceneError(f"{path}:{lineno}: bad colour {line.strip()!r}") from None
-            if len(vals) == 1:
-                vals = vals * 3
-            if len(vals) != 3:
-                raise SceneError(f"{path}:{lineno}: {key} needs 1 or 3 numbers: {line.strip()!r}")
-            cur[key] = np.array(vals)
-        elif key == "map_Kd" and len(parts) > 1:
-            cur["map_Kd"] = path.parent / parts[-1].replace("\\", "/")  # options come first
-    return mats
+    from icbtool.camera.camera import default_view_direction
+    from icbtool.scene.types import DirectionalLight, Sky
+
+    if has_light(scene):
+        return scene
+    up = np.asarray(scene.up, np.float64)
+    view = default_view_direction(up)
+    front = -(view - (view @ up) * up)
+    front /= np.linalg.norm(front)
+    right = np.cross(view, up)
+    right /= np.linalg.norm(right)
+    sun = DirectionalLight(
+        direction=-up - 0.5 * front + 0.3 * right,
+        irradiance=np.full(3, DEFAULT_SUN_IRRADIANCE),
+        name="default_sun",
+    )
+    zenith, horizon, ground = DEFAULT_SKY_RADIANCE
+    sky = Sky(zenith=zenith, horizon=horizon, ground=ground, kind="gradient", up=up)
+    log.warning(
+        "scene '%s' has no light (no lights, sky or emissive faces): using the default sun "
+        "(%.3g W/m^2) and gradient sky (icbtool.scene.with_default_light)",
+        scene.name,
+        DEFAULT_SUN_IRRADIANCE,
+    )
+    return dataclasses.replace(scene, lights=(sun,), sky=sky)

@@ -9,9 +9,10 @@ problem                                outcome
 missing file                           ``FileNotFoundError`` naming the path
 unknown file type                      SceneError (lists the supported suffixes)
 empty file, empty mesh                 SceneError
-truncated / corrupt file               SceneError (OBJ: a face with < 3 corners, a bad number;
-                                       PLY: fewer elements than the header declares; binary
-                                       formats: the parser's complaint)
+truncated / corrupt file               SceneError (OBJ: ``file:line`` of a face with < 3
+                                       corners, a bad number, an index of 0 or out of range
+                                       (:mod:`icbtool.scene.obj`); PLY: fewer elements than the
+                                       header declares; binary formats: the parser's complaint)
 NaN / Inf vertex positions             SceneError (count and first index)
 face index out of range                SceneError (the offending index and the vertex count)
 degenerate faces (repeated index or    repaired: dropped (SceneRepairWarning with the count)
@@ -20,6 +21,12 @@ NaN / zero-length normals              repaired: those vertices get area-weighte
 NaN / Inf texture coordinates          repaired: set to (0, 0)
 missing or unreadable texture image    repaired: the material uses its base colour alone
 albedo outside [0, 1]                  repaired: clipped
+mirror, glass, glossy, transparent,    repaired: the nearest diffuse material
+metal, emission texture                (``MaterialApproximationWarning``, a SceneRepairWarning
+                                       naming the material; rules in :mod:`icbtool.scene.obj` and
+                                       :mod:`icbtool.scene.load`)
+unsupported OBJ statements (``l``,     repaired: skipped, one warning with their counts
+``p``, curves, surfaces)
 absurd scale (bounds diagonal          SceneError (fix ``scale`` in the description)
 < 1e-6 or > 1e7 units)
 =====================================  ==========================================================
@@ -28,7 +35,6 @@ absurd scale (bounds diagonal          SceneError (fix ``scale`` in the descript
 from __future__ import annotations
 
 import os
-import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -88,64 +94,6 @@ def check_file(path: str | os.PathLike, allowed: tuple[str, ...] | None = None) 
 
 
 # --------------------------------------------------------------------------- format pre-checks
-_OBJ_FACE = re.compile(rb"\nf[ \t]+([^\r\n#]*)")
-
-
-def _obj_face_indices(lines: list[bytes], n_tokens: int) -> np.ndarray | None:
-    """First (vertex) index of every face corner; None if a token is not an integer."""
-    text = b" ".join(lines).replace(b"//", b"/0/")
-    n_slash = text.count(b"/")
-    k = n_slash // n_tokens + 1
-    if n_slash == n_tokens * (k - 1):  # fast path: every corner has the same form
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # older numpy warns (and stops) on junk
-                a = np.fromstring(text.replace(b"/", b" "), dtype=np.int64, sep=" ")
-        except ValueError:  # numpy 2 raises on junk
-            a = np.empty(0, np.int64)
-        if a.size == n_tokens * k:
-            return a.reshape(-1, k)[:, 0]
-    try:
-        return np.array([int(t.split(b"/", 1)[0]) for t in text.split()], dtype=np.int64)
-    except ValueError:
-        return None
-
-
-def check_obj_text(path: Path, data: bytes) -> None:
-    """Pre-check OBJ text that trimesh would silently mis-read.
-
-    Catches faces with fewer than 3 corners (typical of a truncated file), non-integer face
-    indices, indices out of range (relative indices included) and binary junk.
-
-    Raises:
-        SceneError: naming ``path`` and the problem.
-    """
-    if b"\x00" in data[:65536]:
-        raise SceneError(f"{path}: not a text OBJ file (contains NUL bytes): corrupt or binary")
-    d = b"\n" + data
-    n_v = d.count(b"\nv ") + d.count(b"\nv\t")
-    lines = _OBJ_FACE.findall(d)
-    if n_v == 0 or not lines:
-        raise SceneError(f"{path}: empty mesh ({n_v} vertices, {len(lines)} faces)")
-    counts = np.fromiter(map(len, map(bytes.split, lines)), dtype=np.int64, count=len(lines))
-    short = np.flatnonzero(counts < 3)
-    if len(short):
-        i = int(short[0])
-        raise SceneError(
-            f"{path}: face {i + 1} of {len(lines)} has {counts[i]} corner(s) (need >= 3): "
-            f"file truncated or corrupt ({lines[i][:60]!r})"
-        )
-    idx = _obj_face_indices(lines, int(counts.sum()))
-    if idx is None:
-        raise SceneError(f"{path}: corrupt face line (a vertex index is not an integer)")
-    bad = (idx == 0) | (idx > n_v) | (idx < -n_v)
-    if np.any(bad):
-        raise SceneError(
-            f"{path}: face vertex index {int(idx[np.argmax(bad)])} out of range: the file has "
-            f"{n_v} vertices (OBJ indices are 1..{n_v}, or -1..-{n_v} relative)"
-        )
-
-
 def ply_header_counts(path: Path, data: bytes) -> dict[str, int]:
     """Element counts declared in a PLY header (e.g. ``{'vertex': 642, 'face': 1280}``).
 
