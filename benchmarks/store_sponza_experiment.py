@@ -41,6 +41,7 @@ def main() -> None:
     ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args()
 
+    import icbtool.bake as B
     import icbtool.store as S
     from icbtool import metrics, warp
     from icbtool.cli._common import run_info, write_json
@@ -55,13 +56,13 @@ def main() -> None:
     stores = Path(args.stores)
     base = dict(spp=args.spp, denoise=args.denoise, resolution=(args.size, args.size))
     bake_cfg = {
-        "train": S.BakeConfig(**base, stride=args.train_stride, seed=0),
-        "test": S.BakeConfig(**base, stride=args.test_stride, seed=100_000),
+        "train": B.BakeConfig(**base, stride=args.train_stride, seed=0),
+        "test": B.BakeConfig(**base, stride=args.test_stride, seed=100_000),
     }
     reports = {}
     for name, cfg in bake_cfg.items():
         with S.open(stores / name) as st:
-            rep = S.bake(scene, name, st, cfg)
+            rep = B.bake(scene, name, st, cfg)
             reports[name] = {
                 "rendered": len(rep.rendered),
                 "skipped": len(rep.skipped),

@@ -24,9 +24,9 @@ import numpy as np
 
 import icbtool as icb
 from icbtool.cli._common import run_info, write_json
+from icbtool.scene.raycast import EmbreeScene
 from icbtool.trace import TraceConfig
 from icbtool.trace import kernels as K
-from icbtool.trace.embree import EmbreeScene
 from icbtool.trace.rtc import RtcScene
 
 REPO = Path(__file__).resolve().parents[1]

@@ -194,7 +194,7 @@ def test_clusters_and_culling_change_nothing(monkeypatch):
 
 @gl
 def test_cornell_matches_embree_primary_rays():
-    from icbtool.trace.embree import EmbreeScene
+    from icbtool.scene.raycast import EmbreeScene
 
     scene = icb.scene.cornell_box()
     # from outside and above: background, two-sided walls seen from behind, both blocks
@@ -387,7 +387,7 @@ def test_sky_background():
 
 @gl
 def test_sun_shadow_matches_embree_occlusion():
-    from icbtool.trace.embree import EmbreeScene
+    from icbtool.scene.raycast import EmbreeScene
 
     b = SceneBuilder("box_on_floor")
     b.add_quad((-5, 0, 5), (10, 0, 0), (0, 0, -10), b.material("floor", albedo=(0.6, 0.6, 0.6)))

@@ -467,7 +467,7 @@ def test_sponza_description(sponza_path, monkeypatch):
     corr = np.corrcoef(s.vertices[vids, 1], s.uvs[vids, 1])[0, 1]
     assert corr > 0.9
     # the sun reaches part of the atrium floor through the roof opening
-    from icbtool.trace.embree import EmbreeScene
+    from icbtool.scene.raycast import EmbreeScene
 
     es = EmbreeScene.from_scene(s)
     xs, zs = np.meshgrid(np.linspace(-10, 10, 41), np.linspace(-2, 2, 9))

@@ -21,6 +21,7 @@ from hypothesis.extra import numpy as hnp
 from scipy.spatial.transform import Rotation
 
 import icbtool as icb
+import icbtool.bake as B
 import icbtool.store as S
 from icbtool.camera import Camera
 
@@ -584,11 +585,11 @@ def test_bake_denoise_quality_reaches_the_tracer(tmp_path):
     pytest.importorskip("pyoidn")
     scene = _tiny_scene()
     with pytest.raises(ValueError, match="denoise_quality"):
-        S.BakeConfig(denoise_quality="best")
-    cfg = S.BakeConfig(spp=2, gbuffer="trace", progress=False, limit=1, denoise=True,
+        B.BakeConfig(denoise_quality="best")
+    cfg = B.BakeConfig(spp=2, gbuffer="trace", progress=False, limit=1, denoise=True,
                        denoise_quality="fast")  # fmt: skip
     with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as store:
-        (rid,) = S.bake(scene, "tiny", store, cfg).rendered
+        (rid,) = B.bake(scene, "tiny", store, cfg).rendered
         rec = store.get(rid)
     cam = scene.paths["tiny"].cameras()[0]
     tcfg = icb.trace.TraceConfig(spp=2, seed=0, denoise=True, denoise_quality="fast")
@@ -599,15 +600,15 @@ def test_bake_denoise_quality_reaches_the_tracer(tmp_path):
 
 def test_bake_without_gl_is_resumable(tmp_path):
     scene = _tiny_scene()
-    cfg = S.BakeConfig(spp=2, gbuffer="trace", progress=False)
+    cfg = B.BakeConfig(spp=2, gbuffer="trace", progress=False)
     with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as store:
-        r1 = S.bake(
-            scene, "tiny", store, S.BakeConfig(spp=2, gbuffer="trace", progress=False, limit=2)
+        r1 = B.bake(
+            scene, "tiny", store, B.BakeConfig(spp=2, gbuffer="trace", progress=False, limit=2)
         )
         assert len(r1.rendered) == 2 and r1.skipped == []
-        r2 = S.bake(scene, "tiny", store, cfg)
+        r2 = B.bake(scene, "tiny", store, cfg)
         assert len(r2.rendered) == 1 and r2.skipped == [0, 1]
-        r3 = S.bake(scene, "tiny", store, cfg)
+        r3 = B.bake(scene, "tiny", store, cfg)
         assert r3.rendered == [] and len(store) == 3
         rec = store.get(r2.rendered[0])
         assert rec.meta.tags["path"] == "tiny" and rec.meta.tags["index"] == 2
@@ -630,11 +631,11 @@ def test_bake_with_raster_is_resumable(tmp_path):
     if not hasattr(raster, "Rasterizer"):
         pytest.skip("icbtool.raster.Rasterizer has not landed yet")
     scene = _tiny_scene()
-    cfg = S.BakeConfig(spp=2, progress=False)
+    cfg = B.BakeConfig(spp=2, progress=False)
     with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as store:
-        r1 = S.bake(scene, "tiny", store, cfg)
+        r1 = B.bake(scene, "tiny", store, cfg)
         assert len(r1.rendered) == 3
-        r2 = S.bake(scene, "tiny", store, cfg)
+        r2 = B.bake(scene, "tiny", store, cfg)
         assert r2.rendered == [] and r2.skipped == [0, 1, 2]
         rec = store.get(r1.rendered[0])
         assert set(rec.present) == set(S.BUFFER_NAMES)
@@ -644,15 +645,15 @@ def test_cloud_camera_modes():
     scene = _tiny_scene()
     path = scene.paths["tiny"]
     client = path[1]
-    assert S.cloud_camera(client, S.BakeConfig()) == client
-    w = S.cloud_camera(client, S.BakeConfig(cloud_camera="wider", fov_multiplier=1.5, pullback=0.5))
+    assert B.cloud_camera(client, B.BakeConfig()) == client
+    w = B.cloud_camera(client, B.BakeConfig(cloud_camera="wider", fov_multiplier=1.5, pullback=0.5))
     assert w.fov_y_deg == pytest.approx(1.5 * client.fov_y_deg)
     assert np.allclose(w.position, client.position - 0.5 * client.forward)
     assert np.allclose(w.forward, client.forward)
-    p = S.cloud_camera(client, S.BakeConfig(cloud_camera="prefetch"), path, 1, scene)
+    p = B.cloud_camera(client, B.BakeConfig(cloud_camera="prefetch"), path, 1, scene)
     assert np.allclose(p.forward, client.forward) and p.fov_y_deg >= client.fov_y_deg - 1e-9
     with pytest.raises(ValueError, match="needs the camera path"):
-        S.cloud_camera(client, S.BakeConfig(cloud_camera="prefetch"))
+        B.cloud_camera(client, B.BakeConfig(cloud_camera="prefetch"))
 
 
 def test_put_many_and_exclude(tmp_path):

@@ -15,8 +15,8 @@ from scipy import stats as sstats
 import icbtool as icb
 from icbtool.camera import Camera
 from icbtool.scene import AreaLight, DirectionalLight, Scene, SceneBuilder, Sky
+from icbtool.scene.raycast import EmbreeScene
 from icbtool.trace import TraceConfig, render
-from icbtool.trace.embree import EmbreeScene
 
 DATA = Path(__file__).parent / "data"
 #: a strongly peaked sky (zenith 400x the horizon): where a sky light sample pays off

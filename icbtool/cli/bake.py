@@ -41,10 +41,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from icbtool import bake as B
     from icbtool import store as st
 
     scene = load_scene(args.scene)
-    cfg = st.BakeConfig(
+    cfg = B.BakeConfig(
         spp=args.spp,
         seed=args.seed,
         gbuffer=args.gbuffer,
@@ -58,7 +59,7 @@ def _run(args: argparse.Namespace) -> int:
         denoise_quality=args.denoise_quality,
     )
     with st.open(args.store) as store:
-        rep = st.bake(scene, args.path, store, cfg)
+        rep = B.bake(scene, args.path, store, cfg)
         n = len(store)
     print(
         f"baked {len(rep.rendered)} views ({len(rep.skipped)} already stored) in "

@@ -1,4 +1,4 @@
-"""The octree CRT-buffer manager (ICB.md section 3): persistence, lookup, baking, GAN datasets.
+"""The octree CRT-buffer manager (ICB.md section 3): persistence, lookup, GAN datasets.
 
 Example:
     >>> import icbtool as icb
@@ -7,17 +7,10 @@ Example:
     ...     hit = store.lookup(camera, scene=scene)
     ...     gi = hit.record.gi if hit is not None else None
 
-Heavy modules (raster, trace) are imported by :func:`bake` only when it runs.
+Rendering records into a store (baking a path) is :mod:`icbtool.bake`: the store itself never
+imports the renderers.
 """
 
-from icbtool.store.bake import (
-    CRT_RASTER_BUFFERS,
-    BakeConfig,
-    BakeReport,
-    bake,
-    cloud_camera,
-    render_crt_buffer,
-)
 from icbtool.store.dataset import INPUT_CONFIGS, Dataset
 from icbtool.store.octree import OctreeGeometry, SceneOctree
 from icbtool.store.record import BUFFER_CHANNELS, BUFFER_NAMES, CRTBuffer, RecordMeta
@@ -41,12 +34,9 @@ from icbtool.store.store import (
 
 __all__ = [
     "BUFFER_CHANNELS",
-    "CRT_RASTER_BUFFERS",
     "BUFFER_NAMES",
     "FORMAT_VERSION",
     "INPUT_CONFIGS",
-    "BakeConfig",
-    "BakeReport",
     "CRTBuffer",
     "CheckReport",
     "Damage",
@@ -64,9 +54,6 @@ __all__ = [
     "StoreError",
     "StoreFormatError",
     "StoreLockedError",
-    "bake",
     "camera_key",
-    "cloud_camera",
     "open",
-    "render_crt_buffer",
 ]

@@ -1,7 +1,7 @@
 """A dataset view of a store for the GAN pre-renderer (ICB.md section 5).
 
 Records are selected by scene (and light setup), split into train and test by the camera path they
-were baked from (``meta.tags["path"]``, set by :func:`icbtool.store.bake`; the paper tests on a
+were baked from (``meta.tags["path"]``, set by :func:`icbtool.bake.bake`; the paper tests on a
 different path than it trains on) or, for untagged records, by a seeded random permutation.
 """
 

@@ -144,7 +144,7 @@ class Cloud(GISource):
     def render(self, camera: Camera, seq: int = 0) -> Any:
         """Render a CRT-buffer (the client's WRT-buffers + path-traced GI) at ``camera``."""
         from icbtool import raster, trace
-        from icbtool.store import render_crt_buffer
+        from icbtool.bake import render_crt_buffer
 
         cfg = self.config
         if self._rasterizer is None:

@@ -156,7 +156,7 @@ def cloud_camera(
 
 def _trace_gbuffers(scene: Any, cam: Camera) -> dict[str, np.ndarray]:
     """G-buffers from one primary ray per pixel centre (what a rasterizer would produce)."""
-    from icbtool.trace.embree import EmbreeScene
+    from icbtool.scene.raycast import EmbreeScene
 
     es = EmbreeScene.from_scene(scene)
     o, d, dpd = cam.rays()
