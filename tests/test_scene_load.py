@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import icbtool.scene as sc
 from icbtool.camera import Camera
 from icbtool.scene import (
     MaterialApproximationWarning,
@@ -685,3 +686,37 @@ def test_cli_trace_bare_mesh_is_not_black(tmp_path):
     assert (full.max(-1) > 0.01).mean() > 0.9
     gi = read_exr(out / "gi.exr")
     assert gi.max() > 0  # the default sky lights the scene through the GI
+
+
+@pytest.mark.parametrize("file_lights", [None, True, False])
+def test_description_keeps_or_drops_the_files_punctual_lights(tmp_path, file_lights):
+    lights = {"KHR_lights_punctual": {"lights": [{"type": "point", "name": "bulb"}]}}
+    nodes = [{"translation": [0, 3, 0], "extensions": {"KHR_lights_punctual": {"light": 0}}}]
+    _gltf(
+        tmp_path,
+        "lit.gltf",
+        {"name": "m", "pbrMetallicRoughness": {"metallicFactor": 0}},
+        {"nodes": nodes, "extensions": lights, "extensionsUsed": ["KHR_lights_punctual"]},
+    )
+    flag = "" if file_lights is None else f"file_lights = {str(file_lights).lower()}\n"
+    (tmp_path / "lit.toml").write_text(
+        f'[scene]\nmesh = "lit.gltf"\n{flag}\n'
+        '[[lights]]\ntype = "directional"\nname = "sun"\ndirection = [0, -1, 0]\n'
+        "irradiance = [1, 1, 1]\n"
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s = sc.load(tmp_path / "lit.toml")
+    names = sorted(lt.name for lt in s.lights)
+    assert names == (["sun"] if file_lights is False else ["bulb", "sun"])
+    # an explicit lights override replaces every light, the file's included
+    s2 = sc.read_description(tmp_path / "lit.toml").build(lights=[])
+    assert s2.lights == ()
+
+
+def test_description_file_lights_must_be_boolean(tmp_path):
+    (tmp_path / "d.toml").write_text('[scene]\nmesh = "x.obj"\nfile_lights = "yes"\n')
+    with pytest.raises(
+        sc.SceneError, match=r"d\.toml: \[scene\] file_lights must be true or false"
+    ):
+        sc.read_description(tmp_path / "d.toml")

@@ -14,6 +14,8 @@ description file; ``${VAR}`` and ``${VAR:-default}`` expand environment variable
     translation = [0.0, 0.0, 0.0]       # after scaling
     flip_v = false                      # uv origin at the image's top-left in this file
     textures = true                     # decode texture images
+    file_lights = true                  # keep the mesh file's own lights (glTF
+                                        #   KHR_lights_punctual) besides [[lights]]
 
     [camera]                            # intrinsics of the default camera and of every path
     fov_y_deg = 60.0
@@ -72,7 +74,16 @@ from icbtool.scene.types import (
 )
 from icbtool.scene.validate import SceneError, check_file
 
-_SCENE_KEYS = {"name", "mesh", "scale", "up_axis", "translation", "flip_v", "textures"}
+_SCENE_KEYS = {
+    "name",
+    "mesh",
+    "scale",
+    "up_axis",
+    "translation",
+    "flip_v",
+    "textures",
+    "file_lights",
+}
 _CAMERA_KEYS = {"fov_y_deg", "height", "width"}
 _TOP_KEYS = {"scene", "camera", "lights", "sky", "default_camera", "paths"}
 _LIGHT_KEYS = {kind: light_parameters(kind) for kind in LIGHT_TYPES}
@@ -202,6 +213,9 @@ class SceneDescription:
     """The [default_camera] table, or None."""
     paths: dict[str, dict[str, Any]] = field(default_factory=dict)
     """The [paths.*] tables by name."""
+    file_lights: bool = True
+    """Keep the lights the mesh file itself declares (glTF KHR_lights_punctual) besides
+    :attr:`lights`; False drops them."""
 
     def build(self, **overrides: Any) -> Scene:
         """Load the mesh and assemble the Scene.
@@ -209,8 +223,9 @@ class SceneDescription:
         Args:
             **overrides: replace description values: ``name``, ``mesh``, ``scale``, ``up_axis``,
                 ``translation``, ``flip_v``, ``textures`` (mesh), ``fov_y_deg``, ``height``,
-                ``width`` (intrinsics of the default camera and every path), ``lights``, ``sky``,
-                and ``with_paths=False`` to skip building the camera paths.
+                ``width`` (intrinsics of the default camera and every path), ``lights`` (replace
+                every light: the description's and the file's), ``sky``, and
+                ``with_paths=False`` to skip building the camera paths.
 
         Raises:
             TypeError: an unknown override.
@@ -233,8 +248,10 @@ class SceneDescription:
             raise FileNotFoundError(f"{where}: mesh file not found: {mesh}")
         name = overrides.get("name", self.name)
         scene = load_mesh(mesh, name=name, **mesh_kw)
-        lights = list(overrides.get("lights", self.lights))
-        scene = add_area_lights(scene, [lt for lt in lights if isinstance(lt, AreaLight)])
+        own = list(overrides.get("lights", self.lights))  # their area quads join the mesh
+        kept = list(scene.lights) if self.file_lights and "lights" not in overrides else []
+        scene = add_area_lights(scene, [lt for lt in own if isinstance(lt, AreaLight)])
+        lights = kept + own
         scene = dataclasses.replace(
             scene, lights=lights, sky=overrides.get("sky", self.sky), source=where
         )
@@ -380,6 +397,9 @@ def read_description(path: str | os.PathLike) -> SceneDescription:
     mesh_options = {
         k: sc[k] for k in ("scale", "up_axis", "translation", "flip_v", "textures") if k in sc
     }
+    file_lights = sc.get("file_lights", True)
+    if not isinstance(file_lights, bool):
+        raise SceneError(f"{where}: [scene] file_lights must be true or false, got {file_lights!r}")
     try:
         intr = Intrinsics(**_check_keys(doc.get("camera", {}), _CAMERA_KEYS, where, "camera"))
     except (ValueError, TypeError) as e:
@@ -433,4 +453,5 @@ def read_description(path: str | os.PathLike) -> SceneDescription:
         sky=sky,
         default_camera=default_camera,
         paths=paths,
+        file_lights=file_lights,
     )
