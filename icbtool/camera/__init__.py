@@ -5,13 +5,20 @@ motion (the random walk, the "inside a wall" check) is in :mod:`icbtool.scene.wa
 imports nothing else of icbtool.
 """
 
-from icbtool.camera.camera import Camera, CameraPlacementError, look_at_pose, pose_from_forward
+from icbtool.camera.camera import (
+    Camera,
+    CameraPlacementError,
+    default_view_direction,
+    look_at_pose,
+    pose_from_forward,
+)
 from icbtool.camera.path import CameraPath
 
 __all__ = [
     "Camera",
     "CameraPath",
     "CameraPlacementError",
+    "default_view_direction",
     "look_at_pose",
     "pose_from_forward",
 ]
