@@ -18,6 +18,10 @@ Embree floor gives, per Mitsuba point, the time Embree alone (no shading) needs 
 cheapest raw render that reaches E, divided by T: above 0.5 no shading code could meet the target
 there.
 
+The peer is Mitsuba's `llvm_ad_rgb` variant unless `--mitsuba-variant` names another; a variant
+that cannot be loaded stops the benchmark with a message (`make bench-deps` installs Mitsuba and
+libLLVM), it is never silently replaced by a slower one.
+
 Writes benchmarks/results/trace/time_error.{json,png}. Mitsuba is a benchmark peer only.
 """
 
@@ -307,9 +311,53 @@ def plot(results: dict, size: int, path: Path) -> None:
     fig.savefig(path, dpi=100)
 
 
-def main() -> None:
-    import mitsuba as mi
+MITSUBA_VARIANT = "llvm_ad_rgb"
 
+
+class PeerMissingError(RuntimeError):
+    """The benchmark peer (Mitsuba 3, or the variant asked for) is not installed."""
+
+
+def load_mitsuba(variant: str):
+    """Import Mitsuba 3 and set ``variant``; fail (never switch variant) when it is missing.
+
+    Args:
+        variant: a Mitsuba variant name, e.g. ``"llvm_ad_rgb"`` (needs libLLVM) or ``"scalar_rgb"``.
+
+    Returns:
+        The ``mitsuba`` module with ``variant`` set.
+
+    Raises:
+        PeerMissingError: Mitsuba is not importable, or ``variant`` cannot be set here; the message
+            names the variant, the variants Mitsuba offers and how to install the peer.
+    """
+    try:
+        import mitsuba as mi
+    except ImportError as e:
+        raise PeerMissingError(
+            f"the benchmark peer Mitsuba 3 is not installed ({e}); install it with "
+            "`make bench-deps` (mitsuba==3.9.1 and libllvm for the llvm variants)"
+        ) from e
+    available = list(mi.variants())
+    if variant not in available:
+        raise PeerMissingError(
+            f"Mitsuba variant {variant!r} is not in this Mitsuba build (available: "
+            f"{', '.join(available)}); choose one with --mitsuba-variant"
+        )
+    try:
+        mi.set_variant(variant)
+    except (ImportError, AttributeError, RuntimeError) as e:
+        raise PeerMissingError(
+            f"Mitsuba variant {variant!r} cannot be loaded here ({type(e).__name__}: {e}). The "
+            "llvm variants need libLLVM (install it with `make bench-deps`), the cuda ones an "
+            "NVIDIA GPU; or pass "
+            "--mitsuba-variant scalar_rgb to compare against the (much slower) scalar variant "
+            "explicitly"
+        ) from e
+    return mi
+
+
+def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--ref-spp", type=int, default=256)
@@ -318,6 +366,12 @@ def main() -> None:
     ap.add_argument("--out-name", default="time_error")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per point (min is kept)")
     ap.add_argument("--replot", action="store_true", help="redraw the PNG from the saved JSON")
+    ap.add_argument(
+        "--mitsuba-variant",
+        default=MITSUBA_VARIANT,
+        help=f"the Mitsuba variant to compare with (default {MITSUBA_VARIANT}); a variant that "
+        "cannot be loaded is an error, never replaced by another",
+    )
     args = ap.parse_args()
     if args.replot:
         saved = json.loads((OUT / f"{args.out_name}.json").read_text())
@@ -325,9 +379,9 @@ def main() -> None:
         print(f"wrote {OUT / args.out_name}.png")
         return
     try:
-        mi.set_variant("llvm_ad_rgb")
-    except (ImportError, AttributeError, RuntimeError):
-        mi.set_variant("scalar_rgb")
+        mi = load_mitsuba(args.mitsuba_variant)
+    except PeerMissingError as e:
+        sys.exit(f"trace_time_error.py: {e}")
     spps = [int(s) for s in args.spps.split(",")]
     results = {"mitsuba_variant": mi.variant(), "scenes": {}}
     for name in args.scenes.split(","):

@@ -2,8 +2,10 @@
 
 Same input in the same run: a 512x512 RGB image, smooth depth, a small camera motion, 2 torch
 threads and 2 numba threads, median of N runs after warm-up, the methods' calls interleaved
-round-robin. ``--repeats R`` repeats the whole interleaved measurement R times (the machine is
-shared: the spread over repeats is reported with the machine load before each). Writes
+round-robin; the per-run times are saved, and the summary gives medians and minima (no means),
+the first call apart, and speed ratios over kornia as ratio of medians and of mins.
+``--repeats R`` repeats the whole interleaved measurement R times (the machine is shared: the
+spread over repeats is reported with the machine load before each). Writes
 benchmarks/results/warp/{warp_bench.json, warp_bench.png}.
 
     .venv/bin/python benchmarks/warp_bench.py [--size 512] [--runs 30] [--repeats 3]
@@ -28,21 +30,75 @@ OUT = Path(__file__).resolve().parent / "results" / "warp"
 
 
 def timeit_interleaved(fns: dict, runs: int, warmup: int = 3) -> dict:
-    """Median and min ms of each function, calls interleaved round-robin so that a changing
-    machine load hits every method alike."""
+    """Per-run ms of each function, calls interleaved round-robin so that a changing machine
+    load hits every method alike. The warm-up calls are timed too (the first one pays torch's or
+    numba's first-call costs) but kept apart from the runs."""
+    warm: dict[str, list[float]] = {k: [] for k in fns}
     for _ in range(warmup):
-        for fn in fns.values():
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
             fn()
+            warm[k].append(1e3 * (time.perf_counter() - t0))
     ts: dict[str, list[float]] = {k: [] for k in fns}
     for _ in range(runs):
         for k, fn in fns.items():
             t0 = time.perf_counter()
             fn()
-            ts[k].append(time.perf_counter() - t0)
+            ts[k].append(1e3 * (time.perf_counter() - t0))
     return {
-        k: {"median_ms": 1e3 * statistics.median(v), "min_ms": 1e3 * min(v), "runs": runs}
+        k: {
+            "median_ms": statistics.median(v),
+            "min_ms": min(v),
+            "runs": runs,
+            "run_ms": v,
+            "warmup_ms": warm[k],
+        }
         for k, v in ts.items()
     }
+
+
+def summarize(repeats: list[dict], names: list[str], reference: str) -> dict:
+    """Per method: medians and minima over all runs, and speed ratios against ``reference``.
+
+    Args:
+        repeats: one dict per repeat, ``{name: {"run_ms": [...], "warmup_ms": [...]}}``.
+        names: the methods.
+        reference: the method the ratios divide by (kornia).
+
+    Returns:
+        ``{name: {...}}`` with ``median_ms`` (median of all timed runs), ``min_ms`` (min of all
+        runs), ``median_ms_per_repeat``, ``first_call_ms`` (the first warm-up call of the first
+        repeat, apart), and the ratios over the reference: ``ratio_of_medians``,
+        ``ratio_of_mins`` (min-of-runs), and per repeat ``ratio_of_medians_per_repeat``,
+        ``ratio_of_mins_per_repeat``. No mean anywhere: a few slow runs (load spikes, first
+        calls) would dominate it.
+    """
+
+    def pooled(k: str) -> list[float]:
+        return [t for r in repeats for t in r[k]["run_ms"]]
+
+    ref_all = pooled(reference)
+    out = {}
+    for k in names:
+        v = pooled(k)
+        out[k] = {
+            "median_ms": statistics.median(v),
+            "min_ms": min(v),
+            "median_ms_per_repeat": [statistics.median(r[k]["run_ms"]) for r in repeats],
+            "min_ms_per_repeat": [min(r[k]["run_ms"]) for r in repeats],
+            "first_call_ms": repeats[0][k]["warmup_ms"][0],
+            "runs": len(v),
+            "ratio_of_medians": statistics.median(v) / statistics.median(ref_all),
+            "ratio_of_mins": min(v) / min(ref_all),
+            "ratio_of_medians_per_repeat": [
+                statistics.median(r[k]["run_ms"]) / statistics.median(r[reference]["run_ms"])
+                for r in repeats
+            ],
+            "ratio_of_mins_per_repeat": [
+                min(r[k]["run_ms"]) / min(r[reference]["run_ms"]) for r in repeats
+            ],
+        }
+    return out
 
 
 def main() -> None:
@@ -133,16 +189,7 @@ def main() -> None:
         repeats.append(
             {"load_average_1_5_15min_before": load_before, **timeit_interleaved(fns, args.runs)}
         )
-    # per method: the median over repeats of each repeat's median (and the spread)
-    results = {}
-    for k in fns:
-        meds = [r[k]["median_ms"] for r in repeats]
-        results[k] = {
-            "median_ms": statistics.median(meds),
-            "min_ms": min(r[k]["min_ms"] for r in repeats),
-            "median_ms_per_repeat": meds,
-            "runs": args.runs,
-        }
+    results = summarize(repeats, list(fns), "kornia_warp_frame_depth")
     with torch.inference_mode():
         # agreement check of the two backward warps (same conventions) on interior pixels whose
         # four taps all passed (kornia zero-pads and blends across depth edges; we replicate the
@@ -162,16 +209,18 @@ def main() -> None:
         }
     load = os.getloadavg()
     kornia_ms = results["kornia_warp_frame_depth"]["median_ms"]
-    ratio = results["icbtool_warp_backward_numpy_numba"]["median_ms"] / kornia_ms
-    ratios = {k: v["median_ms"] / kornia_ms for k, v in results.items()}
+    nb = results["icbtool_warp_backward_numpy_numba"]
     out = {
         "config": vars(args),
+        "summary": "per method over all runs of all repeats: median and min ms (no means), the "
+        "first call apart; speed ratios over kornia as ratio of medians and ratio of mins "
+        "(min-of-runs), overall and per repeat; raw per-run ms in repeats[*][method].run_ms",
         "results": results,
-        "numba_backward_over_kornia": ratio,
-        "median_over_kornia": ratios,
-        "ratio_spread_over_repeats": {
-            k: [r[k]["median_ms"] / r["kornia_warp_frame_depth"]["median_ms"] for r in repeats]
-            for k in fns
+        "numba_backward_over_kornia": {
+            "ratio_of_medians": nb["ratio_of_medians"],
+            "ratio_of_mins": nb["ratio_of_mins"],
+            "ratio_of_medians_per_repeat": nb["ratio_of_medians_per_repeat"],
+            "ratio_of_mins_per_repeat": nb["ratio_of_mins_per_repeat"],
         },
         "repeats": repeats,
         "first_numba_call_s": first_numba_call_s,
@@ -200,8 +249,8 @@ def main() -> None:
         ax.text(v, i, f" {v:.1f} ms", va="bottom")
     ax.invert_yaxis()
     ax.set_xlabel(
-        f"ms at {n}x{n}, {args.threads} threads: median of {args.repeats} repeat medians "
-        f"({args.runs} interleaved runs each);\nwhiskers: min/max repeat median; "
+        f"ms at {n}x{n}, {args.threads} threads: median of all {args.repeats}x{args.runs} "
+        f"interleaved runs;\nwhiskers: min/max repeat median; "
         f"load avg {load[0]:.1f} after"
     )
     ax.set_title("warp: icbtool (with hole masks) vs kornia warp_frame_depth (no mask)")
@@ -209,8 +258,14 @@ def main() -> None:
     fig.savefig(OUT / "warp_bench.png", dpi=100)
     for k in names:
         per = ", ".join(f"{v:.1f}" for v in results[k]["median_ms_per_repeat"])
-        print(f"{k:48s} {results[k]['median_ms']:7.2f} ms  (repeats: {per})")
-    print(f"numba backward (with masks) / kornia = {ratio:.2f}, max |diff| on valid = {diff:.2e}")
+        print(
+            f"{k:48s} median {results[k]['median_ms']:7.2f} ms, min {results[k]['min_ms']:7.2f}"
+            f", first call {results[k]['first_call_ms']:7.1f}  (repeat medians: {per})"
+        )
+    print(
+        f"numba backward (with masks) / kornia: ratio of medians {nb['ratio_of_medians']:.2f}, "
+        f"of mins {nb['ratio_of_mins']:.2f}; max |diff| on valid = {diff:.2e}"
+    )
     print(f"numba vs torch: {numba_vs_torch}, first numba call {first_numba_call_s:.2f} s")
 
 

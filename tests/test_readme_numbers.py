@@ -1,0 +1,83 @@
+"""README's benchmark numbers are the ones in the committed results files (benchmarks/results/).
+
+benchmarks/readme_tables.py writes every number between ``<!-- bench:NAME -->`` markers from the
+results JSON; a README edited by hand, or a results file rerun without regenerating the README,
+fails here.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _load_module():
+    spec = importlib.util.spec_from_file_location(
+        "readme_tables", REPO / "benchmarks" / "readme_tables.py"
+    )
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+rt = _load_module()
+
+
+def test_readme_matches_results_files(capsys):
+    assert rt.main(["--check"]) == 0, capsys.readouterr().out
+
+
+def test_every_block_is_in_the_readme_once():
+    text = (REPO / "README.md").read_text()
+    for name in rt.BLOCKS:
+        assert text.count(f"<!-- bench:{name} -->") == 1, name
+        assert text.count(f"<!-- /bench:{name} -->") == 1, name
+
+
+def test_a_hand_edited_number_fails_the_check(tmp_path, capsys):
+    text = (REPO / "README.md").read_text()
+    # the warp table's kornia row, as the results file gives it, changed by one digit
+    row = next(line for line in text.splitlines() if line.startswith("| kornia `warp_frame"))
+    cells = row.split(" | ")
+    cells[1] = str(int(cells[1]) + 1)
+    stale = tmp_path / "README.md"
+    stale.write_text(text.replace(row, " | ".join(cells)))
+    assert rt.main(["--check", "--readme", str(stale)]) == 1
+    assert "differ" in capsys.readouterr().err
+    # regenerating puts the number from the results file back
+    assert rt.main(["--readme", str(stale)]) == 0
+    assert stale.read_text() == text
+
+
+def test_a_changed_results_file_fails_the_check(tmp_path):
+    results = tmp_path / "results"
+    shutil.copytree(REPO / "benchmarks" / "results", results)
+    path = results / "store" / "store_bench.json"
+    d = json.loads(path.read_text())
+    d["lookup"][0]["octree_us_median"] = 1234.4  # written as "1234 us" in the store table
+    path.write_text(json.dumps(d))
+    new = rt.regenerate((REPO / "README.md").read_text(), results)
+    assert "| 10^3 | 1234 us (59) | 72 us |" in new
+    readme = tmp_path / "README.md"
+    readme.write_text((REPO / "README.md").read_text())
+    assert rt.main(["--check", "--readme", str(readme), "--results", str(results)]) == 1
+
+
+def test_markers_must_match_the_blocks():
+    text = (REPO / "README.md").read_text()
+    with pytest.raises(rt.ReadmeBlockError, match=r"missing \['warp'\]"):
+        rt.regenerate(text.replace("<!-- bench:warp -->", "<!-- bench-warp -->"))
+    with pytest.raises(rt.ReadmeBlockError, match=r"unknown \['nope'\]"):
+        rt.regenerate(text + "\n<!-- bench:nope -->\nx\n<!-- /bench:nope -->\n")
+
+
+def test_span_formats_ranges():
+    assert rt.span([84.26, 83.79]) == "84"
+    assert rt.span([31.8, 37.0]) == "32-37"
+    assert rt.span([0.494, 0.629], rt.f2) == "0.49-0.63"
