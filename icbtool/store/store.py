@@ -1365,6 +1365,19 @@ class Store:
         )
         return None if row is None else int(row[0])
 
+    def find_exact_all(self, camera: Camera, scene_hash: str, light_hash: str) -> list[int]:
+        """The ids of every record with exactly this camera (bit for bit) and hashes, ascending."""
+        rows = (
+            self._db()
+            .execute(
+                "SELECT id FROM records WHERE scene_hash=? AND light_hash=? AND cam_key=? "
+                "ORDER BY id",
+                (scene_hash, light_hash, camera_key(camera)),
+            )
+            .fetchall()
+        )
+        return [int(r[0]) for r in rows]
+
     def lookup(
         self,
         camera: Camera,
