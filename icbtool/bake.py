@@ -2,7 +2,8 @@
 
 For each client camera of the path: choose the cloud camera (``"same"``, or ``"prefetch"``: wider
 FOV, pulled back along -forward), skip it if the store already holds exactly that camera for this
-scene and light setup, else render G-buffers + DL (raster) and GI (path tracer) and ``put`` them.
+scene and light setup with an intact payload, else (a damaged record is re-rendered and
+replaced) render G-buffers + DL (raster) and GI (path tracer) and ``put`` them.
 
 The tracer already uses both cores (two Embree threads); the raster runs in this process between
 traces (a few tens of ms against seconds of tracing), so the two are not overlapped.
@@ -11,6 +12,7 @@ traces (a few tens of ms against seconds of tracing), so the two are not overlap
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -22,6 +24,8 @@ import numpy as np
 from icbtool.camera import Camera, CameraPath
 from icbtool.store.record import CRTBuffer, RecordMeta
 from icbtool.trace.tracer import DenoiseQuality, check_denoise_quality
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -61,7 +65,8 @@ class BakeConfig:
     limit: int | None = None
     """Bake at most this many cameras (after ``stride``)."""
     skip_existing: bool = True
-    """Resume: skip cameras already in the store (exact camera, same scene and light hashes)."""
+    """Resume: skip cameras already in the store (exact camera, same scene and light hashes) whose
+    payload verifies; a damaged one is re-rendered and replaced."""
     progress: bool = True
     """Show a tqdm progress bar."""
     tags: dict[str, Any] = field(default_factory=dict)
@@ -109,12 +114,15 @@ class BakeReport:
         skipped: path indices skipped because the store already had them.
         seconds: wall time.
         seconds_per_view: mean render time of the rendered views.
+        replaced: ids of damaged records (payload missing, truncated, checksum) that were
+            re-rendered and replaced (their new ids are in ``rendered``).
     """
 
     rendered: list[int]
     skipped: list[int]
     seconds: float
     seconds_per_view: float
+    replaced: list[int] = field(default_factory=list)
 
 
 def cloud_camera(
@@ -288,12 +296,26 @@ def bake(
             cam = camera_fn(path[i], i)
         else:
             cam = cloud_camera(path[i], cfg, path, i, scene)
-        if cfg.skip_existing and store.find_exact(cam, sh, lh) is not None:
-            skipped.append(i)
-        else:
-            todo.append((i, cam))
+        if not cfg.skip_existing:
+            todo.append((i, cam, []))
+            continue
+        ids = store.find_exact_all(cam, sh, lh)
+        problems = {rid: store.verify(rid) for rid in ids}
+        if any(p is None for p in problems.values()):
+            skipped.append(i)  # an intact record of this camera exists
+            continue
+        for rid, problem in problems.items():
+            log.warning(
+                "bake %s: view %d's record %d is damaged (%s); re-rendering it",
+                path.name,
+                i,
+                rid,
+                problem,
+            )
+        todo.append((i, cam, list(problems)))
     t0 = time.perf_counter()
     rendered: list[int] = []
+    replaced: list[int] = []
     times: list[float] = []
     with contextlib.ExitStack() as stack:
         rasterizer = None
@@ -312,7 +334,7 @@ def bake(
                     total=len(indices), initial=len(skipped), desc=f"bake {path.name}", unit="view"
                 )
             )
-        for i, cam in todo:
+        for i, cam, damaged in todo:
             tcfg = trace.TraceConfig(
                 spp=cfg.spp,
                 seed=cfg.seed + i,
@@ -328,11 +350,23 @@ def bake(
             }
             buf = render_crt_buffer(scene, cam, tcfg, rasterizer, tags=tags)
             dt = buf.meta.render_time_s
-            rendered.append(store.put(buf))
+            if damaged:  # the new record replaces the damaged ones (never an intact one)
+                rid = store.replace_damaged(damaged[0], buf)
+                for old in damaged[1:]:
+                    if store.verify(old) is not None:
+                        store.delete([old])
+                replaced.extend(damaged)
+            else:
+                rid = store.put(buf)
+            rendered.append(rid)
             times.append(dt)
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(s_per_view=f"{dt:.2f}")
     return BakeReport(
-        rendered, skipped, time.perf_counter() - t0, float(np.mean(times)) if times else 0.0
+        rendered,
+        skipped,
+        time.perf_counter() - t0,
+        float(np.mean(times)) if times else 0.0,
+        replaced,
     )

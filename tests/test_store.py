@@ -671,3 +671,275 @@ def test_put_many_and_exclude(tmp_path):
             same_buffers(store.get(r), make_record(c, seed=i))
             for i, (r, c) in enumerate(zip(ids, cams))
         )
+
+
+# ------------------------------------------------------------------------------ index rebuild
+def _seven_records(d: Path) -> tuple[list[int], dict]:
+    """7 records in 2 light setups, some hit; returns their ids and what the index says."""
+    with S.open(d, S.StoreConfig(fsync=False)) as store:
+        ids = [
+            store.put(make_record(make_cam([0.3 * i, 0, 0]), lh=f"light{i % 2}", seed=i, k=i))
+            for i in range(7)
+        ]
+        for _ in range(3):
+            store.lookup(make_cam([0.6, 0, 0]), "scene", "light0")
+        before = {i.record_id: i for i in store}
+    return ids, before
+
+
+def _damage_db(db: Path, how: str) -> None:
+    if how == "truncate":
+        data = db.read_bytes()
+        db.write_bytes(data[: len(data) // 2])
+    elif how == "overwrite":  # a page in the middle: the records' b-tree
+        data = bytearray(db.read_bytes())
+        data[8192:12288] = np.random.default_rng(5).bytes(4096)
+        db.write_bytes(bytes(data))
+    else:
+        db.unlink()
+
+
+@pytest.mark.parametrize("how", ["truncate", "overwrite", "delete"])
+def test_rebuild_recovers_every_record_from_a_damaged_index(tmp_path, how):
+    d = tmp_path / "s"
+    ids, before = _seven_records(d)
+    payload_bytes = {rid: info.payload.read_bytes() for rid, info in before.items()}
+    db = d / "icbstore.sqlite"
+    _damage_db(db, how)
+    damaged_db = db.read_bytes() if db.exists() else None
+    for cfg in (S.StoreConfig(), S.StoreConfig(readonly=True)):
+        with pytest.raises(S.StoreIndexError, match=rf"icbtool store check {d} --rebuild"):
+            S.open(d, cfg)
+    if damaged_db is not None:
+        assert db.read_bytes() == damaged_db  # refused untouched
+    rep = S.rebuild(d)
+    assert rep.recovered == ids and rep.damaged == [] and rep.quarantined == [] and rep.ok
+    assert rep.orphans == [] and rep.renumbered == {}
+    if damaged_db is None:
+        assert rep.old_index is None
+    else:  # the old database is kept aside, byte for byte
+        assert Path(rep.old_index).name.startswith("icbstore.sqlite.damaged-")
+        assert Path(rep.old_index).read_bytes() == damaged_db
+    assert not (d / "icbstore.sqlite.rebuild-tmp").exists()
+    with S.open(d, S.StoreConfig(fsync=False)) as store:
+        assert store.ids() == ids and store.orphans_removed_on_open == 0
+        for rid in ids:
+            a, b = store.info(rid), before[rid]
+            assert a.meta == b.meta and a.camera == b.camera and a.buffers == b.buffers
+            assert (a.nbytes, a.checksum) == (b.nbytes, b.checksum)
+            assert a.payload.read_bytes() == payload_bytes[rid]
+            k = a.meta.tags["k"]
+            assert same_buffers(store.get(rid), make_record(make_cam([0.3 * k, 0, 0]), seed=k))
+        # hit counts come back from the old database where it can still be read
+        if how == "delete":
+            assert rep.hits_restored == 0 and all(store.info(r).hits == 0 for r in ids)
+        assert rep.hits_restored in (0, 7)
+        if rep.hits_restored:
+            assert [store.info(r).hits for r in ids] == [before[r].hits for r in ids]
+        hit = store.lookup(make_cam([0.61, 0, 0]), "scene", "light0")
+        assert hit.record_id == ids[2] and store.lookup(make_cam([0.6, 0, 0]), "scene", "x") is None
+        assert store.geometry("scene") == S.OctreeGeometry(*_geometry_of(before[ids[0]], store))
+        new = store.put(make_record(make_cam([5, 0, 0]), seed=99))
+        assert new == ids[-1] + 1  # ids are never reused
+        assert store.check().ok
+
+
+def _geometry_of(info, store):
+    g = store.geometry(info.meta.scene_hash)
+    return g.root_min, g.root_size, g.depth
+
+
+def test_rebuild_quarantines_damaged_payloads_and_reports_orphans(tmp_path):
+    d = tmp_path / "s"
+    ids, before = _seven_records(d)
+    flipped, cut = before[ids[1]].payload, before[ids[4]].payload
+    data = bytearray(flipped.read_bytes())
+    data[len(data) // 2] ^= 0x01  # one bit
+    flipped.write_bytes(bytes(data))
+    cut.write_bytes(cut.read_bytes()[:-100])
+    bad_bytes = {flipped.name: flipped.read_bytes(), cut.name: cut.read_bytes()}
+    (d / "payloads" / "tmp" / "half.tmp").write_bytes(b"half-written")
+    (d / "icbstore.sqlite").unlink()
+    rep = S.rebuild(d)
+    assert rep.recovered == [i for i in ids if i not in (ids[1], ids[4])] and not rep.ok
+    assert sorted(Path(x.path).name for x in rep.damaged) == sorted(bad_bytes)
+    assert all("digest mismatch" in x.problem for x in rep.damaged)
+    assert len(rep.orphans) == 1 and rep.orphans[0].endswith("half.tmp")
+    assert len(rep.quarantined) == 2  # moved aside, not deleted
+    for q in map(Path, rep.quarantined):
+        assert q.parent.parent.parent.name == "quarantine" and q.read_bytes() == bad_bytes[q.name]
+    assert not flipped.exists() and not cut.exists()
+    with S.open(d) as store:
+        assert store.ids() == rep.recovered and store.check().ok
+        assert store.orphans_removed_on_open == 1  # the tmp file only
+    assert all(Path(q).exists() for q in rep.quarantined)
+
+    # an intact index that lists a missing payload: the rebuild names the lost record
+    with S.open(d) as store:
+        store.info(ids[6]).payload.unlink()
+    rep = S.rebuild(d)
+    assert [(x.record_id, x.problem) for x in rep.damaged] == [(ids[6], "payload file missing")]
+    assert rep.hits_restored == 4 and rep.recovered == [ids[0], ids[2], ids[3], ids[5]]
+    kept = [p for p in d.glob("icbstore.sqlite.damaged-*") if not p.name.endswith(("-wal", "-shm"))]
+    assert len(kept) == 1  # the first rebuild had no database to keep
+
+
+def test_cli_check_rebuild(tmp_path, capsys):
+    from icbtool.cli import main
+
+    d = tmp_path / "s"
+    ids, before = _seven_records(d)
+    before[ids[3]].payload.write_bytes(b"ICBP garbage")
+    _damage_db(d / "icbstore.sqlite", "truncate")
+    assert main(["store", "check", str(d)]) == 1
+    err = capsys.readouterr().err
+    assert "is damaged" in err and f"`icbtool store check {d} --rebuild`" in err
+    assert main(["store", "stats", str(d)]) == 1
+    assert "--rebuild" in capsys.readouterr().err
+    assert main(["store", "check", str(d), "--rebuild"]) == 1  # one payload was lost
+    out = capsys.readouterr().out
+    assert f"rebuilt the index of {d}: 6 record(s) recovered" in out
+    assert "old index database kept as" in out and "icbstore.sqlite.damaged-" in out
+    assert "DAMAGED record" in out and "1 damaged payload(s) moved to" in out
+    assert "DAMAGE: 1 payload(s) not recovered" in out
+    assert main(["store", "check", str(d)]) == 0
+    assert "checked 6 records" in capsys.readouterr().out
+    assert main(["store", "check", str(d), "--rebuild"]) == 0  # an intact store rebuilds too
+    assert "6 record(s) recovered" in capsys.readouterr().out
+    assert main(["store", "check", str(d), "--rebuild", "--repair"]) == 1
+    assert "cannot be combined" in capsys.readouterr().err
+
+
+def _downgrade_to_v1(d: Path) -> None:
+    """Rewrite a store as icbtool format 1 wrote it: payloads without record nor trailer."""
+    import json
+    import struct
+
+    from icbtool.store.record import payload_header
+
+    con = sqlite3.connect(d / "icbstore.sqlite")
+    for rid, rel in con.execute("SELECT id, payload FROM records").fetchall():
+        p = d / "payloads" / rel
+        data = p.read_bytes()
+        h = payload_header(data)
+        start, end = h["_body"]
+        head = json.dumps({"buffers": h["buffers"]}).encode()
+        v1 = b"ICBP" + struct.pack("<II", 1, len(head)) + head + data[start:end]
+        p.write_bytes(v1)
+        con.execute(
+            "UPDATE records SET nbytes=?, checksum=? WHERE id=?",
+            (len(v1), S.store._checksum(v1), rid),
+        )
+    con.execute("UPDATE meta SET value='1' WHERE key='format_version'")
+    con.commit()
+    con.close()
+
+
+def test_format_1_store_is_read_and_migrated(tmp_path):
+    from icbtool.store.record import payload_header
+
+    d = tmp_path / "s"
+    ids, before = _seven_records(d)
+    _downgrade_to_v1(d)
+    with S.open(d, S.StoreConfig(readonly=True)) as store:  # a reader reads it as it is
+        assert same_buffers(store.get(ids[3]), make_record(make_cam([0.3 * 3, 0, 0]), seed=3))
+        assert payload_header(store.info(ids[3]).payload.read_bytes())["version"] == 1
+    with S.open(d) as store:  # a writer migrates it
+        assert store.migrated_from == 1 and store.ids() == ids
+        for rid in ids:
+            info = store.info(rid)
+            assert payload_header(info.payload.read_bytes())["version"] == 2
+            k = info.meta.tags["k"]
+            assert same_buffers(store.get(rid), make_record(make_cam([0.3 * k, 0, 0]), seed=k))
+        assert store.check().ok and store.orphans_removed_on_open == 0
+        assert sum(1 for _ in (d / "payloads").rglob("*.icbp")) == 7  # the v1 files are gone
+    assert S.rebuild(d).recovered == ids  # and the index can now be rebuilt from them
+    con = sqlite3.connect(d / "icbstore.sqlite")
+    assert con.execute("SELECT value FROM meta WHERE key='format_version'").fetchone() == ("2",)
+    con.close()
+
+
+# ------------------------------------------------------------------------------ damaged records
+def _damage_payload(p: Path, how: str) -> None:
+    if how == "flip":
+        data = bytearray(p.read_bytes())
+        data[len(data) // 2] ^= 0x10
+        p.write_bytes(bytes(data))
+    elif how == "truncate":
+        p.write_bytes(p.read_bytes()[:-7])
+    else:
+        p.unlink()
+
+
+def test_evict_removes_damaged_records_first(tmp_path, capsys):
+    from icbtool.cli import main
+
+    d = tmp_path / "s"
+    with S.open(d, S.StoreConfig(fsync=False)) as store:
+        ids = [store.put(make_record(make_cam([float(i), 0, 0]), seed=i)) for i in range(6)]
+        # the two newest (LRU would keep them longest) are damaged: one same-size bit flip,
+        # one truncation
+        _damage_payload(store.info(ids[4]).payload, "flip")
+        _damage_payload(store.info(ids[5]).payload, "truncate")
+        assert store.damaged_ids(deep=False) == {
+            ids[5]: f"size {_size(store, ids[5])} != recorded {store.info(ids[5]).nbytes}"
+        }
+        assert set(store.damaged_ids()) == {ids[4], ids[5]}
+        gone = store.evict(max_records=3, policy="lru", deep=True)
+        assert gone == [ids[4], ids[5], ids[0]]  # damaged first, then the least recently used
+        assert store.ids() == ids[1:4] and store.check().ok
+    # automatic eviction (stat check) on put: the truncated record goes before any intact one
+    cfg = S.StoreConfig(max_records=4, evict_to=1.0, fsync=False)
+    with S.open(tmp_path / "a", cfg) as store:
+        ids = [store.put(make_record(make_cam([float(i), 0, 0]), seed=i)) for i in range(4)]
+        _damage_payload(store.info(ids[3]).payload, "missing")
+        new = store.put(make_record(make_cam([9.0, 0, 0]), seed=9))
+        assert store.ids() == [*ids[:3], new]
+    # the CLI: damaged first even within capacity
+    with S.open(tmp_path / "c", S.StoreConfig(fsync=False)) as store:
+        ids = [store.put(make_record(make_cam([float(i), 0, 0]), seed=i)) for i in range(5)]
+        _damage_payload(store.info(ids[1]).payload, "flip")
+    assert main(["store", "evict", str(tmp_path / "c"), "--max-records", "3"]) == 0
+    out = capsys.readouterr().out
+    assert f"evicted 1 damaged record(s) first: [{ids[1]}]" in out
+    assert "evicted 2 records: 5 -> 3 records" in out
+    with S.open(tmp_path / "c") as store:
+        assert store.ids() == [ids[2], ids[3], ids[4]]
+
+
+def _size(store, rid):
+    return store.info(rid).payload.stat().st_size
+
+
+@pytest.mark.parametrize("how", ["flip", "truncate", "missing"])
+def test_get_intact_and_replace_damaged(tmp_path, caplog, how):
+    with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as store:
+        a, b = (store.put(make_record(make_cam([float(i), 0, 0]), seed=i)) for i in range(2))
+        _damage_payload(store.info(a).payload, how)
+        with caplog.at_level("WARNING", logger="icbtool.store.store"):
+            assert store.get_intact(a) is None
+        assert f"record {a}: payload file" in caplog.text and "treating it as a miss" in caplog.text
+        assert same_buffers(store.get_intact(b), make_record(make_cam([1.0, 0, 0]), seed=1))
+        # replacing an intact record never deletes it
+        c = store.replace_damaged(b, make_record(make_cam([1.0, 0, 0]), seed=5))
+        assert b in store and c in store
+        new = store.replace_damaged(a, make_record(make_cam([0.0, 0, 0]), seed=7))
+        assert a not in store and store.ids() == [b, c, new] and store.check().ok
+
+
+def test_bake_rerenders_damaged_records(tmp_path):
+    scene = _tiny_scene()
+    cfg = B.BakeConfig(spp=2, gbuffer="trace", progress=False)
+    with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as store:
+        first = B.bake(scene, "tiny", store, cfg)
+        assert len(first.rendered) == 3 and first.replaced == []
+        keep = store.info(first.rendered[0]).payload.read_bytes()
+        _damage_payload(store.info(first.rendered[1]).payload, "flip")
+        _damage_payload(store.info(first.rendered[2]).payload, "missing")
+        again = B.bake(scene, "tiny", store, cfg)
+        assert again.skipped == [0] and again.replaced == first.rendered[1:]
+        assert len(again.rendered) == 2 and not set(again.rendered) & set(first.rendered)
+        assert store.ids() == [first.rendered[0], *again.rendered] and store.check().ok
+        assert store.info(first.rendered[0]).payload.read_bytes() == keep  # intact: untouched
+        assert [store.info(r).meta.tags["index"] for r in again.rendered] == [1, 2]
+        assert B.bake(scene, "tiny", store, cfg).rendered == []

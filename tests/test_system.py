@@ -151,3 +151,54 @@ def test_cloud_renders_on_a_miss_and_serves_the_same_reference_on_a_hit(tmp_path
     # without prefetch the cloud renders the request's own camera
     with Cloud(scene, tmp_path / "cache2", dataclasses.replace(cfg, prefetch=False)) as cloud:
         assert cloud.reference_camera(req) is cam
+
+
+class _StubCloud(Cloud):
+    """A Cloud whose renderer is a stub: GI filled with the render's sequence number."""
+
+    def render(self, camera, seq=0):
+        self.renders += 1
+        h, w = camera.height, camera.width
+        return CRTBuffer(
+            camera=camera,
+            meta=RecordMeta.for_scene(self.scene, tags={"frame": seq}),
+            gi=np.full((h, w, 3), float(self.renders), np.float32),
+            depth=np.ones((h, w, 1), np.float32),
+            mask=np.ones((h, w, 1), np.float32),
+        )
+
+
+@pytest.mark.parametrize("damage", ["flip", "truncate", "missing"])
+def test_cloud_rerenders_a_damaged_record_as_a_miss(tmp_path, caplog, damage):
+    scene = icb.scene.cornell_box()
+    cam = _cam(12, 12)
+    far_pose = np.array(cam.world_from_cam)
+    far_pose[:3, 3] += [0.0, 0.0, -5.0]
+    far = cam.with_pose(far_pose)
+    cfg = CloudConfig(prefetch=False)
+    with _StubCloud(scene, tmp_path / "cache", cfg) as cloud:
+        first = cloud.request(GIRequest(cam, seq=1))
+        other = cloud.request(GIRequest(far, seq=2))  # an intact record elsewhere
+        assert not first.cache_hit and not other.cache_hit and cloud.renders == 2
+        (rid, other_id) = cloud.store.ids()
+        p = cloud.store.info(rid).payload
+        if damage == "flip":
+            data = bytearray(p.read_bytes())
+            data[len(data) // 2] ^= 0x04
+            p.write_bytes(bytes(data))
+        elif damage == "truncate":
+            p.write_bytes(p.read_bytes()[:-3])
+        else:
+            p.unlink()
+        with caplog.at_level("WARNING"):
+            again = cloud.request(GIRequest(cam, seq=3))
+        assert not again.cache_hit and cloud.renders == 3 and cloud.damaged_replaced == 1
+        assert f"record {rid}: payload file" in caplog.text
+        assert "treating it as a miss" in caplog.text
+        assert np.all(again.reference.gi == 3.0)
+        # the re-render replaced the damaged record; the intact one is untouched
+        ids = cloud.store.ids()
+        assert rid not in ids and other_id in ids and len(ids) == 2
+        assert cloud.store.check().ok
+        hit = cloud.request(GIRequest(cam, seq=4))
+        assert hit.cache_hit and cloud.renders == 3 and np.all(hit.reference.gi == 3.0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,6 +20,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("dir", help="store directory")
     c.add_argument("--repair", action="store_true", help="delete orphan payload files")
     c.add_argument("--drop-damaged", action="store_true", help="delete the rows of damaged records")
+    c.add_argument(
+        "--rebuild",
+        action="store_true",
+        help="rebuild a damaged or missing index database from the payloads (the old database "
+        "is kept aside, damaged payloads are moved to quarantine/; nothing is deleted)",
+    )
     c.set_defaults(func=_check)
 
     e = ss.add_parser("evict", help="evict records down to a capacity")
@@ -44,7 +51,8 @@ def _open(path: str, readonly: bool):
 
     from icbtool import store
 
-    if not (Path(path) / store.store.DB_NAME).exists():
+    p = Path(path)
+    if not (p / store.store.DB_NAME).exists() and not (p / store.store.PAYLOAD_DIR).is_dir():
         raise FileNotFoundError(f"no icbtool store at {path}")
     return store.open(path, store.StoreConfig(readonly=readonly, create=False))
 
@@ -71,7 +79,34 @@ def _stats(args: argparse.Namespace) -> int:
     return 0
 
 
+def _rebuild(args: argparse.Namespace) -> int:
+    from icbtool import store
+
+    r = store.rebuild(args.dir)
+    print(f"rebuilt the index of {r.path}: {len(r.recovered)} record(s) recovered")
+    if r.old_index:
+        print(f"  old index database kept as {r.old_index}")
+    print(f"  hit counts restored from the old index for {r.hits_restored} record(s)")
+    for d in r.damaged:
+        rid = "?" if d.record_id is None else d.record_id
+        print(f"  DAMAGED record {rid}: {d.problem} ({d.path})")
+    if r.quarantined:
+        print(f"  {len(r.quarantined)} damaged payload(s) moved to {Path(r.quarantined[0]).parent}")
+    if r.orphans:
+        print(f"  {len(r.orphans)} orphan file(s) (not payloads) left in payloads/")
+    for old, new in sorted(r.renumbered.items()):
+        print(f"  record {old} renumbered {new} (id already taken)")
+    print("OK" if r.ok else f"DAMAGE: {len(r.damaged)} payload(s) not recovered")
+    return 0 if r.ok else 1
+
+
 def _check(args: argparse.Namespace) -> int:
+    if args.rebuild:
+        if args.repair or args.drop_damaged:
+            raise ValueError(
+                "store check: --rebuild cannot be combined with --repair/--drop-damaged"
+            )
+        return _rebuild(args)
     write = args.repair or args.drop_damaged
     with _open(args.dir, readonly=not write) as st:
         r = st.check(repair=args.repair, drop_damaged=args.drop_damaged)
@@ -94,9 +129,12 @@ def _evict(args: argparse.Namespace) -> int:
         if args.focus is not None:
             st.set_focus(args.focus)
         before = (len(st), st.total_bytes)
+        damaged = st.evict_damaged(deep=True)  # damaged records go first, whatever the capacity
         gone = st.evict(args.max_records, args.max_bytes, args.policy)
+        if damaged:
+            print(f"evicted {len(damaged)} damaged record(s) first: {damaged}")
         print(
-            f"evicted {len(gone)} records: {before[0]} -> {len(st)} records, "
+            f"evicted {len(damaged) + len(gone)} records: {before[0]} -> {len(st)} records, "
             f"{before[1]:,} -> {st.total_bytes:,} bytes"
         )
     return 0

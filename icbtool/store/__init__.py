@@ -21,15 +21,18 @@ from icbtool.store.store import (
     Hit,
     PayloadError,
     ReadOnlyStoreError,
+    RebuildReport,
     RecordInfo,
     RecordNotFoundError,
     Store,
     StoreConfig,
     StoreError,
     StoreFormatError,
+    StoreIndexError,
     StoreLockedError,
     camera_key,
     open,
+    rebuild,
 )
 
 __all__ = [
@@ -45,6 +48,7 @@ __all__ = [
     "OctreeGeometry",
     "PayloadError",
     "ReadOnlyStoreError",
+    "RebuildReport",
     "RecordInfo",
     "RecordMeta",
     "RecordNotFoundError",
@@ -53,7 +57,9 @@ __all__ = [
     "StoreConfig",
     "StoreError",
     "StoreFormatError",
+    "StoreIndexError",
     "StoreLockedError",
     "camera_key",
     "open",
+    "rebuild",
 ]

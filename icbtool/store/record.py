@@ -1,14 +1,23 @@
 """The CRT-buffer record (ICB.md section 2) and its lossless binary payload.
 
-Payload format (version 1), one file per record::
+Payload format (version 2), one file per record::
 
-    b"ICBP" | u32 format version | u32 header length | header (UTF-8 JSON) | body
+    b"ICBP" | u32 format version | u32 header length | header (UTF-8 JSON) | body | trailer
 
-The header lists every present buffer as ``[name, dtype, shape, offset, nbytes, codec]``; the body
-is the concatenation of each buffer's encoded bytes. Codec ``"shuffle-zlib"``: the float32 array's
-bytes are split into 4 byte planes (all first bytes, all second bytes, ...) and deflated with zlib
-(level from :class:`~icbtool.store.StoreConfig`). Byte shuffling groups the slowly varying exponent
-bytes together, which roughly doubles zlib's ratio on images and makes it faster. Every buffer is
+The header lists every present buffer as ``["buffers"]: [name, dtype, shape, offset, nbytes,
+codec]`` and, since version 2, describes the record itself under ``["record"]``: its id, its
+:class:`RecordMeta`, its camera (:meth:`~icbtool.camera.Camera.to_dict`, floats written as their
+shortest exact repr, so the round trip is bit-exact) and its scene's octree geometry. A payload is
+therefore *self-describing*: the store's index can be rebuilt from the payloads alone
+(:func:`icbtool.store.rebuild`). The trailer is the 32-byte BLAKE2b-256 digest of every byte
+before it, so a payload proves its own integrity without the index (a truncated or overwritten
+file fails it). Version 1 payloads (no record, no trailer) are still read; they cannot be used to
+rebuild an index. The body is the concatenation of each buffer's encoded bytes.
+
+Codec ``"shuffle-zlib"``: the float32 array's bytes are split into 4 byte planes (all first
+bytes, all second bytes, ...) and deflated with zlib (level from
+:class:`~icbtool.store.StoreConfig`). Byte shuffling groups the slowly varying exponent bytes
+together, which roughly doubles zlib's ratio on images and makes it faster. Every buffer is
 stored float32 **exactly** (GI included: the round trip is bit-exact); a mask whose values are all
 0 or 1 is stored as uint8 (also exact). No float16 anywhere: normals, depth and positions feed the
 warp's depth test and the GAN, whose inputs we do not want to quantise behind the user's back.
@@ -16,6 +25,7 @@ warp's depth test and the GAN, whose inputs we do not want to quantise behind th
 
 from __future__ import annotations
 
+import hashlib
 import json
 import struct
 import time
@@ -29,7 +39,10 @@ from icbtool.buffers import BUFFERS, CHANNELS
 from icbtool.camera import Camera
 
 PAYLOAD_MAGIC = b"ICBP"
-PAYLOAD_VERSION = 1
+PAYLOAD_VERSION = 2
+#: Payload versions this module reads.
+PAYLOAD_VERSIONS = (1, 2)
+TRAILER_BYTES = 32
 
 #: Buffer name -> number of channels (:mod:`icbtool.buffers`). The order is the payload order.
 BUFFER_CHANNELS: dict[str, int] = CHANNELS
@@ -179,8 +192,19 @@ def _unshuffle(raw: bytes, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarra
     return np.ascontiguousarray(b.reshape(itemsize, n).T).view(dtype).reshape(shape)
 
 
-def encode_payload(buf: CRTBuffer, level: int = 1) -> bytes:
-    """The payload bytes of a record's present maps (see the module docstring)."""
+def _digest(data: bytes | memoryview) -> bytes:
+    return hashlib.blake2b(data, digest_size=TRAILER_BYTES).digest()
+
+
+def encode_payload(buf: CRTBuffer, level: int = 1, record: dict[str, Any] | None = None) -> bytes:
+    """The payload bytes of a record's present maps (see the module docstring).
+
+    Args:
+        buf: the record.
+        level: zlib level.
+        record: what the header's ``"record"`` entry holds besides the meta and camera (the
+            store adds ``id`` and ``scene``); the meta and camera are always written.
+    """
     entries = []
     parts = []
     offset = 0
@@ -193,26 +217,88 @@ def encode_payload(buf: CRTBuffer, level: int = 1) -> bytes:
         entries.append([name, dtype, list(a.shape), offset, len(data), "shuffle-zlib"])
         parts.append(data)
         offset += len(data)
-    header = json.dumps({"buffers": entries}).encode()
-    return b"".join(
+    rec = {**(record or {}), "meta": buf.meta.to_dict(), "camera": buf.camera.to_dict()}
+    header = json.dumps({"buffers": entries, "record": rec}).encode()
+    body = b"".join(
         [PAYLOAD_MAGIC, struct.pack("<II", PAYLOAD_VERSION, len(header)), header, *parts]
     )
+    return body + _digest(body)
 
 
-def decode_payload(data: bytes, where: str = "payload") -> dict[str, np.ndarray]:
-    """Inverse of :func:`encode_payload`: the maps by name, float32 (H, W, C).
+def payload_header(data: bytes, where: str = "payload", verify: bool = True) -> dict[str, Any]:
+    """The parsed header of a payload (``{"version", "buffers", "record"?}``).
+
+    Args:
+        data: the payload file's bytes.
+        where: names the payload in error messages.
+        verify: check a version-2 payload's trailer digest (truncation, overwritten bytes).
 
     Raises:
-        ValueError: naming ``where`` if the bytes are not a valid payload.
+        ValueError: naming ``where`` and the problem (bad magic, unsupported version,
+            truncated, digest mismatch, unreadable header).
     """
     if len(data) < 12 or data[:4] != PAYLOAD_MAGIC:
         raise ValueError(f"{where}: not an icbtool payload (bad magic)")
     version, hlen = struct.unpack("<II", data[4:12])
-    if version != PAYLOAD_VERSION:
-        raise ValueError(f"{where}: payload format {version} is not supported (this reads 1)")
+    if version not in PAYLOAD_VERSIONS:
+        raise ValueError(
+            f"{where}: payload format {version} is not supported (this reads {PAYLOAD_VERSIONS})"
+        )
+    end = len(data)
+    if version >= 2:
+        end -= TRAILER_BYTES
+        if end < 12 + hlen:
+            raise ValueError(f"{where}: damaged payload: truncated ({len(data)} bytes)")
+        if verify and _digest(memoryview(data)[:end]) != data[end:]:
+            raise ValueError(
+                f"{where}: damaged payload: digest mismatch (truncated or overwritten)"
+            )
     try:
         header = json.loads(data[12 : 12 + hlen])
-        body = memoryview(data)[12 + hlen :]
+        if not isinstance(header, dict) or not isinstance(header.get("buffers"), list):
+            raise ValueError("header has no buffer list")
+    except (ValueError, UnicodeDecodeError) as e:
+        raise ValueError(f"{where}: damaged payload: unreadable header ({e})") from e
+    header["version"] = version
+    header["_body"] = (12 + hlen, end)
+    return header
+
+
+def record_from_header(header: dict[str, Any], where: str = "payload") -> tuple[Camera, RecordMeta]:
+    """The camera and metadata a version-2 payload header describes.
+
+    Raises:
+        ValueError: the payload is version 1 (no record in it) or its record entry is invalid.
+    """
+    rec = header.get("record")
+    if rec is None:
+        raise ValueError(
+            f"{where}: format-{header.get('version')} payload carries no record metadata"
+        )
+    try:
+        return Camera.from_dict(rec["camera"]), RecordMeta.from_dict(rec["meta"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{where}: damaged payload: invalid record entry ({e})") from e
+
+
+def decode_payload(
+    data: bytes, where: str = "payload", verify: bool = True
+) -> dict[str, np.ndarray]:
+    """Inverse of :func:`encode_payload`: the maps by name, float32 (H, W, C).
+
+    Args:
+        data: the payload file's bytes.
+        where: names the payload in error messages.
+        verify: check a version-2 payload's trailer digest (the store skips it when the index's
+            checksum of the whole file already matched).
+
+    Raises:
+        ValueError: naming ``where`` if the bytes are not a valid payload.
+    """
+    header = payload_header(data, where, verify)
+    start, end = header["_body"]
+    try:
+        body = memoryview(data)[start:end]
         out: dict[str, np.ndarray] = {}
         for name, dtype, shape, offset, nbytes, codec in header["buffers"]:
             if name not in BUFFER_CHANNELS or codec != "shuffle-zlib":

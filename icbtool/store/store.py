@@ -13,6 +13,24 @@ can therefore leave an *orphan payload* (a file no row references), never a row 
 Orphans are removed when a writer opens the store and by ``check(repair=True)``. Deletion (eviction)
 goes the other way round: rows first (committed), then files.
 
+Damage and recovery (format 2): every payload is self-describing (record id, metadata, camera,
+scene octree geometry in its header) and carries its own BLAKE2b digest (see
+:mod:`icbtool.store.record`), so the index is a cache of the payloads:
+
+* a damaged index database (truncated, overwritten, deleted) makes :func:`open` raise
+  :class:`StoreIndexError`, which says to run ``icbtool store check DIR --rebuild``;
+  :func:`rebuild` builds a new index from the payloads in a temporary file and swaps it in with
+  ``os.replace``. The old database is kept aside as ``icbstore.sqlite.damaged-<time>`` and damaged
+  payloads are moved to ``DIR/quarantine/<time>/``: nothing is deleted, no intact record is lost
+  (hit counts are taken from the old database where it can still be read);
+* a damaged record (payload missing, truncated or failing its checksum) met by a reader is a miss:
+  :meth:`Store.get_intact` logs a WARNING naming the record and returns None, and the caller
+  re-renders and calls :meth:`Store.replace_damaged`; :meth:`Store.evict` removes damaged records
+  before any intact one. Nothing deletes a record whose payload verifies.
+
+A format-1 store (payloads without metadata) is migrated when a writer opens it: each intact
+payload is rewritten in format 2 (new file, then one committed transaction, then the old files go).
+
 Concurrency: one writer (an exclusive ``flock`` on ``.writer.lock``; a second writer waits up to
 ``lock_timeout_s`` then gets :class:`StoreLockedError`) and any number of readers
 (``StoreConfig(readonly=True)``). A reader's in-memory octree follows the writer's commits: every
@@ -40,6 +58,7 @@ import contextlib
 import fcntl
 import hashlib
 import json
+import logging
 import math
 import os
 import sqlite3
@@ -55,14 +74,24 @@ import numpy as np
 
 from icbtool.camera import Camera
 from icbtool.store.octree import OctreeGeometry, SceneOctree, morton
-from icbtool.store.record import CRTBuffer, RecordMeta, decode_payload, encode_payload
+from icbtool.store.record import (
+    CRTBuffer,
+    RecordMeta,
+    decode_payload,
+    encode_payload,
+    payload_header,
+    record_from_header,
+)
 
-FORMAT_VERSION = 1
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = 2
 STORE_KIND = "icbtool-crt-store"
 DB_NAME = "icbstore.sqlite"
 LOCK_NAME = ".writer.lock"
 PAYLOAD_DIR = "payloads"
 PAYLOAD_SUFFIX = ".icbp"
+QUARANTINE_DIR = "quarantine"
 
 
 # ------------------------------------------------------------------------------------ errors
@@ -72,6 +101,10 @@ class StoreError(Exception):
 
 class StoreFormatError(StoreError, ValueError):
     """The directory or database is not an icbtool store, is damaged, or has an unknown version."""
+
+
+class StoreIndexError(StoreFormatError):
+    """The store's index database is missing or damaged; :func:`rebuild` recovers it."""
 
 
 class StoreLockedError(StoreError, RuntimeError):
@@ -272,6 +305,39 @@ class CheckReport:
         return not self.damaged and self.db_integrity == "ok"
 
 
+@dataclass(frozen=True)
+class RebuildReport:
+    """What :func:`rebuild` did.
+
+    Attributes:
+        path: the store directory.
+        recovered: ids of the records in the new index (their payloads verified), ascending.
+        damaged: payloads that failed verification (moved to ``quarantined``) and records the old
+            index listed whose payload file is missing; ``record_id`` is None when neither the
+            payload nor the old index could say which record it was.
+        quarantined: where the damaged payload files were moved (nothing is deleted).
+        orphans: files under ``payloads/`` that are not payloads (half-written ``tmp/`` files,
+            other names); left in place (a writer's open removes them, as always).
+        old_index: where the previous database was kept, or None if there was none.
+        hits_restored: records whose hit counts could be read from the old database.
+        renumbered: {old id: new id} for payloads that claimed an id already taken.
+    """
+
+    path: str
+    recovered: list[int]
+    damaged: list[Damage]
+    quarantined: list[str]
+    orphans: list[str]
+    old_index: str | None
+    hits_restored: int
+    renumbered: dict[int, int]
+
+    @property
+    def ok(self) -> bool:
+        """True when every payload was recovered."""
+        return not self.damaged
+
+
 # ------------------------------------------------------------------------------------ helpers
 _SCHEMA = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -306,6 +372,117 @@ _INSERT_COLS = (
     "scene_bounds, hits, last_hit"
 )
 _ROW_COLS = "id, px, py, pz, dx, dy, dz, height, width, fx, fy, cx, cy, scene_hash, light_hash"
+
+
+def _create_schema(conn: sqlite3.Connection) -> None:
+    """Create the tables and the meta rows of an empty store database (one transaction)."""
+    conn.execute("BEGIN")
+    for stmt in _SCHEMA.strip().split(";"):
+        if stmt.strip():
+            conn.execute(stmt)
+    conn.executemany(
+        "INSERT INTO meta VALUES (?, ?)",
+        [
+            ("kind", STORE_KIND),
+            ("format_version", str(FORMAT_VERSION)),
+            ("created", str(time.time())),
+        ],
+    )
+    conn.execute("COMMIT")
+
+
+def _acquire_lock(root: Path, timeout_s: float) -> int:
+    """Take the store's writer lock (an exclusive flock); returns the open file descriptor."""
+    fd = os.open(root / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            break
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                try:
+                    holder = os.pread(fd, 64, 0).decode(errors="replace").strip()
+                except OSError:
+                    holder = "?"
+                os.close(fd)
+                raise StoreLockedError(
+                    f"store {root} is open for writing by another process (pid {holder}); "
+                    f"waited {timeout_s} s. Open it with StoreConfig(readonly=True) to read."
+                ) from None
+            time.sleep(0.05)
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, str(os.getpid()).encode(), 0)
+    return fd
+
+
+def _release_lock(fd: int) -> None:
+    with contextlib.suppress(OSError):
+        fcntl.flock(fd, fcntl.LOCK_UN)
+    os.close(fd)
+
+
+def _record_values(
+    meta: RecordMeta,
+    cam: Camera,
+    present: tuple[str, ...],
+    rel: str,
+    nbytes: int,
+    digest: str,
+    geom: OctreeGeometry,
+) -> tuple:
+    """The values of a records row, in ``_INSERT_COLS`` order without the trailing hits and
+    last_hit."""
+    row = _camera_row(cam)
+    leaf = SceneOctree(geom).cell_of(row[:3])
+    return (
+        meta.scene_name,
+        meta.scene_hash,
+        meta.light_hash,
+        camera_key(cam),
+        *map(float, row[:6]),
+        cam.height,
+        cam.width,
+        cam.fx,
+        cam.fy,
+        cam.cx,
+        cam.cy,
+        np.ascontiguousarray(cam.world_from_cam, np.float64).tobytes(),
+        morton(*leaf),
+        ",".join(present),
+        rel,
+        nbytes,
+        digest,
+        meta.spp,
+        float(meta.render_time_s),
+        float(meta.created),
+        json.dumps(meta.tags),
+        None if meta.scene_bounds is None else json.dumps(meta.scene_bounds),
+    )
+
+
+_INSERT_SQL = f"INSERT INTO records (id, {_INSERT_COLS}) VALUES ({', '.join(['?'] * 30)})"
+
+
+def _payload_problem(path: Path, nbytes: int, digest: str, deep: bool = True) -> str | None:
+    """What is wrong with a record's payload file, or None if it is intact.
+
+    ``deep``: read it and compare the checksum (else only its existence and size)."""
+    if not deep:
+        try:
+            size = path.stat().st_size
+        except FileNotFoundError:
+            return "payload file missing"
+        return None if size == nbytes else f"size {size} != recorded {nbytes}"
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return "payload file missing"
+    if len(data) != nbytes:
+        return f"size {len(data)} != recorded {nbytes}"
+    if _checksum(data) != digest:
+        return "checksum mismatch"
+    return None
 
 
 def camera_key(cam: Camera) -> str:
@@ -402,7 +579,9 @@ class Store:
         self._last_flush = time.monotonic()
         self._last_refresh = 0.0
         self._focus: np.ndarray | None = None
+        self._damaged: set[int] = set()
         self.orphans_removed_on_open = 0
+        self.migrated_from: int | None = None
         try:
             self._open()
         except BaseException:
@@ -417,14 +596,18 @@ class Store:
         db_exists = self._db_path.exists() and self._db_path.stat().st_size > 0
         if not db_exists:
             if root.exists():
-                leftovers = {p.name for p in root.iterdir()} - {
-                    LOCK_NAME,
-                    PAYLOAD_DIR,
-                    DB_NAME,
-                    DB_NAME + "-wal",
-                    DB_NAME + "-shm",
-                    DB_NAME + "-journal",
-                }
+                if _has_payloads(self._payload_root):
+                    what = "is empty" if self._db_path.exists() else "is missing"
+                    raise StoreIndexError(
+                        f"store {root}: its index database {DB_NAME} {what} but payloads/ holds "
+                        f"records; rebuild the index from them with "
+                        f"`icbtool store check {root} --rebuild` (icbtool.store.rebuild)"
+                    )
+                leftovers = {
+                    p.name
+                    for p in root.iterdir()
+                    if not p.name.startswith(DB_NAME) and p.name not in (LOCK_NAME, QUARANTINE_DIR)
+                } - {PAYLOAD_DIR}
                 if leftovers:
                     raise StoreFormatError(
                         f"{root} is not an icbtool store (no {DB_NAME}) and is not empty "
@@ -441,50 +624,107 @@ class Store:
             self._conn = sqlite3.connect(uri, uri=True, timeout=30.0, isolation_level=None)
         else:
             self._conn = sqlite3.connect(self._db_path, timeout=30.0, isolation_level=None)
-        if db_exists:
-            self._validate()
-            if not self.readonly:
-                self._conn.execute("PRAGMA journal_mode=WAL")
-        else:
-            self._create()
+        version = FORMAT_VERSION
+        try:
+            if db_exists:
+                version = self._validate()
+            else:
+                self._create()
+            self._load_index()
+        except sqlite3.DatabaseError as e:
+            raise StoreIndexError(
+                f"store {root}: its index database {self._db_path} is damaged ({e}); left "
+                f"untouched. Rebuild it from the payloads with "
+                f"`icbtool store check {root} --rebuild` (icbtool.store.rebuild)"
+            ) from e
+        if db_exists and not self.readonly:
+            self._conn.execute("PRAGMA journal_mode=WAL")
         # FULL: a commit is on disk when put returns; NORMAL (fsync=False) in WAL mode still
         # survives a process crash, only not a power loss.
         self._conn.execute(f"PRAGMA synchronous={'FULL' if self.config.fsync else 'NORMAL'}")
-        self._load_index()
         if not self.readonly:
+            if version < FORMAT_VERSION:
+                self._migrate(version)
             self.orphans_removed_on_open = len(self._remove_orphans(self._find_orphans()))
 
     def _acquire_lock(self) -> None:
-        fd = os.open(self.root / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
-        deadline = time.monotonic() + self.config.lock_timeout_s
-        while True:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if time.monotonic() >= deadline:
-                    try:
-                        holder = os.pread(fd, 64, 0).decode(errors="replace").strip()
-                    except OSError:
-                        holder = "?"
-                    os.close(fd)
-                    raise StoreLockedError(
-                        f"store {self.root} is open for writing by another process (pid {holder}); "
-                        f"waited {self.config.lock_timeout_s} s. Open it with "
-                        f"StoreConfig(readonly=True) to read."
-                    ) from None
-                time.sleep(0.05)
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, str(os.getpid()).encode(), 0)
-        self._lock_fd = fd
+        self._lock_fd = _acquire_lock(self.root, self.config.lock_timeout_s)
 
-    def _validate(self) -> None:
+    def _migrate(self, version: int) -> None:
+        """Rewrite a format-``version`` store's intact payloads in the current format.
+
+        New payload files are written first, then every row is updated in one transaction (with
+        the format version), then the old files are removed: a crash leaves either store intact
+        plus orphan files. Damaged payloads are left as they are (``check`` reports them).
+        """
+        conn = self._db()
+        updates, old_files, dirs = [], [], set()
+        scenes: dict[str, dict[str, Any]] = {}
+        n_damaged = 0
+        for info in list(self):
+            try:
+                buf = self.get(info.record_id)
+            except PayloadError as e:
+                log.warning("store %s: migration leaves %s", self.root, e)
+                n_damaged += 1
+                continue
+            sh = buf.meta.scene_hash
+            if sh not in scenes:
+                scenes[sh] = self._scene_entry(sh)
+            record = {"id": info.record_id, "scene": scenes[sh]}
+            rel, nbytes, digest, new_dirs = self._write_payload(buf, record)
+            dirs |= new_dirs
+            updates.append((rel, nbytes, digest, info.record_id))
+            old_files.append(info.payload)
+        if self.config.fsync:
+            for d in sorted(dirs, key=lambda p: len(p.parts)):
+                _fsync_dir(d)
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            conn.executemany(
+                "UPDATE records SET payload=?, nbytes=?, checksum=? WHERE id=?", updates
+            )
+            conn.execute(
+                "UPDATE meta SET value=? WHERE key='format_version'", (str(FORMAT_VERSION),)
+            )
+            conn.execute("COMMIT")
+        except BaseException:
+            conn.execute("ROLLBACK")
+            raise
+        for f in old_files:
+            with contextlib.suppress(FileNotFoundError):
+                f.unlink()
+        self._bytes = conn.execute("SELECT COALESCE(SUM(nbytes), 0) FROM records").fetchone()[0]
+        self.migrated_from = version
+        log.info(
+            "store %s: migrated from format %d to %d (%d records rewritten, %d damaged left)",
+            self.root,
+            version,
+            FORMAT_VERSION,
+            len(updates),
+            n_damaged,
+        )
+
+    @classmethod
+    def rebuild(cls, root: str | os.PathLike, config: StoreConfig | None = None) -> RebuildReport:
+        """Rebuild a store's index database from its payloads (see :func:`rebuild`)."""
+        return rebuild(root, config)
+
+    def _validate(self) -> int:
+        """Check the database is an icbtool store of a known version; returns the version."""
         assert self._conn is not None
         try:
             rows = dict(self._conn.execute("SELECT key, value FROM meta").fetchall())
         except sqlite3.DatabaseError as e:
-            raise StoreFormatError(
-                f"{self._db_path} is not an icbtool store database ({e}); left untouched"
+            hint = (
+                f"; if it is an icbtool store, rebuild its index from the payloads with "
+                f"`icbtool store check {self.root} --rebuild`"
+                if _has_payloads(self._payload_root)
+                else ""
+            )
+            raise StoreIndexError(
+                f"{self._db_path} is not an icbtool store database or is damaged ({e}); left "
+                f"untouched{hint}"
             ) from e
         if rows.get("kind") != STORE_KIND:
             raise StoreFormatError(
@@ -501,23 +741,15 @@ class Store:
                 f"supported (this icbtool reads versions 1..{FORMAT_VERSION}; a newer icbtool "
                 f"wrote it?)"
             )
+        problems = [r[0] for r in self._conn.execute("PRAGMA quick_check(5)").fetchall()]
+        if problems != ["ok"]:
+            raise sqlite3.DatabaseError("; ".join(problems))
+        return version
 
     def _create(self) -> None:
         assert self._conn is not None
         self._conn.execute("PRAGMA journal_mode=WAL")
-        self._conn.execute("BEGIN")
-        for stmt in _SCHEMA.strip().split(";"):
-            if stmt.strip():
-                self._conn.execute(stmt)
-        self._conn.executemany(
-            "INSERT INTO meta VALUES (?, ?)",
-            [
-                ("kind", STORE_KIND),
-                ("format_version", str(FORMAT_VERSION)),
-                ("created", str(time.time())),
-            ],
-        )
-        self._conn.execute("COMMIT")
+        _create_schema(self._conn)
         (self._payload_root / "tmp").mkdir(parents=True, exist_ok=True)
         if self.config.fsync:
             _fsync_dir(self._payload_root)
@@ -589,9 +821,7 @@ class Store:
             self._conn.close()
             self._conn = None
         if self._lock_fd is not None:
-            with contextlib.suppress(OSError):
-                fcntl.flock(self._lock_fd, fcntl.LOCK_UN)
-            os.close(self._lock_fd)
+            _release_lock(self._lock_fd)
             self._lock_fd = None
 
     def __enter__(self) -> Store:
@@ -720,68 +950,33 @@ class Store:
                     bounds=self._bounds_for(b),
                     name=b.meta.scene_name,
                 )
-        tmp_dir = self._payload_root / "tmp"
-        tmp_dir.mkdir(parents=True, exist_ok=True)
+        # ids are assigned here (the writer lock makes this process the only one inserting) so
+        # that each payload can name its own record: the index can be rebuilt from them.
+        first_id = self._next_id()
+        scenes = {sh: self._scene_entry(sh) for sh in {b.meta.scene_hash for b in bufs}}
         staged = []
         dirs: set[Path] = set()
-        for buf in bufs:
-            data = encode_payload(buf, cfg.compression_level)
-            name = uuid.uuid4().hex
-            rel = f"{name[:2]}/{name}{PAYLOAD_SUFFIX}"
-            final = self._payload_root / rel
-            tmp = tmp_dir / f"{name}.tmp"
-            with builtins.open(tmp, "wb") as f:
-                f.write(data)
-                if cfg.fsync:
-                    f.flush()
-                    os.fsync(f.fileno())
-            if not final.parent.exists():
-                final.parent.mkdir(parents=True, exist_ok=True)
-                dirs.add(self._payload_root)
-            os.replace(tmp, final)
-            dirs.add(final.parent)
-            staged.append((buf, rel, len(data), _checksum(data)))
+        for k, buf in enumerate(bufs):
+            record = {"id": first_id + k, "scene": scenes[buf.meta.scene_hash]}
+            rel, nbytes, digest, new_dirs = self._write_payload(buf, record)
+            dirs |= new_dirs
+            staged.append((buf, rel, nbytes, digest))
         if cfg.fsync:
             for d in sorted(dirs, key=lambda p: len(p.parts)):
                 _fsync_dir(d)
         rows = []
-        for buf, rel, nbytes, digest in staged:
+        for k, (buf, rel, nbytes, digest) in enumerate(staged):
             meta, cam = buf.meta, buf.camera
-            row = _camera_row(cam)
-            leaf = SceneOctree(self._geoms[meta.scene_hash]).cell_of(row[:3])
-            rows.append(
-                (
-                    meta.scene_name,
-                    meta.scene_hash,
-                    meta.light_hash,
-                    camera_key(cam),
-                    *map(float, row[:6]),
-                    cam.height,
-                    cam.width,
-                    cam.fx,
-                    cam.fy,
-                    cam.cx,
-                    cam.cy,
-                    np.ascontiguousarray(cam.world_from_cam, np.float64).tobytes(),
-                    morton(*leaf),
-                    ",".join(buf.present),
-                    rel,
-                    nbytes,
-                    digest,
-                    meta.spp,
-                    float(meta.render_time_s),
-                    float(meta.created),
-                    json.dumps(meta.tags),
-                    None if meta.scene_bounds is None else json.dumps(meta.scene_bounds),
-                    float(meta.created),
-                )
+            values = _record_values(
+                meta, cam, buf.present, rel, nbytes, digest, self._geoms[meta.scene_hash]
             )
-        sql = f"INSERT INTO records ({_INSERT_COLS}) VALUES ({', '.join(['?'] * 27)}, 0, ?)"
+            rows.append((first_id + k, *values, 0, float(meta.created)))
         ids = []
         conn.execute("BEGIN IMMEDIATE")
         try:
             for r in rows:
-                ids.append(int(conn.execute(sql, r).lastrowid))
+                conn.execute(_INSERT_SQL, r)
+                ids.append(r[0])
             conn.execute("COMMIT")
         except BaseException:
             conn.execute("ROLLBACK")
@@ -802,6 +997,59 @@ class Store:
         elif time.monotonic() - self._last_flush > 5.0:
             self._flush_hits()
         return ids
+
+    def _next_id(self) -> int:
+        """The id the next inserted record gets (ids are never reused, as AUTOINCREMENT)."""
+        conn = self._db()
+        (seq,) = conn.execute(
+            "SELECT COALESCE(MAX(seq), 0) FROM sqlite_sequence WHERE name='records'"
+        ).fetchone()
+        (top,) = conn.execute("SELECT COALESCE(MAX(id), 0) FROM records").fetchone()
+        return max(int(seq), int(top), self._max_id) + 1
+
+    def _scene_entry(self, scene_hash: str) -> dict[str, Any]:
+        """A registered scene's row, as written into its records' payload headers."""
+        name, bounds, root_min, size, depth = (
+            self._db()
+            .execute(
+                "SELECT scene_name, bounds, root_min, root_size, depth FROM scenes "
+                "WHERE scene_hash=?",
+                (scene_hash,),
+            )
+            .fetchone()
+        )
+        return {
+            "name": name,
+            "bounds": json.loads(bounds),
+            "root_min": json.loads(root_min),
+            "root_size": size,
+            "depth": depth,
+        }
+
+    def _write_payload(
+        self, buf: CRTBuffer, record: dict[str, Any]
+    ) -> tuple[str, int, str, set[Path]]:
+        """Write a payload durably under a new name; (relative path, size, checksum, new dirs)."""
+        cfg = self.config
+        tmp_dir = self._payload_root / "tmp"
+        tmp_dir.mkdir(parents=True, exist_ok=True)
+        dirs: set[Path] = set()
+        data = encode_payload(buf, cfg.compression_level, record)
+        name = uuid.uuid4().hex
+        rel = f"{name[:2]}/{name}{PAYLOAD_SUFFIX}"
+        final = self._payload_root / rel
+        tmp = tmp_dir / f"{name}.tmp"
+        with builtins.open(tmp, "wb") as f:
+            f.write(data)
+            if cfg.fsync:
+                f.flush()
+                os.fsync(f.fileno())
+        if not final.parent.exists():
+            final.parent.mkdir(parents=True, exist_ok=True)
+            dirs.add(self._payload_root)
+        os.replace(tmp, final)
+        dirs.add(final.parent)
+        return rel, len(data), _checksum(data), dirs
 
     def _over_capacity(self) -> bool:
         c = self.config
@@ -841,6 +1089,7 @@ class Store:
                 if tree.remove(rid):
                     break
             self._ids.discard(rid)
+            self._damaged.discard(rid)
             self._pending_hits.pop(rid, None)
             self._count -= 1
             self._bytes -= nbytes
@@ -852,15 +1101,22 @@ class Store:
         max_bytes: int | None = None,
         policy: str | None = None,
         protect: tuple[int, ...] = (),
+        deep: bool = False,
     ) -> list[int]:
         """Evict records until within capacity; returns the evicted ids.
+
+        Damaged records go first (:meth:`evict_damaged`, whatever the capacity), then intact ones
+        by ``policy`` until within the targets.
 
         Args:
             max_records, max_bytes: targets (default: the config's capacity times ``evict_to``).
             policy: 'lru' | 'least_hit' | 'farthest' (default: the config's).
             protect: ids never evicted by this call.
+            deep: find damaged records by checksum (reads every payload) rather than by file
+                existence and size (a stat per record, what an automatic eviction does).
         """
         conn = self._writable()
+        damaged = self.evict_damaged(deep=deep, protect=protect)
         cfg = self.config
         if max_records is None and max_bytes is None:
             if cfg.max_records is not None:
@@ -875,7 +1131,7 @@ class Store:
         n_excess = 0 if max_records is None else max(0, self._count - max_records)
         b_excess = 0 if max_bytes is None else max(0, self._bytes - max_bytes)
         if n_excess == 0 and b_excess == 0:
-            return []
+            return damaged
         self._flush_hits()
         rows = conn.execute("SELECT id, last_hit, hits, px, py, pz, nbytes FROM records").fetchall()
         a = np.array([r[:6] for r in rows], dtype=np.float64).reshape(-1, 6)
@@ -900,7 +1156,74 @@ class Store:
             freed_n += 1
             freed_b += int(nbytes[k])
         self.delete(victims)
-        return victims
+        return damaged + victims
+
+    def damaged_ids(self, deep: bool = True) -> dict[int, str]:
+        """The damaged records: {id: problem}.
+
+        Args:
+            deep: read every payload and compare its checksum; else only check that each payload
+                file exists with its recorded size (one stat per record). Records whose payload
+                failed a :meth:`get` in this process are re-verified with a checksum either way.
+        """
+        rows = self._db().execute("SELECT id, payload, nbytes, checksum FROM records").fetchall()
+        out: dict[int, str] = {}
+        for rid, rel, nbytes, digest in rows:
+            problem = _payload_problem(
+                self._payload_root / rel, nbytes, digest, deep or rid in self._damaged
+            )
+            if problem is not None:
+                out[rid] = problem
+        return out
+
+    def evict_damaged(self, deep: bool = True, protect: tuple[int, ...] = ()) -> list[int]:
+        """Delete the damaged records (see :meth:`damaged_ids`); returns their ids.
+
+        A record whose payload verifies is never deleted here. Each one is logged (WARNING).
+        """
+        self._writable()
+        bad = {k: v for k, v in self.damaged_ids(deep).items() if k not in set(protect)}
+        for rid, problem in sorted(bad.items()):
+            log.warning("store %s: evicting damaged record %d (%s)", self.root, rid, problem)
+        self.delete(sorted(bad))
+        return sorted(bad)
+
+    def verify(self, record_id: int) -> str | None:
+        """What is wrong with a record's payload (missing, size, checksum), or None if intact."""
+        info = self.info(record_id)
+        return _payload_problem(info.payload, info.nbytes, info.checksum)
+
+    def get_intact(self, record_id: int) -> CRTBuffer | None:
+        """:meth:`get`, but a damaged record is a miss: logged (WARNING) and None returned.
+
+        Raises:
+            RecordNotFoundError: no such id (that is a caller's mistake, not damage).
+        """
+        try:
+            return self.get(record_id)
+        except PayloadError as e:
+            log.warning("store %s: %s; treating it as a miss", self.root, e)
+            return None
+
+    def replace_damaged(self, record_id: int, buf: CRTBuffer) -> int:
+        """Store ``buf`` (a re-render of a damaged record) and delete the damaged record.
+
+        The new record is committed first; the old one is deleted only if its payload still
+        fails verification (an intact record is never deleted). Returns the new record's id.
+        """
+        new_id = self.put(buf)
+        if record_id in self._ids and record_id != new_id:
+            problem = self.verify(record_id)
+            if problem is not None:
+                log.warning(
+                    "store %s: record %d (%s) replaced by record %d",
+                    self.root,
+                    record_id,
+                    problem,
+                    new_id,
+                )
+                self.delete([record_id])
+        return new_id
 
     # -------------------------------------------------------------- reading
     def _row(self, record_id: int) -> tuple:
@@ -983,10 +1306,12 @@ class Store:
         try:
             data = path.read_bytes()
         except FileNotFoundError:
+            self._damaged.add(record_id)
             raise PayloadError(
                 f"record {record_id}: payload file {path} is missing (run `icbtool store check`)"
             ) from None
         if len(data) != info.nbytes or _checksum(data) != info.checksum:
+            self._damaged.add(record_id)
             raise PayloadError(
                 f"record {record_id}: payload file {path} is damaged ("
                 + (
@@ -996,7 +1321,11 @@ class Store:
                 )
                 + "; run `icbtool store check`)"
             )
-        maps = decode_payload(data, f"record {record_id} ({path})")
+        try:
+            maps = decode_payload(data, f"record {record_id} ({path})", verify=False)
+        except ValueError as e:
+            self._damaged.add(record_id)
+            raise PayloadError(f"record {record_id}: payload file {path} is damaged ({e})") from e
         return CRTBuffer(camera=info.camera, meta=info.meta, **maps)
 
     def __len__(self) -> int:
@@ -1035,6 +1364,19 @@ class Store:
             .fetchone()
         )
         return None if row is None else int(row[0])
+
+    def find_exact_all(self, camera: Camera, scene_hash: str, light_hash: str) -> list[int]:
+        """The ids of every record with exactly this camera (bit for bit) and hashes, ascending."""
+        rows = (
+            self._db()
+            .execute(
+                "SELECT id FROM records WHERE scene_hash=? AND light_hash=? AND cam_key=? "
+                "ORDER BY id",
+                (scene_hash, light_hash, camera_key(camera)),
+            )
+            .fetchall()
+        )
+        return [int(r[0]) for r in rows]
 
     def lookup(
         self,
@@ -1189,20 +1531,14 @@ class Store:
         ).fetchall()
         for rid, rel, nbytes, digest in rows:
             path = self._payload_root / rel
-            try:
-                data = path.read_bytes()
-            except FileNotFoundError:
-                damaged.append(Damage(rid, str(path), "payload file missing"))
-                continue
-            if len(data) != nbytes:
-                damaged.append(Damage(rid, str(path), f"size {len(data)} != recorded {nbytes}"))
-            elif _checksum(data) != digest:
-                damaged.append(Damage(rid, str(path), "checksum mismatch"))
-            else:
+            problem = _payload_problem(path, nbytes, digest)
+            if problem is None:
                 try:
-                    decode_payload(data, str(path))
+                    decode_payload(path.read_bytes(), str(path))
                 except ValueError as e:
-                    damaged.append(Damage(rid, str(path), f"undecodable: {e}"))
+                    problem = f"undecodable: {e}"
+            if problem is not None:
+                damaged.append(Damage(rid, str(path), problem))
         orphans = [] if self.readonly else self._find_orphans()
         removed = len(self._remove_orphans(orphans)) if repair else 0
         dropped: list[int] = []
@@ -1250,12 +1586,243 @@ class Store:
         }
 
 
+def _has_payloads(payload_root: Path) -> bool:
+    """Whether a store's payload folder holds at least one payload file."""
+    if not payload_root.is_dir():
+        return False
+    return any(
+        p.is_file() and p.parent.name != "tmp" for p in payload_root.rglob("*" + PAYLOAD_SUFFIX)
+    )
+
+
+def _salvage_old_index(db_path: Path) -> dict[str, tuple[int, int, float]]:
+    """{payload path: (id, hits, last_hit)} of whatever rows a damaged database still yields."""
+    out: dict[str, tuple[int, int, float]] = {}
+    if not db_path.exists():
+        return out
+    try:
+        con = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True, timeout=1.0)
+    except sqlite3.Error:
+        return out
+    try:
+        for rid, rel, hits, last_hit in con.execute(
+            "SELECT id, payload, hits, last_hit FROM records"
+        ):
+            if isinstance(rel, str) and isinstance(rid, int):
+                out[rel] = (rid, int(hits or 0), float(last_hit or 0.0))
+    except (sqlite3.Error, TypeError, ValueError):
+        pass  # a damaged database gives what it can
+    finally:
+        con.close()
+    return out
+
+
+def _unused_name(path: Path) -> Path:
+    k, out = 1, path
+    while out.exists() or Path(f"{out}-wal").exists():
+        k += 1
+        out = path.with_name(f"{path.name}.{k}")
+    return out
+
+
+def rebuild(root: str | os.PathLike, config: StoreConfig | None = None) -> RebuildReport:
+    """Rebuild the index database of the store at ``root`` from its self-describing payloads.
+
+    Every payload file is read and verified (its own digest, its header, every buffer decodes).
+    The intact ones become the records of a new database, built in a temporary file and swapped
+    in with ``os.replace`` (their ids, metadata, cameras and scene octrees come from the payload
+    headers; hit counts from the old database where it can still be read). The old database
+    (and its -wal/-shm files) is kept as ``icbstore.sqlite.damaged-<YYYYmmdd-HHMMSS>``; damaged
+    payloads are moved to ``quarantine/<YYYYmmdd-HHMMSS>/``. Nothing is deleted.
+
+    Takes the writer lock (waits ``config.lock_timeout_s``, as :func:`open`).
+
+    Args:
+        root: the store directory.
+        config: only ``lock_timeout_s`` and ``fsync`` are used.
+
+    Returns:
+        A :class:`RebuildReport`.
+
+    Raises:
+        FileNotFoundError: ``root`` does not exist.
+        StoreFormatError: ``root`` holds neither a store database nor payloads.
+        StoreLockedError: another process has the store open for writing.
+    """
+    cfg = config or StoreConfig()
+    root = Path(root)
+    db_path, payload_root = root / DB_NAME, root / PAYLOAD_DIR
+    if not root.is_dir():
+        raise FileNotFoundError(f"no icbtool store at {root} (not a directory)")
+    if not db_path.exists() and not payload_root.is_dir():
+        raise StoreFormatError(
+            f"{root} is not an icbtool store (neither {DB_NAME} nor {PAYLOAD_DIR}/); "
+            "nothing to rebuild"
+        )
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    fd = _acquire_lock(root, cfg.lock_timeout_s)
+    try:
+        old = _salvage_old_index(db_path)
+        damaged: list[Damage] = []
+        bad_files: list[tuple[Path, str]] = []
+        orphans: list[str] = []
+        found: list[tuple[int, str, Any, Any, dict, tuple, int, str]] = []
+        seen_rel: set[str] = set()
+        files = (
+            sorted(p for p in payload_root.rglob("*") if p.is_file())
+            if (payload_root.is_dir())
+            else []
+        )
+        for p in files:
+            rel = p.relative_to(payload_root).as_posix()
+            if rel.startswith("tmp/") or not p.name.endswith(PAYLOAD_SUFFIX):
+                orphans.append(str(p))
+                continue
+            seen_rel.add(rel)
+            try:
+                data = p.read_bytes()
+                header = payload_header(data, str(p))
+                cam, meta = record_from_header(header, str(p))
+                decode_payload(data, str(p), verify=False)
+                rec = header["record"]
+                rid, scene = int(rec["id"]), rec["scene"]
+                geom = OctreeGeometry(
+                    tuple(map(float, scene["root_min"])),
+                    float(scene["root_size"]),
+                    int(scene["depth"]),
+                )
+                present = tuple(e[0] for e in header["buffers"])
+            except (OSError, ValueError, KeyError, TypeError) as e:
+                problem = str(e)
+                if problem.startswith(str(p) + ": "):
+                    problem = problem[len(str(p)) + 2 :]
+                damaged.append(Damage(old.get(rel, (None,))[0], str(p), problem))
+                bad_files.append((p, rel))
+                continue
+            found.append((rid, rel, cam, meta, scene, present, len(data), _checksum(data), geom))
+        for rel, (rid, _h, _t) in sorted(old.items(), key=lambda kv: kv[1][0]):
+            if rel not in seen_rel:
+                damaged.append(Damage(rid, str(payload_root / rel), "payload file missing"))
+
+        # the new database, in a temporary file
+        tmp = root / f"{DB_NAME}.rebuild-tmp"
+        for suffix in ("", "-wal", "-shm", "-journal"):
+            with contextlib.suppress(FileNotFoundError):
+                Path(f"{tmp}{suffix}").unlink()
+        conn = sqlite3.connect(tmp, isolation_level=None)
+        recovered: list[int] = []
+        renumbered: dict[int, int] = {}
+        hits_restored = 0
+        try:
+            _create_schema(conn)
+            conn.execute("BEGIN")
+            taken: set[int] = set()
+            next_free = max([f[0] for f in found] + [r[0] for r in old.values()] + [0]) + 1
+            scene_geoms: dict[str, OctreeGeometry] = {}  # the first (lowest id) payload's wins
+            for rid, rel, cam, meta, scene, present, nbytes, digest, geom in sorted(
+                found, key=lambda f: (f[0], f[3].created, f[1])
+            ):
+                if meta.scene_hash not in scene_geoms:
+                    scene_geoms[meta.scene_hash] = geom
+                    conn.execute(
+                        "INSERT INTO scenes VALUES (?, ?, ?, ?, ?, ?)",
+                        (
+                            meta.scene_hash,
+                            str(scene.get("name", meta.scene_name)),
+                            json.dumps(scene.get("bounds")),
+                            json.dumps(list(geom.root_min)),
+                            geom.root_size,
+                            geom.depth,
+                        ),
+                    )
+                geom = scene_geoms[meta.scene_hash]
+                if rid in taken or rid < 1:
+                    renumbered[rid] = next_free
+                    rid, next_free = next_free, next_free + 1
+                taken.add(rid)
+                hits, last_hit = 0, float(meta.created)
+                prev = old.get(rel)
+                if prev is not None and prev[0] == rid:
+                    hits, last_hit = prev[1], max(prev[2], last_hit)
+                    hits_restored += 1
+                values = _record_values(meta, cam, present, rel, nbytes, digest, geom)
+                conn.execute(_INSERT_SQL, (rid, *values, hits, last_hit))
+                recovered.append(rid)
+            # ids are never reused: continue after the largest id any index or payload knew
+            conn.execute(
+                "UPDATE sqlite_sequence SET seq=MAX(seq, ?) WHERE name='records'", (next_free - 1,)
+            )
+            conn.execute(
+                "INSERT INTO sqlite_sequence (name, seq) SELECT 'records', ? WHERE NOT EXISTS "
+                "(SELECT 1 FROM sqlite_sequence WHERE name='records')",
+                (next_free - 1,),
+            )
+            conn.execute("COMMIT")
+            conn.execute("PRAGMA journal_mode=WAL")
+        finally:
+            conn.close()
+        if cfg.fsync:
+            tfd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(tfd)
+            finally:
+                os.close(tfd)
+
+        # keep the old database aside (never deleted), then swap the new one in atomically
+        old_index: str | None = None
+        if db_path.exists():
+            aside = _unused_name(root / f"{DB_NAME}.damaged-{stamp}")
+            os.link(db_path, aside)
+            old_index = str(aside)
+        for suffix in ("-wal", "-shm", "-journal"):
+            side = Path(f"{db_path}{suffix}")
+            if side.exists():  # must not be applied to the new database
+                base = Path(old_index) if old_index else root / f"{DB_NAME}.damaged-{stamp}"
+                os.replace(side, Path(f"{base}{suffix}"))
+        os.replace(tmp, db_path)
+
+        # damaged payloads go to the quarantine (not payloads/, whose strays a writer removes)
+        quarantined: list[str] = []
+        if bad_files:
+            qdir = root / QUARANTINE_DIR / stamp
+            for p, rel in bad_files:
+                dest = qdir / rel
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(p, dest)
+                quarantined.append(str(dest))
+        if cfg.fsync:
+            _fsync_dir(root)
+    finally:
+        _release_lock(fd)
+    report = RebuildReport(
+        str(root),
+        sorted(recovered),
+        damaged,
+        quarantined,
+        orphans,
+        old_index,
+        hits_restored,
+        renumbered,
+    )
+    log.info(
+        "store %s: index rebuilt: %d records recovered, %d damaged, %d orphans; old index %s",
+        root,
+        len(recovered),
+        len(damaged),
+        len(orphans),
+        old_index,
+    )
+    return report
+
+
 def open(root: str | os.PathLike, config: StoreConfig | None = None) -> Store:  # noqa: A001
     """Open (or create) the store in directory ``root``; use as a context manager.
 
     Raises:
-        StoreFormatError: ``root`` is not a store (and not empty), its database is damaged or of
-            an unknown format version. Nothing is overwritten.
+        StoreFormatError: ``root`` is not a store (and not empty), or its database is of an
+            unknown format version. Nothing is overwritten.
+        StoreIndexError: its index database is damaged or missing while payloads are there
+            (the message says to run ``icbtool store check DIR --rebuild``, see :func:`rebuild`).
         StoreLockedError: another process has it open for writing (after ``lock_timeout_s``).
         FileNotFoundError: no store there and ``readonly`` or ``create=False``.
     """

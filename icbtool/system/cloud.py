@@ -6,8 +6,9 @@ For a :class:`~icbtool.system.messages.GIRequest` (ICB.md sections 3, 4 and 6):
    back; :func:`icbtool.prefetch.prefetch_camera`), its FOV rounded up to a step so that a stored
    reference covers the slightly different FOVs of the next requests;
 2. look that camera up in the octree cache (a similar camera whose FOV covers it is a hit);
+   a hit whose payload is damaged (missing, truncated, checksum) is a miss, logged as a WARNING;
 3. on a miss, render a CRT-buffer there (raster G-buffers + path-traced GI, optionally
-   denoised) and store it.
+   denoised) and store it (replacing the damaged record, if that was the miss).
 
 Every step is timed in the reply.
 """
@@ -112,6 +113,7 @@ class Cloud(GISource):
         self._rasterizer = rasterizer
         self._own_rasterizer = False
         self.renders = 0
+        self.damaged_replaced = 0
 
     # ------------------------------------------------------------------ the prefetch camera
     def reference_camera(self, req: GIRequest) -> Camera:
@@ -132,13 +134,19 @@ class Cloud(GISource):
         ref_cam = self.reference_camera(req)
         t0 = time.perf_counter()
         hit = self.store.lookup(ref_cam, scene=self.scene, intrinsics="covering")
+        # a damaged record (payload missing, truncated, checksum) is a miss: get_intact logs it
+        found = None if hit is None else self.store.get_intact(hit.record_id)
         lookup_ms = 1e3 * (time.perf_counter() - t0)
-        if hit is not None:
-            return GIReply(hit.record, True, {"lookup": lookup_ms, "render": 0.0}, req.seq)
+        if found is not None:
+            return GIReply(found, True, {"lookup": lookup_ms, "render": 0.0}, req.seq)
         t0 = time.perf_counter()
         ref = self.render(ref_cam, req.seq)
         render_ms = 1e3 * (time.perf_counter() - t0)
-        self.store.put(ref)
+        if hit is None:
+            self.store.put(ref)
+        else:  # the re-render replaces the damaged record
+            self.store.replace_damaged(hit.record_id, ref)
+            self.damaged_replaced += 1
         return GIReply(ref, False, {"lookup": lookup_ms, "render": render_ms}, req.seq)
 
     def render(self, camera: Camera, seq: int = 0) -> Any:
