@@ -12,9 +12,10 @@ next-event-estimated light as direct, exactly as for the quads of :class:`AreaLi
   hits them adds their emission: to ``direct`` when the face lies in an area light and the path
   left the first visible surface, to ``gi`` otherwise, MIS-weighted against the light sample);
 * one light per emissive triangle (``shape="triangle"``), except that two triangles of the same
-  emission sharing an edge whose union is exactly a parallelogram (a quad cut along its
+  material sharing an edge whose union is exactly a parallelogram (a quad cut along its
   diagonal, as exporters write an emissive rectangle) become one ``shape="parallelogram"`` light
-  (the same surface, the same light, half the raster's shadow maps);
+  (the same surface, the same light, half the raster's shadow maps); pairs are formed greedily
+  in face order, each triangle with its nearest (in face order) unpaired exact partner;
 * faces already lying in an area light of the scene are left alone (never counted twice);
 * above the budget (``max_triangles`` emissive triangles to promote) nothing is promoted: a
   large emissive mesh (a screen, a lamp with thousands of triangles) would cost the raster more
@@ -144,19 +145,18 @@ def _lights_for(scene: Scene, faces: np.ndarray) -> list[AreaLight]:
         used[i] = True
         m = scene.materials[int(mats[i])]
         name = f"emitter:{m.name}:{int(faces[i])}"
+        # every exact partner; the nearest in face order wins (exporters write a quad's two
+        # triangles one after the other; a neighbouring quad's triangle may fit too)
         pair = None
         for k in range(3):
             a, b, o = tri[i, k], tri[i, (k + 1) % 3], tri[i, (k + 2) % 3]
             for j, kj in edges.get((tuple(q[i, (k + 1) % 3]), tuple(q[i, k])), []):
-                if used[j] or mats[j] != mats[i]:
+                if used[j] or mats[j] != mats[i] or (pair is not None and j - i >= pair[0] - i):
                     continue
                 d = tri[j, (kj + 2) % 3]  # the neighbour's opposite vertex
                 tol = MERGE_REL_TOL * max(size[i], size[j])
                 if np.linalg.norm(o + d - a - b) <= tol:  # diagonals bisect: a parallelogram
                     pair = (j, a, d, o)
-                    break
-            if pair is not None:
-                break
         if pair is None:
             t = tri[i]
             lights.append(
