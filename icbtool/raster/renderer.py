@@ -56,6 +56,8 @@ _N_TARGETS = 4
 _TARGET_DEFINE = {_T_ALBEDO: "LOC_A", _T_NORMAL: "LOC_N", _T_POS: "LOC_P", _T_DL: "LOC_DL"}
 #: Face ids travel as floats in the visibility target: exact below 2^24.
 MAX_FACES = 1 << 24
+#: Uniform vectors of the resolve shader kept for everything but the lights' arrays.
+_UNIFORM_MARGIN = 64
 #: Faces per culling cluster (faces are sorted along a Morton curve, then cut into clusters).
 CLUSTER_FACES = 1024
 
@@ -221,6 +223,16 @@ def perspective_view(
     return _perspective(half_deg, near, far) @ view, float(texel)
 
 
+def area_polygons(lights: list[Any]) -> np.ndarray:
+    """(4 * N, 3) polygon vertices of area lights as the resolve shader takes them: four per
+    light, counter-clockwise from the emitting side; a triangle repeats its last vertex."""
+    out = []
+    for lt in lights:
+        v = lt.vertices
+        out.append(v if len(v) == 4 else np.concatenate([v, v[-1:]]))
+    return np.concatenate(out).astype(np.float64)
+
+
 _CUBE = [  # (forward, up) of the six point-light faces: +x -x +y -y +z -z
     ((1, 0, 0), (0, 1, 0)),
     ((-1, 0, 0), (0, 1, 0)),
@@ -292,6 +304,11 @@ class Rasterizer:
         self._counts = {
             k: len(scene.lights_of(k)) for k in ("directional", "point", "spot", "area")
         }
+        try:
+            self._check_light_limits()
+        except RasterError:
+            self.close()
+            raise
         self._upload()
         self.setup_ms = 1e3 * (time.perf_counter() - t0)
 
@@ -394,6 +411,39 @@ class Rasterizer:
         GL.glBindTexture(GL.GL_TEXTURE_BUFFER, tex)
         GL.glTexBuffer(GL.GL_TEXTURE_BUFFER, GL.GL_RGBA32I if integer else GL.GL_RGBA32F, buf)
         return tex, buf
+
+    def _check_light_limits(self) -> None:
+        """Raise :class:`RasterError` (naming the GL limit) for more lights than this GL holds:
+        shadow maps per texture array (``GL_MAX_ARRAY_TEXTURE_LAYERS``) and the resolve shader's
+        light uniforms (``GL_MAX_FRAGMENT_UNIFORM_VECTORS``)."""
+        GL = self._gl
+        c, k = self._counts, self.config.area_samples
+        max_layers = int(GL.glGetIntegerv(GL.GL_MAX_ARRAY_TEXTURE_LAYERS))
+        max_vectors = int(GL.glGetIntegerv(GL.GL_MAX_FRAGMENT_UNIFORM_VECTORS))
+        sharp = c["directional"] + 6 * c["point"] + c["spot"]
+        where = f"scene {self.scene.name!r}"
+        if self.config.shadows and c["area"] * k * k > max_layers:
+            raise RasterError(
+                f"{where} has {c['area']} area lights x {k}x{k} shadow samples = "
+                f"{c['area'] * k * k} shadow maps, more than this GL's "
+                f"GL_MAX_ARRAY_TEXTURE_LAYERS = {max_layers}: lower RasterConfig.area_samples or "
+                "the number of lights (icbtool.scene.load(..., emitter_budget=N))"
+            )
+        if self.config.shadows and sharp > max_layers:
+            raise RasterError(
+                f"{where} needs {sharp} sharp shadow maps (suns + 6 per point light + spots), "
+                f"more than this GL's GL_MAX_ARRAY_TEXTURE_LAYERS = {max_layers}"
+            )
+        # vec4 slots: sun 2, point 2, spot 4, area 5 (4 polygon vertices + radiance); sharp
+        # shadow matrix 4 + texel 1; fixed uniforms (camera, sky, ...) within the margin
+        vectors = 2 * c["directional"] + 2 * c["point"] + 4 * c["spot"] + 5 * c["area"] + 5 * sharp
+        if vectors + _UNIFORM_MARGIN > max_vectors:
+            raise RasterError(
+                f"{where} has {sum(c.values())} lights ({c}) needing ~{vectors} uniform vectors "
+                f"in the resolve shader, more than this GL's GL_MAX_FRAGMENT_UNIFORM_VECTORS = "
+                f"{max_vectors} (minus {_UNIFORM_MARGIN} for the rest): use fewer lights "
+                "(icbtool.scene.load(..., emitter_budget=N) for emissive meshes)"
+            )
 
     # ------------------------------------------------------------------ uploads
     def _upload(self) -> None:
@@ -525,17 +575,26 @@ class Rasterizer:
                 )
             )
         area: list[tuple[np.ndarray, float]] = []
-        k = cfg.area_samples
         for light in sc.lights_of("area"):
             n = light.normal
-            for sj in range(k):
-                for si in range(k):
-                    s = light.corner + (si + 0.5) / k * light.edge_u + (sj + 0.5) / k * light.edge_v
-                    d = _corners(_bounds_pad(bounds)) - s
-                    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-                    ang = math.degrees(math.acos(float(np.clip((d @ n).min(), -1, 1))))
-                    area.append(perspective_view(s, n, min(ang + 1.0, cap), bounds, ares))
+            for s in light.sample_points(cfg.area_samples):  # the order the shader expects
+                d = _corners(_bounds_pad(bounds)) - s
+                d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+                ang = math.degrees(math.acos(float(np.clip((d @ n).min(), -1, 1))))
+                area.append(perspective_view(s, n, min(ang + 1.0, cap), bounds, ares))
         return sharp, area
+
+    def _area_sample_table(self, area: list[tuple[np.ndarray, float]]) -> np.ndarray:
+        """(5 * samples, 4) float32 rows of the ``u_area_samples`` texture buffer: per sample
+        point, the 4 columns of its shadow clip_from_world, then (position, texel size)."""
+        k = self.config.area_samples
+        pos = [s for lt in self.scene.lights_of("area") for s in lt.sample_points(k)]
+        rows = np.zeros((len(area), 5, 4), np.float32)
+        for i, ((m, texel), s) in enumerate(zip(area, pos, strict=True)):
+            rows[i, :4] = np.asarray(m, np.float64).T
+            rows[i, 4, :3] = s
+            rows[i, 4, 3] = texel
+        return rows.reshape(-1, 4)
 
     def _depth_array(self, n: int, res: int, linear: bool) -> int:
         GL = self._gl
@@ -581,7 +640,15 @@ class Rasterizer:
         GL.glDisable(GL.GL_CULL_FACE)
         GL.glEnable(GL.GL_POLYGON_OFFSET_FILL)
         GL.glPolygonOffset(cfg.depth_bias_slope, cfg.depth_bias_units)
-        state: dict[str, Any] = {"sharp": sharp, "area": area, "sharp_tex": None, "area_tex": None}
+        state: dict[str, Any] = {
+            "sharp": sharp,
+            "area": area,
+            "sharp_tex": None,
+            "area_tex": None,
+            "area_samples": None,
+        }
+        if area:
+            state["area_samples"] = self._buffer_texture(self._area_sample_table(area))
         for key, views, res in (
             ("sharp_tex", sharp, cfg.shadow_map_size),
             ("area_tex", area, cfg.area_shadow_map_size),
@@ -609,6 +676,9 @@ class Rasterizer:
         st = self._shadow_state
         if st is not None:
             texs = [t for t in (st["sharp_tex"], st["area_tex"]) if t is not None]
+            if st["area_samples"] is not None:
+                texs.append(st["area_samples"][0])
+                self._gl.glDeleteBuffers(1, [st["area_samples"][1]])
             if texs:
                 self._gl.glDeleteTextures(texs)
         self._shadow_state = None
@@ -872,8 +942,7 @@ class Rasterizer:
                 self._set(prog, "u_shadow_texel", [t for _, t in st["sharp"]], "f")
             if st["area_tex"] is not None:
                 units.append((4, GL.GL_TEXTURE_2D_ARRAY, st["area_tex"], "u_area_shadow"))
-                self._set(prog, "u_area_mat", np.stack([m for m, _ in st["area"]]), "m4")
-                self._set(prog, "u_area_texel", [t for _, t in st["area"]], "f")
+                units.append((8, GL.GL_TEXTURE_BUFFER, st["area_samples"][0], "u_area_samples"))
             self._set(prog, "u_normal_offset", cfg.normal_offset, "f")
         for unit, target, tex, name in units:
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
@@ -936,9 +1005,7 @@ class Rasterizer:
             self._set(prog, "u_spot_cos", cs, "v2")
         a = sc.lights_of("area")
         if a:
-            self._set(prog, "u_area_corner", np.stack([x.corner for x in a]), "v3")
-            self._set(prog, "u_area_eu", np.stack([x.edge_u for x in a]), "v3")
-            self._set(prog, "u_area_ev", np.stack([x.edge_v for x in a]), "v3")
+            self._set(prog, "u_area_v", area_polygons(a), "v3")
             self._set(prog, "u_area_L", np.stack([x.radiance for x in a]), "v3")
 
 

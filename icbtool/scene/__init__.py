@@ -5,6 +5,7 @@
 """
 
 from icbtool.scene.description import SceneDescription, read_description
+from icbtool.scene.emitters import light_faces, promote_emitters
 from icbtool.scene.load import has_light, load, load_mesh, with_default_light
 from icbtool.scene.obj import MaterialApproximationWarning
 from icbtool.scene.procedural import (
@@ -55,6 +56,8 @@ __all__ = [
     "surroundings",
     "vertex_normals",
     "has_light",
+    "light_faces",
+    "promote_emitters",
     "load",
     "load_mesh",
     "with_default_light",

@@ -279,7 +279,7 @@ class SceneDescription:
 
 
 def add_area_lights(scene: Scene, lights: list[AreaLight]) -> Scene:
-    """A new Scene with each area light's emissive quad appended to the mesh."""
+    """A new Scene with each area light's emissive polygon appended to the mesh."""
     if not lights:
         return scene
     v, f, n, fm = [scene.vertices], [scene.faces], [scene.normals], [scene.face_material]
@@ -288,13 +288,14 @@ def add_area_lights(scene: Scene, lights: list[AreaLight]) -> Scene:
     nv = len(scene.vertices)
     for lt in lights:
         mats.append(Material(f"emitter:{lt.name}", albedo=np.zeros(3), emission=lt.radiance))
-        v.append(lt.vertices.astype(np.float32))
-        f.append(np.array([[0, 1, 2], [0, 2, 3]]) + nv)
-        n.append(np.tile(lt.normal, (4, 1)).astype(np.float32))
-        fm.append(np.full(2, len(mats) - 1, np.int32))
+        lv = lt.vertices
+        v.append(lv.astype(np.float32))
+        f.append(lt.triangles + nv)
+        n.append(np.tile(lt.normal, (len(lv), 1)).astype(np.float32))
+        fm.append(np.full(len(lt.triangles), len(mats) - 1, np.int32))
         if uv is not None:
-            uv.append(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32))
-        nv += 4
+            uv.append(np.array([[0, 0], [1, 0], [1, 1], [0, 1]][: len(lv)], np.float32))
+        nv += len(lv)
     return Scene(
         name=scene.name,
         vertices=np.concatenate(v),

@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from icbtool.scene.emitters import DEFAULT_EMITTER_BUDGET, promote_emitters
 from icbtool.scene.obj import MtlMaterial, material_warning, parse_mtl, parse_obj
 from icbtool.scene.types import Material, Scene, vertex_normals
 from icbtool.scene.validate import (
@@ -73,13 +74,26 @@ Z_UP_AREA_RATIO = 2.0
 MESH_OPTIONS = ("name", "scale", "up_axis", "translation", "textures", "flip_v")
 #: Scene fields that may be given to :func:`load` for a bare mesh.
 SCENE_FIELDS = ("lights", "sky", "paths", "default_camera")
+#: Options of :func:`load` itself (for meshes and descriptions alike).
+LOAD_OPTIONS = ("emitter_budget",)
 
 
-def load(path: str | os.PathLike, **overrides: Any) -> Scene:
+def load(
+    path: str | os.PathLike, *, emitter_budget: int = DEFAULT_EMITTER_BUDGET, **overrides: Any
+) -> Scene:
     """Load a scene description (.toml) or a bare mesh file (.obj, .gltf, .glb, .ply).
+
+    The mesh's emissive faces (OBJ ``Ke``, glTF ``emissiveFactor`` without texture) become area
+    lights (:func:`icbtool.scene.emitters.promote_emitters`): their light is direct light (raster
+    DL, the tracer's ``direct``), not GI, while the faces stay in the mesh for the camera. When
+    there are more than ``emitter_budget`` of them (not counting faces of the description's own
+    area lights) they stay seen emission, their light in GI, and a warning says so.
 
     Args:
         path: the file.
+        emitter_budget: at most this many emissive triangles are promoted to lights (>= 0; 0:
+            none, every emissive face stays seen emission). Default
+            :data:`~icbtool.scene.emitters.DEFAULT_EMITTER_BUDGET` (64).
         **overrides: for a mesh, any of ``name``, ``scale``, ``up_axis``, ``translation``,
             ``textures`` (see :func:`load_mesh`) and the Scene fields ``lights``, ``sky``,
             ``paths``, ``default_camera``. For a description, the same keys replace the
@@ -95,19 +109,27 @@ def load(path: str | os.PathLike, **overrides: Any) -> Scene:
         TypeError: an unknown override.
     """
     p = check_file(path, MESH_SUFFIXES + DESCRIPTION_SUFFIXES)
+    if (
+        isinstance(emitter_budget, bool)
+        or not isinstance(emitter_budget, (int, np.integer))
+        or emitter_budget < 0
+    ):
+        raise SceneError(f"{p}: emitter_budget must be an integer >= 0, got {emitter_budget!r}")
     if p.suffix.lower() in DESCRIPTION_SUFFIXES:
         from icbtool.scene.description import read_description
 
-        return read_description(p).build(**overrides)
+        scene = read_description(p).build(**overrides)
+        return promote_emitters(scene, int(emitter_budget))
     unknown = set(overrides) - set(MESH_OPTIONS) - set(SCENE_FIELDS)
     if unknown:
         raise TypeError(
             f"load({p.name}): unknown override(s) {sorted(unknown)}; "
-            f"allowed: {sorted(MESH_OPTIONS + SCENE_FIELDS)}"
+            f"allowed: {sorted(MESH_OPTIONS + SCENE_FIELDS + LOAD_OPTIONS)}"
         )
     mesh_kw = {k: v for k, v in overrides.items() if k in MESH_OPTIONS}
     scene = load_mesh(p, **mesh_kw)
-    return dataclasses.replace(scene, **{k: overrides[k] for k in SCENE_FIELDS if k in overrides})
+    scene = dataclasses.replace(scene, **{k: overrides[k] for k in SCENE_FIELDS if k in overrides})
+    return promote_emitters(scene, int(emitter_budget))
 
 
 def load_mesh(

@@ -173,10 +173,15 @@ class SpotLight:
 
 @dataclass(frozen=True)
 class AreaLight:
-    """An emissive parallelogram ``corner + s*edge_u + t*edge_v`` (s, t in [0, 1]).
+    """An emissive parallelogram ``corner + s*edge_u + t*edge_v`` (s, t in [0, 1]), or with
+    ``shape="triangle"`` the triangle ``(corner, corner + edge_u, corner + edge_v)`` (s, t >= 0,
+    s + t <= 1).
 
     It emits ``radiance`` on the side of ``normal = cross(edge_u, edge_v)`` (one-sided). Area
-    lights are also added to the scene mesh (two triangles with an emissive material).
+    lights are also part of the scene mesh (triangles with an emissive material, added by
+    :meth:`SceneBuilder.add_area_light` or the scene description, or the mesh's own emissive faces
+    promoted by :func:`icbtool.scene.emitters.promote_emitters`): the renderers count the light
+    of the mesh faces lying in an area light as direct light, that of other emissive faces as GI.
     """
 
     corner: np.ndarray
@@ -184,12 +189,17 @@ class AreaLight:
     edge_v: np.ndarray
     radiance: np.ndarray
     name: str = "area"
+    shape: Literal["parallelogram", "triangle"] = "parallelogram"
     kind: Literal["area"] = "area"
 
     def __post_init__(self) -> None:
         for k in ("corner", "edge_u", "edge_v"):
             object.__setattr__(self, k, _vec3(getattr(self, k), f"{self.name}.{k}"))
         object.__setattr__(self, "radiance", _vec3(self.radiance, f"{self.name}.radiance", True))
+        if self.shape not in AREA_SHAPES:
+            raise ValueError(
+                f"{self.name}.shape must be one of {list(AREA_SHAPES)}, got {self.shape!r}"
+            )
 
     @property
     def normal(self) -> np.ndarray:
@@ -199,13 +209,72 @@ class AreaLight:
 
     @property
     def area(self) -> float:
-        return float(np.linalg.norm(np.cross(self.edge_u, self.edge_v)))
+        a = float(np.linalg.norm(np.cross(self.edge_u, self.edge_v)))
+        return 0.5 * a if self.shape == "triangle" else a
 
     @property
     def vertices(self) -> np.ndarray:
-        """(4, 3) corners in counter-clockwise order seen from the emitting side."""
+        """(4, 3) corners of a parallelogram, (3, 3) of a triangle, counter-clockwise seen from
+        the emitting side."""
         c, u, v = self.corner, self.edge_u, self.edge_v
+        if self.shape == "triangle":
+            return np.stack([c, c + u, c + v])
         return np.stack([c, c + u, c + u + v, c + v])
+
+    @property
+    def triangles(self) -> np.ndarray:
+        """(T, 3) vertex indices into :attr:`vertices` of the light's mesh triangles."""
+        if self.shape == "triangle":
+            return np.array([[0, 1, 2]])
+        return np.array([[0, 1, 2], [0, 2, 3]])
+
+    def sample_points(self, k: int) -> np.ndarray:
+        """(k*k, 3) stratified points: the centres of a k x k grid of equal cells (a
+        parallelogram), or the centroids of the k*k equal sub-triangles of a triangle whose edges
+        are cut in k (both: equal areas, deterministic)."""
+        c, u, v = self.corner, self.edge_u, self.edge_v
+        if self.shape == "parallelogram":
+            st = [((i + 0.5) / k, (j + 0.5) / k) for j in range(k) for i in range(k)]
+        else:
+            st = []
+            for j in range(k):  # row j of sub-triangles between t = j/k and (j+1)/k
+                for i in range(k - j):  # "upward" sub-triangle (i, j)
+                    st.append(((i + 1 / 3) / k, (j + 1 / 3) / k))
+                for i in range(k - j - 1):  # "downward" sub-triangle between them
+                    st.append(((i + 2 / 3) / k, (j + 2 / 3) / k))
+        a = np.array(st, np.float64)
+        return c + a[:, :1] * u + a[:, 1:] * v
+
+    def contains(self, points: np.ndarray, rel_tol: float = 1e-4) -> np.ndarray:
+        """Whether points lie in the light's polygon (on its plane, inside its edges).
+
+        Args:
+            points: (..., 3) positions.
+            rel_tol: tolerance relative to the light's size (sum of its edge lengths).
+
+        Returns:
+            (...) bool.
+        """
+        p = np.asarray(points, np.float64) - self.corner
+        size = max(float(np.linalg.norm(self.edge_u) + np.linalg.norm(self.edge_v)), 1e-30)
+        on_plane = np.abs(p @ self.normal) <= rel_tol * size
+        u, v = self.edge_u, self.edge_v
+        gram = np.array([[u @ u, u @ v], [u @ v, v @ v]])
+        if abs(np.linalg.det(gram)) < 1e-300:
+            return np.zeros(p.shape[:-1], bool)
+        st = np.linalg.solve(gram, np.stack([p @ u, p @ v], -1).reshape(-1, 2).T).T
+        st = st.reshape(*p.shape[:-1], 2)
+        eps = 10 * rel_tol
+        inside = np.all(st >= -eps, axis=-1)
+        if self.shape == "triangle":
+            inside &= st.sum(-1) <= 1 + eps
+        else:
+            inside &= np.all(st <= 1 + eps, axis=-1)
+        return on_plane & inside
+
+
+#: The shapes an :class:`AreaLight` can take.
+AREA_SHAPES = ("parallelogram", "triangle")
 
 
 @dataclass(frozen=True)
@@ -460,6 +529,8 @@ def _readonly(a: np.ndarray) -> np.ndarray:
 def _light_key(obj: Any) -> tuple:
     items = []
     for k, v in sorted(vars(obj).items()):
+        if k == "shape" and v == "parallelogram":
+            continue  # the default shape: the light hashes of older scenes stay valid
         if isinstance(v, np.ndarray):
             v = tuple(np.round(v.astype(np.float64), 9).tolist())
         items.append((k, v))
@@ -560,11 +631,16 @@ class SceneBuilder:
             )
 
     def add_area_light(self, light: AreaLight) -> None:
-        """Add an area light: its emissive quad goes into the mesh, the light into ``lights``."""
+        """Add an area light: its emissive polygon goes into the mesh, the light into ``lights``."""
         m = self.add_material(
             Material(f"emitter:{light.name}", albedo=np.zeros(3), emission=light.radiance)
         )
-        self.add_quad(light.corner, light.edge_u, light.edge_v, m)
+        if light.shape == "parallelogram":
+            self.add_quad(light.corner, light.edge_u, light.edge_v, m)
+        else:
+            verts = light.vertices
+            uvs = np.array([[0, 0], [1, 0], [0, 1]], np.float32)
+            self.add_mesh(verts, light.triangles, m, np.tile(light.normal, (3, 1)), uvs)
         self.lights.append(light)
 
     def build(self, **kwargs: Any) -> Scene:

@@ -18,8 +18,10 @@ for a smooth sky, see ``TraceConfig.sky_sampling``).
 
 The DL/GI split (fixed system-wide): ``direct`` = emission of the first visible surface + direct
 light at the first hit from the scene's directional, point, spot and *area* lights (the emissive
-quads registered as :class:`~icbtool.scene.AreaLight`), shadowed. Everything else (sky light at the
-first hit, light from other emissive geometry, all light that bounced at least once) is ``gi``.
+faces lying in an :class:`~icbtool.scene.AreaLight`: its quad or triangle, or a mesh emitter
+promoted by :func:`icbtool.scene.emitters.promote_emitters`), shadowed. Everything else (sky
+light at the first hit, light from other emissive geometry, all light that bounced at least
+once) is ``gi``.
 Camera rays that miss: ``direct`` = sky radiance, ``gi`` = 0.
 
 Depth convention (as Mitsuba's ``max_depth``): a path of ``k`` segments has depth ``k``; depth 1 is
@@ -365,9 +367,7 @@ class _SceneData:
     """Per-scene arrays the tracer needs (cached: :mod:`icbtool.scene.derived`)."""
 
     def __init__(self, scene: Scene) -> None:
-        v = scene.vertices.astype(np.float64)
         f = scene.faces
-        self.tri = v[f]  # (F, 3, 3) float64 (area-light matching below)
         self.face_material = scene.face_material
         self.mat_albedo = np.stack([m.albedo for m in scene.materials]).astype(np.float64)
         self.mat_emission = np.stack([m.emission for m in scene.materials]).astype(np.float64)
@@ -387,28 +387,9 @@ class _SceneData:
             self.emit_cdf[-1] = 1.0
         self.face_area = np.ascontiguousarray(area, np.float64)
         # faces belonging to an AreaLight (their light is "direct"); others' light is GI
-        self.face_is_area_light = np.zeros(len(f), bool)
-        emissive = np.flatnonzero(np.any(self.face_emission > 0, axis=1))
-        for light in scene.lights_of("area"):
-            if len(emissive) == 0:
-                break
-            n = light.normal
-            tol = 1e-4 * max(np.linalg.norm(light.edge_u) + np.linalg.norm(light.edge_v), 1e-30)
-            pts = self.tri[emissive] - light.corner  # (E, 3, 3)
-            on_plane = np.abs(pts @ n).max(1) <= tol
-            gram = np.array(
-                [
-                    [light.edge_u @ light.edge_u, light.edge_u @ light.edge_v],
-                    [light.edge_u @ light.edge_v, light.edge_v @ light.edge_v],
-                ]
-            )
-            if abs(np.linalg.det(gram)) < 1e-300:
-                continue
-            st = np.linalg.solve(
-                gram, np.stack([pts @ light.edge_u, pts @ light.edge_v], -1).reshape(-1, 2).T
-            ).T.reshape(-1, 3, 2)
-            inside = np.all((st >= -1e-3) & (st <= 1 + 1e-3), axis=(1, 2))
-            self.face_is_area_light[emissive[on_plane & inside]] = True
+        from icbtool.scene.emitters import light_faces
+
+        self.face_is_area_light = np.array(light_faces(scene))
         self.suns = scene.lights_of("directional")
         self.points = scene.lights_of("point")
         self.spots = scene.lights_of("spot")

@@ -91,8 +91,10 @@ uniform float u_shadow_texel[N_DIR + 6 * N_POINT + N_SPOT]; // texel size at lig
 #endif
 #if N_AREA > 0
 uniform sampler2DArrayShadow u_area_shadow;  // one map per area-light sample point
-uniform mat4 u_area_mat[N_AREA * AREA_K * AREA_K];
-uniform float u_area_texel[N_AREA * AREA_K * AREA_K];
+// per sample point (light i, sample j at i * AREA_K * AREA_K + j): 5 texels, the 4 columns of
+// its shadow clip_from_world, then (sample position xyz, texel size at light-view depth 1).
+// A texture buffer, not uniform arrays: 64 lights x 16 samples would exceed the uniform limit.
+uniform samplerBuffer u_area_samples;
 #endif
 uniform float u_normal_offset;  // in texels
 
@@ -126,15 +128,15 @@ uniform vec3 u_spot_I[N_SPOT];
 uniform vec2 u_spot_cos[N_SPOT]; // cos(inner), cos(outer)
 #endif
 #if N_AREA > 0
-uniform vec3 u_area_corner[N_AREA];
-uniform vec3 u_area_eu[N_AREA];
-uniform vec3 u_area_ev[N_AREA];
+// Polygon i: vertices u_area_v[4 i .. 4 i + 3], counter-clockwise seen from the emitting side;
+// a triangle repeats its last vertex (a zero-length edge adds nothing to Lambert's sum).
+uniform vec3 u_area_v[4 * N_AREA];
 uniform vec3 u_area_L[N_AREA];   // radiance
 
-// Irradiance / radiance of the polygon (corner, eu, ev) at p with normal n: Lambert's formula
+// Irradiance / radiance of the polygon (v0, v1, v2, v3) at p with normal n: Lambert's formula
 // 1/2 sum_i Theta_i (n . gamma_i), after clipping the polygon to the upper hemisphere of n.
-float polygon_irradiance(vec3 corner, vec3 eu, vec3 ev, vec3 p, vec3 n) {
-    vec3 q[4] = vec3[4](corner - p, corner + eu - p, corner + eu + ev - p, corner + ev - p);
+float polygon_irradiance(vec3 v0, vec3 v1, vec3 v2, vec3 v3, vec3 p, vec3 n) {
+    vec3 q[4] = vec3[4](v0 - p, v1 - p, v2 - p, v3 - p);
     vec3 v[5];
     int m = 0;
     for (int i = 0; i < 4; ++i) {  // Sutherland-Hodgman against the plane dot(n, x) = 0
@@ -290,33 +292,36 @@ void main() {
 #endif
 #if N_AREA > 0
     for (int i = 0; i < N_AREA; ++i) {
-        vec3 nl = normalize(cross(u_area_eu[i], u_area_ev[i]));
-        vec3 c = u_area_corner[i] + 0.5 * (u_area_eu[i] + u_area_ev[i]);
-        if (dot(p - u_area_corner[i], nl) <= 0.0) continue;  // behind the emitter (one-sided)
-        float e = polygon_irradiance(u_area_corner[i], u_area_eu[i], u_area_ev[i], p, ns);
+        vec3 v0 = u_area_v[4 * i];
+        vec3 v1 = u_area_v[4 * i + 1];
+        vec3 v2 = u_area_v[4 * i + 2];
+        vec3 v3 = u_area_v[4 * i + 3];
+        vec3 nl = normalize(cross(v1 - v0, v3 - v0));
+        if (dot(p - v0, nl) <= 0.0) continue;  // behind the emitter (one-sided)
+        float e = polygon_irradiance(v0, v1, v2, v3, p, ns);
         if (e <= 0.0) continue;
         float vis = 1.0;
 #ifdef SHADOWS
-        // Visibility fraction: shadow tests towards k x k stratified points on the light,
-        // weighted by their unshadowed contribution cos * cos' / r^2.
+        // Visibility fraction: shadow tests towards AREA_K^2 stratified points on the light (equal
+        // cells), weighted by their unshadowed contribution cos * cos' / r^2.
         float wsum = 0.0;
         float vsum = 0.0;
-        float w0 = dot(p - u_area_corner[i], nl);  // depth in every sample's view (axis nl)
-        for (int sj = 0; sj < AREA_K; ++sj) {
-            for (int si = 0; si < AREA_K; ++si) {
-                vec3 s = u_area_corner[i] + (float(si) + 0.5) / float(AREA_K) * u_area_eu[i]
-                       + (float(sj) + 0.5) / float(AREA_K) * u_area_ev[i];
-                vec3 d = s - p;
-                float r2 = dot(d, d);
-                vec3 l = d * inversesqrt(r2);
-                float w = max(dot(ns, l), 0.0) * max(-dot(nl, l), 0.0) / r2;
-                if (w <= 0.0) continue;
-                int layer = (i * AREA_K + sj) * AREA_K + si;
-                float cg = max(dot(ng, l), 0.0);
-                wsum += w;
-                vsum += w * shadow_lookup(u_area_shadow, u_area_mat[layer], u_area_texel[layer],
-                                          layer, p, ng, cg, w0);
-            }
+        float w0 = dot(p - v0, nl);  // depth in every sample's view (axis nl)
+        for (int j = 0; j < AREA_K * AREA_K; ++j) {
+            int layer = i * AREA_K * AREA_K + j;
+            vec4 st = texelFetch(u_area_samples, 5 * layer + 4);
+            vec3 d = st.xyz - p;
+            float r2 = dot(d, d);
+            vec3 l = d * inversesqrt(r2);
+            float w = max(dot(ns, l), 0.0) * max(-dot(nl, l), 0.0) / r2;
+            if (w <= 0.0) continue;
+            mat4 sm = mat4(texelFetch(u_area_samples, 5 * layer),
+                           texelFetch(u_area_samples, 5 * layer + 1),
+                           texelFetch(u_area_samples, 5 * layer + 2),
+                           texelFetch(u_area_samples, 5 * layer + 3));
+            float cg = max(dot(ng, l), 0.0);
+            wsum += w;
+            vsum += w * shadow_lookup(u_area_shadow, sm, st.w, layer, p, ng, cg, w0);
         }
         vis = wsum > 0.0 ? vsum / wsum : 1.0;
 #endif
