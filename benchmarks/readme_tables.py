@@ -557,6 +557,24 @@ def block_loop(results: Path) -> str:
     )
 
 
+def block_emitters(results: Path) -> str:
+    d = load("emitters/emitter_split.json", results)
+    c = d["config"]
+    pct = ", ".join(f"{100 * b:+.2f}" for b in d["gi_bias_per_channel"])
+    met = "met" if d["within_target"] else "NOT met"
+    return (
+        "**Emissive geometry as light** (`benchmarks/emitter_split.py`): the classic Cornell "
+        "box written as a glTF\nin millimetres with an emissive ceiling quad, "
+        f"{c['size']}x{c['size']}; icbtool's GI (full - direct, {c['spp']} spp, the quad\n"
+        "promoted to an area light) against "
+        f"Mitsuba {d['mitsuba_version']} (`{d['mitsuba_variant']}`, {c['mi_spp']} spp) indirect "
+        "radiance (max_depth -1 minus max_depth 2): mean bias\n"
+        f"{100 * d['gi_bias_whole_image']:+.2f} % over the image, per channel {pct} % (target "
+        f"{100 * d['target_abs_bias']:.0f} %: {met}); full image "
+        f"{100 * max(abs(b) for b in d['full_bias_per_channel']):.2f} % at most.\n"
+    )
+
+
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "intro": block_intro,
     "raster": block_raster,
@@ -567,6 +585,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "warp": block_warp,
     "prefetch": block_prefetch,
     "loop": block_loop,
+    "emitters": block_emitters,
 }
 
 
