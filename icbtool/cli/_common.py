@@ -78,15 +78,18 @@ def check_out_dir(path: str | Path, option: str = "--out") -> Path:
             or is not writable; the message names the option, the path and the OS's reason.
     """
     p = Path(path)
-    if p.exists() and not p.is_dir():
-        raise UsageError(f"{option} {str(path)!r}: exists and is not a directory")
-    for parent in p.absolute().parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise UsageError(
-                    f"{option} {str(path)!r}: {str(parent)!r} is a file, not a directory"
-                )
-            break
+    try:
+        if p.exists() and not p.is_dir():
+            raise UsageError(f"{option} {str(path)!r}: exists and is not a directory")
+        for parent in p.absolute().parents:
+            if parent.exists():
+                if not parent.is_dir():
+                    raise UsageError(
+                        f"{option} {str(path)!r}: {str(parent)!r} is a file, not a directory"
+                    )
+                break
+    except OSError as e:  # e.g. a parent folder that cannot be searched
+        raise UsageError(f"{option} {str(path)!r}: cannot access ({e.strerror or e})") from None
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as e:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from icbtool._optional import require
 from icbtool.cli._common import (
     add_denoise_quality_argument,
     add_scene_argument,
@@ -54,6 +55,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     check_out_dir(args.store, "--store")  # before any work
+    if args.denoise:
+        require("pyoidn", "--denoise (Open Image Denoise)")
     from icbtool import bake as B
     from icbtool import store as st
 

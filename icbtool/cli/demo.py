@@ -11,6 +11,7 @@ import argparse
 import json
 import time
 
+from icbtool._optional import require
 from icbtool.cli._common import (
     add_denoise_quality_argument,
     check_out_dir,
@@ -61,6 +62,8 @@ def run(args: argparse.Namespace) -> int:
     from icbtool import imageio, pipeline, raster
 
     out = check_out_dir(args.out)  # before any work
+    if not args.no_denoise:
+        require("pyoidn", "the demo's denoised GI maps (or run with --no-denoise)")
     if args.fresh and (out / "cache").exists():
         shutil.rmtree(out / "cache")
     t0 = time.perf_counter()

@@ -7,6 +7,7 @@ import logging
 from dataclasses import asdict
 from pathlib import Path
 
+from icbtool._optional import require
 from icbtool.cli._common import (
     add_denoise_quality_argument,
     add_scene_argument,
@@ -89,6 +90,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     out = check_out_dir(args.out)  # before any work
+    if args.denoise:
+        require("pyoidn", "--denoise (Open Image Denoise)")
     import numpy as np
     from tqdm import tqdm
 
