@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
     out = check_out_dir(args.out)  # before any work
     if not args.no_denoise:
-        require("pyoidn", "the demo's denoised GI maps (or run with --no-denoise)")
+        require("pyoidn", "denoising the demo's GI maps (--no-denoise skips it)")
     if args.fresh and (out / "cache").exists():
         shutil.rmtree(out / "cache")
     t0 = time.perf_counter()
