@@ -9,7 +9,10 @@ DEB_PKGS := libosmesa6 libusb-1.0-0
 # Mitsuba's llvm variant (benchmark peer only).
 DEB_BENCH := libllvm19
 
-.PHONY: demo test test-all lint format bench sysdeps install clean
+# Lint only the folders that exist (gui/ comes later).
+LINT_DIRS := $(wildcard icbtool tests benchmarks gui)
+
+.PHONY: demo test test-all lint format bench sysdeps install clean wheel-smoke pytest
 
 sysdeps:
 	@dpkg -s $(DEB_PKGS) >/dev/null 2>&1 || { \
@@ -19,8 +22,6 @@ sysdeps:
 .venv/.installed: requirements.lock setup.cfg pyproject.toml | sysdeps
 	test -x $(PY) || python3 -m venv .venv
 	$(PIP) install -q --disable-pip-version-check -r requirements.lock
-	# pyrender pins PyOpenGL==3.1.0 (broken OSMesa binding): install it without its pins.
-	$(PIP) install -q --disable-pip-version-check --no-deps pyrender==0.1.45
 	$(PIP) install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
 	touch $@
 
@@ -29,19 +30,25 @@ install: sysdeps .venv/.installed
 demo: install
 	$(PY) -m icbtool demo --out $(OUT)/demo
 
-test: install
+# CI (.ci/run) runs exactly this: lint, the wheel-install smoke test, then the quick tests.
+test: lint wheel-smoke pytest
+
+pytest: install
 	ICBTOOL_GL_BACKEND=osmesa $(PY) -m pytest -m "not slow" -q
+
+wheel-smoke: install
+	PY=$(abspath $(PY)) bash .ci/wheel_smoke.sh
 
 test-all: install
 	ICBTOOL_GL_BACKEND=osmesa $(PY) -m pytest -q
 
 lint: install
-	.venv/bin/ruff check icbtool tests benchmarks gui
-	.venv/bin/ruff format --check icbtool tests benchmarks gui
+	.venv/bin/ruff check $(LINT_DIRS)
+	.venv/bin/ruff format --check $(LINT_DIRS)
 
 format: install
-	.venv/bin/ruff format icbtool tests benchmarks gui
-	.venv/bin/ruff check --fix icbtool tests benchmarks gui
+	.venv/bin/ruff format $(LINT_DIRS)
+	.venv/bin/ruff check --fix $(LINT_DIRS)
 
 bench-deps: install
 	@dpkg -s $(DEB_BENCH) >/dev/null 2>&1 || { $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $(DEB_BENCH); }

@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from icbtool._optional import require
+
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "raster"
 SIZES = (256, 512)
@@ -68,7 +70,7 @@ def open3d_frame(rs, o3c, rays: np.ndarray, light: dict) -> None:
 
 def worker(backend: str, frames: int) -> dict:
     """Run in a subprocess bound to ``backend``; returns the numbers."""
-    import open3d as o3d
+    o3d = require("open3d", "the Open3D raycasting comparison")
 
     import icbtool as icb
     from icbtool.imageio import preview, write_png

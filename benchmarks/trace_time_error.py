@@ -39,6 +39,7 @@ import numpy as np
 from tqdm import tqdm
 
 import icbtool as icb
+from icbtool._optional import require
 from icbtool.cli._common import run_info, write_json
 from icbtool.imageio import to_display
 from icbtool.trace import TraceConfig
@@ -54,7 +55,7 @@ MAX_DEPTH = 8
 
 def to_mitsuba(scene, cam, spp: int, max_depth: int = MAX_DEPTH):
     """A Mitsuba scene dict for our Scene (two-sided diffuse, area emitters, sun, sky)."""
-    import mitsuba as mi
+    mi = require("mitsuba", "the Mitsuba 3 benchmark peer")
 
     d = {"type": "scene", "integrator": {"type": "path", "max_depth": max_depth, "rr_depth": 4}}
     up = cam.up
@@ -146,7 +147,7 @@ def _write_ply(scene, faces, idx) -> str:
 def mitsuba_render(
     scene, cam, spp: int, seed: int = 0, max_depth: int = MAX_DEPTH
 ) -> tuple[np.ndarray, float]:
-    import mitsuba as mi
+    mi = require("mitsuba", "the Mitsuba 3 benchmark peer")
 
     sc = mi.load_dict(to_mitsuba(scene, cam, spp, max_depth))
     t0 = time.perf_counter()
@@ -155,7 +156,7 @@ def mitsuba_render(
 
 
 def errors(ref: np.ndarray, img: np.ndarray) -> dict:
-    import flip_evaluator
+    flip_evaluator = require("flip_evaluator", "the FLIP metric")
 
     rmse = float(np.sqrt(np.mean((img - ref) ** 2)))
     a = to_display(ref).astype(np.float32) / 255

@@ -33,6 +33,7 @@ LAYERS: dict[str, int] = {
     "cli": 7,
     "__main__": 8,
     "__init__": 8,
+    "_optional": 0,
 }
 
 

@@ -35,8 +35,14 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from icbtool._optional import MissingOptionalDependency
+    from icbtool.cli._common import UsageError
+
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, OSError) as e:  # user errors: one clear line
+    except UsageError as e:  # a bad argument, found before any work: like argparse, exit 2
         print(f"icbtool {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except (ValueError, FileNotFoundError, OSError, MissingOptionalDependency) as e:
+        print(f"icbtool {args.command}: error: {e}", file=sys.stderr)  # user errors: one line
         return 1

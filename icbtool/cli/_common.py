@@ -3,9 +3,105 @@
 from __future__ import annotations
 
 import argparse
+import math
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from icbtool.provenance import run_info, to_jsonable, write_json
+
+
+class UsageError(ValueError):
+    """A bad command-line value found before any work: ``icbtool CMD: error: ...``, exit code 2."""
+
+
+def int_at_least(lo: int) -> Callable[[str], int]:
+    """An argparse ``type`` for an integer >= ``lo`` (a bad value is an argparse error, exit 2)."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {lo}, got {text!r}") from None
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {lo}, got {v}")
+        return v
+
+    parse.__name__ = f"int>={lo}"
+    return parse
+
+
+def float_in(lo: float, hi: float = math.inf, lo_open: bool = False) -> Callable[[str], float]:
+    """An argparse ``type`` for a finite float in ``[lo, hi)`` (``(lo, hi)`` with ``lo_open``)."""
+    interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g})"
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"must be a number in {interval}, got {text!r}"
+            ) from None
+        if not (math.isfinite(v) and (v > lo if lo_open else v >= lo) and v < hi):
+            raise argparse.ArgumentTypeError(f"must be a number in {interval}, got {text}")
+        return v
+
+    parse.__name__ = f"float in {interval}"
+    return parse
+
+
+#: Image sizes, counts, samples: integers >= 1.
+positive_int = int_at_least(1)
+#: Durations, errors: finite floats > 0.
+positive_float = float_in(0.0, lo_open=True)
+#: Vertical field of view in degrees: (0, 180).
+fov_deg = float_in(0.0, 180.0, lo_open=True)
+
+
+def check_out_dir(path: str | Path, option: str = "--out") -> Path:
+    """Make sure ``path`` is (or can be made) a writable directory, before any work is done.
+
+    Creates the directory (and its parents) if missing, then creates and deletes a temporary file
+    in it: permission bits alone say nothing when running as root, a read-only file system or a
+    full disk.
+
+    Args:
+        path: the output directory.
+        option: the option's name, for the message.
+
+    Returns:
+        The directory as a Path.
+
+    Raises:
+        UsageError: ``path`` exists and is not a directory, lies under a file, cannot be created,
+            or is not writable; the message names the option, the path and the OS's reason.
+    """
+    p = Path(path)
+    try:
+        if p.exists() and not p.is_dir():
+            raise UsageError(f"{option} {str(path)!r}: exists and is not a directory")
+        for parent in p.absolute().parents:
+            if parent.exists():
+                if not parent.is_dir():
+                    raise UsageError(
+                        f"{option} {str(path)!r}: {str(parent)!r} is a file, not a directory"
+                    )
+                break
+    except OSError as e:  # e.g. a parent folder that cannot be searched
+        raise UsageError(f"{option} {str(path)!r}: cannot access ({e.strerror or e})") from None
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UsageError(
+            f"{option} {str(path)!r}: cannot create the directory ({e.strerror or e})"
+        ) from None
+    try:
+        with tempfile.TemporaryFile(dir=p, prefix=".icbtool-write-check-"):
+            pass
+    except OSError as e:
+        raise UsageError(f"{option} {str(path)!r}: not writable ({e.strerror or e})") from None
+    return p
 
 
 def add_scene_argument(p: argparse.ArgumentParser) -> None:
@@ -128,7 +224,14 @@ def select_cameras(
 
 
 __all__ = [
+    "UsageError",
     "add_scene_argument",
+    "check_out_dir",
+    "float_in",
+    "fov_deg",
+    "int_at_least",
+    "positive_float",
+    "positive_int",
     "add_up_axis_argument",
     "load_scene",
     "run_info",

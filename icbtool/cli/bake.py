@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import argparse
 
-from icbtool.cli._common import add_denoise_quality_argument, add_scene_argument, load_scene
+from icbtool._optional import require
+from icbtool.cli._common import (
+    add_denoise_quality_argument,
+    add_scene_argument,
+    check_out_dir,
+    float_in,
+    int_at_least,
+    load_scene,
+    positive_int,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -12,8 +21,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_scene_argument(p)
     p.add_argument("--path", required=True, help="camera path name in the scene (e.g. train)")
     p.add_argument("--store", required=True, help="store directory (created if missing)")
-    p.add_argument("--spp", type=int, default=16, help="GI samples per pixel")
-    p.add_argument("--seed", type=int, default=0, help="base seed (view k uses seed + k)")
+    p.add_argument("--spp", type=positive_int, default=16, help="GI samples per pixel")
+    p.add_argument(
+        "--seed", type=int_at_least(0), default=0, help="base seed (view k uses seed + k)"
+    )
     p.add_argument(
         "--gbuffer",
         choices=("raster", "trace"),
@@ -22,25 +33,30 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--cloud-camera", choices=("same", "wider", "prefetch"), default="same")
     p.add_argument(
-        "--fov-multiplier", type=float, default=1.5, help="--cloud-camera wider: FOV factor"
+        "--fov-multiplier", type=float_in(1.0), default=1.5, help="--cloud-camera wider: FOV factor"
     )
-    p.add_argument("--pullback", type=float, default=0.0, help="--cloud-camera wider: pull-back")
+    p.add_argument(
+        "--pullback", type=float_in(0.0), default=0.0, help="--cloud-camera wider: pull-back"
+    )
     p.add_argument(
         "--size",
-        type=int,
+        type=positive_int,
         nargs=2,
         default=None,
         metavar=("H", "W"),
         help="render size (default: the path's)",
     )
-    p.add_argument("--stride", type=int, default=1, help="bake every n-th camera")
-    p.add_argument("--limit", type=int, default=None, help="at most this many cameras")
+    p.add_argument("--stride", type=positive_int, default=1, help="bake every n-th camera")
+    p.add_argument("--limit", type=positive_int, default=None, help="at most this many cameras")
     p.add_argument("--denoise", action="store_true", help="denoise GI with OIDN")
     add_denoise_quality_argument(p)
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
+    check_out_dir(args.store, "--store")  # before any work
+    if args.denoise:
+        require("pyoidn", "--denoise (Open Image Denoise)")
     from icbtool import bake as B
     from icbtool import store as st
 

@@ -10,9 +10,16 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 
-from icbtool.cli._common import add_denoise_quality_argument, load_scene
+from icbtool._optional import require
+from icbtool.cli._common import (
+    add_denoise_quality_argument,
+    check_out_dir,
+    float_in,
+    int_at_least,
+    load_scene,
+    positive_int,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,12 +38,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
     p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     p.add_argument("--path", default="test", help="camera path the client follows")
-    p.add_argument("--frames", type=int, default=24, help="client frames along the path")
-    p.add_argument("--size", type=int, default=128, help="client image size (square)")
-    p.add_argument("--spp", type=int, default=16, help="samples per pixel of the cloud GI")
-    p.add_argument("--latency", type=float, default=0.1, help="interaction latency T_IL (s)")
-    p.add_argument("--truth-every", type=int, default=6, help="score every N-th frame (0: never)")
-    p.add_argument("--truth-spp", type=int, default=128, help="samples per pixel of the truth")
+    p.add_argument("--frames", type=positive_int, default=24, help="client frames along the path")
+    p.add_argument("--size", type=positive_int, default=128, help="client image size (square)")
+    p.add_argument("--spp", type=positive_int, default=16, help="samples per pixel of the cloud GI")
+    p.add_argument(
+        "--latency", type=float_in(0.0), default=0.1, help="interaction latency T_IL (s)"
+    )
+    p.add_argument(
+        "--truth-every", type=int_at_least(0), default=6, help="score every N-th frame (0: never)"
+    )
+    p.add_argument(
+        "--truth-spp", type=positive_int, default=128, help="samples per pixel of the truth"
+    )
     p.add_argument("--no-prefetch", action="store_true", help="reference at the old camera")
     p.add_argument("--no-denoise", action="store_true", help="serve raw (noisy) GI maps")
     add_denoise_quality_argument(p)
@@ -48,7 +61,9 @@ def run(args: argparse.Namespace) -> int:
 
     from icbtool import imageio, pipeline, raster
 
-    out = Path(args.out)
+    out = check_out_dir(args.out)  # before any work
+    if not args.no_denoise:
+        require("pyoidn", "denoising the demo's GI maps (--no-denoise skips it)")
     if args.fresh and (out / "cache").exists():
         shutil.rmtree(out / "cache")
     t0 = time.perf_counter()

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -13,7 +12,11 @@ import numpy as np
 from icbtool.cli._common import (
     add_scene_argument,
     add_up_axis_argument,
+    check_out_dir,
+    fov_deg,
+    int_at_least,
     load_scene,
+    positive_int,
     run_info,
     select_cameras,
     write_json,
@@ -34,24 +37,31 @@ def register(subparsers: Any) -> None:
         default="default",
         help="'default' (the scene's default camera) or 'path:NAME' (every camera of that path)",
     )
-    p.add_argument("--every", type=int, default=1, help="with path:NAME, keep every K-th camera")
-    p.add_argument("--height", type=int, default=None, help="image height (default: the camera's)")
-    p.add_argument("--width", type=int, default=None, help="image width (default: the camera's)")
-    p.add_argument("--fov", type=float, default=None, help="vertical field of view in degrees")
+    p.add_argument(
+        "--every", type=positive_int, default=1, help="with path:NAME, keep every K-th camera"
+    )
+    p.add_argument(
+        "--height", type=positive_int, default=None, help="image height (default: the camera's)"
+    )
+    p.add_argument(
+        "--width", type=positive_int, default=None, help="image width (default: the camera's)"
+    )
+    p.add_argument("--fov", type=fov_deg, default=None, help="vertical field of view in degrees")
     p.add_argument(
         "--buffers",
         default="dl,albedo,normal_world,normal_view,depth,position,mask",
         help="comma-separated buffers to render",
     )
     p.add_argument("--backend", default="auto", choices=["auto", "osmesa", "egl"])
-    p.add_argument("--shadow-map-size", type=int, default=None)
-    p.add_argument("--area-samples", type=int, default=None)
+    p.add_argument("--shadow-map-size", type=int_at_least(16), default=None)
+    p.add_argument("--area-samples", type=positive_int, default=None)
     p.add_argument("--no-png", action="store_true", help="write EXR only")
     add_up_axis_argument(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    out = check_out_dir(args.out)  # before any work
     from tqdm import tqdm
 
     from icbtool import raster
@@ -69,8 +79,6 @@ def run(args: argparse.Namespace) -> int:
     cams = [
         c for _, c in select_cameras(scene, spec, args.every, args.height, args.width, args.fov)
     ]
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     frames = []
     t0 = time.perf_counter()
     try:

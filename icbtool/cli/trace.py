@@ -7,15 +7,28 @@ import logging
 from dataclasses import asdict
 from pathlib import Path
 
+from icbtool._optional import require
 from icbtool.cli._common import (
     add_denoise_quality_argument,
     add_scene_argument,
     add_up_axis_argument,
+    check_out_dir,
+    int_at_least,
     load_scene,
+    positive_float,
+    positive_int,
     run_info,
     select_cameras,
     write_json,
 )
+
+
+def _max_depth(text: str) -> int:
+    """argparse type of --max-depth: an integer >= 1, or -1 (unbounded)."""
+    v = int_at_least(-1)(text)
+    if v == 0:
+        raise argparse.ArgumentTypeError("must be an integer >= 1 or -1 (unbounded), got 0")
+    return v
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -32,12 +45,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="default",
         help="'default' (the scene's default camera) or path:NAME (a camera path)",
     )
-    p.add_argument("--every", type=int, default=1, help="with path:NAME, trace every K-th camera")
-    p.add_argument("--spp", type=int, default=64, help="samples per pixel (budget)")
-    p.add_argument("--time-budget", type=float, default=None, help="seconds per view")
+    p.add_argument(
+        "--every", type=positive_int, default=1, help="with path:NAME, trace every K-th camera"
+    )
+    p.add_argument("--spp", type=positive_int, default=64, help="samples per pixel (budget)")
+    p.add_argument("--time-budget", type=positive_float, default=None, help="seconds per view")
     p.add_argument(
         "--target-error",
-        type=float,
+        type=positive_float,
         default=None,
         help="stop at this mean relative standard error of the GI",
     )
@@ -46,7 +61,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--denoise", action="store_true", help="denoise gi with Open Image Denoise")
     add_denoise_quality_argument(p)
-    p.add_argument("--max-depth", type=int, default=8, help="max path depth (-1 = unbounded)")
+    p.add_argument(
+        "--max-depth", type=_max_depth, default=8, help="max path depth (-1 = unbounded)"
+    )
     p.add_argument(
         "--sky-sampling",
         choices=("auto", "mis", "bsdf"),
@@ -59,15 +76,22 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="Embree without robust mode (~15 %% faster; a ray may slip through a shared edge)",
     )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--height", type=int, default=None)
-    p.add_argument("--width", type=int, default=None)
+    p.add_argument("--seed", type=int_at_least(0), default=0)
+    p.add_argument("--threads", type=positive_int, default=2)
+    p.add_argument(
+        "--height", type=positive_int, default=None, help="image height (default: the camera's)"
+    )
+    p.add_argument(
+        "--width", type=positive_int, default=None, help="image width (default: the camera's)"
+    )
     add_up_axis_argument(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    out = check_out_dir(args.out)  # before any work
+    if args.denoise:
+        require("pyoidn", "--denoise (Open Image Denoise)")
     import numpy as np
     from tqdm import tqdm
 
@@ -91,8 +115,6 @@ def run(args: argparse.Namespace) -> int:
     )
     scene = load_scene(args.scene, args.up_axis, default_light=True)
     cams = select_cameras(scene, args.camera, args.every, args.height, args.width)
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
     views = []
     for name, cam in tqdm(cams, desc="trace", disable=len(cams) < 2):
         res = render(scene, cam, cfg, progress=len(cams) == 1)

@@ -5,7 +5,10 @@ backend must be chosen before that import and cannot change afterwards in the sa
 module hides that: :func:`create_context` sets the variable right before the first OpenGL import
 and raises :class:`GLBackendError` if OpenGL was already imported with another platform.
 
-Context creation reuses pyrender's platform classes (``OSMesaPlatform``, ``EGLPlatform``); all
+Contexts are created directly with PyOpenGL's OSMesa and EGL bindings (:class:`_OSMesaPlatform`,
+:class:`_EGLPlatform`, the same calls as pyrender's platform classes, which icbtool used before).
+icbtool does not depend on pyrender: pyrender 0.1.45 pins PyOpenGL==3.1.0, whose OSMesa binding is
+broken, and a package that declares both cannot be installed by plain ``pip install``. All
 rendering is our own PyOpenGL code (see :mod:`icbtool.raster.renderer`).
 """
 
@@ -16,8 +19,6 @@ import ctypes
 import os
 import sys
 from typing import Any
-
-import numpy as np
 
 #: Backends tried by ``backend="auto"`` when ICBTOOL_GL_BACKEND is not set, in order.
 PREFERENCE = ("egl", "osmesa")
@@ -53,8 +54,6 @@ def _import_gl(backend: str) -> None:
             f"Import icbtool.raster (or set ICBTOOL_GL_BACKEND={bound}) before anything imports "
             f"OpenGL, or run the other backend in a subprocess."
         )
-    if not hasattr(np, "infty"):  # pyrender (numpy 1 era) uses np.infty
-        setattr(np, "infty", np.inf)  # noqa: B010
     import OpenGL  # noqa: F401
     import OpenGL.GL  # noqa: F401
 
@@ -85,7 +84,8 @@ class GLContext(abc.ABC):
 
     @abc.abstractmethod
     def _create(self) -> Any:
-        """A pyrender platform object (not yet initialised)."""
+        """A platform object (not yet initialised): ``init_context``, ``make_current``,
+        ``delete_context``."""
 
     def make_current(self) -> None:
         """Make this context current on the calling thread."""
@@ -117,9 +117,7 @@ class OSMesaContext(GLContext):
     backend = "osmesa"
 
     def _create(self) -> Any:
-        from pyrender.platforms.osmesa import OSMesaPlatform
-
-        return OSMesaPlatform(1, 1)
+        return _OSMesaPlatform()
 
 
 class EGLContext(GLContext):
@@ -128,9 +126,137 @@ class EGLContext(GLContext):
     backend = "egl"
 
     def _create(self) -> Any:
-        from pyrender.platforms.egl import EGLPlatform
+        return _EGLPlatform()
 
-        return EGLPlatform(1, 1)
+
+class _OSMesaPlatform:
+    """An OSMesa 3.3 core context drawing into a 1 x 1 RGBA buffer (we render into FBOs)."""
+
+    def __init__(self) -> None:
+        self._context: Any = None
+        self._buffer: Any = None
+
+    def init_context(self) -> None:
+        from OpenGL import arrays
+        from OpenGL import osmesa as om
+
+        attrs = arrays.GLintArray.asArray(
+            [
+                om.OSMESA_FORMAT, om.OSMESA_RGBA,
+                om.OSMESA_DEPTH_BITS, 24,
+                om.OSMESA_PROFILE, om.OSMESA_CORE_PROFILE,
+                om.OSMESA_CONTEXT_MAJOR_VERSION, 3,
+                om.OSMESA_CONTEXT_MINOR_VERSION, 3,
+                0,
+            ]
+        )  # fmt: skip
+        self._context = om.OSMesaCreateContextAttribs(attrs, None)
+        if not self._context:
+            raise GLBackendError("OSMesaCreateContextAttribs returned no context (3.3 core)")
+        self._buffer = arrays.GLubyteArray.zeros((1, 1, 4))
+
+    def make_current(self) -> None:
+        from OpenGL import GL
+        from OpenGL import osmesa as om
+
+        if not om.OSMesaMakeCurrent(self._context, self._buffer, GL.GL_UNSIGNED_BYTE, 1, 1):
+            raise GLBackendError("OSMesaMakeCurrent failed")
+
+    def delete_context(self) -> None:
+        from OpenGL import osmesa as om
+
+        if self._context is not None:
+            om.OSMesaDestroyContext(self._context)
+        self._context = None
+        self._buffer = None
+
+
+class _EGLPlatform:
+    """A surfaceless EGL 4.1 core context on the first EGL device (EGL_EXT_platform_device)."""
+
+    def __init__(self) -> None:
+        self._display: Any = None
+        self._context: Any = None
+
+    def init_context(self) -> None:
+        from OpenGL import EGL, arrays
+        from OpenGL._opaque import opaque_pointer_cls
+
+        def proc(name: bytes, restype: Any, *argtypes: Any) -> Any:
+            address = EGL.eglGetProcAddress(name)
+            if not address:
+                raise GLBackendError(f"EGL lacks {name.decode()}")
+            proto = ctypes.CFUNCTYPE(restype)
+            proto.argtypes = argtypes
+            return proto(address)
+
+        device_t = opaque_pointer_cls("EGLDeviceEXT")
+        query_devices = proc(b"eglQueryDevicesEXT", EGL.EGLBoolean)
+        get_display = proc(b"eglGetPlatformDisplayEXT", EGL.EGLDisplay)
+        n = EGL.EGLint()
+        if not query_devices(0, None, ctypes.pointer(n)) or n.value < 1:
+            raise GLBackendError("EGL reports no devices")
+        devices = (device_t * n.value)()
+        if not query_devices(n.value, devices, ctypes.pointer(n)) or n.value < 1:
+            raise GLBackendError("EGL reports no devices")
+        display = os.environ.pop("DISPLAY", None)  # never pick an X11 display
+        try:
+            self._display = get_display(0x313F, devices[0], None)  # EGL_PLATFORM_DEVICE_EXT
+        finally:
+            if display is not None:
+                os.environ["DISPLAY"] = display
+        major, minor = ctypes.c_long(), ctypes.c_long()
+        if not EGL.eglInitialize(self._display, major, minor):
+            raise GLBackendError("eglInitialize failed on the first device")
+        config_attrs = arrays.GLintArray.asArray(
+            [
+                EGL.EGL_SURFACE_TYPE, EGL.EGL_PBUFFER_BIT,
+                EGL.EGL_RED_SIZE, 8, EGL.EGL_GREEN_SIZE, 8, EGL.EGL_BLUE_SIZE, 8,
+                EGL.EGL_DEPTH_SIZE, 24,
+                EGL.EGL_COLOR_BUFFER_TYPE, EGL.EGL_RGB_BUFFER,
+                EGL.EGL_RENDERABLE_TYPE, EGL.EGL_OPENGL_BIT,
+                EGL.EGL_CONFORMANT, EGL.EGL_OPENGL_BIT,
+                EGL.EGL_NONE,
+            ]
+        )  # fmt: skip
+        context_attrs = arrays.GLintArray.asArray(
+            [
+                EGL.EGL_CONTEXT_MAJOR_VERSION, 4,
+                EGL.EGL_CONTEXT_MINOR_VERSION, 1,
+                EGL.EGL_CONTEXT_OPENGL_PROFILE_MASK, EGL.EGL_CONTEXT_OPENGL_CORE_PROFILE_BIT,
+                EGL.EGL_NONE,
+            ]
+        )  # fmt: skip
+        configs = (EGL.EGLConfig * 1)()
+        n_configs = ctypes.c_long()
+        if not EGL.eglChooseConfig(self._display, config_attrs, configs, 1, n_configs):
+            raise GLBackendError("eglChooseConfig found no config")
+        if not EGL.eglBindAPI(EGL.EGL_OPENGL_API):
+            raise GLBackendError("eglBindAPI(EGL_OPENGL_API) failed")
+        self._context = EGL.eglCreateContext(
+            self._display, configs[0], EGL.EGL_NO_CONTEXT, context_attrs
+        )
+        if not self._context:
+            raise GLBackendError("eglCreateContext returned no context (4.1 core)")
+        self.make_current()
+
+    def make_current(self) -> None:
+        from OpenGL import EGL
+
+        if not EGL.eglMakeCurrent(
+            self._display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, self._context
+        ):
+            raise GLBackendError("eglMakeCurrent failed")
+
+    def delete_context(self) -> None:
+        from OpenGL import EGL
+
+        if self._display is not None:
+            if self._context is not None:
+                EGL.eglDestroyContext(self._display, self._context)
+                self._context = None
+            EGL.eglTerminate(self._display)
+            self._display = None
 
 
 _CLASSES: dict[str, type[GLContext]] = {"osmesa": OSMesaContext, "egl": EGLContext}

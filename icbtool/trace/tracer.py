@@ -898,13 +898,14 @@ def denoise(
 
     Returns:
         (H, W, 3) float32.
+
+    Raises:
+        icbtool._optional.MissingOptionalDependency: pyoidn is not installed (the message says
+            ``pip install "icbtool[denoise]"``).
     """
-    try:
-        import pyoidn
-    except ImportError as e:  # pragma: no cover
-        raise ImportError(
-            "denoising needs pyoidn: pip install pyoidn (see requirements.lock)"
-        ) from e
+    from icbtool._optional import require
+
+    pyoidn = require("pyoidn", "denoising (Open Image Denoise)")
     c = np.ascontiguousarray(np.maximum(color, 0), np.float32)
     a = None if albedo is None else np.ascontiguousarray(np.clip(albedo, 0, 1), np.float32)
     nn = None if (normal is None or a is None) else np.ascontiguousarray(normal, np.float32)

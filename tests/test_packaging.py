@@ -1,0 +1,119 @@
+"""Packaging: every third-party module the library imports is declared in setup.cfg
+``install_requires`` (optional ones go through :func:`icbtool._optional.require` and are extras),
+pyrender is not needed, and the shaders are package data. The wheel itself is checked by
+``.ci/wheel_smoke.sh`` (run by ``make test``)."""
+
+from __future__ import annotations
+
+import ast
+import configparser
+import re
+import sys
+from importlib import metadata
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PKG = REPO / "icbtool"
+
+
+def _norm(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def _requirements(text: str) -> set[str]:
+    out = set()
+    for line in re.split(r"[\n;]", text):
+        line = line.split("#", 1)[0].strip()
+        if line:
+            out.add(_norm(re.split(r"[<>=!~\[ ]", line, maxsplit=1)[0]))
+    return out
+
+
+def _cfg() -> configparser.ConfigParser:
+    cfg = configparser.ConfigParser()
+    cfg.read(REPO / "setup.cfg")
+    return cfg
+
+
+def _third_party_imports() -> dict[str, set[str]]:
+    """Top-level module -> files importing it (module level or inside functions)."""
+    found: dict[str, set[str]] = {}
+    for path in PKG.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            else:
+                continue
+            for n in names:
+                top = n.split(".")[0]
+                if top != "icbtool" and top not in sys.stdlib_module_names and top != "__future__":
+                    found.setdefault(top, set()).add(str(path.relative_to(REPO)))
+    return found
+
+
+def _module_owners() -> dict[str, set[str]]:
+    """Top-level module -> installed distributions providing it (read from their file lists, so
+    that a bare extension module such as OpenEXR's .so is found too)."""
+    owners: dict[str, set[str]] = {}
+    for dist in metadata.distributions():
+        record = dist.read_text("RECORD") or dist.read_text("top_level.txt") or ""
+        tops = {line.split(",", 1)[0].split("/", 1)[0] for line in record.splitlines()}
+        for top in tops:
+            if top.endswith((".dist-info", ".egg-info", ".pth")) or top in (
+                "",
+                "..",
+                "__pycache__",
+            ):
+                continue
+            top = top.split(".", 1)[0]  # pkg, mod.py, mod.cpython-311-x86_64-linux-gnu.so
+            owners.setdefault(top, set()).add(_norm(dist.metadata["Name"]))
+    return owners
+
+
+def test_every_runtime_import_is_declared():
+    declared = _requirements(_cfg()["options"]["install_requires"])
+    dists = _module_owners()
+    undeclared = {}
+    for module, files in sorted(_third_party_imports().items()):
+        owners = dists.get(module, set())
+        assert owners, f"{module} (imported by {sorted(files)}) is not installed here"
+        if not owners & declared:
+            undeclared[module] = (sorted(owners), sorted(files))
+    assert not undeclared, f"imported but not in install_requires: {undeclared}"
+
+
+def test_the_known_imports_are_found():
+    """The scanner sees imports inside functions (a scanner that finds nothing would pass)."""
+    imports = _third_party_imports()
+    for module in ("numpy", "OpenGL", "cv2", "OpenEXR", "matplotlib", "embreex", "torch"):
+        assert module in imports, module
+    assert "icbtool/pipeline.py" in imports["matplotlib"]  # a function-level import
+
+
+def test_optional_modules_are_not_imported_directly():
+    """Optional packages go through require() so that a missing one names its extra."""
+    from icbtool._optional import EXTRAS
+
+    direct = {m: f for m, f in _third_party_imports().items() if m in EXTRAS}
+    assert not direct, f"import these with icbtool._optional.require: {direct}"
+
+
+def test_no_pyrender_and_a_working_pyopengl():
+    """pyrender pins PyOpenGL==3.1.0 (broken OSMesa); icbtool neither declares nor imports it."""
+    opts = _cfg()["options"]
+    assert "pyrender" not in _requirements(opts["install_requires"])
+    assert "pyrender" not in _third_party_imports()
+    pyopengl = [ln for ln in opts["install_requires"].splitlines() if "PyOpenGL" in ln]
+    assert pyopengl == ["PyOpenGL>=3.1.10"]
+
+
+def test_shaders_are_package_data():
+    pattern = _cfg()["options.package_data"]["icbtool"]
+    globs = [g.strip() for g in pattern.split(",")]
+    shaders = sorted(p for p in (PKG / "raster" / "shaders").iterdir() if p.is_file())
+    assert len(shaders) >= 6
+    for s in shaders:
+        rel = s.relative_to(PKG)
+        assert any(rel.match(g) for g in globs), f"{rel} is not matched by package_data {globs}"
