@@ -465,7 +465,11 @@ def train(
                     opt_d.zero_grad(set_to_none=True)
                     d_loss.backward()
                     opt_d.step()
-                    losses.update(d=float(d_loss), gp=float(gp), w=float(d_real - d_fake))
+                    losses.update(
+                        d=float(d_loss.detach()),
+                        gp=float(gp.detach()),
+                        w=float((d_real - d_fake).detach()),
+                    )
             if x is None:
                 xb, yb = sampler.next()
                 x, y = to_t(xb), to_t(yb)
@@ -475,12 +479,12 @@ def train(
             if config.weight_adv > 0:
                 g_adv = -critic_score(critic, x, fake).mean()
                 g_loss = g_loss + config.weight_adv * g_adv
-                losses["g_adv"] = float(g_adv)
+                losses["g_adv"] = float(g_adv.detach())
             if perceptual is not None:
                 g_p = perceptual(fake, y)
                 g_loss = g_loss + config.weight_perceptual * g_p
-                losses["g_p"] = float(g_p)
-            losses.update(g=float(g_loss), l1=float(g_l1))
+                losses["g_p"] = float(g_p.detach())
+            losses.update(g=float(g_loss.detach()), l1=float(g_l1.detach()))
             bad = {
                 k: v
                 for k, v in losses.items()
