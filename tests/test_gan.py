@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import subprocess
 import sys
@@ -355,3 +356,63 @@ def test_onnx_export_matches_torch(trained, tmp_path):
     with torch.no_grad():
         want = trained.module(torch.from_numpy(x)).numpy()
     assert got.shape == (2, 3, 64, 64) and np.abs(got - want).max() < 1e-5
+
+
+# ------------------------------------------------------------------------------ CLI
+@pytest.mark.filterwarnings("ignore:perceptual loss L_p is OFF")
+def test_cli_train_resume_export(store, tmp_path, capsys):
+    from icbtool.cli import main
+
+    root = str(store.root)
+    store.close()
+    run = tmp_path / "runs" / "r"
+
+    def args(n: int, *more: str) -> list[str]:
+        return [
+            "train",
+            root,
+            "--inputs",
+            "H",
+            "--out",
+            str(run),
+            "--iterations",
+            str(n),
+            "--crop",
+            "32",
+            "--base",
+            "4",
+            "--eval-every",
+            "2",
+            "--no-progress",
+            *more,
+        ]
+
+    assert main(args(2)) == 0
+    assert "trained to iteration 2" in capsys.readouterr().out
+    assert main(args(2)) == 1 and "already holds a run" in capsys.readouterr().err
+    assert main(args(3, "--resume")) == 0
+    assert "iteration 3" in capsys.readouterr().out
+    gen = Generator.load(run)
+    assert gen.inputs == ("albedo", "dl", "normal_world")
+    if importlib.util.find_spec("onnx") is not None:
+        onnx_path = str(tmp_path / "g.onnx")
+        assert main(["export", str(run), "--onnx", onnx_path, "--size", "32", "32"]) == 0
+        assert (tmp_path / "g.onnx").is_file() and (tmp_path / "g.onnx.json").is_file()
+    assert main(["train", str(tmp_path / "nostore"), "--out", str(tmp_path / "x")]) == 1
+
+
+@pytest.mark.gl
+def test_cli_generate_on_a_procedural_scene(store, tmp_path, capsys):
+    from icbtool.cli import main
+    from icbtool.imageio import read_exr
+
+    T.train(store, tiny(iterations=1, inputs="I"), tmp_path / "run", progress=False)
+    out = tmp_path / "gen"
+    rc = main(["generate", str(tmp_path / "run"), "cornell_box", "--size", "64", "64",
+               "--out", str(out)])  # fmt: skip
+    assert rc == 0, capsys.readouterr().err
+    gi = read_exr(out / "default_gi.exr")
+    assert gi.shape == (64, 64, 3) and np.isfinite(gi).all() and gi.min() >= 0
+    rc = main(["generate", str(tmp_path / "run"), "cornell_box", "--size", "60", "64",
+               "--out", str(out)])  # fmt: skip
+    assert rc == 1 and "multiples of 32" in capsys.readouterr().err
