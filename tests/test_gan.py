@@ -281,6 +281,8 @@ def test_resume_equals_uninterrupted_bitwise(store, tmp_path):
         T.train(store, tiny(iterations=6, lr=1e-3), tmp_path / "full", resume=True, progress=False)
     assert (tmp_path / "full" / "evals.csv").read_text().count("\n") == 3
     assert (tmp_path / "full" / "samples" / "iter_000006.png").is_file()
+    if importlib.util.find_spec("tensorboard") is not None:
+        assert any((tmp_path / "full" / "tb").glob("events.out.tfevents.*"))
 
 
 def test_nan_input_is_a_clear_error(tmp_path):
