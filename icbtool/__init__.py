@@ -27,6 +27,7 @@ _SUBMODULES = (
     "imageio",
     "cli",
     "pipeline",
+    "gan",
 )
 
 if TYPE_CHECKING:  # pragma: no cover

@@ -18,6 +18,9 @@ EXTRAS: dict[str, tuple[str, str]] = {
     "flip_evaluator": ("metrics", "flip-evaluator"),
     "pyvista": ("gui", "pyvista"),
     "mitsuba": ("bench", "mitsuba"),
+    "onnx": ("gan", "onnx"),
+    "onnxruntime": ("gan", "onnxruntime"),
+    "tensorboard": ("gan", "tensorboard"),
 }
 
 

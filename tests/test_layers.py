@@ -28,6 +28,7 @@ LAYERS: dict[str, int] = {
     "trace": 3,
     "store": 3,
     "bake": 4,
+    "gan": 4,
     "system": 5,
     "pipeline": 6,
     "cli": 7,

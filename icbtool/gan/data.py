@@ -1,0 +1,279 @@
+"""Training pairs for the GAN from a store (ICB.md section 5), encoded into the network's range.
+
+Input encoding (one rule per buffer, fitted on the train split and saved with the run):
+
+=================  ==========================================================
+``dl``             :class:`~icbtool.gan.hdr.HDRTransform` (log curve to [-1, 1])
+``albedo``         2 a - 1
+``normal_*``       as they are (unit vectors)
+``depth``          2 z / depth_max - 1 (depth_max: largest train depth; 0 = background -> -1)
+``position``       (p - center) / half_extent (train surface bounds)
+``mask``           2 m - 1
+=================  ==========================================================
+
+The GI target goes through the same HDR transform as DL. Paired augmentation draws one crop and one
+horizontal flip per sample and applies them to the input and the target alike; a flip negates the
+x component of ``normal_view`` (a mirrored view), world-space maps are left as they are.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from icbtool.buffers import CHANNELS
+from icbtool.gan.hdr import HDRTransform
+from icbtool.store.dataset import INPUT_CONFIGS, Dataset
+
+
+def resolve_inputs(inputs: str | tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """A configuration letter ("A".."J") or buffer names (tuple, or "a,b,c") -> buffer names.
+
+    Raises:
+        ValueError: unknown letter or buffer, or "gi" (the target) among the inputs.
+    """
+    if isinstance(inputs, str):
+        if inputs in INPUT_CONFIGS:
+            return INPUT_CONFIGS[inputs]
+        if "," not in inputs and inputs not in CHANNELS:
+            raise ValueError(
+                f"unknown input configuration {inputs!r}: a letter of {sorted(INPUT_CONFIGS)} or "
+                "comma-separated buffer names"
+            )
+        inputs = tuple(s.strip() for s in inputs.split(",") if s.strip())
+    names = tuple(inputs)
+    bad = [n for n in names if n not in CHANNELS]
+    if bad:
+        raise ValueError(f"unknown input buffer(s) {bad}; choose from {list(CHANNELS)}")
+    if "gi" in names:
+        raise ValueError("'gi' is the target and cannot be an input")
+    if len(set(names)) != len(names):
+        raise ValueError(f"input buffers repeat: {names}")
+    return names
+
+
+@dataclass(frozen=True)
+class InputEncoding:
+    """How input maps become the network's (C, H, W) input (module doc).
+
+    Attributes:
+        inputs: buffer names in channel order.
+        hdr: the HDR transform of DL and GI.
+        depth_max: depth that maps to +1.
+        position_center: (3,) world point that maps to 0.
+        position_half_extent: world distance that maps to 1.
+    """
+
+    inputs: tuple[str, ...]
+    hdr: HDRTransform = field(default_factory=HDRTransform)
+    depth_max: float = 1.0
+    position_center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    position_half_extent: float = 1.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "inputs", resolve_inputs(tuple(self.inputs)))
+        for n in ("depth_max", "position_half_extent"):
+            v = getattr(self, n)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"InputEncoding.{n} must be finite and > 0, got {v}")
+
+    @property
+    def n_channels(self) -> int:
+        return sum(CHANNELS[n] for n in self.inputs)
+
+    def channel_slices(self) -> dict[str, slice]:
+        """Buffer name -> its channels in the stacked input."""
+        out, c = {}, 0
+        for n in self.inputs:
+            out[n] = slice(c, c + CHANNELS[n])
+            c += CHANNELS[n]
+        return out
+
+    def encode_map(self, name: str, a: np.ndarray) -> np.ndarray:
+        """One (H, W, C) map of buffer ``name`` -> the network's range (float32)."""
+        a = np.asarray(a, np.float32)
+        if name == "dl":
+            return self.hdr.encode(a)
+        if name in ("albedo", "mask"):
+            return 2.0 * a - 1.0
+        if name in ("normal_world", "normal_view"):
+            return a
+        if name == "depth":
+            return 2.0 * a / np.float32(self.depth_max) - 1.0
+        if name == "position":
+            c = np.asarray(self.position_center, np.float32)
+            return (a - c) / np.float32(self.position_half_extent)
+        raise ValueError(f"no encoding for buffer {name!r}")
+
+    def encode(self, maps: dict[str, np.ndarray], where: str = "buffers") -> np.ndarray:
+        """(H, W, C_k) maps by name -> (C, H, W) float32 network input.
+
+        Raises:
+            ValueError: a missing buffer, mismatched sizes, or non-finite values (naming them).
+        """
+        parts, hw = [], None
+        for n in self.inputs:
+            if n not in maps or maps[n] is None:
+                need = list(self.inputs)
+                raise ValueError(f"{where} lacks the input buffer {n!r} (needs {need})")
+            a = np.asarray(maps[n], np.float32)
+            if a.ndim == 2:
+                a = a[..., None]
+            if a.ndim != 3 or a.shape[2] != CHANNELS[n]:
+                raise ValueError(f"{where}.{n} must be (H, W, {CHANNELS[n]}), got {a.shape}")
+            if hw is None:
+                hw = a.shape[:2]
+            elif a.shape[:2] != hw:
+                raise ValueError(f"{where}.{n} is {a.shape[:2]}, other inputs are {hw}")
+            if not np.isfinite(a).all():
+                raise ValueError(f"{where}.{n} holds NaN or Inf values")
+            parts.append(self.encode_map(n, a))
+        return np.ascontiguousarray(np.concatenate(parts, axis=2).transpose(2, 0, 1))
+
+    @classmethod
+    def fit(cls, inputs: tuple[str, ...], hdr: HDRTransform, samples: list[Any]) -> InputEncoding:
+        """Depth and position ranges from the surface pixels of train samples (``Sample`` list)."""
+        inputs = resolve_inputs(inputs)
+        sl = cls(inputs, hdr).channel_slices()
+        depth_max, lo, hi = 1.0, None, None
+        if "depth" in sl:
+            ds = [s.inputs[sl["depth"]][s.mask > 0.5] for s in samples]
+            d = np.concatenate(ds) if ds else np.zeros(0)
+            depth_max = float(d.max()) if d.size and d.max() > 0 else 1.0
+        center, half = (0.0, 0.0, 0.0), 1.0
+        if "position" in sl:
+            ps = [s.inputs[sl["position"]][:, s.mask[0] > 0.5].T for s in samples]
+            p = np.concatenate(ps) if ps else np.zeros((0, 3))
+            if len(p):
+                lo, hi = p.min(0), p.max(0)
+                center = tuple(float(v) for v in (lo + hi) / 2)
+                half = float(max((hi - lo).max() / 2, 1e-6))
+        return cls(inputs, hdr, depth_max, center, half)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["inputs"] = list(self.inputs)
+        d["position_center"] = list(self.position_center)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> InputEncoding:
+        return cls(
+            tuple(d["inputs"]),
+            HDRTransform(**d["hdr"]),
+            float(d["depth_max"]),
+            tuple(d["position_center"]),  # type: ignore[arg-type]
+            float(d["position_half_extent"]),
+        )
+
+
+class PairData:
+    """One split of a store as encoded arrays in memory.
+
+    Attributes:
+        x: (N, C, H, W) float32 encoded inputs.
+        y: (N, 3, H, W) float32 encoded GI target (HDR transform).
+        gi: (N, 3, H, W) float32 linear GI (the truth for metrics).
+        record_ids: store record of each sample.
+        channels: input channel names (``Dataset.channels``).
+    """
+
+    def __init__(self, dataset: Dataset, encoding: InputEncoding) -> None:
+        if tuple(dataset.inputs) != encoding.inputs:
+            raise ValueError(f"dataset inputs {dataset.inputs} != encoding {encoding.inputs}")
+        samples = list(dataset)
+        if not samples:
+            raise ValueError(
+                f"no records in the {dataset.split!r} split (store records tagged with that path, "
+                f"holding {list(dataset.inputs) + [dataset.target]})"
+            )
+        shapes = {s.inputs.shape[1:] for s in samples}
+        if len(shapes) > 1:
+            raise ValueError(f"the {dataset.split!r} split mixes image sizes {sorted(shapes)}")
+        xs, ys = [], []
+        for s in samples:
+            maps = {}
+            for n, sl in encoding.channel_slices().items():
+                maps[n] = s.inputs[sl].transpose(1, 2, 0)
+            where = f"store record {s.record_id}"
+            xs.append(encoding.encode(maps, where))
+            if not np.isfinite(s.target).all():
+                raise ValueError(f"{where}.{dataset.target} holds NaN or Inf values")
+            ys.append(encoding.hdr.encode(s.target))
+        self.x = np.stack(xs)
+        self.y = np.stack(ys)
+        self.gi = np.stack([s.target for s in samples]).astype(np.float32)
+        self.record_ids = [s.record_id for s in samples]
+        self.channels = dataset.channels
+        self.encoding = encoding
+        self._samples = samples
+
+    @property
+    def samples(self) -> list[Any]:
+        return self._samples
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    @property
+    def height(self) -> int:
+        return int(self.x.shape[2])
+
+    @property
+    def width(self) -> int:
+        return int(self.x.shape[3])
+
+
+class BatchSampler:
+    """Seeded random mini-batches with paired crop + flip; its state resumes exactly.
+
+    Args:
+        data: the train split.
+        batch_size: samples per batch (drawn with replacement).
+        crop: side of the square crop (<= the image's H and W).
+        flip: random horizontal flips.
+        seed: seed of the draws.
+    """
+
+    def __init__(self, data: PairData, batch_size: int, crop: int, flip: bool, seed: int) -> None:
+        if crop > data.height or crop > data.width:
+            raise ValueError(
+                f"crop {crop} is larger than the training images ({data.height} x {data.width})"
+            )
+        self.data, self.batch_size, self.crop, self.flip = data, batch_size, crop, flip
+        self.rng = np.random.default_rng(seed)
+        self.drawn = 0
+        sl = data.encoding.channel_slices()
+        self._view_x = sl["normal_view"].start if "normal_view" in sl else None
+
+    def next(self) -> tuple[np.ndarray, np.ndarray]:
+        """(B, C, crop, crop) inputs and (B, 3, crop, crop) targets, same crop/flip per pair."""
+        d, c = self.data, self.crop
+        idx = self.rng.integers(0, len(d), self.batch_size)
+        top = self.rng.integers(0, d.height - c + 1, self.batch_size)
+        left = self.rng.integers(0, d.width - c + 1, self.batch_size)
+        flips = self.rng.random(self.batch_size) < 0.5 if self.flip else [False] * self.batch_size
+        xs, ys = [], []
+        for i, t, l, f in zip(idx, top, left, flips):
+            x = d.x[i, :, t : t + c, l : l + c]
+            y = d.y[i, :, t : t + c, l : l + c]
+            if f:
+                x, y = x[:, :, ::-1].copy(), y[:, :, ::-1].copy()
+                if self._view_x is not None:
+                    x[self._view_x] = -x[self._view_x]
+            xs.append(x)
+            ys.append(y)
+        self.drawn += 1
+        return np.ascontiguousarray(np.stack(xs)), np.ascontiguousarray(np.stack(ys))
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"rng": self.rng.bit_generator.state, "drawn": self.drawn}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.rng.bit_generator.state = state["rng"]
+        self.drawn = int(state["drawn"])
+
+
+__all__ = ["BatchSampler", "InputEncoding", "PairData", "resolve_inputs"]

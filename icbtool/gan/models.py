@@ -1,0 +1,190 @@
+"""The generator (U-Net) and the critic (PatchGAN) of ICB.md section 5. Torch tensors are BCHW.
+
+Generator: 5 stride-2 4x4 convolutions down (LeakyReLU 0.2), 5 stride-2 4x4 transposed
+convolutions up (ReLU), each up level concatenated with the encoder level of the same size (skip),
+tanh on the last layer. H and W must be multiples of 32 (2^5); the output has the input's H, W.
+
+Critic: a Markovian PatchGAN of 4 convolutions (LeakyReLU 0.2 after the first three), conditioned
+on the input maps by channel concatenation; one unbounded score per patch (WGAN critic, no
+sigmoid). Its normalisation is "instance" or "none": batch norm mixes the samples of a batch,
+which the per-sample gradient penalty of WGAN-GP forbids.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from torch import nn
+
+Norm = Literal["batch", "instance", "none"]
+NORMS: tuple[str, ...] = ("batch", "instance", "none")
+#: Number of down (and up) levels; the U-Net takes H, W that are multiples of 2**LEVELS.
+LEVELS = 5
+MULTIPLE = 2**LEVELS
+
+
+def _check_int(owner: str, name: str, v: object, lo: int) -> None:
+    if not isinstance(v, int) or isinstance(v, bool) or v < lo:
+        raise ValueError(f"{owner}.{name} must be an integer >= {lo}, got {v!r}")
+
+
+@dataclass(frozen=True)
+class GeneratorConfig:
+    """U-Net generator.
+
+    Attributes:
+        in_channels: channels of the stacked input maps (e.g. 10 for configuration I).
+        out_channels: channels of the output (3: RGB GI).
+        base: width of the first level; levels have base * (1, 2, 4, 8, 8) channels.
+        norm: normalisation after each inner convolution.
+    """
+
+    in_channels: int
+    out_channels: int = 3
+    base: int = 32
+    norm: Norm = "batch"
+
+    def __post_init__(self) -> None:
+        _check_int("GeneratorConfig", "in_channels", self.in_channels, 1)
+        _check_int("GeneratorConfig", "out_channels", self.out_channels, 1)
+        _check_int("GeneratorConfig", "base", self.base, 1)
+        if self.norm not in NORMS:
+            raise ValueError(f"GeneratorConfig.norm must be one of {NORMS}, got {self.norm!r}")
+
+
+@dataclass(frozen=True)
+class DiscriminatorConfig:
+    """PatchGAN critic.
+
+    Attributes:
+        in_channels: input map channels (the condition).
+        target_channels: channels of the real / generated image.
+        base: width of the first layer (layers: base, 2 base, 4 base, 1).
+        norm: "instance" or "none" (not "batch": see module doc).
+    """
+
+    in_channels: int
+    target_channels: int = 3
+    base: int = 32
+    norm: Norm = "instance"
+
+    def __post_init__(self) -> None:
+        _check_int("DiscriminatorConfig", "in_channels", self.in_channels, 1)
+        _check_int("DiscriminatorConfig", "target_channels", self.target_channels, 1)
+        _check_int("DiscriminatorConfig", "base", self.base, 1)
+        if self.norm not in ("instance", "none"):
+            raise ValueError(
+                "DiscriminatorConfig.norm must be 'instance' or 'none' (batch norm breaks the "
+                f"per-sample gradient penalty of WGAN-GP), got {self.norm!r}"
+            )
+
+
+def _norm(kind: str, channels: int) -> nn.Module:
+    if kind == "batch":
+        return nn.BatchNorm2d(channels)
+    if kind == "instance":
+        return nn.InstanceNorm2d(channels, affine=True)
+    return nn.Identity()
+
+
+class UNetGenerator(nn.Module):
+    """U-Net with 5 down / 5 up levels and skips (module doc).
+
+    ``forward(x)``: x (B, in_channels, H, W) -> (B, out_channels, H, W) in [-1, 1].
+    """
+
+    def __init__(self, config: GeneratorConfig) -> None:
+        super().__init__()
+        self.config = config
+        b, n = config.base, config.norm
+        widths = [b * m for m in (1, 2, 4, 8, 8)]
+        self.down = nn.ModuleList()
+        c_in = config.in_channels
+        for i, w in enumerate(widths):
+            inner = 0 < i < LEVELS - 1  # no norm on the first level nor the 1/32 bottleneck
+            self.down.append(
+                nn.Sequential(
+                    nn.Conv2d(c_in, w, 4, 2, 1, bias=not inner or n == "none"),
+                    _norm(n if inner else "none", w),
+                    nn.LeakyReLU(0.2),
+                )
+            )
+            c_in = w
+        self.up = nn.ModuleList()
+        for i in range(LEVELS - 1):
+            w = widths[LEVELS - 2 - i]  # size of the skip it meets
+            self.up.append(
+                nn.Sequential(
+                    nn.ConvTranspose2d(c_in, w, 4, 2, 1, bias=n == "none"),
+                    _norm(n, w),
+                    nn.ReLU(),
+                )
+            )
+            c_in = 2 * w
+        self.up.append(
+            nn.Sequential(nn.ConvTranspose2d(c_in, config.out_channels, 4, 2, 1), nn.Tanh())
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        skips = []
+        for layer in self.down:
+            x = layer(x)
+            skips.append(x)
+        skips.pop()  # the bottleneck is not a skip
+        for layer in self.up[:-1]:
+            x = torch.cat([layer(x), skips.pop()], dim=1)
+        return self.up[-1](x)
+
+
+class PatchDiscriminator(nn.Module):
+    """Conditional PatchGAN critic (module doc).
+
+    ``forward(cond, image)``: cond (B, in_channels, H, W), image (B, target_channels, H, W) ->
+    (B, 1, H/4 - 2, W/4 - 2) patch scores (4x4 kernels; strides 2, 2, 1, 1).
+    """
+
+    def __init__(self, config: DiscriminatorConfig) -> None:
+        super().__init__()
+        self.config = config
+        b, n = config.base, config.norm
+        c0 = config.in_channels + config.target_channels
+        self.layers = nn.Sequential(
+            nn.Conv2d(c0, b, 4, 2, 1),
+            nn.LeakyReLU(0.2),
+            nn.Conv2d(b, 2 * b, 4, 2, 1),
+            _norm(n, 2 * b),
+            nn.LeakyReLU(0.2),
+            nn.Conv2d(2 * b, 4 * b, 4, 1, 1),
+            _norm(n, 4 * b),
+            nn.LeakyReLU(0.2),
+            nn.Conv2d(4 * b, 1, 4, 1, 1),
+        )
+
+    def forward(self, cond: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+        return self.layers(torch.cat([cond, image], dim=1))
+
+
+def init_weights(module: nn.Module, generator: torch.Generator | None = None) -> None:
+    """pix2pix initialisation: conv weights N(0, 0.02), norm scales N(1, 0.02), biases 0."""
+    for m in module.modules():
+        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
+            nn.init.normal_(m.weight, 0.0, 0.02, generator=generator)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+        elif isinstance(m, (nn.BatchNorm2d, nn.InstanceNorm2d)) and m.weight is not None:
+            nn.init.normal_(m.weight, 1.0, 0.02, generator=generator)
+            nn.init.zeros_(m.bias)
+
+
+__all__ = [
+    "LEVELS",
+    "MULTIPLE",
+    "NORMS",
+    "DiscriminatorConfig",
+    "GeneratorConfig",
+    "PatchDiscriminator",
+    "UNetGenerator",
+    "init_weights",
+]

@@ -1,0 +1,420 @@
+"""icbtool.gan: known-answer tests of the losses, the U-Net, the HDR transform, data, training
+(overfit, exact resume, divergence guard), inference and ONNX export. Tiny sizes, one thread."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import icbtool.store as S  # noqa: E402
+from icbtool.camera import Camera  # noqa: E402
+from icbtool.gan import data as D  # noqa: E402
+from icbtool.gan import losses as L  # noqa: E402
+from icbtool.gan import models as M  # noqa: E402
+from icbtool.gan import train as T  # noqa: E402
+from icbtool.gan.generate import Generator  # noqa: E402
+from icbtool.gan.hdr import HDRTransform  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def make_record(i: int, size: int = 32, path: str = "train", nan: bool = False) -> S.CRTBuffer:
+    """A smooth synthetic CRT-buffer whose GI is a simple function of its inputs."""
+    r = np.random.default_rng(i)
+    h = w = size
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32) / size
+    ph = r.uniform(0, 2 * np.pi)
+    albedo = np.stack(
+        [0.5 + 0.4 * np.sin(6 * xx + ph), 0.5 + 0.4 * np.cos(5 * yy), 0.6 + 0 * xx], 2
+    )
+    dl = np.stack([2.0 * (xx > 0.5), 1.5 * (yy > 0.4), 0.5 + xx], 2).astype(np.float32)
+    nw = np.stack([np.sin(3 * xx), np.cos(3 * xx), 0 * xx], 2)
+    nv = np.stack([0 * xx, np.sin(2 * yy), np.cos(2 * yy)], 2)
+    depth = (1.0 + yy + 0.2 * i)[..., None]
+    pos = np.stack([xx, yy, 0 * xx + i], 2)
+    gi = 0.3 * albedo * (0.5 + dl.mean(2, keepdims=True)) * (0.6 + 0.4 * nw[..., 1:2])
+    if nan:
+        dl[3, 4, 1] = np.nan
+    m = np.eye(4)
+    m[:3, 3] = [i, 0.0, 0.0]
+    return S.CRTBuffer(
+        camera=Camera.from_fov(60.0, h, w, m),
+        meta=S.RecordMeta("synthetic", "sh", "lh", spp=4, tags={"path": path, "index": i}),
+        gi=gi.astype(np.float32),
+        dl=dl,
+        albedo=albedo.astype(np.float32),
+        normal_world=nw.astype(np.float32),
+        normal_view=nv.astype(np.float32),
+        depth=depth.astype(np.float32),
+        position=pos.astype(np.float32),
+        mask=np.ones((h, w, 1), np.float32),
+    )
+
+
+@pytest.fixture
+def store(tmp_path):
+    with S.open(tmp_path / "store", S.StoreConfig(fsync=False)) as st:
+        for i in range(3):
+            st.put(make_record(i, path="train"))
+        for i in range(3, 5):
+            st.put(make_record(i, path="test"))
+        yield st
+
+
+def tiny(**kw) -> T.TrainConfig:
+    base = dict(crop=32, base=4, batch_size=2, iterations=4, eval_every=2, checkpoint_every=2)
+    base["weight_perceptual"] = 0.0  # no VGG here (its own test checks the warning)
+    return T.TrainConfig.preset("cpu", **{**base, **kw})
+
+
+# ------------------------------------------------------------------------------ lazy import
+def test_import_icbtool_and_gan_does_not_import_torch():
+    code = "import sys, icbtool, icbtool.gan; icbtool.gan.__dir__(); print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+# ------------------------------------------------------------------------------ losses
+class LinearCritic(torch.nn.Module):
+    """D(c, x) = sum(w * x) + sum(c): gradient w.r.t. x is w everywhere."""
+
+    def __init__(self, w):
+        super().__init__()
+        self.w = torch.nn.Parameter(w)
+
+    def forward(self, cond, x):
+        return ((self.w * x).sum((1, 2, 3)) + cond.sum((1, 2, 3))).reshape(-1, 1, 1, 1)
+
+
+def test_gradient_penalty_of_a_linear_critic_is_analytic():
+    w = torch.full((3, 2, 2), 0.5)  # ||w|| = sqrt(12 * 0.25) = sqrt(3)
+    critic = LinearCritic(w)
+    real, fake = torch.rand(5, 3, 2, 2), torch.rand(5, 3, 2, 2)
+    cond = torch.rand(5, 1, 2, 2)
+    gp = L.gradient_penalty(critic, cond, real, fake, lambda_gp=10.0, k=1.0)
+    assert gp.item() == pytest.approx(10.0 * (math.sqrt(3) - 1) ** 2, rel=1e-5)  # 5.3590
+    gp2 = L.gradient_penalty(critic, cond, real, fake, lambda_gp=2.0, k=3.0)
+    assert gp2.item() == pytest.approx(2.0 * (math.sqrt(3) - 3) ** 2, rel=1e-5)
+    gp.backward()  # differentiable w.r.t. the critic: d/dw = 2 lambda (|w| - k) w / |w|
+    expect = 2 * 10.0 * (math.sqrt(3) - 1) * 0.5 / math.sqrt(3)
+    assert torch.allclose(critic.w.grad, torch.full((3, 2, 2), expect), rtol=1e-5)
+
+
+def test_l1_is_the_mean_absolute_difference():
+    a = torch.tensor([[[[0.0, 1.0], [2.0, -1.0]]]])
+    b = torch.tensor([[[[1.0, 1.0], [0.0, 1.0]]]])
+    assert L.l1_loss(a, b).item() == pytest.approx((1 + 0 + 2 + 2) / 4)
+
+
+def test_perceptual_distance_is_normalised_by_chw():
+    conv = torch.nn.Conv2d(3, 2, 1, bias=False)
+    with torch.no_grad():
+        conv.weight[:] = torch.tensor([[1.0, 1.0, 1.0], [-1.0, 0.0, 0.0]]).reshape(2, 3, 1, 1)
+    net = torch.nn.Sequential(conv, torch.nn.ReLU())
+    loss = L.PerceptualLoss(net, layers=(1,), imagenet_input=False)
+    pred, target = torch.zeros(2, 3, 2, 3), torch.ones(2, 3, 2, 3)
+    # activations of ones: channel 0 relu(3) = 3, channel 1 relu(-1) = 0; of zeros: 0.
+    # per sample: (9 * 6 + 0) / (C H W = 2 * 2 * 3) = 4.5; the batch mean is 4.5 too.
+    assert loss(pred, target).item() == pytest.approx(4.5)
+    # two layers (conv output, then ReLU) add: conv layer gives (9 * 6 + 1 * 6) / 12 = 5
+    both = L.PerceptualLoss(net, layers=(0, 1), imagenet_input=False)
+    assert both(pred, target).item() == pytest.approx(9.5)
+
+
+def test_vgg19_features_have_torchvision_keys_and_load(tmp_path):
+    net = L.VGG19Features()
+    keys = [k for k in net.state_dict() if k.endswith(".weight")]
+    assert len(keys) == 16 and keys[0] == "0.weight" and keys[-1] == "34.weight"
+    assert isinstance(net[L.VGG19_RELU_X_1[-1]], torch.nn.ReLU)
+    sd = {f"features.{k}": v for k, v in net.state_dict().items()}
+    sd["classifier.0.weight"] = torch.zeros(2, 2)
+    torch.save(sd, tmp_path / "vgg19.pth")
+    loaded = L.load_vgg19_features(tmp_path / "vgg19.pth")
+    assert torch.equal(loaded[34].weight, net[34].weight)
+    del sd["features.10.weight"]
+    torch.save(sd, tmp_path / "bad.pth")
+    with pytest.raises(ValueError, match="features.10.weight"):
+        L.load_vgg19_features(tmp_path / "bad.pth")
+
+
+def test_missing_vgg_file_warns_once_and_is_recorded(store, tmp_path):
+    with pytest.warns(UserWarning, match=r"perceptual loss L_p is OFF.*TrainConfig.vgg19_weights"):
+        loss, status = L.build_perceptual(tmp_path / "nope.pth")
+    assert loss is None and status.startswith("off:")
+    cfg = tiny(iterations=1, weight_perceptual=1.0, vgg19_weights=str(tmp_path / "missing.pth"))
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        T.train(store, cfg, tmp_path / "run", progress=False)
+    texts = [str(w.message) for w in rec if "perceptual loss L_p is OFF" in str(w.message)]
+    assert len(texts) == 1 and "missing.pth" in texts[0]
+    import json
+
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["perceptual"].startswith("off:") and "missing.pth" in saved["perceptual"]
+
+
+# ------------------------------------------------------------------------------ models, HDR
+def test_unet_has_5_down_5_up_and_keeps_size():
+    g = M.UNetGenerator(M.GeneratorConfig(in_channels=7, base=4, norm="instance"))
+    assert len(g.down) == 5 and len(g.up) == 5
+    for layer in g.down:
+        assert isinstance(layer[0], torch.nn.Conv2d) and layer[0].stride == (2, 2)
+        assert isinstance(layer[-1], torch.nn.LeakyReLU)
+    for layer in g.up[:-1]:
+        assert isinstance(layer[0], torch.nn.ConvTranspose2d) and isinstance(
+            layer[-1], torch.nn.ReLU
+        )
+    assert isinstance(g.up[-1][-1], torch.nn.Tanh)
+    y = g(torch.randn(2, 7, 64, 96))
+    assert y.shape == (2, 3, 64, 96) and y.abs().max() <= 1
+    d = M.PatchDiscriminator(M.DiscriminatorConfig(in_channels=7, base=4))
+    assert sum(isinstance(m, torch.nn.Conv2d) for m in d.modules()) == 4
+    assert d(torch.randn(2, 7, 64, 64), torch.randn(2, 3, 64, 64)).shape == (2, 1, 14, 14)
+    with pytest.raises(ValueError, match="batch norm"):
+        M.DiscriminatorConfig(in_channels=7, norm="batch")
+
+
+def test_hdr_transform_round_trips_numpy_and_torch():
+    h = HDRTransform(scale=0.25, max_value=64.0)
+    x = np.concatenate([[0.0, 64.0], np.geomspace(1e-4, 64.0, 200)]).astype(np.float32)
+    y = h.encode(x)
+    assert y[0] == -1.0 and y[1] == pytest.approx(1.0) and np.all(np.diff(y[2:]) > 0)
+    assert np.allclose(h.decode(y), x, rtol=2e-5, atol=1e-6)
+    yt = h.encode(torch.from_numpy(x))
+    assert torch.allclose(yt, torch.from_numpy(y), atol=1e-6)
+    assert torch.allclose(h.decode(yt), torch.from_numpy(x), rtol=2e-5, atol=1e-6)
+    # log1p(1 / 0.25) / log1p(256) maps radiance 1 to 2 * 0.28990 - 1
+    assert h.encode(np.float32(1.0)) == pytest.approx(2 * math.log(5) / math.log(257) - 1, 1e-6)
+    with pytest.raises(ValueError, match="scale"):
+        HDRTransform(scale=0.0)
+
+
+# ------------------------------------------------------------------------------ data
+def test_dataset_configuration_picks_exactly_the_named_channels(store):
+    enc = D.InputEncoding(D.resolve_inputs("E"), HDRTransform())
+    data = D.PairData(S.Dataset(store, split="train", inputs="E"), enc)
+    assert data.channels == [f"{n}.{c}" for n in ("albedo", "dl", "normal_view") for c in "rgb"]
+    assert data.x.shape == (3, 9, 32, 32)
+    rec = store.get(data.record_ids[0])
+    assert np.array_equal(data.x[0, 0:3], (2 * rec.albedo - 1).transpose(2, 0, 1))
+    assert np.allclose(data.x[0, 3:6], HDRTransform().encode(rec.dl).transpose(2, 0, 1))
+    assert np.array_equal(data.x[0, 6:9], rec.normal_view.transpose(2, 0, 1))  # not the world one
+    enc_i = D.InputEncoding.fit(D.resolve_inputs("I"), HDRTransform(), list(S.Dataset(store)))
+    assert enc_i.inputs == ("albedo", "dl", "normal_world", "depth")
+    assert enc_i.depth_max == pytest.approx(1.0 + 31 / 32 + 0.4)  # record 2, last row
+    assert D.resolve_inputs("albedo, depth") == ("albedo", "depth")
+    with pytest.raises(ValueError, match="target"):
+        D.resolve_inputs(("albedo", "gi"))
+
+
+def test_paired_augmentation_applies_one_crop_and_flip_to_both(store):
+    enc = D.InputEncoding(D.resolve_inputs("E"), HDRTransform())
+    data = D.PairData(S.Dataset(store, split="train", inputs="E"), enc)
+    # a target equal to the first 3 input channels shows whether both got the same crop/flip
+    data.y = data.x[:, :3].copy()
+    data.x[:, 6] = 0.5  # normal_view.x: a flip makes it -0.5
+    s1 = D.BatchSampler(data, 16, 16, True, seed=5)
+    x, y = s1.next()
+    assert x.shape == (16, 9, 16, 16) and np.array_equal(x[:, :3], y)
+    state = s1.state_dict()
+    x2, _ = s1.next()
+    s2 = D.BatchSampler(data, 16, 16, True, seed=99)
+    s2.load_state_dict(state)
+    assert np.array_equal(s2.next()[0], x2)
+    signs = x[:, 6].reshape(16, -1)
+    assert np.all(np.abs(signs) == 0.5) and np.all(signs == signs[:, :1])  # one flip per sample
+    assert set(signs[:, 0]) == {-0.5, 0.5}  # both drawn (seeded)
+    with pytest.raises(ValueError, match="larger than"):
+        D.BatchSampler(data, 2, 64, True, 0)
+
+
+# ------------------------------------------------------------------------------ training
+def test_tiny_generator_overfits_one_pair(tmp_path):
+    with S.open(tmp_path / "one", S.StoreConfig(fsync=False)) as st:
+        st.put(make_record(0, size=64, path="only"))
+        cfg = T.TrainConfig(
+            inputs="I", crop=64, base=8, batch_size=1, iterations=300, lr=2e-3, flip=False,
+            norm="batch", weight_adv=0.0, weight_perceptual=0.0, train_path="only",
+            test_path="only", eval_every=300, checkpoint_every=300,
+        )  # fmt: skip
+        res = T.train(st, cfg, tmp_path / "run", progress=False)
+    assert res.step == 300 and res.evals[-1]["ssim"] > 0.95, res.evals
+    gen = Generator.load(tmp_path / "run")
+    rec = make_record(0, size=64)
+    gi = gen.generate(rec)
+    assert gi.shape == (64, 64, 3) and gi.dtype == np.float32
+    from icbtool.metrics import ssim
+
+    assert ssim(gi, rec.gi) == pytest.approx(res.evals[-1]["ssim"], abs=1e-6)
+
+
+def test_resume_equals_uninterrupted_bitwise(store, tmp_path):
+    cfg = tiny(iterations=6, n_critic=2, eval_every=3, checkpoint_every=3)
+    T.train(store, cfg, tmp_path / "full", progress=False)
+    T.train(store, T.TrainConfig.from_dict({**cfg.to_dict(), "iterations": 3}), tmp_path / "cut",
+            progress=False)  # fmt: skip
+    res = T.train(store, cfg, tmp_path / "cut", resume=True, progress=False)
+    assert res.step == 6 and [e["iteration"] for e in res.evals] == [3, 6]
+    a = torch.load(tmp_path / "full" / "checkpoints" / "last.pt", weights_only=False)
+    b = torch.load(tmp_path / "cut" / "checkpoints" / "last.pt", weights_only=False)
+    for part in ("generator", "critic"):
+        for k, v in a[part].items():
+            assert torch.equal(v, b[part][k]), (part, k)
+    assert a["evals"][-1]["ssim"] == b["evals"][-1]["ssim"]
+    with pytest.raises(ValueError, match="already holds a run"):
+        T.train(store, cfg, tmp_path / "full", progress=False)
+    with pytest.raises(ValueError, match="config differs"):
+        T.train(store, tiny(iterations=6, lr=1e-3), tmp_path / "full", resume=True, progress=False)
+    assert (tmp_path / "full" / "evals.csv").read_text().count("\n") == 3
+    assert (tmp_path / "full" / "samples" / "iter_000006.png").is_file()
+    if importlib.util.find_spec("tensorboard") is not None:
+        assert any((tmp_path / "full" / "tb").glob("events.out.tfevents.*"))
+
+
+def test_nan_input_is_a_clear_error(tmp_path):
+    with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as st:
+        st.put(make_record(0, path="train", nan=True))
+        st.put(make_record(1, path="test"))
+        with pytest.raises(ValueError, match=r"store record \d+\.dl holds NaN"):
+            T.train(st, tiny(), tmp_path / "run", progress=False)
+
+
+def test_divergence_stops_and_keeps_the_last_good_checkpoint(store, tmp_path, monkeypatch):
+    calls = {"n": 0}
+    real_l1 = T.l1_loss
+
+    def l1_nan_at_5(a, b):
+        calls["n"] += 1
+        out = real_l1(a, b)
+        return out * float("nan") if calls["n"] == 5 else out
+
+    monkeypatch.setattr(T, "l1_loss", l1_nan_at_5)
+    with pytest.raises(T.TrainingDivergedError, match=r"iteration 5.*l1.*last.pt \(iteration 4\)"):
+        T.train(store, tiny(iterations=8), tmp_path / "run", progress=False)
+    ck = torch.load(tmp_path / "run" / "checkpoints" / "last.pt", weights_only=False)
+    assert ck["step"] == 4
+    assert all(torch.isfinite(v).all() for v in ck["generator"].values() if v.is_floating_point())
+
+
+def test_config_validation_and_presets():
+    p = T.TrainConfig.preset("paper")
+    assert (p.crop, p.base, p.iterations, p.lr, p.batch_size) == (256, 64, 20000, 1e-4, 4)
+    assert p.vgg19_weights is not None
+    c = T.TrainConfig.preset("cpu")
+    assert (c.crop, c.base, c.device) == (128, 32, "cpu")
+    with pytest.raises(ValueError, match="multiple of 32"):
+        T.TrainConfig(crop=100)
+    with pytest.raises(ValueError, match="unknown TrainConfig field"):
+        T.TrainConfig.preset("cpu", crops=1)
+    with pytest.raises(ValueError, match="unknown input configuration"):
+        T.TrainConfig(inputs="Z")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="no CUDA"):
+            T._device("cuda")
+
+
+# ------------------------------------------------------------------------------ inference
+@pytest.fixture
+def trained(store, tmp_path):
+    T.train(store, tiny(iterations=2), tmp_path / "run", progress=False)
+    return Generator.load(tmp_path / "run")
+
+
+def test_generate_checks_its_input(trained):
+    rec = make_record(7, size=32)
+    assert trained.generate(rec).shape == (32, 32, 3)
+    maps = {n: getattr(rec, n) for n in trained.inputs}
+    with pytest.raises(ValueError, match="multiples of 32"):
+        trained.generate({n: a[:30] for n, a in maps.items()})
+    with pytest.raises(ValueError, match="lacks the input buffer 'depth'"):
+        trained.generate({n: a for n, a in maps.items() if n != "depth"})
+    bad = dict(maps, dl=maps["dl"].copy())
+    bad["dl"][0, 0, 0] = np.inf
+    with pytest.raises(ValueError, match="dl holds NaN or Inf"):
+        trained.generate(bad)
+
+
+def test_onnx_export_matches_torch(trained, tmp_path):
+    ort = pytest.importorskip("onnxruntime", reason="onnxruntime not installed (extra 'gan')")
+    pytest.importorskip("onnx", reason="onnx not installed (extra 'gan')")
+    path = trained.export_onnx(tmp_path / "g.onnx", 32, 32)
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    x = np.stack([trained.encode(make_record(k, size=64)) for k in (5, 6)])  # other size, batch 2
+    got = sess.run(None, {"maps": x})[0]
+    with torch.no_grad():
+        want = trained.module(torch.from_numpy(x)).numpy()
+    assert got.shape == (2, 3, 64, 64) and np.abs(got - want).max() < 1e-5
+
+
+# ------------------------------------------------------------------------------ CLI
+@pytest.mark.filterwarnings("ignore:perceptual loss L_p is OFF")
+def test_cli_train_resume_export(store, tmp_path, capsys):
+    from icbtool.cli import main
+
+    root = str(store.root)
+    store.close()
+    run = tmp_path / "runs" / "r"
+
+    def args(n: int, *more: str) -> list[str]:
+        return [
+            "train",
+            root,
+            "--inputs",
+            "H",
+            "--out",
+            str(run),
+            "--iterations",
+            str(n),
+            "--crop",
+            "32",
+            "--base",
+            "4",
+            "--eval-every",
+            "2",
+            "--no-progress",
+            *more,
+        ]
+
+    assert main(args(2)) == 0
+    assert "trained to iteration 2" in capsys.readouterr().out
+    assert main(args(2)) == 1 and "already holds a run" in capsys.readouterr().err
+    assert main(args(3, "--resume")) == 0
+    assert "iteration 3" in capsys.readouterr().out
+    gen = Generator.load(run)
+    assert gen.inputs == ("albedo", "dl", "normal_world")
+    if importlib.util.find_spec("onnx") is not None:
+        onnx_path = str(tmp_path / "g.onnx")
+        assert main(["export", str(run), "--onnx", onnx_path, "--size", "32", "32"]) == 0
+        assert (tmp_path / "g.onnx").is_file() and (tmp_path / "g.onnx.json").is_file()
+    assert main(["train", str(tmp_path / "nostore"), "--out", str(tmp_path / "x")]) == 1
+
+
+@pytest.mark.gl
+def test_cli_generate_on_a_procedural_scene(store, tmp_path, capsys):
+    from icbtool.cli import main
+    from icbtool.imageio import read_exr
+
+    T.train(store, tiny(iterations=1, inputs="I"), tmp_path / "run", progress=False)
+    out = tmp_path / "gen"
+    rc = main(["generate", str(tmp_path / "run"), "cornell_box", "--size", "64", "64",
+               "--out", str(out)])  # fmt: skip
+    assert rc == 0, capsys.readouterr().err
+    gi = read_exr(out / "default_gi.exr")
+    assert gi.shape == (64, 64, 3) and np.isfinite(gi).all() and gi.min() >= 0
+    rc = main(["generate", str(tmp_path / "run"), "cornell_box", "--size", "60", "64",
+               "--out", str(out)])  # fmt: skip
+    assert rc == 1 and "multiples of 32" in capsys.readouterr().err
