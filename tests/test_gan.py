@@ -19,7 +19,7 @@ from icbtool.camera import Camera  # noqa: E402
 from icbtool.gan import data as D  # noqa: E402
 from icbtool.gan import losses as L  # noqa: E402
 from icbtool.gan import models as M  # noqa: E402
-from icbtool.gan import train as T  # noqa: E402
+from icbtool.gan import training as T  # noqa: E402
 from icbtool.gan.generate import Generator  # noqa: E402
 from icbtool.gan.hdr import HDRTransform  # noqa: E402
 
@@ -418,3 +418,15 @@ def test_cli_generate_on_a_procedural_scene(store, tmp_path, capsys):
     rc = main(["generate", str(tmp_path / "run"), "cornell_box", "--size", "60", "64",
                "--out", str(out)])  # fmt: skip
     assert rc == 1 and "multiples of 32" in capsys.readouterr().err
+
+
+def test_package_names_are_not_shadowed_by_submodules():
+    """``icb.gan.train`` stays the training function after every submodule is imported."""
+    import importlib
+
+    import icbtool.gan as G
+
+    for m in ("hdr", "models", "losses", "data", "training", "generate"):
+        importlib.import_module(f"icbtool.gan.{m}")
+    assert callable(G.train) and G.train.__name__ == "train"
+    assert G.TrainConfig.__name__ == "TrainConfig" and G.Generator.__name__ == "Generator"

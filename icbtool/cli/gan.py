@@ -57,7 +57,7 @@ def _train(args: argparse.Namespace) -> int:
     import sys
 
     from icbtool import store as st
-    from icbtool.gan.train import TrainConfig, TrainingDivergedError, train
+    from icbtool.gan.training import TrainConfig, TrainingDivergedError, train
 
     over = {
         k: v

@@ -9,7 +9,7 @@ Modules:
     models: U-Net generator and PatchGAN critic (torch).
     losses: WGAN-GP, L1 and VGG19 perceptual losses (torch).
     data: training pairs from a store, input encoding, paired augmentation.
-    train: ``TrainConfig`` presets and the resumable training loop.
+    training: ``TrainConfig`` presets and the resumable training loop (:func:`train`).
     generate: ``Generator.load(run_dir)``, ``generate(buffers)``, ONNX export.
 """
 
@@ -31,13 +31,13 @@ _NAMES: dict[str, str] = {
     "InputEncoding": "data",
     "PairData": "data",
     "BatchSampler": "data",
-    "TrainConfig": "train",
-    "TrainResult": "train",
-    "TrainingDivergedError": "train",
-    "train": "train",
+    "TrainConfig": "training",
+    "TrainResult": "training",
+    "TrainingDivergedError": "training",
+    "train": "training",
     "Generator": "generate",
 }
-_MODULES = ("hdr", "models", "losses", "data", "train", "generate")
+_MODULES = ("hdr", "models", "losses", "data", "training", "generate")
 
 
 def __getattr__(name: str) -> Any:
