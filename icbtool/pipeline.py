@@ -78,6 +78,10 @@ class LoopConfig:
     """Samples per pixel of the ground truth."""
     seed: int = 0
     """Base seed of every traced image."""
+    generator: str | None = None
+    """A trained GAN run directory (:func:`icbtool.gan.train`): the client makes its GI with it
+    (the paper's rule) and asks the cloud only when the generator cannot answer
+    (:class:`icbtool.system.GeneratorSource`). None: every GI map comes from the cloud."""
 
     def __post_init__(self) -> None:
         for k in ("frames", "height", "width", "spp", "max_depth", "truth_spp"):
@@ -140,6 +144,10 @@ class FrameStats:
     """MSE (display scale, 0-255) of the final frame against the truth."""
     mse_dl_only: float | None = None
     """MSE (display scale) of DL alone against the truth."""
+    gi_source: str = "cloud"
+    """Who made this frame's GI: "cloud" or "generator"."""
+    generate_ms: float = 0.0
+    """Time of the local generator (0 when the cloud answered)."""
 
 
 @dataclass
@@ -190,6 +198,13 @@ class LoopReport:
             out[f"median_{name}_ms"] = t["median"]
             out[f"first_{name}_ms"] = t["first"]
             out[f"median_{name}_ms_after_first"] = t["median_after_first"]
+        gen = [f for f in self.frames if f.gi_source == "generator"]
+        if self.config.generator is not None:
+            out["generated_frames"] = len(gen)
+            out["cloud_fallback_frames"] = len(self.frames) - len(gen)
+            t = timing_summary([f.generate_ms for f in gen])
+            out["median_generate_ms"] = t["median"]
+            out["first_generate_ms"] = t["first"]
         out["total_s"] = self.total_s
         return out
 
@@ -273,7 +288,8 @@ def run_loop(
         with (
             raster.Rasterizer(scene) as rz,
             system.Cloud(scene, store_dir, cfg.cloud_config(), rasterizer=rz) as cloud,
-            system.Client(scene, cloud, cfg.client_config(), rasterizer=rz) as client,
+            _gi_source(cfg, cloud) as source,
+            system.Client(scene, source, cfg.client_config(), rasterizer=rz) as client,
         ):
             for k, t in enumerate(times):
                 cam = path.camera_at(float(t))
@@ -294,6 +310,12 @@ def run_loop(
                     warp_ms=fr.warp_ms,
                     hole_ratio=fr.warped.hole_ratio,
                     hole_ratio_combined=fr.hole_ratio_combined,
+                    gi_source=(
+                        "generator"
+                        if isinstance(fr.reply.reference, system.LocalReference)
+                        else "cloud"
+                    ),
+                    generate_ms=fr.reply.timings_ms.get("generate", 0.0),
                 )
                 truth = None
                 if cfg.truth_every and k % cfg.truth_every == 0:
@@ -335,6 +357,19 @@ def run_loop(
 
 
 _EXPOSURE = 1.0
+
+
+def _gi_source(cfg: LoopConfig, cloud: Any) -> Any:
+    """The client's GI source: the cloud, or a generator with the cloud as fallback."""
+    import contextlib
+
+    from icbtool import system
+
+    if cfg.generator is None:
+        return contextlib.nullcontext(cloud)
+    from icbtool.gan import Generator
+
+    return system.GeneratorSource(Generator.load(cfg.generator), fallback=cloud)
 
 
 def _write_frame(path: Path, wrt: Any, w: Any, final: np.ndarray, truth: Any, imageio: Any) -> None:

@@ -386,6 +386,18 @@ def test_sky_background():
 
 
 @gl
+def test_scene_behind_the_camera_renders_only_background():
+    """A camera far from the scene looking away (the whole scene behind it) sees nothing: an
+    empty mask and the sky, never a near/far plane error."""
+    sky = Sky((0.2, 0.3, 0.9))
+    scene = _floor_scene([], size=6.0, sky=sky)
+    cam = icb.Camera.look_at((0, 1, 20), (0, 1, 40), (0, 1, 0), fov_y_deg=40, height=16, width=16)
+    buf = icb.raster.render(scene, cam, ("dl", "depth"), config=_cfg())
+    assert not buf.valid.any()
+    np.testing.assert_allclose(buf.dl.reshape(-1, 3), np.tile([0.2, 0.3, 0.9], (256, 1)), rtol=1e-5)
+
+
+@gl
 def test_sun_shadow_matches_embree_occlusion():
     from icbtool.scene.raycast import EmbreeScene
 

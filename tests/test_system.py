@@ -202,3 +202,86 @@ def test_cloud_rerenders_a_damaged_record_as_a_miss(tmp_path, caplog, damage):
         assert cloud.store.check().ok
         hit = cloud.request(GIRequest(cam, seq=4))
         assert hit.cache_hit and cloud.renders == 3 and np.all(hit.reference.gi == 3.0)
+
+
+# --------------------------------------------------------------------------- generator source
+class AlbedoGenerator:
+    """A test double of icbtool.gan.Generator: GI = 0.5 * albedo + 0.1 * |normal_view.z|, and it
+    checks that the source padded its input to multiples of 32."""
+
+    inputs = ("albedo", "dl", "normal_view")
+
+    def __init__(self) -> None:
+        self.shapes: list[tuple[int, int]] = []
+
+    def generate(self, maps):
+        h, w = maps["albedo"].shape[:2]
+        assert h % 32 == 0 and w % 32 == 0, (h, w)
+        assert all(np.all(np.isfinite(m)) for m in maps.values())
+        self.shapes.append((h, w))
+        return 0.5 * maps["albedo"] + 0.1 * np.abs(maps["normal_view"][..., 2:3])
+
+
+@pytest.mark.gl
+def test_generator_source_makes_the_clients_own_gi_at_any_size():
+    from icbtool.system import GeneratorSource, LocalReference
+
+    scene = icb.scene.cornell_box()
+    cam = _cam(40, 48)  # not multiples of 32: padded, then cropped back
+    gen = AlbedoGenerator()
+    src = GeneratorSource(gen, fallback=ConstantGI(9.0))
+    assert set(src.needs) >= {"albedo", "dl", "normal_view", "depth"}
+    with Client(scene, src, ClientConfig(inpaint=False)) as client:
+        old = icb.scene.cornell_camera(40, 48)  # the request's camera is not used
+        f = client.frame(cam, GIRequest(old, seq=3))
+    assert gen.shapes == [(64, 64)]
+    assert isinstance(f.reply.reference, LocalReference) and f.reply.seq == 3
+    assert f.reply.reference.camera == cam and f.reply.timings_ms["generate"] > 0
+    m = f.wrt.mask[..., 0] > 0.5
+    expect = 0.5 * f.wrt.albedo + 0.1 * np.abs(f.wrt.normal_view[..., 2:3])
+    np.testing.assert_allclose(f.gi[m], expect[m], atol=1e-5)  # the identity warp is exact
+    np.testing.assert_allclose(f.final[m], f.wrt.dl[m] + expect[m], atol=1e-5)
+    assert src.generated == 1 and src.fell_back == []
+
+
+@pytest.mark.gl
+def test_generator_source_falls_back_to_the_cloud_and_says_why(caplog):
+    from icbtool.system import GeneratorSource
+
+    scene = icb.scene.cornell_box()
+    inside = _cam(32, 32)
+    # looking out of the open front of the box: no surface in view
+    away = icb.Camera.look_at(
+        eye=inside.position,
+        target=inside.position - 3 * inside.forward,
+        up=(0, 1, 0),
+        fov_y_deg=20,
+        height=32,
+        width=32,
+    )
+    gen, cloud = AlbedoGenerator(), ConstantGI(0.25)
+    src = GeneratorSource(gen, fallback=cloud)
+    with Client(scene, src) as client:
+        wrt = client.rasterize(away)
+        assert not np.any(wrt.mask > 0.5)
+        with caplog.at_level("WARNING", logger="icbtool.system.generated"):
+            reply = src.request(GIRequest(away, seq=7), wrt)
+        assert reply.cache_hit and len(cloud.requests) == 1  # the cloud answered
+        assert src.fell_back == [(7, "the client sees no surface")]
+        assert "request 7: the client sees no surface; asking the constant" in caplog.text
+        # NaN in an input buffer: the cloud again, the generator never sees it
+        good = client.rasterize(inside)
+        bad = dataclasses.replace(good, albedo=np.where(good.valid[..., None], np.nan, good.albedo))
+        src.request(GIRequest(inside, seq=8), bad)
+        assert src.fell_back[-1] == (8, "non-finite values in the client's ['albedo']")
+        assert gen.shapes == []
+        # without a fallback: a clear error
+        with pytest.raises(ValueError, match="generator cannot make GI for request 9: non-finite"):
+            GeneratorSource(gen).request(GIRequest(inside, seq=9), bad)
+
+
+def test_generator_source_rejects_a_non_source_fallback():
+    from icbtool.system import GeneratorSource
+
+    with pytest.raises(TypeError, match="fallback must be a GISource, got str"):
+        GeneratorSource(AlbedoGenerator(), fallback="cloud")

@@ -10,9 +10,11 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 
 from icbtool._optional import require
 from icbtool.cli._common import (
+    UsageError,
     add_denoise_quality_argument,
     check_out_dir,
     float_in,
@@ -54,6 +56,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-denoise", action="store_true", help="serve raw (noisy) GI maps")
     add_denoise_quality_argument(p)
     p.add_argument("--fresh", action="store_true", help="empty the cloud cache first")
+    p.add_argument(
+        "--generator",
+        default=None,
+        metavar="RUN",
+        help="a trained GAN run (icbtool train): the client generates its GI with it and asks "
+        "the cloud only when it cannot (the paper's rule)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -62,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
     from icbtool import imageio, pipeline, raster
 
     out = check_out_dir(args.out)  # before any work
+    if args.generator is not None and not (Path(args.generator) / "generator.pt").is_file():
+        raise UsageError(f"--generator {args.generator!r}: no generator.pt in that run directory")
     if not args.no_denoise:
         require("pyoidn", "denoising the demo's GI maps (--no-denoise skips it)")
     if args.fresh and (out / "cache").exists():
@@ -93,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
         prefetch=not args.no_prefetch,
         denoise=not args.no_denoise,
         denoise_quality=args.denoise_quality,
+        generator=args.generator,
     )
     report = pipeline.run_loop(scene, cfg, out_dir=out)
     s = report.summary()

@@ -252,8 +252,8 @@ def camera_near_far(
     far = float(z.max()) * 1.01 if config.far is None else float(config.far)
     closest = np.clip(camera.position, b[0], b[1])
     dist = float(np.linalg.norm(closest - camera.position))
-    if far <= 0:
-        far = 1.0
+    if far <= 0:  # the whole scene is behind the camera: any planes will do, nothing is seen
+        far = 2.0 * dist + 1.0
     near = max(far * 1e-3, 0.5 * dist) if config.near is None else float(config.near)
     if not near < far:
         raise ValueError(f"camera near plane {near} is not before the far plane {far}")

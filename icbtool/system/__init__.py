@@ -2,7 +2,7 @@
 between them, exchanging :class:`GIRequest` / :class:`GIReply` messages.
 
 ``icbtool.pipeline.run_loop`` drives one client along a camera path against an in-process cloud;
-a network layer and a local generator plug in as other GI sources.
+a network layer and a local generator (:class:`GeneratorSource`) plug in as other GI sources.
 
 Example:
     >>> import icbtool as icb  # doctest: +SKIP
@@ -13,6 +13,7 @@ Example:
 
 from icbtool.system.client import Client, ClientConfig, ClientFrame, visible_depth_range
 from icbtool.system.cloud import DEFAULT_DEPTH_RANGE, Cloud, CloudConfig, round_fov
+from icbtool.system.generated import GeneratorSource, LocalReference
 from icbtool.system.messages import GIReply, GIRequest
 from icbtool.system.source import GISource
 
@@ -26,6 +27,8 @@ __all__ = [
     "GIReply",
     "GIRequest",
     "GISource",
+    "GeneratorSource",
+    "LocalReference",
     "round_fov",
     "visible_depth_range",
 ]

@@ -107,8 +107,9 @@ class Client:
         self._previous: Any = None
 
     def rasterize(self, camera: Camera) -> Any:
-        """The WRT-buffer at ``camera``."""
-        return self.rasterizer.render(camera, buffers=WRT_BUFFERS)
+        """The WRT-buffer at ``camera``, plus any buffer the GI source needs."""
+        extra = tuple(b for b in self.source.needs if b not in WRT_BUFFERS and b != "mask")
+        return self.rasterizer.render(camera, buffers=(*WRT_BUFFERS, *extra))
 
     def frame(self, camera: Camera, request: GIRequest) -> ClientFrame:
         """Make one frame at ``camera`` with the GI answering ``request`` (see module docstring).

@@ -18,6 +18,9 @@ class GISource(ABC):
 
     #: A short name for reports ("cloud", "network", "generator").
     kind: str = "source"
+    #: Client buffers the source reads from ``wrt`` besides the WRT-buffer's own (a generator's
+    #: input configuration may need ``normal_view`` or ``position``).
+    needs: tuple[str, ...] = ()
 
     @abstractmethod
     def request(self, req: GIRequest, wrt: Any = None) -> GIReply:

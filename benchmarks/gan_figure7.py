@@ -1,0 +1,235 @@
+"""ICB's Figure 7 on Sponza: test SSIM / MSE of the GAN pre-renderer against iterations, one curve
+per input configuration A-J (ICB.md section 5), with the test truth's own noise ceiling.
+
+Data: a store baked with ``icbtool bake`` holding the scene's "train" path and its "test" path
+(records tagged by path), and a second store holding some of the same test cameras traced with
+other seeds (the noise ceiling: SSIM of two truths). The 128x128 stores used for the committed
+results were made by::
+
+    icbtool bake data/scenes/sponza.toml --path train --store STORE --spp 64 \\
+        --size 128 128 --denoise
+    icbtool bake data/scenes/sponza.toml --path test --store STORE --spp 256 --stride 3 \\
+        --seed 100000 --size 128 128 --denoise
+    icbtool bake data/scenes/sponza.toml --path test --store CEILING --spp 256 --stride 15 \\
+        --seed 200000 --size 128 128 --denoise
+
+Training is round-robin in chunks (every configuration to 250 iterations, then every one to 500,
+...), each run resumable, so an interrupted experiment always has comparable curves and a rerun
+continues where it stopped. After every chunk it writes benchmarks/results/gan/figure7.json
+(curves, best configuration, world vs view normals, the first iteration reaching the target
+SSIM), figure7.png (the curves) and figure7_config.json (settings, versions, machine).
+
+    ICBTOOL_GAN_STORE=STORE ICBTOOL_GAN_CEILING=CEILING .venv/bin/python benchmarks/gan_figure7.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+OUT = REPO / "benchmarks" / "results" / "gan"
+#: (view-normal configuration, world-normal configuration) pairs of ICB.md's comparison.
+NORMAL_PAIRS = (("E", "H"), ("F", "I"), ("G", "J"))
+
+
+def noise_ceiling(store_dir: str, ceiling_dir: str, scene: str, exposure: float) -> dict:
+    """SSIM / MSE between two independently traced truths of the same test cameras."""
+    import icbtool.store as S
+    from icbtool import metrics
+
+    ro = S.StoreConfig(readonly=True, record_hits=False)
+    with S.open(store_dir, ro) as a, S.open(ceiling_dir, ro) as b:
+
+        def by_index(st: S.Store) -> dict[int, int]:
+            return {
+                int(i.meta.tags["index"]): i.record_id
+                for i in st
+                if i.meta.tags.get("path") == "test"
+                and scene in (i.meta.scene_name, i.meta.scene_hash)
+            }
+
+        ia, ib = by_index(a), by_index(b)
+        shared = sorted(set(ia) & set(ib))
+        if not shared:
+            raise SystemExit(f"{ceiling_dir}: no test camera in common with {store_dir}")
+        ssim, mse = [], []
+        for k in shared:
+            ga, gb = a.get(ia[k]).gi, b.get(ib[k]).gi
+            ssim.append(metrics.ssim(ga, gb, exposure))
+            mse.append(metrics.mse(ga, gb, exposure))
+    return {
+        "views": shared,
+        "ssim_mean": float(np.mean(ssim)),
+        "ssim_min": float(np.min(ssim)),
+        "mse_mean": float(np.mean(mse)),
+        "ssim_per_view": ssim,
+    }
+
+
+def curves(runs: Path, configs: str) -> dict[str, dict[str, list[float]]]:
+    out = {}
+    for c in configs:
+        p = runs / c / "evals.json"
+        if p.exists():
+            ev = json.loads(p.read_text())
+            ev = ev["evals"] if isinstance(ev, dict) else ev
+            out[c] = {
+                "iteration": [int(e["iteration"]) for e in ev],
+                "ssim": [float(e["ssim"]) for e in ev],
+                "mse": [float(e["mse"]) for e in ev],
+            }
+    return out
+
+
+def summarise(cv: dict, target: float) -> dict:
+    common = min((max(v["iteration"]) for v in cv.values()), default=0)
+
+    def at(c: str, key: str) -> float | None:
+        v = cv[c]
+        its = [i for i in v["iteration"] if i <= common]
+        return v[key][v["iteration"].index(max(its))] if its else None
+
+    final = {c: {"ssim": at(c, "ssim"), "mse": at(c, "mse")} for c in cv}
+    ranked = sorted(
+        (c for c in final if final[c]["ssim"] is not None), key=lambda c: -final[c]["ssim"]
+    )
+    reach = {
+        c: next((i for i, s in zip(v["iteration"], v["ssim"]) if s >= target), None)
+        for c, v in cv.items()
+    }
+    pairs = []
+    for view, world in NORMAL_PAIRS:
+        if view in final and world in final and final[view]["ssim"] is not None:
+            d = final[world]["ssim"] - final[view]["ssim"]
+            pairs.append({"view": view, "world": world, "ssim_world_minus_view": d})
+    return {
+        "common_iteration": common,
+        "at_common_iteration": final,
+        "ranking_by_ssim": ranked,
+        "best": ranked[0] if ranked else None,
+        "world_vs_view_normals": pairs,
+        "target_ssim": target,
+        "first_iteration_reaching_target": reach,
+    }
+
+
+def plot(cv: dict, ceiling: dict | None, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(12, 4.5))
+    for c, v in sorted(cv.items()):
+        ax[0].plot(v["iteration"], v["ssim"], marker=".", label=c)
+        ax[1].plot(v["iteration"], v["mse"], marker=".", label=c)
+    if ceiling is not None:
+        ax[0].axhline(ceiling["ssim_mean"], color="k", ls="--", lw=1, label="truth vs truth")
+        ax[1].axhline(ceiling["mse_mean"], color="k", ls="--", lw=1, label="truth vs truth")
+    ax[0].axhline(0.88, color="grey", ls=":", lw=1)
+    ax[0].set(xlabel="iteration", ylabel="test SSIM (display, 0-255)", title="SSIM")
+    ax[1].set(xlabel="iteration", ylabel="test MSE (display, 0-255)", title="MSE", yscale="log")
+    ax[0].legend(ncol=2, fontsize=8)
+    fig.suptitle("GAN pre-renderer on Sponza, input configurations A-J (ICB Figure 7)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--store", default=os.environ.get("ICBTOOL_GAN_STORE"), required=False)
+    ap.add_argument("--ceiling-store", default=os.environ.get("ICBTOOL_GAN_CEILING"))
+    ap.add_argument("--scene", default="sponza", help="scene name (or hash) in the store")
+    ap.add_argument("--configs", default="ABCDEFGHIJ")
+    ap.add_argument("--iterations", type=int, default=2000)
+    ap.add_argument("--chunk", type=int, default=250, help="round-robin step (iterations)")
+    ap.add_argument("--crop", type=int, default=64, help="training crop (multiple of 32)")
+    ap.add_argument("--base", type=int, default=32)
+    ap.add_argument("--eval-frames", type=int, default=50)
+    ap.add_argument("--target-ssim", type=float, default=0.88)
+    ap.add_argument("--runs", default=str(REPO / "out" / "gan_figure7"), help="run directories")
+    ap.add_argument("--out", default=str(OUT))
+    args = ap.parse_args()
+    if not args.store:
+        raise SystemExit("give --store (or set ICBTOOL_GAN_STORE): a baked Sponza store")
+
+    import icbtool.store as S
+    from icbtool import gan
+    from icbtool.provenance import run_info, write_json
+
+    out, runs = Path(args.out), Path(args.runs)
+    out.mkdir(parents=True, exist_ok=True)
+    cfgs = {
+        c: gan.TrainConfig.preset(
+            "cpu",
+            inputs=c,
+            iterations=args.chunk,
+            crop=args.crop,
+            base=args.base,
+            eval_every=args.chunk,
+            checkpoint_every=args.chunk,
+            eval_frames=args.eval_frames,
+        )
+        for c in args.configs
+    }
+    exposure = next(iter(cfgs.values())).display_exposure
+    write_json(
+        out / "figure7_config.json",
+        {"args": vars(args), "train_configs": cfgs, "run": run_info()},
+    )
+    ceiling = None
+    if args.ceiling_store:
+        ceiling = noise_ceiling(args.store, args.ceiling_store, args.scene, exposure)
+        print(
+            f"noise ceiling (truth vs truth, {len(ceiling['views'])} views): "
+            f"SSIM {ceiling['ssim_mean']:.4f} (min {ceiling['ssim_min']:.4f})"
+        )
+    t0 = time.perf_counter()
+    ro = S.StoreConfig(readonly=True, record_hits=False)
+    for target in range(args.chunk, args.iterations + 1, args.chunk):
+        for c, cfg in cfgs.items():
+            run = runs / c
+            cv = curves(runs, c)
+            if c in cv and max(cv[c]["iteration"]) >= target:
+                continue
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # the once-per-run VGG notice
+                with S.open(args.store, ro) as store:
+                    gan.train(
+                        store,
+                        dataclasses.replace(cfg, iterations=target),
+                        run,
+                        scene=args.scene,
+                        resume=True,
+                    )
+        cv = curves(runs, args.configs)
+        summary = summarise(cv, args.target_ssim)
+        write_json(
+            out / "figure7.json",
+            {
+                "curves": cv,
+                "summary": summary,
+                "noise_ceiling": ceiling,
+                "wall_s_this_invocation": time.perf_counter() - t0,
+            },
+        )
+        plot(cv, ceiling, out / "figure7.png")
+        best = summary["best"]
+        print(
+            f"[{target} iterations] best {best}: SSIM "
+            f"{summary['at_common_iteration'][best]['ssim']:.4f}; "
+            f"ranking {summary['ranking_by_ssim']}"
+        )
+
+
+if __name__ == "__main__":
+    main()
