@@ -430,3 +430,24 @@ def test_package_names_are_not_shadowed_by_submodules():
         importlib.import_module(f"icbtool.gan.{m}")
     assert callable(G.train) and G.train.__name__ == "train"
     assert G.TrainConfig.__name__ == "TrainConfig" and G.Generator.__name__ == "Generator"
+
+
+@pytest.mark.gl
+def test_loop_with_a_generator_never_asks_the_cloud(store, tmp_path):
+    """The paper's rule in the loop: with a local generator every frame's GI is generated and the
+    cloud renders nothing (the exact GI is checked with a stub in tests/test_system.py)."""
+    import icbtool as icb
+    from icbtool.gan import Generator
+    from icbtool.pipeline import LoopConfig, run_loop
+
+    T.train(store, tiny(iterations=1, inputs="E"), tmp_path / "run", progress=False)
+    scene = icb.scene.cornell_box()
+    cfg = LoopConfig(frames=3, height=32, width=32, truth_every=0, generator=str(tmp_path / "run"))
+    rep = run_loop(scene, cfg, out_dir=tmp_path / "loop", progress=False)
+    s = rep.summary()
+    assert rep.cloud_renders == 0
+    assert s["generated_frames"] == 3 and s["cloud_fallback_frames"] == 0
+    assert [f.gi_source for f in rep.frames] == ["generator"] * 3
+    assert s["median_generate_ms"] > 0
+    # configuration E needs normal_view, which the WRT-buffer lacks: the client rasterized it
+    assert Generator.load(tmp_path / "run").inputs == ("albedo", "dl", "normal_view")
