@@ -74,6 +74,18 @@ def noise_ceiling(store_dir: str, ceiling_dir: str, scene: str, exposure: float)
     }
 
 
+def chosen_run(run: str | None, out: Path, runs: str) -> tuple[Path, float]:
+    """The run directory Figures 8 and the time/error study use (``run``, else the best of
+    ``out/figure7.json`` in ``runs``) and its display exposure."""
+    if run is None:
+        f7 = json.loads((out / "figure7.json").read_text())
+        path = Path(runs) / f7["summary"]["best"]
+    else:
+        path = Path(run)
+    cfg = json.loads((path / "config.json").read_text())
+    return path, float(cfg["train_config"]["display_exposure"])
+
+
 def curves(runs: Path, configs: str) -> dict[str, dict[str, list[float]]]:
     out = {}
     for c in configs:

@@ -17,6 +17,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from gan_figure7 import chosen_run  # noqa: E402  (a sibling benchmark script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
@@ -43,12 +44,7 @@ def main() -> None:
 
     flip_evaluator = require("flip_evaluator", "the FLIP metric of Figure 8")
     out = Path(args.out)
-    run = Path(args.run) if args.run else None
-    if run is None:
-        f7 = json.loads((out / "figure7.json").read_text())
-        run = Path(args.runs) / f7["summary"]["best"]
-    cfg = json.loads((run / "config.json").read_text())
-    exposure = float(cfg["train_config"]["display_exposure"])
+    run, exposure = chosen_run(args.run, out, args.runs)
     evals = json.loads((run / "evals.json").read_text())
     gen = Generator.load(run)
     ro = S.StoreConfig(readonly=True, record_hits=False)

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from gan_figure7 import chosen_run  # noqa: E402  (a sibling benchmark script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
@@ -83,10 +84,7 @@ def main() -> None:
 
     ort = require("onnxruntime", "timing the generator under onnxruntime")
     out = Path(args.out)
-    run = Path(args.run) if args.run else None
-    if run is None:
-        f7 = json.loads((out / "figure7.json").read_text())
-        run = Path(args.runs) / f7["summary"]["best"]
+    run, exposure = chosen_run(args.run, out, args.runs)
     exposure = float(
         json.loads((run / "config.json").read_text())["train_config"]["display_exposure"]
     )
