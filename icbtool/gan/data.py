@@ -54,6 +54,10 @@ def resolve_inputs(inputs: str | tuple[str, ...] | list[str]) -> tuple[str, ...]
     return names
 
 
+#: Albedo below this counts as this when demodulating (dark texels would amplify noise).
+ALBEDO_FLOOR = 0.02
+
+
 @dataclass(frozen=True)
 class InputEncoding:
     """How input maps become the network's (C, H, W) input (module doc).
@@ -64,6 +68,10 @@ class InputEncoding:
         depth_max: depth that maps to +1.
         position_center: (3,) world point that maps to 0.
         position_half_extent: world distance that maps to 1.
+        demodulate: the network learns the indirect irradiance ``GI / albedo`` (albedo floored at
+            :data:`ALBEDO_FLOOR`) and its output is multiplied by the albedo: texture detail then
+            comes from the albedo input exactly instead of through the U-Net (our addition to the
+            paper; needs "albedo" among the inputs).
     """
 
     inputs: tuple[str, ...]
@@ -71,9 +79,14 @@ class InputEncoding:
     depth_max: float = 1.0
     position_center: tuple[float, float, float] = (0.0, 0.0, 0.0)
     position_half_extent: float = 1.0
+    demodulate: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "inputs", resolve_inputs(tuple(self.inputs)))
+        if self.demodulate and "albedo" not in self.inputs:
+            raise ValueError(
+                f"InputEncoding.demodulate needs 'albedo' among the inputs, got {self.inputs}"
+            )
         for n in ("depth_max", "position_half_extent"):
             v = getattr(self, n)
             if not (np.isfinite(v) and v > 0):
@@ -107,6 +120,18 @@ class InputEncoding:
             return (a - c) / np.float32(self.position_half_extent)
         raise ValueError(f"no encoding for buffer {name!r}")
 
+    def encode_target(self, gi: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+        """(H, W, 3) linear GI (and its (H, W, 3) albedo) -> (3, H, W) float32 network target."""
+        t = np.asarray(gi, np.float32)
+        if self.demodulate:
+            t = t / np.maximum(np.asarray(albedo, np.float32), ALBEDO_FLOOR)
+        return np.ascontiguousarray(self.hdr.encode(t).transpose(2, 0, 1))
+
+    def remodulate(self, decoded: Any, albedo: Any) -> Any:
+        """The network's decoded output (linear; numpy or torch, any layout matching ``albedo``)
+        -> linear GI: times the albedo when :attr:`demodulate`, else unchanged."""
+        return decoded * albedo if self.demodulate else decoded
+
     def encode(self, maps: dict[str, np.ndarray], where: str = "buffers") -> np.ndarray:
         """(H, W, C_k) maps by name -> (C, H, W) float32 network input.
 
@@ -133,7 +158,13 @@ class InputEncoding:
         return np.ascontiguousarray(np.concatenate(parts, axis=2).transpose(2, 0, 1))
 
     @classmethod
-    def fit(cls, inputs: tuple[str, ...], hdr: HDRTransform, samples: list[Any]) -> InputEncoding:
+    def fit(
+        cls,
+        inputs: tuple[str, ...],
+        hdr: HDRTransform,
+        samples: list[Any],
+        demodulate: bool = False,
+    ) -> InputEncoding:
         """Depth and position ranges from the surface pixels of train samples (``Sample`` list)."""
         inputs = resolve_inputs(inputs)
         sl = cls(inputs, hdr).channel_slices()
@@ -150,7 +181,7 @@ class InputEncoding:
                 lo, hi = p.min(0), p.max(0)
                 center = tuple(float(v) for v in (lo + hi) / 2)
                 half = float(max((hi - lo).max() / 2, 1e-6))
-        return cls(inputs, hdr, depth_max, center, half)
+        return cls(inputs, hdr, depth_max, center, half, demodulate)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -166,6 +197,7 @@ class InputEncoding:
             float(d["depth_max"]),
             tuple(d["position_center"]),  # type: ignore[arg-type]
             float(d["position_half_extent"]),
+            bool(d.get("demodulate", False)),  # runs written before the option: False
         )
 
 
@@ -201,10 +233,17 @@ class PairData:
             xs.append(encoding.encode(maps, where))
             if not np.isfinite(s.target).all():
                 raise ValueError(f"{where}.{dataset.target} holds NaN or Inf values")
-            ys.append(encoding.hdr.encode(s.target))
+            alb = maps.get("albedo")
+            ys.append(encoding.encode_target(s.target.transpose(1, 2, 0), alb))
         self.x = np.stack(xs)
         self.y = np.stack(ys)
         self.gi = np.stack([s.target for s in samples]).astype(np.float32)
+        #: (N, 3, H, W) raw albedo (to remodulate outputs), or None without an albedo input.
+        self.albedo = (
+            np.stack([s.inputs[encoding.channel_slices()["albedo"]] for s in samples])
+            if "albedo" in encoding.inputs
+            else None
+        )
         self.record_ids = [s.record_id for s in samples]
         self.channels = dataset.channels
         self.encoding = encoding

@@ -110,7 +110,10 @@ class Generator:
         x = torch.from_numpy(self.encode(buffers))[None].to(self.device)
         with torch.no_grad():
             y = self.module(x)
-        return self.encoding.hdr.decode(y)[0].permute(1, 2, 0).cpu().numpy().astype(np.float32)
+        gi = self.encoding.hdr.decode(y)[0].permute(1, 2, 0).cpu().numpy().astype(np.float32)
+        if self.encoding.demodulate:
+            gi = self.encoding.remodulate(gi, np.asarray(self._maps(buffers)["albedo"], np.float32))
+        return gi
 
     def export_onnx(self, path: str | os.PathLike, height: int = 128, width: int = 128) -> Path:
         """Write the U-Net as ONNX (module doc) plus ``PATH.json`` with the encoding.
@@ -153,7 +156,8 @@ class Generator:
             p.with_suffix(p.suffix + ".json"),
             {
                 "input": "maps (B, C, H, W) float32, H and W multiples of 32",
-                "output": "gi_encoded (B, 3, H, W) in [-1, 1]; linear GI = hdr.decode(output)",
+                "output": "gi_encoded (B, 3, H, W) in [-1, 1]; linear GI = hdr.decode(output), "
+                "times the albedo input map when encoding.demodulate is true",
                 "channels": list(self.encoding.inputs),
                 "encoding": self.encoding.to_dict(),
                 "hdr_decode": "scale * expm1((clip(y, -1, 1) + 1) / 2 * log1p(max_value / scale))",

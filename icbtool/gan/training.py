@@ -81,6 +81,8 @@ class TrainConfig:
         weight_perceptual: weight of L_p (needs ``vgg19_weights``; 0 turns it off silently).
         vgg19_weights: local torchvision VGG19 state-dict file; None or missing: L_p off + warning.
         hdr_scale, hdr_max: the :class:`~icbtool.gan.hdr.HDRTransform` of DL and GI.
+        demodulate: learn the indirect irradiance GI / albedo and multiply the output by the
+            albedo (:class:`~icbtool.gan.data.InputEncoding`; our addition, off in the presets).
         train_path, test_path: the camera-path tags of the two splits in the store.
         flip: random horizontal flips (paired augmentation).
         eval_every: evaluate (and write a sample) every this many iterations (and at the end).
@@ -110,6 +112,7 @@ class TrainConfig:
     vgg19_weights: str | None = None
     hdr_scale: float = 0.25
     hdr_max: float = 64.0
+    demodulate: bool = False
     train_path: str = "train"
     test_path: str = "test"
     flip: bool = True
@@ -222,15 +225,18 @@ def _atomic_save(obj: Any, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def _eval_frames(data: PairData, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(N, C, h, w) inputs and (N, 3, h, w) linear GI, centre-cropped to multiples of 32."""
+def _eval_frames(data: PairData, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(N, C, h, w) inputs, (N, 3, h, w) linear GI and raw albedo (None without one),
+    centre-cropped to multiples of 32."""
     h, w = data.height // MULTIPLE * MULTIPLE, data.width // MULTIPLE * MULTIPLE
     if h == 0 or w == 0:
         raise ValueError(
             f"test images ({data.height} x {data.width}) are smaller than {MULTIPLE} pixels"
         )
     t, l = (data.height - h) // 2, (data.width - w) // 2
-    return data.x[:n, :, t : t + h, l : l + w], data.gi[:n, :, t : t + h, l : l + w]
+    crop = (slice(None, n), slice(None), slice(t, t + h), slice(l, l + w))
+    albedo = None if data.albedo is None else data.albedo[crop]
+    return data.x[crop], data.gi[crop], albedo
 
 
 def evaluate(
@@ -240,8 +246,12 @@ def evaluate(
     hdr: HDRTransform,
     exposure: float,
     device: torch.device,
+    encoding: InputEncoding | None = None,
+    albedo: np.ndarray | None = None,
 ) -> tuple[dict[str, float], np.ndarray]:
     """Mean SSIM / MSE (display scale 0-255) and linear L1 of the generator on test frames.
+
+    ``encoding`` and ``albedo`` ((N, 3, H, W) raw) remodulate a demodulating generator's output.
 
     Returns:
         (metrics, (H, W, 3) linear prediction of the first frame).
@@ -253,6 +263,8 @@ def evaluate(
         for k in range(len(x)):
             out = gen(torch.from_numpy(x[k : k + 1]).to(device))
             pred = hdr.decode(out)[0].permute(1, 2, 0).cpu().numpy()
+            if encoding is not None and albedo is not None:
+                pred = encoding.remodulate(pred, albedo[k].transpose(1, 2, 0))
             truth = gi[k].transpose(1, 2, 0)
             s.append(ssim_metric(pred, truth, exposure))
             m.append(mse_metric(pred, truth, exposure))
@@ -340,9 +352,9 @@ def train(
     inputs = config.input_buffers
     ds_train = Dataset(store, scene, "train", inputs, paths=paths)
     ds_test = Dataset(store, scene, "test", inputs, paths=paths)
-    enc = InputEncoding.fit(inputs, hdr, list(ds_train))
+    enc = InputEncoding.fit(inputs, hdr, list(ds_train), demodulate=config.demodulate)
     train_data, test_data = PairData(ds_train, enc), PairData(ds_test, enc)
-    x_eval, gi_eval = _eval_frames(test_data, config.eval_frames)
+    x_eval, gi_eval, albedo_eval = _eval_frames(test_data, config.eval_frames)
 
     perceptual, p_status = (None, "off: TrainConfig.weight_perceptual is 0")
     if config.weight_perceptual > 0:
@@ -511,7 +523,9 @@ def train(
                 for k, v in losses.items():
                     writer.add_scalar(f"loss/{k}", v, step)
             if step % config.eval_every == 0 or step == config.iterations:
-                m, first = evaluate(gen, x_eval, gi_eval, hdr, config.display_exposure, device)
+                m, first = evaluate(
+                    gen, x_eval, gi_eval, hdr, config.display_exposure, device, enc, albedo_eval
+                )
                 row = {"iteration": step, **m, "seconds": time.perf_counter() - t0}
                 evals.append(row)
                 _write_evals(run_dir, evals)
