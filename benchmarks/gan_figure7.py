@@ -172,6 +172,11 @@ def main() -> None:
     # into [-1, -0.75])
     ap.add_argument("--hdr-scale", type=float, default=0.05)
     ap.add_argument("--hdr-max", type=float, default=4.0)
+    ap.add_argument(
+        "--demodulate",
+        action="store_true",
+        help="learn GI / albedo (TrainConfig.demodulate, our addition); use another --runs/--out",
+    )
     ap.add_argument("--target-ssim", type=float, default=0.88)
     ap.add_argument("--runs", default=str(REPO / "out" / "gan_figure7"), help="run directories")
     ap.add_argument("--out", default=str(OUT))
@@ -197,6 +202,7 @@ def main() -> None:
             eval_frames=args.eval_frames,
             hdr_scale=args.hdr_scale,
             hdr_max=args.hdr_max,
+            demodulate=args.demodulate,
         )
         for c in args.configs
     }

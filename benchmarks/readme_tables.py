@@ -575,6 +575,38 @@ def block_emitters(results: Path) -> str:
     )
 
 
+def block_gan_figure7(results: Path) -> str:
+    d = load("gan/figure7.json", results)
+    cfg = load("gan/figure7_config.json", results)
+    a, sm, ce = cfg["args"], d["summary"], d["noise_ceiling"]
+    it = sm["common_iteration"]
+    at = sm["at_common_iteration"]
+    rows = "\n".join(
+        f"| {c} | {at[c]['ssim']:.3f} | {at[c]['mse']:.0f} | "
+        f"{sm['first_iteration_reaching_target'][c] or '-'} |"
+        for c in sorted(at)
+    )
+    pairs = ", ".join(
+        f"{p['world']} vs {p['view']} {p['ssim_world_minus_view']:+.3f}"
+        for p in sm["world_vs_view_normals"]
+    )
+    ceiling = (
+        f"the test truth's own noise ceiling (two traces with other seeds, {len(ce['views'])} "
+        f"views) is SSIM {ce['ssim_mean']:.3f}"
+        if ce
+        else "no noise ceiling measured"
+    )
+    return (
+        "**GAN pre-renderer, Figure 7** (`benchmarks/gan_figure7.py`, Sponza at 128x128, train "
+        f"path 150 views, test path every 3rd view;\n`cpu` preset, {a['crop']}-pixel crops, "
+        f"base {a['base']}, no VGG19 file so no perceptual term; {ceiling}).\nTest SSIM / MSE "
+        f"(display scale, 0-255) after {it} iterations, and the first evaluated iteration "
+        f"reaching SSIM {sm['target_ssim']}:\n\n"
+        "| configuration | SSIM | MSE | reaches target at |\n|---|---|---|---|\n"
+        f"{rows}\n\nBest: {sm['best']}. World normals minus view normals (SSIM): {pairs}.\n"
+    )
+
+
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "intro": block_intro,
     "raster": block_raster,
