@@ -173,6 +173,11 @@ def main() -> None:
     ap.add_argument("--hdr-scale", type=float, default=0.05)
     ap.add_argument("--hdr-max", type=float, default=4.0)
     ap.add_argument(
+        "--report-only",
+        action="store_true",
+        help="train nothing: write figure7.json/png from the runs as they are (after a stop)",
+    )
+    ap.add_argument(
         "--demodulate",
         action="store_true",
         help="learn GI / albedo (TrainConfig.demodulate, our addition); use another --runs/--out",
@@ -220,7 +225,8 @@ def main() -> None:
         )
     t0 = time.perf_counter()
     ro = S.StoreConfig(readonly=True, record_hits=False)
-    for target in range(args.chunk, args.iterations + 1, args.chunk):
+    targets = [] if args.report_only else range(args.chunk, args.iterations + 1, args.chunk)
+    for target in targets:
         for c, cfg in cfgs.items():
             run = runs / c
             cv = curves(runs, c)
@@ -236,24 +242,33 @@ def main() -> None:
                         scene=args.scene,
                         resume=True,
                     )
-        cv = curves(runs, args.configs)
-        summary = summarise(cv, args.target_ssim)
-        write_json(
-            out / "figure7.json",
-            {
-                "curves": cv,
-                "summary": summary,
-                "noise_ceiling": ceiling,
-                "wall_s_this_invocation": time.perf_counter() - t0,
-            },
-        )
-        plot(cv, ceiling, out / "figure7.png")
-        best = summary["best"]
-        print(
-            f"[{target} iterations] best {best}: SSIM "
-            f"{summary['at_common_iteration'][best]['ssim']:.4f}; "
-            f"ranking {summary['ranking_by_ssim']}"
-        )
+        report(runs, args, out, ceiling, t0, target)
+    if args.report_only:
+        report(runs, args, out, ceiling, t0, None)
+
+
+def report(runs: Path, args: argparse.Namespace, out: Path, ceiling, t0: float, target) -> None:
+    """Write figure7.json / figure7.png from the runs' evaluations and print the ranking."""
+    from icbtool.provenance import write_json
+
+    cv = curves(runs, args.configs)
+    summary = summarise(cv, args.target_ssim)
+    write_json(
+        out / "figure7.json",
+        {
+            "curves": cv,
+            "summary": summary,
+            "noise_ceiling": ceiling,
+            "wall_s_this_invocation": time.perf_counter() - t0,
+        },
+    )
+    plot(cv, ceiling, out / "figure7.png")
+    best = summary["best"]
+    print(
+        f"[{target or 'as stopped'} iterations] best {best}: SSIM "
+        f"{summary['at_common_iteration'][best]['ssim']:.4f}; "
+        f"ranking {summary['ranking_by_ssim']}"
+    )
 
 
 if __name__ == "__main__":

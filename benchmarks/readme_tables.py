@@ -604,6 +604,69 @@ def block_gan_figure7(results: Path) -> str:
         f"reaching SSIM {sm['target_ssim']}:\n\n"
         "| configuration | SSIM | MSE | reaches target at |\n|---|---|---|---|\n"
         f"{rows}\n\nBest: {sm['best']}. World normals minus view normals (SSIM): {pairs}.\n"
+        + _demodulated(results)
+    )
+
+
+def _demodulated(results: Path) -> str:
+    rel = "gan/demodulated/figure7.json"
+    if not (results / rel).is_file():
+        return ""
+    cv = load(rel, results)["curves"]
+    parts = ", ".join(
+        f"{c} {v['ssim'][-1]:.3f} at iteration {v['iteration'][-1]}" for c, v in sorted(cv.items())
+    )
+    return (
+        "With albedo demodulation (`--demodulate`, our addition: the network learns GI / albedo, "
+        f"`{rel}`): {parts}.\n"
+    )
+
+
+def block_gan_figure8(results: Path) -> str:
+    lines = []
+    for rel, what in (
+        ("gan/figure8.json", "the paper's generator (Figure 7's best)"),
+        ("gan/demodulated/figure8.json", "with albedo demodulation (our addition)"),
+    ):
+        if not (results / rel).is_file():
+            continue
+        d = load(rel, results)
+        m = d["mean"]
+        lines.append(
+            f"- {what}: configuration {Path(d['run']).name} ({', '.join(d['inputs'])}) at "
+            f"iteration {d['iteration']}, {len(d['frames'])} test frames: SSIM {m['ssim']:.3f}, "
+            f"MSE {m['mse']:.0f}, FLIP {m['flip']:.3f} (`{rel.replace('.json', '.png')}`)"
+        )
+    return (
+        "**Figure 8** (`benchmarks/gan_figure8.py`: generated | traced | difference x4 on test "
+        "frames spread along the test path):\n\n" + "\n".join(lines) + "\n"
+    )
+
+
+def block_gan_time_error(results: Path) -> str:
+    d = load("gan/time_error.json", results)
+    e = d["summary"]["equal_ssim"]
+    sizes = d["summary"]["generator_ms_by_size"]
+    tr = e["tracer"]
+
+    def speed(kind: str) -> str:
+        t = tr[kind]
+        if t["tracer_ms"] is None:
+            return f"{kind}: never reaches it in the measured spp"
+        return f"{kind}: {t['tracer_ms']:.0f} ms, {t['speedup']:.0f}x"
+
+    size_txt = "; ".join(
+        f"{side}: torch {v['torch_1t']:.0f} / {v['torch_2t']:.0f} ms, onnxruntime "
+        f"{v['onnxruntime_1t']:.0f} / {v['onnxruntime_2t']:.0f} ms"
+        for side, v in sizes.items()
+    )
+    met = any(tr[k]["speedup"] is not None and tr[k]["speedup"] >= e["target_speedup"] for k in tr)
+    return (
+        "**Generator against path tracer** (`benchmarks/gan_time_error.py`, Sponza test frames at "
+        f"the store's size, run {Path(d['run']).name}):\nthe generator ({e['generator']}) takes "
+        f"{e['ms']:.1f} ms for SSIM {e['ssim']:.3f}; the path tracer needs for the same SSIM "
+        f"{speed('raw')}; {speed('denoised')}\n(target {e['target_speedup']}x: "
+        f"{'met' if met else 'NOT met'}). Generator alone (1 / 2 threads), by size: {size_txt}.\n"
     )
 
 
@@ -618,6 +681,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "prefetch": block_prefetch,
     "loop": block_loop,
     "emitters": block_emitters,
+    "gan-figure7": block_gan_figure7,
 }
 
 
