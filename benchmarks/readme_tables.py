@@ -682,6 +682,8 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "loop": block_loop,
     "emitters": block_emitters,
     "gan-figure7": block_gan_figure7,
+    "gan-figure8": block_gan_figure8,
+    "gan-time-error": block_gan_time_error,
 }
 
 
