@@ -74,16 +74,9 @@ from icbtool.scene.types import (
 )
 from icbtool.scene.validate import SceneError, check_file
 
-_SCENE_KEYS = {
-    "name",
-    "mesh",
-    "scale",
-    "up_axis",
-    "translation",
-    "flip_v",
-    "textures",
-    "file_lights",
-}
+#: [scene] keys passed on to :func:`icbtool.scene.load.load_mesh` (also build() overrides).
+_MESH_KEYS = ("scale", "up_axis", "translation", "flip_v", "textures")
+_SCENE_KEYS = {"name", "mesh", "file_lights", *_MESH_KEYS}
 _CAMERA_KEYS = {"fov_y_deg", "height", "width"}
 _TOP_KEYS = {"scene", "camera", "lights", "sky", "default_camera", "paths"}
 _LIGHT_KEYS = {kind: light_parameters(kind) for kind in LIGHT_TYPES}
@@ -116,11 +109,7 @@ _PATH_KEYS = {
 BUILD_OVERRIDES = (
     "name",
     "mesh",
-    "scale",
-    "up_axis",
-    "translation",
-    "flip_v",
-    "textures",
+    *_MESH_KEYS,
     "fov_y_deg",
     "height",
     "width",
@@ -240,7 +229,7 @@ class SceneDescription:
             )
         where = str(self.path)
         mesh_kw = dict(self.mesh_options)
-        for k in ("scale", "up_axis", "translation", "flip_v", "textures"):
+        for k in _MESH_KEYS:
             if k in overrides:
                 mesh_kw[k] = overrides[k]
         mesh = Path(overrides.get("mesh", self.mesh))
@@ -395,9 +384,7 @@ def read_description(path: str | os.PathLike) -> SceneDescription:
     mesh = Path(expand_env(sc["mesh"], where)).expanduser()
     if not mesh.is_absolute():
         mesh = (p.parent / mesh).resolve()
-    mesh_options = {
-        k: sc[k] for k in ("scale", "up_axis", "translation", "flip_v", "textures") if k in sc
-    }
+    mesh_options = {k: sc[k] for k in _MESH_KEYS if k in sc}
     file_lights = sc.get("file_lights", True)
     if not isinstance(file_lights, bool):
         raise SceneError(f"{where}: [scene] file_lights must be true or false, got {file_lights!r}")
