@@ -9,6 +9,7 @@ chunks a client can assemble into a Scene and rasterize (ICB.md section 1).
 open3d (the ``mesh`` extra) is imported only when a level is decimated or measured.
 """
 
+from icbtool.lpm import metrics
 from icbtool.lpm.build import LPM, Level, build, group_targets
 from icbtool.lpm.chunks import (
     CHUNK_MAGIC,
@@ -32,6 +33,7 @@ __all__ = [
     "chunk_header",
     "group_targets",
     "levels_in",
+    "metrics",
     "read_scene_info",
     "scene_info",
 ]

@@ -13,7 +13,8 @@ How a level is made from the full :class:`~icbtool.scene.Scene` (ratio ``r`` of 
    groups keep meeting. Every group is decimated from the full mesh (levels are independent,
    not a chain of decimations).
 3. open3d drops ``triangle_uvs`` when it decimates (it warns "triangle uvs that are not handled"),
-   so uvs and shading normals are transferred back from the full group: each decimated triangle
+   so uvs and shading normals are transferred back from the full group (nearest points by
+   :class:`~icbtool.lpm.closest.ClosestPointQuery`, exact): each decimated triangle
    takes the chart (UV-connected component of the original group) of the original face nearest
    its centroid; a corner whose nearest original point lies in that chart takes that point's
    barycentric uv/normal, any other corner (a triangle that straddles a UV seam) extrapolates
@@ -274,23 +275,21 @@ def _decimate_part(part: _Part, target: int, cfg: LPMConfig, diag: float) -> _Pa
         t = t[np.linalg.norm(cr, axis=1) > 1e-12 * diag * diag]
     if len(t) == 0:  # decimated away: keep the group as it was rather than lose it
         return part
-    return _transfer(part, p, t, cfg, o3d)
+    return _transfer(part, p, t, cfg)
 
 
-def _transfer(part: _Part, p: np.ndarray, t: np.ndarray, cfg: LPMConfig, o3d: Any) -> _Part:
+def _transfer(part: _Part, p: np.ndarray, t: np.ndarray, cfg: LPMConfig) -> _Part:
     """uvs and normals of the decimated (``p`` (P, 3), ``t`` (T, 3)) from the original part."""
+    from icbtool.lpm.closest import ClosestPointQuery
+
     ov = part.vertices.astype(np.float64)
     of = part.faces
-    rs = o3d.t.geometry.RaycastingScene()
-    rs.add_triangles(o3d.core.Tensor(ov.astype(np.float32)), o3d.core.Tensor(of.astype(np.uint32)))
+    cpq = ClosestPointQuery(ov, of)
     chart = _charts(of, len(ov))
 
     def closest(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        r = rs.compute_closest_points(o3d.core.Tensor(q.astype(np.float32)))
-        fid = r["primitive_ids"].numpy().astype(np.int64)
-        buv = r["primitive_uvs"].numpy().astype(np.float64)
-        w = np.stack([1.0 - buv[:, 0] - buv[:, 1], buv[:, 0], buv[:, 1]], 1)
-        return fid, w
+        r = cpq.query(q)
+        return r.face, r.weights
 
     cf, _ = closest(p[t].mean(1))  # (T,) the original face nearest each centroid
     vf, vw = closest(p)  # (P,) the original face nearest each decimated vertex

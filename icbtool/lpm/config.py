@@ -29,7 +29,8 @@ class LPMConfig:
             bounding-box diagonal are welded before decimation (UV/normal seams split vertices;
             welding makes the group one connected surface for the decimator).
         min_group_triangles: a material group keeps at least this many triangles (or all it
-            has): a small group is never decimated away entirely.
+            has): small groups (a few boxes, a relief) cost few bytes and lose their shape
+            first, so they are kept whole; large groups are never decimated to nothing.
         normal_crease_deg: a transferred shading normal that differs from its decimated face's
             normal by more than this is replaced by the face normal (a hard edge that the
             decimation moved).
@@ -43,7 +44,7 @@ class LPMConfig:
     jpeg_quality: int = 90
     boundary_weight: float = 100.0
     weld_tolerance: float = 1e-6
-    min_group_triangles: int = 4
+    min_group_triangles: int = 64
     normal_crease_deg: float = 60.0
     max_chunk_bytes: int = DEFAULT_MAX_CHUNK_BYTES
 
