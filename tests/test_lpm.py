@@ -314,3 +314,25 @@ def test_cornell_coarsest_level_renders_like_the_full_box():
     assert e["depth_rel_p95"] < 1e-5
     assert e["depth_bad_fraction"] == 0.0
     assert e["dl_ssim"] > 0.999
+
+
+@pytest.mark.gl
+def test_cli_writes_stats_previews_and_chunks(tmp_path):
+    from icbtool.cli import main
+
+    out = tmp_path / "lpm"
+    rc = main(["lpm", "cornell_box", "--out", str(out), "--cameras", "1", "--size", "24",
+               "--ratios", "0.5,1", "--chunks"])  # fmt: skip
+    assert rc == 0
+    data = json.loads((out / "lpm.json").read_text())
+    assert [r["triangles"] for r in data["levels"]] == [32, 32]
+    assert data["levels"][0]["client"]["depth_bad_fraction"] == 0.0
+    for f in ("lpm.csv", "lpm_levels.png", "lpm_dl.png", "chunks/scene_info.json"):
+        assert (out / f).is_file(), f
+    chunks = [
+        (str(p.relative_to(out / "chunks").with_suffix("")), None, p.read_bytes())
+        for p in sorted((out / "chunks").rglob("L0/**/*.bin"))
+    ]
+    chunks = [(n, chunk_header(d, n)[0]["part"], d) for n, _, d in chunks]
+    got = lpm.assemble(chunks, base=(out / "chunks" / "scene_info.json").read_bytes())
+    assert got.n_triangles == 32 and len(got.lights) == 1
