@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -85,9 +86,15 @@ def test_config_rejects_bad_values(kw, msg):
 
 
 # --------------------------------------------------------------------------- levels
-def test_triangle_counts_follow_the_ratios(plane_lpm):
-    n = plane_lpm.source.n_triangles
-    counts = [lv.n_triangles for lv in plane_lpm.levels]
+@pytest.mark.parametrize("budget", ["global", "per_group"])
+def test_triangle_counts_follow_the_ratios(plane_lpm, budget):
+    lp = (
+        plane_lpm
+        if budget == "global"
+        else lpm.build(plane_lpm.source, replace(CFG, budget=budget))
+    )
+    n = lp.source.n_triangles
+    counts = [lv.n_triangles for lv in lp.levels]
     assert counts[-1] == n
     for ratio, c in zip(CFG.ratios[:-1], counts):
         # open3d stops at the target or just under it (one collapse removes 1-2 triangles)
@@ -204,9 +211,11 @@ def _assert_scene_equal(a, b):
             assert np.array_equal(ma.texture, mb.texture)
 
 
-def test_chunk_round_trip_is_exact(plane_lpm):
+@pytest.mark.parametrize("max_bytes", [None, 4096, 5001, 65536])
+def test_chunk_round_trip_is_exact(plane_lpm, max_bytes):
     for lv in plane_lpm.levels:
-        chunks = lv.to_chunks()
+        chunks = lv.to_chunks(max_bytes)
+        assert max(len(c[2]) for c in chunks) <= (max_bytes or CFG.max_chunk_bytes)
         assert [c[1] for c in chunks][0] == "materials"
         got = lpm.assemble(chunks, base=plane_lpm.source)
         _assert_scene_equal(got, lv.scene)
