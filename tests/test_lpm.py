@@ -228,6 +228,7 @@ def test_assemble_picks_the_finest_complete_level(plane_lpm):
     got = lpm.assemble(c0 + partial)
     assert got.n_triangles == plane_lpm.levels[0].n_triangles
     assert lpm.levels_in(c0 + c1) == [0, 1]
+    assert lpm.levels_in(plane_lpm.chunks()) == [0, 1, 2]
     assert lpm.assemble(c0 + c1).n_triangles == plane_lpm.levels[1].n_triangles
     with pytest.raises(ValueError, match="lacks 1 chunk"):
         lpm.assemble(c0 + partial, level=1)

@@ -176,6 +176,11 @@ class LPM:
     source: Scene
     _errors: dict[int, dict[str, float]] = field(default_factory=dict, repr=False)
 
+    def chunks(self, max_chunk_bytes: int | None = None) -> list[tuple[str, str, bytes]]:
+        """Every level's chunks, coarse to fine (the order to stream them in): each level's
+        manifest ("materials") first, then its geometry, then its textures."""
+        return [c for lv in self.levels for c in lv.to_chunks(max_chunk_bytes)]
+
     def stats(self, error: bool = True, seed: int = 0) -> list[dict[str, Any]]:
         """Per level: index, ratio, triangles, vertices, bytes (geometry, texture, materials,
         total), build_s, and (``error=True``) the geometric error against the full mesh
