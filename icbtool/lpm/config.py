@@ -26,7 +26,10 @@ class LPMConfig:
         texture_max: largest texture side (texels) per level, one per ratio; 0 keeps the
             texture's own size. A larger texture is shrunk with ``cv2.resize(INTER_AREA)`` (in
             linear light), aspect kept.
-        texture_format: how textures travel: "png" (lossless 8-bit sRGB) or "jpeg".
+        texture_format: how textures travel: "png" (lossless 8-bit sRGB; the finest level's
+            textures are then the input's exactly) or "jpeg" (Sponza at quality 90: texture
+            bytes per default level 51 / 154 / 477 / 993 kB instead of PNG's 224 / 805 / 2444 /
+            4847 kB, at a mean texel error of 0.9 / 255 on the full-size textures).
         jpeg_quality: JPEG quality (1-100) when ``texture_format == "jpeg"``.
         boundary_weight: open3d's quadric weight on boundary edges (material groups are
             welded apart, so their borders are boundaries). On Sponza (benchmarks/lpm_levels.py
