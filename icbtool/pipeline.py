@@ -82,6 +82,10 @@ class LoopConfig:
     """A trained GAN run directory (:func:`icbtool.gan.train`): the client makes its GI with it
     (the paper's rule) and asks the cloud only when the generator cannot answer
     (:class:`icbtool.system.GeneratorSource`). None: every GI map comes from the cloud."""
+    compare_cloud: bool = True
+    """With a generator: on the frames that get a truth, also ask the cloud for its (warped) GI
+    and write cloud GI | generated GI | truth GI side by side (``frames/NNN_gi.png``; the SSIM in
+    ``ssim_gi_cloud``). Those extra cloud answers are counted apart (``comparison_renders``)."""
 
     def __post_init__(self) -> None:
         for k in ("frames", "height", "width", "spp", "max_depth", "truth_spp"):
@@ -148,6 +152,9 @@ class FrameStats:
     """Who made this frame's GI: "cloud" or "generator"."""
     generate_ms: float = 0.0
     """Time of the local generator (0 when the cloud answered)."""
+    ssim_gi_cloud: float | None = None
+    """With a generator and ``compare_cloud``: SSIM of the cloud's warped GI against the truth's
+    GI on the same frame (``ssim_gi`` is the generated one's)."""
 
 
 @dataclass
@@ -158,6 +165,8 @@ class LoopReport:
     config: LoopConfig
     frames: list[FrameStats] = field(default_factory=list)
     cloud_renders: int = 0
+    comparison_renders: int = 0
+    """Cloud renders made only for ``LoopConfig.compare_cloud`` (not in ``cloud_renders``)."""
     total_s: float = 0.0
 
     @property
@@ -205,6 +214,8 @@ class LoopReport:
             t = timing_summary([f.generate_ms for f in gen])
             out["median_generate_ms"] = t["median"]
             out["first_generate_ms"] = t["first"]
+            out["mean_ssim_gi_cloud_vs_truth"] = mean("ssim_gi_cloud")
+            out["comparison_renders"] = self.comparison_renders
         out["total_s"] = self.total_s
         return out
 
@@ -290,6 +301,7 @@ def run_loop(
             system.Cloud(scene, store_dir, cfg.cloud_config(), rasterizer=rz) as cloud,
             _gi_source(cfg, cloud) as source,
             system.Client(scene, source, cfg.client_config(), rasterizer=rz) as client,
+            _comparison_client(cfg, scene, cloud, rz) as cloud_view,
         ):
             for k, t in enumerate(times):
                 cam = path.camera_at(float(t))
@@ -331,6 +343,17 @@ def run_loop(
                     fs.ssim_dl_only = metrics.ssim(fr.wrt.dl, truth.full)
                     fs.mse_final = metrics.mse(fr.final, truth.full)
                     fs.mse_dl_only = metrics.mse(fr.wrt.dl, truth.full)
+                    if cloud_view is not None and fs.gi_source == "generator":
+                        before = cloud.renders
+                        fc = cloud_view.frame(cam, request)
+                        report.comparison_renders += cloud.renders - before
+                        fs.ssim_gi_cloud = metrics.ssim(fc.gi, truth.gi)
+                        if out is not None:
+                            _write_strip(
+                                out / "frames" / f"{k:03d}_gi.png",
+                                [fc.gi, fr.gi, truth.gi],
+                                imageio,
+                            )
                 report.frames.append(fs)
                 if out is not None:
                     _write_frame(
@@ -344,7 +367,7 @@ def run_loop(
                 if bar is not None:
                     bar.update(1)
                     bar.set_postfix(hit=fs.cache_hit, holes=f"{fs.hole_ratio_combined:.3f}")
-            report.cloud_renders = cloud.renders
+            report.cloud_renders = cloud.renders - report.comparison_renders
     finally:
         if bar is not None:
             bar.close()
@@ -370,6 +393,27 @@ def _gi_source(cfg: LoopConfig, cloud: Any) -> Any:
     from icbtool.gan import Generator
 
     return system.GeneratorSource(Generator.load(cfg.generator), fallback=cloud)
+
+
+def _comparison_client(cfg: LoopConfig, scene: Any, cloud: Any, rz: Any) -> Any:
+    """A second client on the cloud for :attr:`LoopConfig.compare_cloud` (else None)."""
+    import contextlib
+
+    from icbtool import system
+
+    if cfg.generator is None or not cfg.compare_cloud or not cfg.truth_every:
+        return contextlib.nullcontext(None)
+    return system.Client(scene, cloud, cfg.client_config(), rasterizer=rz)
+
+
+def _write_strip(path: Path, images: list[np.ndarray], imageio: Any) -> None:
+    """Linear HDR images side by side (display transform), white 2-pixel gaps."""
+    tiles = [imageio.to_display(a, _EXPOSURE) for a in images]
+    sep = np.full((tiles[0].shape[0], 2, 3), 255, np.uint8)
+    strip = tiles[0]
+    for t in tiles[1:]:
+        strip = np.concatenate([strip, sep, t], axis=1)
+    imageio.write_png(path, strip)
 
 
 def _write_frame(path: Path, wrt: Any, w: Any, final: np.ndarray, truth: Any, imageio: Any) -> None:

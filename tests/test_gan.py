@@ -453,6 +453,32 @@ def test_loop_with_a_generator_never_asks_the_cloud(store, tmp_path):
     assert Generator.load(tmp_path / "run").inputs == ("albedo", "dl", "normal_view")
 
 
+def test_loop_compares_generated_with_cloud_gi_and_truth(store, tmp_path):
+    """With a generator, truth frames also get the cloud's warped GI side by side; on the first
+    frame it is exactly what a cloud-only loop shows (same request, same seeds, no history)."""
+    import icbtool as icb
+    from icbtool.imageio import read_png
+    from icbtool.pipeline import LoopConfig, run_loop
+
+    T.train(store, tiny(iterations=1, inputs="E"), tmp_path / "run", progress=False)
+    scene = icb.scene.cornell_box()
+    kw = dict(frames=3, height=32, width=32, truth_every=2, truth_spp=4, spp=4, denoise=False)
+    rep = run_loop(scene, LoopConfig(**kw, generator=str(tmp_path / "run")),
+                   out_dir=tmp_path / "gen", progress=False)  # fmt: skip
+    ref = run_loop(scene, LoopConfig(**kw), out_dir=tmp_path / "cloud", progress=False)
+    assert rep.cloud_renders == 0 and rep.comparison_renders >= 1
+    assert [f.ssim_gi_cloud is not None for f in rep.frames] == [True, False, True]
+    assert rep.frames[0].ssim_gi_cloud == pytest.approx(ref.frames[0].ssim_gi, abs=1e-12)
+    assert rep.frames[0].ssim_gi != rep.frames[0].ssim_gi_cloud  # the generated GI is its own
+    strip = read_png(tmp_path / "gen" / "frames" / "000_gi.png")
+    assert strip.shape[:2] == (32, 3 * 32 + 2 * 2)
+    assert not (tmp_path / "gen" / "frames" / "001_gi.png").exists()
+    s = rep.summary()
+    assert s["mean_ssim_gi_cloud_vs_truth"] == pytest.approx(
+        np.mean([rep.frames[0].ssim_gi_cloud, rep.frames[2].ssim_gi_cloud])
+    )
+
+
 def test_demodulated_targets_round_trip_and_the_generator_remodulates(store, tmp_path):
     from icbtool.gan.data import ALBEDO_FLOOR, InputEncoding
 
