@@ -13,7 +13,8 @@ reference ``k`` test views earlier (k = 1, 2, 4; the test path keeps every 3rd c
 - ``warp+inpaint``: the warped reference, holes filled by OpenCV inpainting (what the loop does
   without a generator);
 - ``warp+generate``: the warped reference, holes filled by the pure generator's output;
-- ``warped generator``: the generator that reads the warped reference and its holes.
+- ``warped generator``: the generator that reads the warped reference and its holes;
+- ``warp+warped generator``: the warped reference, holes filled by the warped generator.
 
 Resumable (the runs train in chunks); writes ``benchmarks/results/gan/warped/warped.{json,png}``
 and ``warped_config.json``::
@@ -35,7 +36,13 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan" / "warped"
-METHODS = ("generate", "warp+inpaint", "warp+generate", "warped generator")
+METHODS = (
+    "generate",
+    "warp+inpaint",
+    "warp+generate",
+    "warped generator",
+    "warp+warped generator",
+)
 
 
 def train_runs(args: argparse.Namespace, runs: Path) -> dict:
@@ -110,11 +117,13 @@ def compare(args: argparse.Namespace, runs: Path) -> dict:
             holes_pct.append(100.0 * holes[geo].mean() if geo.any() else 0.0)
             maps = {n: getattr(rec, n) for n in warped.encoding.inputs}
             maps.update(warped_gi=img, warp_holes=holes.astype(np.float32))
+            wg = warped.generate(maps)
             preds = {
                 "generate": gen_pure[i],
                 "warp+inpaint": inpaint_image(img, holes) if holes.any() else img,
                 "warp+generate": np.where(holes[..., None], gen_pure[i], img),
-                "warped generator": warped.generate(maps),
+                "warped generator": wg,
+                "warp+warped generator": np.where(holes[..., None], wg, img),
             }
             for m, p in preds.items():
                 rows[m]["ssim"].append(metrics.ssim(p, rec.gi, exposure))
@@ -150,7 +159,7 @@ def plot(res: dict, ex: dict, exposure: float, out: Path) -> None:
     from icbtool.imageio import to_display
 
     ks = sorted(res["offsets"], key=int)
-    fig = plt.figure(figsize=(14, 7))
+    fig = plt.figure(figsize=(16, 7))
     ax = fig.add_subplot(2, 1, 1)
     x = [res["offsets"][k]["frames_back"] for k in ks]
     for m in METHODS:
