@@ -1,0 +1,198 @@
+"""What the server streams of its scene: a *base* (lights, sky, camera paths; JSON) and mesh
+levels, coarse to fine, each a list of chunks.
+
+:class:`MeshStream` is the one place the server asks for levels and the client rebuilds them
+(:func:`assemble`), so the level-of-detail builder (the LPM, :mod:`icbtool.lpm`) plugs in here.
+Without it, the stream has one level: the full scene (``full_levels``).
+
+A chunk is ``(name, part, data)``: ``name`` the level's label, ``part`` what the bytes hold
+(``vertices``, ``faces``, ``texture_3``, ...), ``data`` a ``.npy`` array (never pickle) or UTF-8
+JSON. The base carries no geometry; everything it holds the client needs to shade (lights) or to
+move (paths), and none of it is the protected full-detail mesh.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from icbtool.camera import Camera, CameraPath
+from icbtool.scene import types as st
+
+#: Light classes by their ``kind`` field.
+_LIGHTS: dict[str, type] = {
+    "directional": st.DirectionalLight,
+    "point": st.PointLight,
+    "spot": st.SpotLight,
+    "area": st.AreaLight,
+}
+
+Chunk = tuple[str, str, bytes]
+
+
+def _plain(v: Any) -> Any:
+    return v.tolist() if isinstance(v, np.ndarray) else v
+
+
+def _fields(obj: Any) -> dict[str, Any]:
+    return {f.name: _plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+
+
+def scene_base(scene: st.Scene) -> dict[str, Any]:
+    """The JSON-able part of ``scene`` a client needs besides the mesh (no geometry)."""
+    return {
+        "name": scene.name,
+        "lights": [_fields(li) for li in scene.lights],
+        "sky": None if scene.sky is None else _fields(scene.sky),
+        "paths": {k: p.to_dict() for k, p in scene.paths.items()},
+        "default_camera": (
+            None if scene.default_camera is None else scene.default_camera.to_dict()
+        ),
+        "up": _plain(np.asarray(scene.up)),
+    }
+
+
+def base_parts(base: dict[str, Any]) -> dict[str, Any]:
+    """The :class:`~icbtool.scene.Scene` keyword arguments of a base (inverse of
+    :func:`scene_base`).
+
+    Raises:
+        ValueError: a light of unknown kind, or a field that does not validate.
+    """
+    lights = []
+    for d in base.get("lights", []):
+        cls = _LIGHTS.get(d.get("kind"))
+        if cls is None:
+            raise ValueError(f"scene base: unknown light kind {d.get('kind')!r}")
+        lights.append(cls(**d))
+    sky = None if base.get("sky") is None else st.Sky(**base["sky"])
+    cam = base.get("default_camera")
+    return {
+        "name": str(base["name"]),
+        "lights": tuple(lights),
+        "sky": sky,
+        "paths": {k: CameraPath.from_dict(p) for k, p in base.get("paths", {}).items()},
+        "default_camera": None if cam is None else Camera.from_dict(cam),
+        "up": np.asarray(base.get("up", (0.0, 1.0, 0.0))),
+    }
+
+
+def _npy(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(a), allow_pickle=False)
+    return buf.getvalue()
+
+
+def _from_npy(b: bytes, what: str) -> np.ndarray:
+    try:
+        return np.load(io.BytesIO(b), allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+        raise ValueError(f"mesh chunk {what!r} is not a valid .npy array: {e}") from e
+
+
+@dataclass(frozen=True)
+class MeshLevel:
+    """One level of the stream.
+
+    Attributes:
+        index: 0 = coarsest.
+        triangles: its triangle count.
+        chunks: ``(name, part, data)`` in sending order.
+    """
+
+    index: int
+    triangles: int
+    chunks: tuple[Chunk, ...]
+
+    @property
+    def nbytes(self) -> int:
+        return sum(len(c[2]) for c in self.chunks)
+
+
+def full_level(scene: st.Scene, index: int = 0, name: str = "full") -> MeshLevel:
+    """The whole mesh of ``scene`` as one level (materials as JSON, arrays as .npy)."""
+    chunks: list[Chunk] = [
+        (name, "vertices", _npy(scene.vertices)),
+        (name, "faces", _npy(scene.faces)),
+        (name, "normals", _npy(scene.normals)),
+        (name, "face_material", _npy(scene.face_material)),
+    ]
+    if scene.uvs is not None:
+        chunks.append((name, "uvs", _npy(scene.uvs)))
+    mats = [
+        {"name": m.name, "albedo": _plain(m.albedo), "emission": _plain(m.emission)}
+        for m in scene.materials
+    ]
+    chunks.append((name, "materials", json.dumps(mats).encode()))
+    for i, m in enumerate(scene.materials):
+        if m.texture is not None:
+            chunks.append((name, f"texture_{i}", _npy(m.texture)))
+    return MeshLevel(index, scene.n_triangles, tuple(chunks))
+
+
+def assemble_full(chunks: list[Chunk], base: dict[str, Any]) -> st.Scene:
+    """Rebuild a scene from the chunks of one :func:`full_level` and the base.
+
+    Raises:
+        ValueError: a part is missing or does not decode, or the scene does not validate.
+    """
+    parts = {part: data for _, part, data in chunks}
+    missing = [p for p in ("vertices", "faces", "normals", "face_material", "materials") if p not in parts]
+    if missing:
+        raise ValueError(f"mesh level is missing parts {missing}")
+    mats = []
+    for i, m in enumerate(json.loads(parts["materials"].decode())):
+        tex = parts.get(f"texture_{i}")
+        mats.append(
+            st.Material(
+                m["name"],
+                np.asarray(m["albedo"]),
+                np.asarray(m["emission"]),
+                None if tex is None else _from_npy(tex, f"texture_{i}").astype(np.float32),
+            )
+        )
+    uvs = parts.get("uvs")
+    return st.Scene(
+        vertices=_from_npy(parts["vertices"], "vertices"),
+        faces=_from_npy(parts["faces"], "faces"),
+        normals=_from_npy(parts["normals"], "normals"),
+        face_material=_from_npy(parts["face_material"], "face_material"),
+        materials=mats,
+        uvs=None if uvs is None else _from_npy(uvs, "uvs"),
+        source="network",
+        **base_parts(base),
+    )
+
+
+class MeshStream:
+    """The server's view of what it streams: the base and the levels, coarse to fine.
+
+    Args:
+        scene: the full-detail scene (stays on the server).
+        lpm: build levels of detail (:mod:`icbtool.lpm`) when it is available; False (or no LPM
+            module) streams the full mesh as the only level.
+    """
+
+    def __init__(self, scene: st.Scene, lpm: bool = True) -> None:
+        self.base = scene_base(scene)
+        self.levels: list[MeshLevel] = [full_level(scene)]
+
+    def info(self) -> list[dict[str, Any]]:
+        """Per level: index, triangles, bytes, chunks (for scene_info)."""
+        return [
+            {"index": lv.index, "triangles": lv.triangles, "bytes": lv.nbytes, "chunks": len(lv.chunks)}
+            for lv in self.levels
+        ]
+
+
+def assemble(chunks: list[Chunk], base: dict[str, Any]) -> st.Scene:
+    """The client side of :class:`MeshStream`: one level's chunks plus the base -> a Scene."""
+    return assemble_full(chunks, base)
+
+
+__all__ = ["MeshLevel", "MeshStream", "assemble", "base_parts", "full_level", "scene_base"]
