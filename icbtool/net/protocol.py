@@ -586,10 +586,11 @@ def encode(
     header: dict[str, Any] = {"v": PROTOCOL_VERSION, "kind": msg.kind, **msg.fields}
     payload = bytes(msg.payload)
     if channel is not None:
-        header["ctr"] = channel.next_counter
-        hb = _header_bytes(header, msg.kind)
-        _check_header_size(len(hb), msg.kind)
-        ctr, payload = channel.seal(payload, hb)
+        with channel.lock:  # the counter in the header is the one seal() uses
+            header["ctr"] = channel.next_counter
+            hb = _header_bytes(header, msg.kind)
+            _check_header_size(len(hb), msg.kind)
+            ctr, payload = channel.seal(payload, hb)
         if ctr != header["ctr"]:  # pragma: no cover - Channel contract
             raise ProtocolError("internal", "channel counter moved while sealing")
     else:
