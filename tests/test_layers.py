@@ -30,6 +30,7 @@ LAYERS: dict[str, int] = {
     "bake": 4,
     "gan": 4,
     "system": 5,
+    "net": 6,
     "pipeline": 6,
     "cli": 7,
     "__main__": 8,
