@@ -5,10 +5,10 @@ levels, coarse to fine, each a list of chunks.
 (:func:`assemble`), so the level-of-detail builder (the LPM, :mod:`icbtool.lpm`) plugs in here.
 Without it, the stream has one level: the full scene (``full_levels``).
 
-A chunk is ``(name, part, data)``: ``name`` the level's label, ``part`` what the bytes hold
-(``vertices``, ``faces``, ``texture_3``, ...), ``data`` a ``.npy`` array (never pickle) or UTF-8
-JSON. The base carries no geometry; everything it holds the client needs to shade (lights) or to
-move (paths), and none of it is the protected full-detail mesh.
+A chunk is ``(name, part, data)``: ``name`` the file within the level (``vertices``, ``faces``,
+``texture_3``, ...), ``part`` ``"mesh"`` or ``"texture"``, ``data`` a ``.npy`` array (never
+pickle) or UTF-8 JSON. The base carries no geometry; everything it holds the client needs to
+shade (lights) or to move (paths), and none of it is the protected full-detail mesh.
 """
 
 from __future__ import annotations
@@ -114,24 +114,24 @@ class MeshLevel:
         return sum(len(c[2]) for c in self.chunks)
 
 
-def full_level(scene: st.Scene, index: int = 0, name: str = "full") -> MeshLevel:
+def full_level(scene: st.Scene, index: int = 0) -> MeshLevel:
     """The whole mesh of ``scene`` as one level (materials as JSON, arrays as .npy)."""
     chunks: list[Chunk] = [
-        (name, "vertices", _npy(scene.vertices)),
-        (name, "faces", _npy(scene.faces)),
-        (name, "normals", _npy(scene.normals)),
-        (name, "face_material", _npy(scene.face_material)),
+        ("vertices", "mesh", _npy(scene.vertices)),
+        ("faces", "mesh", _npy(scene.faces)),
+        ("normals", "mesh", _npy(scene.normals)),
+        ("face_material", "mesh", _npy(scene.face_material)),
     ]
     if scene.uvs is not None:
-        chunks.append((name, "uvs", _npy(scene.uvs)))
+        chunks.append(("uvs", "mesh", _npy(scene.uvs)))
     mats = [
         {"name": m.name, "albedo": _plain(m.albedo), "emission": _plain(m.emission)}
         for m in scene.materials
     ]
-    chunks.append((name, "materials", json.dumps(mats).encode()))
+    chunks.append(("materials", "mesh", json.dumps(mats).encode()))
     for i, m in enumerate(scene.materials):
         if m.texture is not None:
-            chunks.append((name, f"texture_{i}", _npy(m.texture)))
+            chunks.append((f"texture_{i}", "texture", _npy(m.texture)))
     return MeshLevel(index, scene.n_triangles, tuple(chunks))
 
 
@@ -141,8 +141,9 @@ def assemble_full(chunks: list[Chunk], base: dict[str, Any]) -> st.Scene:
     Raises:
         ValueError: a part is missing or does not decode, or the scene does not validate.
     """
-    parts = {part: data for _, part, data in chunks}
-    missing = [p for p in ("vertices", "faces", "normals", "face_material", "materials") if p not in parts]
+    parts = {name: data for name, _, data in chunks}
+    need = ("vertices", "faces", "normals", "face_material", "materials")
+    missing = [p for p in need if p not in parts]
     if missing:
         raise ValueError(f"mesh level is missing parts {missing}")
     mats = []
@@ -182,10 +183,16 @@ class MeshStream:
         self.base = scene_base(scene)
         self.levels: list[MeshLevel] = [full_level(scene)]
 
-    def info(self) -> list[dict[str, Any]]:
-        """Per level: index, triangles, bytes, chunks (for scene_info)."""
+    def info(self, chunk_bytes: int) -> list[dict[str, Any]]:
+        """Per level: level, triangles, bytes, chunks (messages when files are cut into pieces of
+        ``chunk_bytes``): the ``scene_info.lpm.levels`` entries."""
         return [
-            {"index": lv.index, "triangles": lv.triangles, "bytes": lv.nbytes, "chunks": len(lv.chunks)}
+            {
+                "level": lv.index,
+                "triangles": lv.triangles,
+                "bytes": lv.nbytes,
+                "chunks": sum(max(1, -(-len(d) // chunk_bytes)) for _, _, d in lv.chunks),
+            }
             for lv in self.levels
         ]
 

@@ -164,11 +164,15 @@ class Server:
         self.mesh = MeshStream(scene, lpm=self.config.lpm)
         self._generator: bytes | None = None
         self._generator_sha = ""
+        self._generator_inputs: tuple[str, ...] = ()
         if generator is not None:
             g = Path(generator)
             g = g / "generator.pt" if g.is_dir() else g
             if not g.is_file():
                 raise FileNotFoundError(f"generator {generator}: no generator.pt there")
+            from icbtool.gan import Generator
+
+            self._generator_inputs = Generator.load(g).inputs  # checks the file too
             self._generator = g.read_bytes()
             self._generator_sha = hashlib.sha256(self._generator).hexdigest()
         self.port: int | None = None
@@ -318,6 +322,44 @@ class Server:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    @property
+    def codecs(self) -> list[str]:
+        """The codecs this server encodes."""
+        return list(codec_mod.CODECS)
+
+    def scene_info(self) -> dict[str, Any]:
+        """The fields of ``scene_info``: the base (lights, paths, sky), LPM levels, codecs,
+        the generator on offer."""
+        base = self.mesh.base
+        cam = self.scene.default_camera
+        if cam is None:  # the schema wants one: the first camera of a path
+            cam = next(iter(self.scene.paths.values()))[0] if self.scene.paths else None
+        if cam is None:
+            raise ValueError(f"scene {self.scene.name!r} has no default camera and no path")
+        return {
+            "name": self.scene.name,
+            "bounds": np.asarray(self.scene.bounds, float).tolist(),
+            "lights": base["lights"],
+            "camera": protocol.camera_to_json(cam),
+            "lpm": {"levels": self.mesh.info(self.config.chunk_bytes)},
+            "generator": (
+                {
+                    "sha256": self._generator_sha,
+                    "bytes": len(self._generator),
+                    "inputs": list(self._generator_inputs),
+                }
+                if self._generator is not None
+                else None
+            ),
+            "codecs": self.codecs,
+            # beyond the schema's required fields: what a client needs to shade and move
+            "sky": base["sky"],
+            "paths": base["paths"],
+            "up": base["up"],
+            "default_camera": base["default_camera"],
+            "max_pending": self.config.max_pending,
+        }
+
     # ------------------------------------------------------------------ the cloud, coalesced
     def _cloud_job(self, fn: Any, *args: Any) -> asyncio.Future[Any]:
         if self._worker is None:
@@ -360,19 +402,27 @@ class Server:
             self.stats.renders += 1
         return reply, False
 
-    def encode_reference(self, ref: Any, gi_codec: str) -> tuple[list[dict[str, Any]], bytes]:
+    def encode_reference(
+        self, ref: Any, gi_codec: str, depth_codec: str
+    ) -> tuple[list[dict[str, Any]], bytes]:
         """Encode a reference's GI, depth and mask: (part descriptions, payload)."""
         parts, blobs = [], []
         mask = ref.mask if ref.mask is not None else (ref.depth > 0).astype(np.float32)
         for name, arr, c in (
             ("gi", ref.gi, gi_codec),
-            ("depth", ref.depth, self.config.depth_codec),
-            ("mask", mask, self.config.depth_codec),
+            ("depth", ref.depth, depth_codec),
+            ("mask", mask, depth_codec),
         ):
             arr = np.ascontiguousarray(arr, np.float32)
             b = codec_mod.encode(arr, c)
             parts.append(
-                {"name": name, "codec": c, "shape": list(arr.shape), "dtype": "float32", "bytes": len(b)}
+                {
+                    "name": name,
+                    "codec": c,
+                    "shape": list(arr.shape),
+                    "dtype": "float32",
+                    "bytes": len(b),
+                }
             )
             blobs.append(b)
         return parts, b"".join(blobs)
@@ -456,7 +506,7 @@ class _Connection:
             data = data.encode()
         msg = protocol.decode(data, max_bytes=self.server.config.max_message_bytes)
         if msg.kind != expect:
-            raise protocol.ProtocolError("protocol", f"expected {expect!r}, got {msg.kind!r}", None)
+            raise protocol.ProtocolError("auth", f"expected {expect!r}, got {msg.kind!r}", None)
         return msg
 
     async def handshake(self) -> None:
@@ -472,7 +522,7 @@ class _Connection:
             await self.error(e.code, e.message, e.ref, sealed=False)
             raise _Closing(f"handshake: {e.code}: {e.message}") from None
         except TimeoutError:
-            await self.error("timeout", "handshake not completed in time", sealed=False)
+            await self.error("auth", "handshake not completed in time", sealed=False)
             raise _Closing("handshake timeout") from None
         self.server.stats.authenticated += 1
 
@@ -480,25 +530,7 @@ class _Connection:
         srv = self.server
         await self.handshake()
         self.writer = asyncio.get_running_loop().create_task(self._write())
-        await self.send(
-            protocol.Message(
-                "scene_info",
-                {
-                    "name": srv.scene.name,
-                    "base": srv.mesh.base,
-                    "levels": srv.mesh.info(),
-                    "codecs": {"gi": srv.config.gi_codec, "depth": srv.config.depth_codec},
-                    "max_pending": srv.config.max_pending,
-                    "max_message_bytes": srv.config.max_message_bytes,
-                    "generator": (
-                        {"sha256": srv._generator_sha, "bytes": len(srv._generator)}
-                        if srv._generator is not None
-                        else None
-                    ),
-                },
-                b"",
-            )
-        )
+        await self.send(protocol.Message("scene_info", srv.scene_info(), b""))
         async for data in self.ws:
             if self.writer.done():
                 raise _Closing("writer stopped")
@@ -537,15 +569,15 @@ class _Connection:
             self._spawn(self.stream_lpm(msg.fields))
         elif msg.kind == "generator_request":
             if srv._generator is None:
-                await self.error("no_generator", "this server offers no generator")
+                await self.error("not_found", "this server offers no generator")
             elif self.generator_sent:
-                await self.error("protocol", "the generator was already sent on this connection")
+                await self.error("bad_field", "the generator was already sent on this connection")
             else:
                 self.generator_sent = True
                 self._spawn(self.send_generator())
         else:
             srv.stats.protocol_errors += 1
-            await self.error("unexpected", f"a client does not send {msg.kind!r}")
+            await self.error("unknown_kind", f"a client does not send {msg.kind!r}")
 
     def _spawn(self, coro: Any) -> None:
         t = asyncio.get_running_loop().create_task(coro)
@@ -566,15 +598,17 @@ class _Connection:
         try:
             req = protocol.request_from_json(fields["request"])
             gi_codec = fields.get("codec") or srv.config.gi_codec
-            if gi_codec not in codec_mod.CODECS:
-                raise protocol.ProtocolError(
-                    "bad_request", f"unknown codec {gi_codec!r}; known {sorted(codec_mod.CODECS)}", rid
-                )
+            depth_codec = fields.get("depth_codec") or srv.config.depth_codec
+            for c in (gi_codec, depth_codec):
+                if c not in srv.codecs:
+                    raise protocol.ProtocolError(
+                        "bad_field", f"gi_request.codec: {c!r} is not one of {srv.codecs}", rid
+                    )
             reply, coalesced = await srv.answer(req)
             t0 = time.perf_counter()
             assert srv._encoder is not None
             parts, payload = await asyncio.wrap_future(
-                srv._encoder.submit(srv.encode_reference, reply.reference, gi_codec)
+                srv._encoder.submit(srv.encode_reference, reply.reference, gi_codec, depth_codec)
             )
             timings = dict(reply.timings_ms)
             timings["encode"] = 1e3 * (time.perf_counter() - t0)
@@ -597,41 +631,40 @@ class _Connection:
         except protocol.ProtocolError as e:
             await self.error(e.code, e.message, rid)
         except (ValueError, KeyError, TypeError) as e:
-            await self.error("bad_request", f"GI request {rid!r}: {e}", rid)
+            await self.error("bad_field", f"gi_request {rid!r}: {e}", rid)
         finally:
             self.pending.discard(rid)
 
     async def stream_lpm(self, fields: dict[str, Any]) -> None:
-        """Every requested level, coarse to fine, in pieces of at most ``chunk_bytes``."""
+        """Levels 0..max_level, coarse to fine, each file in pieces of at most ``chunk_bytes``."""
         srv = self.server
-        levels = srv.mesh.levels
-        want = fields.get("levels")
-        if want is not None:
-            levels = [lv for lv in levels if lv.index in set(want)]
+        top = fields["max_level"]
         step = srv.config.chunk_bytes
         try:
-            for lv in levels:
-                for name, part, data in lv.chunks:
-                    n = max(1, -(-len(data) // step))
-                    for i in range(n):
-                        await self.send(
-                            protocol.Message(
-                                "lpm_chunk",
-                                {
-                                    "level": lv.index,
-                                    "name": name,
-                                    "part": part,
-                                    "index": i,
-                                    "count": n,
-                                },
-                                data[i * step : (i + 1) * step],
-                            )
+            for lv in srv.mesh.levels:
+                if lv.index > top:
+                    break
+                pieces = [
+                    (name, part, data[i : i + step])
+                    for name, part, data in lv.chunks
+                    for i in range(0, max(len(data), 1), step)
+                ]
+                for k, (name, part, piece) in enumerate(pieces):
+                    await self.send(
+                        protocol.Message(
+                            "lpm_chunk",
+                            {
+                                "level": lv.index,
+                                "index": k,
+                                "count": len(pieces),
+                                "part": part,
+                                "name": name,
+                                "sha256": hashlib.sha256(piece).hexdigest(),
+                            },
+                            piece,
                         )
-                await self.send(
-                    protocol.Message(
-                        "lpm_done", {"level": lv.index, "triangles": lv.triangles}, b""
                     )
-                )
+                await self.send(protocol.Message("lpm_done", {"level": lv.index}, b""))
         finally:
             self.streaming_lpm = False
 
@@ -642,11 +675,12 @@ class _Connection:
         step = srv.config.chunk_bytes
         n = max(1, -(-len(data) // step))
         for i in range(n):
+            piece = data[i * step : (i + 1) * step]
             await self.send(
                 protocol.Message(
                     "generator_chunk",
-                    {"index": i, "count": n, "sha256": srv._generator_sha},
-                    data[i * step : (i + 1) * step],
+                    {"index": i, "count": n, "sha256": hashlib.sha256(piece).hexdigest()},
+                    piece,
                 )
             )
         srv.stats.generator_sent += 1

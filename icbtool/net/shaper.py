@@ -15,11 +15,14 @@ Example:
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -33,7 +36,9 @@ class ShaperConfig:
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.latency_ms) and self.latency_ms >= 0):
-            raise ValueError(f"ShaperConfig.latency_ms must be finite and >= 0, got {self.latency_ms}")
+            raise ValueError(
+                f"ShaperConfig.latency_ms must be finite and >= 0, got {self.latency_ms}"
+            )
         if self.bandwidth_mbit is not None and not (
             math.isfinite(self.bandwidth_mbit) and self.bandwidth_mbit > 0
         ):
@@ -101,7 +106,12 @@ class DelayLine:
             wait = due - time.monotonic()
             if wait > 0:
                 await asyncio.sleep(wait)
-            await self._deliver(item)
+            try:
+                await self._deliver(item)
+            except asyncio.CancelledError:
+                raise
+            except Exception as e:  # the receiver's problem; the line keeps going
+                log.warning("shaped delivery failed: %r", e)
 
     async def aclose(self) -> None:
         if self._task is not None:
