@@ -30,11 +30,11 @@ LAYERS: dict[str, int] = {
     "bake": 4,
     "gan": 4,
     "system": 5,
-    "net": 6,
     "pipeline": 6,
-    "cli": 7,
-    "__main__": 8,
-    "__init__": 8,
+    "net": 7,
+    "cli": 8,
+    "__main__": 9,
+    "__init__": 9,
     "_optional": 0,
 }
 

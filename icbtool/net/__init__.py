@@ -6,8 +6,16 @@
   AES-256-GCM sealing of every payload after the handshake (needs the ``net`` extra).
 * :mod:`icbtool.net.codec`: HDR codecs for GI maps and depth (needs the ``net`` extra).
 
-Only the protocol is imported here; crypto and codec load their optional dependencies on use.
+* :mod:`icbtool.net.server`: :class:`Server` (``icbtool serve``), the cloud behind a WebSocket;
+* :mod:`icbtool.net.client`: :class:`NetworkSource`, a GI source over a WebSocket;
+  :mod:`icbtool.net.run`: :func:`run_client` (``icbtool client``); :mod:`icbtool.net.shaper`:
+  :class:`ShaperConfig` (emulated latency and bandwidth).
+
+Only the protocol is imported here; crypto and codec load their optional dependencies on use, and
+the server/client names load their modules on first access.
 """
+
+from typing import Any
 
 from icbtool.net.protocol import (
     DEFAULT_MAX_MESSAGE,
@@ -25,7 +33,28 @@ from icbtool.net.protocol import (
     request_to_json,
 )
 
+_LAZY = {
+    "Server": "icbtool.net.server",
+    "ServerConfig": "icbtool.net.server",
+    "NetworkSource": "icbtool.net.client",
+    "NetClientConfig": "icbtool.net.client",
+    "NetError": "icbtool.net.client",
+    "ShaperConfig": "icbtool.net.shaper",
+    "run_client": "icbtool.net.run",
+    "NetRunReport": "icbtool.net.run",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'icbtool.net' has no attribute {name!r}")
+
+
 __all__ = [
+    *_LAZY,
     "DEFAULT_MAX_MESSAGE",
     "KINDS",
     "MAX_HEADER",

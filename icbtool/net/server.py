@@ -188,6 +188,8 @@ class Server:
         self._start_error: BaseException | None = None
         self._conn_ids = itertools.count(1)
         self._stop_requested = False
+        #: Called with :attr:`url` once the server accepts connections.
+        self.on_listening: Any = None
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -237,6 +239,8 @@ class Server:
                 self.port = int(next(iter(ws_server.sockets)).getsockname()[1])
                 log.info("icbtool server on %s (scene %s)", self.url, self.scene.name)
                 self._ready.set()
+                if self.on_listening is not None:
+                    self.on_listening(self.url)
                 await self._stop.wait()
                 log.info("shutting down: closing connections")
                 ws_server.close(close_connections=True)
