@@ -16,7 +16,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from icbtool.camera import Camera
-from icbtool.net import crypto
+from icbtool.net import codec, crypto
 from icbtool.net import protocol as P
 from icbtool.net.protocol import KINDS, Field, Message, ProtocolError
 from icbtool.system import GIRequest
@@ -459,3 +459,100 @@ def test_every_kind_field_and_error_code_is_documented():
     assert (
         f"PROTOCOL_VERSION = {P.PROTOCOL_VERSION}" in text or f'"v": {P.PROTOCOL_VERSION}' in text
     )
+
+
+# ------------------------------------------------------------------------- GI / depth codecs
+def _gi_and_depth(seed: int = 0, h: int = 24, w: int = 32):
+    rng = np.random.default_rng(seed)
+    gi = rng.lognormal(-1.0, 2.0, (h, w, 3)).astype(np.float32)
+    gi[0, 0] = 0.0
+    gi[1, 1] = [1e-3, 5.0, 1e3]
+    depth = rng.uniform(0.05, 500.0, (h, w)).astype(np.float32)
+    depth[:4, :4] = np.inf
+    depth[4:6, 4:6] = 0.0
+    return gi, depth
+
+
+def test_f32_zstd_is_exact_for_gi_and_depth():
+    gi, depth = _gi_and_depth()
+    for a in (gi, depth, depth[..., None]):
+        out = codec.decode(codec.encode(a, "f32-zstd"), "f32-zstd", list(a.shape))
+        assert out.dtype == np.float32 and out.shape == a.shape
+        assert out.tobytes() == a.tobytes()
+
+
+@pytest.mark.parametrize("name", ["f16-zstd", "log-u16-png", "rgbe-png"])
+def test_lossy_codecs_stay_within_their_relative_error(name: str):
+    gi, depth = _gi_and_depth(1)
+    c = codec.CODECS[name]
+    out = codec.decode(codec.encode(gi, name), name, gi.shape)
+    if name == "rgbe-png":  # relative to the pixel's largest channel
+        err = np.abs(out - gi) / np.maximum(gi.max(-1, keepdims=True), 1e-30)
+        assert err.max() <= c.max_rel_error
+        assert np.all(out[0, 0] == 0)
+    else:
+        normal = gi > 2.0**-14
+        err = np.abs(out[normal] - gi[normal]) / gi[normal]
+        assert err.max() <= c.max_rel_error
+        assert err.max() > c.max_rel_error / 4  # the bound is tight, not vacuous
+    if c.for_depth:
+        d = codec.decode(codec.encode(depth, name), name, depth.shape)
+        assert np.array_equal(np.isposinf(d), np.isposinf(depth))  # no surface stays inf ...
+        assert np.array_equal(d == 0, depth == 0)  # ... or 0, exactly
+        fin = np.isfinite(depth) & (depth > 0)
+        assert (np.abs(d[fin] - depth[fin]) / depth[fin]).max() <= c.max_rel_error
+
+
+def test_f16_saturates_instead_of_overflowing_and_png_channels_are_rgb():
+    a = np.array([[[7e4, 1.0, 0.0]]], np.float32)
+    out = codec.decode(codec.encode(a, "f16-zstd"), "f16-zstd", [1, 1, 3])
+    assert out.tolist() == [[[65504.0, 1.0, 0.0]]]
+    import cv2
+
+    red = np.zeros((2, 2, 3), np.float32)
+    red[..., 0] = 1.0
+    png = cv2.imdecode(np.frombuffer(codec.encode(red, "log-u16-png"), np.uint8), -1)
+    assert png[0, 0, 2] > 0 and png[0, 0, 0] == 0  # cv2 reads BGR: the file holds R first
+
+
+def test_corrupt_or_mismatched_codec_data_is_malformed():
+    gi, depth = _gi_and_depth(2)
+    for name in codec.CODECS:
+        blob = codec.encode(gi, name)
+        for bad, shape in (
+            (blob[: len(blob) // 2], gi.shape),  # truncated
+            (b"\x00" * 7 + blob[7:], gi.shape),  # header smashed
+            (blob, (gi.shape[0] + 1, *gi.shape[1:])),  # wrong size
+            (b"", gi.shape),
+        ):
+            with pytest.raises(ProtocolError) as e:
+                codec.decode(bad, name, shape)
+            assert e.value.code == "malformed" and name in str(e.value), (name, str(e.value))
+    with pytest.raises(ProtocolError, match="bad_field.*unknown codec"):
+        codec.decode(b"", "jpeg", [1])
+    with pytest.raises(ProtocolError, match="dtype"):
+        codec.decode(b"", "f32-zstd", [1], "float64")
+    with pytest.raises(ProtocolError, match="too_large"):
+        codec.decode(b"", "f32-zstd", [2**20, 2**20])
+    with pytest.raises(ValueError, match="NaN"):
+        codec.encode(np.full((2, 2, 3), np.nan, np.float32), "rgbe-png")
+    with pytest.raises(ValueError, match="rgbe-png"):
+        codec.encode(depth, "rgbe-png")
+
+
+def test_gi_reply_parts_round_trip_through_a_sealed_message():
+    gi, depth = _gi_and_depth(3)
+    parts, payload = codec.pack_parts([("gi", gi, "f16-zstd"), ("depth", depth, "f32-zstd")])
+    cam = P.camera_to_json(Camera.from_fov(60, *depth.shape))
+    reply = Message(
+        "gi_reply",
+        {"id": 5, "camera": cam, "cache_hit": True, "timings_ms": {"lookup": 0.4}, "parts": parts},
+        payload,
+    )
+    cch, sch = _pair()
+    got = P.decode(P.encode(reply, sch), cch)
+    arrays = codec.unpack_parts(got.fields["parts"], got.payload)
+    assert arrays["depth"].tobytes() == depth.tobytes()
+    assert np.allclose(arrays["gi"], gi, rtol=2.0**-11, atol=0)
+    with pytest.raises(ProtocolError, match="after the parts"):
+        codec.unpack_parts(parts[:1], payload)
