@@ -45,7 +45,8 @@ SERVER_TO_CLIENT = b"\x00\x00\x00\x02"
 KEY_BYTES = 32
 NONCE_BYTES = 32
 TAG_BYTES = 16
-_MAX_COUNTER = 2**64 - 1
+#: Counters stay JavaScript-safe integers (the header carries them as JSON numbers).
+_MAX_COUNTER = 2**53 - 1
 
 
 def _version() -> str:
@@ -166,12 +167,14 @@ class Channel:
             (counter, ciphertext | 16-byte tag).
 
         Raises:
-            ProtocolError: ``"crypto"`` when the counter is exhausted (2^64 messages).
+            ProtocolError: ``"crypto"`` when the counter is exhausted (2^53 messages).
         """
         with self.lock:
             ctr = self._next
             if ctr > _MAX_COUNTER:
-                raise ProtocolError("crypto", "message counter exhausted; open a new session")
+                raise ProtocolError(
+                    "crypto", "message counter exhausted (2^53 messages); open a new session"
+                )
             self._next = ctr + 1
             nonce = self._send_dir + struct.pack(">Q", ctr)
             return ctr, self._send.encrypt(nonce, bytes(payload), bytes(aad))
@@ -191,7 +194,7 @@ class Channel:
                 "crypto", f"message counter must be an integer >= 0, got {counter!r}"
             )
         if counter > _MAX_COUNTER:
-            raise ProtocolError("crypto", f"message counter {counter} is over 2^64 - 1")
+            raise ProtocolError("crypto", f"message counter {counter} is over 2^53 - 1")
         with self._recv_lock:
             if counter <= self._last_seen:
                 raise ProtocolError(

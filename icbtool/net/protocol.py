@@ -40,6 +40,8 @@ PROTOCOL_VERSION = 1
 DEFAULT_MAX_MESSAGE = 64 * 2**20
 #: Limit on the JSON header of one message, bytes.
 MAX_HEADER = 64 * 2**10
+#: Largest integer magnitude a field may hold (JavaScript's Number.MAX_SAFE_INTEGER).
+MAX_SAFE_INTEGER = 2**53 - 1
 #: Header keys that belong to the frame, not to a kind's fields.
 RESERVED_KEYS = ("v", "kind", "ctr")
 
@@ -454,6 +456,8 @@ def _check_value(value: Any, f: Field, where: str, ref: int | None) -> None:
             f"must be {'a finite ' if f.type == 'number' else ''}{f.type}, got "
             f"{type(value).__name__} {shown}"
         )
+    if f.type == "integer" and abs(value) > MAX_SAFE_INTEGER:
+        raise bad(f"must be within +-(2^53 - 1) (a JavaScript-safe integer), got {value}")
     if f.minimum is not None and value < f.minimum:
         raise bad(f"must be >= {f.minimum:g}, got {value}")
     if f.type == "base64":
@@ -557,11 +561,11 @@ def _ref_of(fields: Any) -> int | None:
 def _header_bytes(header: dict[str, Any], kind: str) -> bytes:
     try:
         text = json.dumps(header, ensure_ascii=False, allow_nan=False, separators=(",", ":"))
-    except (TypeError, ValueError) as e:
+        return text.encode("utf-8")
+    except (TypeError, ValueError) as e:  # UnicodeEncodeError (lone surrogate) is a ValueError
         raise ProtocolError(
             "bad_field", f"{kind}: fields are not JSON-serialisable ({e})", _ref_of(header)
         ) from None
-    return text.encode("utf-8")
 
 
 def encode(
@@ -704,9 +708,9 @@ def decode(
             raise ProtocolError(
                 "crypto", f"{kind} is not sealed (no 'ctr') after the handshake", ref
             )
-        if not isinstance(ctr, int) or isinstance(ctr, bool) or not 0 <= ctr < 2**64:
+        if not isinstance(ctr, int) or isinstance(ctr, bool) or not 0 <= ctr <= MAX_SAFE_INTEGER:
             raise ProtocolError(
-                "crypto", f"{kind}.ctr must be an integer in [0, 2^64), got {ctr!r}", ref
+                "crypto", f"{kind}.ctr must be an integer in [0, 2^53 - 1], got {ctr!r}", ref
             )
         payload = channel.open(ctr, payload, hb)
     msg = Message(kind, header, payload)
