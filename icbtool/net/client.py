@@ -210,9 +210,15 @@ class NetworkSource(GISource):
             data = await self._ws.recv()
         except Exception as e:  # closed by the server after an error we did not see
             raise NetError(f"{self.url}: connection closed during the handshake: {e}") from e
-        msg = protocol.decode(
-            data, self._channel if sealed else None, max_bytes=self.config.max_message_bytes
-        )
+        mb = self.config.max_message_bytes
+        try:
+            msg = protocol.decode(data, self._channel if sealed else None, max_bytes=mb)
+        except protocol.ProtocolError:
+            if not sealed:
+                raise
+            msg = protocol.decode(data, None, max_bytes=mb)  # a refusal comes before sealing
+            if msg.kind != "error":
+                raise
         self._count(self.bytes_received, msg.kind, len(data))
         if msg.kind == "error":
             raise NetError(
