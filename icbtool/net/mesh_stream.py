@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import logging
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,6 +24,8 @@ import numpy as np
 
 from icbtool.camera import Camera, CameraPath
 from icbtool.scene import types as st
+
+log = logging.getLogger(__name__)
 
 #: Light classes by their ``kind`` field.
 _LIGHTS: dict[str, type] = {
@@ -175,13 +178,48 @@ class MeshStream:
 
     Args:
         scene: the full-detail scene (stays on the server).
-        lpm: build levels of detail (:mod:`icbtool.lpm`) when it is available; False (or no LPM
-            module) streams the full mesh as the only level.
+        lpm: build levels of detail with :func:`icbtool.lpm.build`; False, or open3d missing
+            where a level needs decimation (logged), streams the full mesh as the only level.
+        lpm_config: :class:`icbtool.lpm.LPMConfig` (default: its defaults).
+        send_full: also stream the LPM's finest level, which is the full-detail mesh itself.
+            Off by default: the full-detail mesh never leaves the server (ICB.md section 1),
+            unless it is the only level there is.
+        max_chunk_bytes: the LPM's chunk size bound.
     """
 
-    def __init__(self, scene: st.Scene, lpm: bool = True) -> None:
+    def __init__(
+        self,
+        scene: st.Scene,
+        lpm: bool = True,
+        lpm_config: Any = None,
+        send_full: bool = False,
+        max_chunk_bytes: int = 2**20,
+    ) -> None:
         self.base = scene_base(scene)
-        self.levels: list[MeshLevel] = [full_level(scene)]
+        self.levels: list[MeshLevel] = []
+        self.build_s = 0.0
+        if lpm:
+            import dataclasses as dc
+            import time
+
+            from icbtool import lpm as lpm_mod
+            from icbtool._optional import MissingOptionalDependency
+
+            cfg = lpm_config or lpm_mod.LPMConfig()
+            cfg = dc.replace(cfg, max_chunk_bytes=min(cfg.max_chunk_bytes, max_chunk_bytes))
+            t0 = time.perf_counter()
+            try:
+                built = lpm_mod.build(scene, cfg)
+            except MissingOptionalDependency as e:
+                log.warning("no LPM (%s): streaming the full mesh as one level", e)
+            else:
+                kept = [lv for lv in built.levels if send_full or lv.ratio < 1.0] or built.levels
+                self.levels = [
+                    MeshLevel(lv.index, lv.n_triangles, tuple(lv.to_chunks())) for lv in kept
+                ]
+            self.build_s = time.perf_counter() - t0
+        if not self.levels:
+            self.levels = [full_level(scene)]
 
     def info(self, chunk_bytes: int) -> list[dict[str, Any]]:
         """Per level: level, triangles, bytes, chunks (messages when files are cut into pieces of
@@ -198,7 +236,22 @@ class MeshStream:
 
 
 def assemble(chunks: list[Chunk], base: dict[str, Any]) -> st.Scene:
-    """The client side of :class:`MeshStream`: one level's chunks plus the base -> a Scene."""
+    """The client side of :class:`MeshStream`: one level's chunks plus the base -> a Scene.
+
+    LPM chunks (names ``L<level>/...``) go to :func:`icbtool.lpm.assemble`; the base adds the
+    camera paths and the default camera to what the LPM carries.
+
+    Raises:
+        ValueError: a missing or damaged chunk (the message names it).
+    """
+    if chunks and all("/" in name for name, _, _ in chunks):
+        from icbtool import lpm as lpm_mod
+
+        scene = lpm_mod.assemble(chunks, base={k: base[k] for k in ("lights", "sky", "up")})
+        extra = base_parts(base)
+        return dataclasses.replace(
+            scene, paths=extra["paths"], default_camera=extra["default_camera"]
+        )
     return assemble_full(chunks, base)
 
 

@@ -80,6 +80,8 @@ class ServerConfig:
     """Codec of the reference depth (and mask)."""
     lpm: bool = True
     """Stream levels of detail (icbtool.lpm) when available, else the full mesh as one level."""
+    send_full_mesh: bool = False
+    """Also stream the LPM's finest level (the full-detail mesh itself); off: it stays here."""
 
     def __post_init__(self) -> None:
         for k in ("max_message_bytes", "chunk_bytes", "max_pending", "send_queue"):
@@ -161,7 +163,12 @@ class Server:
         self.config = config or ServerConfig()
         self.cloud_config = cloud_config or CloudConfig()
         self.stats = ServerStats()
-        self.mesh = MeshStream(scene, lpm=self.config.lpm)
+        self.mesh = MeshStream(
+            scene,
+            lpm=self.config.lpm,
+            send_full=self.config.send_full_mesh,
+            max_chunk_bytes=self.config.chunk_bytes,
+        )
         self._generator: bytes | None = None
         self._generator_sha = ""
         self._generator_inputs: tuple[str, ...] = ()
