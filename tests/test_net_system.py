@@ -328,3 +328,53 @@ def test_sigterm_keeps_every_committed_record(scene, tmp_path):
         # every render answered was committed (the one aborted by the stop may be too)
         assert rendered >= 1 and rendered <= len(st) <= rendered + 1
         assert all(st.get_intact(r) is not None for r in st.ids())
+
+
+# ---------------------------------------------------------------------------- the generator
+def write_tiny_generator(path: Path, seed: int = 0) -> Path:
+    """An untrained 4-channel-base U-Net saved as a generator file (the format
+    :meth:`icbtool.gan.Generator.load` reads): enough to test shipping and local generation."""
+    from dataclasses import asdict
+
+    torch = pytest.importorskip("torch")
+    from icbtool.gan.data import InputEncoding
+    from icbtool.gan.models import GeneratorConfig, UNetGenerator
+
+    enc = InputEncoding(("albedo", "dl", "normal_world", "depth"), depth_max=8.0)
+    cfg = GeneratorConfig(enc.n_channels, base=4)
+    torch.manual_seed(seed)
+    g = UNetGenerator(cfg)
+    path.mkdir(parents=True, exist_ok=True)
+    torch.save(
+        {"generator": g.state_dict(), "generator_config": asdict(cfg), "encoding": enc.to_dict()},
+        path / "generator.pt",
+    )
+    return path
+
+
+def test_generator_shipped_once_hash_checked_and_used_locally(scene, tmp_path):
+    from icbtool import raster
+    from icbtool.gan import Generator
+
+    run = write_tiny_generator(tmp_path / "run")
+    srv = Server(scene, tmp_path / "store", TOKEN, ServerConfig(), CLOUD, generator=run).start()
+    try:
+        with _client(srv) as src:
+            info = src.scene_info["generator"]
+            assert info["bytes"] == (run / "generator.pt").stat().st_size
+            assert info["inputs"] == ["albedo", "dl", "normal_world", "depth"]
+            src.request_generator()
+            assert src.wait_generator(T)
+            assert src.generator_bytes == info["bytes"]
+            cam = _camera(scene, 0.5)
+            with raster.Rasterizer(scene) as rz:
+                wrt = rz.render(cam, buffers=("dl", "albedo", "normal_world", "depth"))
+            sent = dict(src.bytes_sent)
+            reply = src.request(_request(scene, 0.5), wrt)
+            assert src.bytes_sent == sent  # nothing asked of the server
+            assert reply.timings_ms["generate"] > 0
+            local = system.GeneratorSource(Generator.load(run)).request(_request(scene, 0.5), wrt)
+            np.testing.assert_allclose(reply.reference.gi, local.reference.gi, rtol=0, atol=1e-6)
+        assert srv.stats.generator_sent == 1
+    finally:
+        srv.stop()
