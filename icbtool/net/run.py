@@ -103,6 +103,7 @@ def run_client(
     out_dir: str | Path | None = None,
     truth_scene: Any = None,
     progress: bool = True,
+    wait_for_generator: bool = False,
 ) -> NetRunReport:
     """Run a networked client along ``config.path`` (see the module docstring).
 
@@ -116,6 +117,8 @@ def run_client(
         truth_scene: the full scene, only to score frames against a traced truth (an
             evaluation; a real client never holds it). None: no scoring.
         progress: show a progress bar.
+        wait_for_generator: when a generator is on offer (and ``net.use_generator``), start the
+            frames only once it is here (else the first frames ask the server meanwhile).
 
     Raises:
         icbtool.net.client.NetError: the server refused or failed.
@@ -131,6 +134,8 @@ def run_client(
         if net.use_generator and src.generator_offered:
             src.request_generator()
         src.wait_level(0)
+        if wait_for_generator and net.use_generator and src.generator_offered:
+            src.wait_generator()
         first_level_ms = 1e3 * (time.perf_counter() - t0)
         best = src.best_scene()
         assert best is not None

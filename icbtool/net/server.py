@@ -440,12 +440,16 @@ class Server:
 
     # ------------------------------------------------------------------ connections
     async def _handle(self, ws: Any) -> None:
+        from websockets.exceptions import ConnectionClosed
+
         self.stats.connections += 1
         conn = _Connection(self, ws, next(self._conn_ids))
         try:
             await conn.run()
         except _Closing as e:
             log.info("connection %d closed: %s", conn.id, e)
+        except ConnectionClosed as e:
+            log.info("connection %d lost: %s", conn.id, e)
         except Exception as e:  # one connection's failure never reaches the server
             log.warning("connection %d failed: %r", conn.id, e)
         finally:
