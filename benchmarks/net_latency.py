@@ -35,7 +35,8 @@ from icbtool.cli._common import load_scene, run_info, write_json
 from icbtool.net import NetClientConfig, NetworkSource, Server, ServerConfig, ShaperConfig
 from icbtool.net.run import run_client
 
-OUT = Path(__file__).resolve().parent / "results" / "net"
+REPO = Path(__file__).resolve().parents[1]
+OUT = REPO / "benchmarks" / "results" / "net"
 TOKEN = "bench"
 NETWORKS = (
     ShaperConfig(0.0, None),
@@ -81,6 +82,44 @@ def latency_runs(scene, args, tmp: Path) -> list[dict]:
             s = rep.summary()
             rows.append({"network": shape.label(), "phase": phase, **s})
             print(shape.label(), phase, s["frames_by_mode"], s.get("median_request_ms"))
+    return rows
+
+
+def first_frame(scene, args, tmp: Path) -> list[dict]:
+    """Time to the first rasterized frame: the coarsest LPM level against the full mesh (the
+    LPM's finest level, same encoding), per emulated network. GI comes in parallel either way."""
+    from icbtool import raster
+
+    p = scene.paths["test"]
+    cam = p.with_intrinsics(p.intrinsics.resized(args.size, args.size)).camera_at(p.times[0])
+    cfg = ServerConfig(send_full_mesh=True)
+    rows = []
+    with Server(scene, tmp / "store_ttff", TOKEN, cfg) as srv:
+        top = len(srv.mesh.levels) - 1
+        for shape in NETWORKS:
+            for what, low in (("lpm_level0", 0), ("full_mesh", top)):
+                t0 = time.perf_counter()
+                with NetworkSource(srv.url, TOKEN, NetClientConfig(shaper=shape)) as src:
+                    src.request_lpm(max_level=top if low else 0, min_level=low)
+                    src.wait_level(low)
+                    t_mesh = time.perf_counter()
+                    mesh = src.scene(low)
+                    with raster.Rasterizer(mesh) as rz:
+                        rz.render(cam)
+                    t_frame = time.perf_counter()
+                    got = sum(src.bytes_received.values())
+                rows.append(
+                    {
+                        "network": shape.label(),
+                        "mesh": what,
+                        "triangles": mesh.n_triangles,
+                        "bytes_received": got,
+                        "mesh_in_hand_ms": 1e3 * (t_mesh - t0),
+                        "first_frame_ms": 1e3 * (t_frame - t0),
+                    }
+                )
+                print("first frame", rows[-1])
+        rows.append({"lpm_build_s": srv.mesh.build_s, "levels": srv.mesh.info(cfg.chunk_bytes)})
     return rows
 
 
@@ -150,7 +189,7 @@ def plot(res: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(1, 3, figsize=(16, 4.5))
+    fig, ax = plt.subplots(1, 4, figsize=(21, 4.5))
     stages = ("lookup_ms", "cloud_render_ms", "queue_ms", "encode_ms", "transfer_ms",
               "decode_ms", "generate_ms")  # fmt: skip
     bars, labels = [], []
@@ -196,6 +235,18 @@ def plot(res: dict, path: Path) -> None:
     ax[2].set_ylabel("request -> reply ms")
     ax[2].legend(fontsize=7)
     ax[2].set_title("server throughput")
+    ff = [r for r in res["first_frame"]["runs"] if "mesh" in r]
+    nets = list(dict.fromkeys(r["network"] for r in ff))
+    for j, what in enumerate(("lpm_level0", "full_mesh")):
+        v = [next(r["first_frame_ms"] for r in ff if r["network"] == n and r["mesh"] == what)
+             for n in nets]  # fmt: skip
+        tri = next(r["triangles"] for r in ff if r["mesh"] == what)
+        kb = next(r["bytes_received"] for r in ff if r["mesh"] == what) / 1e3
+        ax[3].bar(np.arange(len(nets)) + 0.4 * j, v, 0.4, label=f"{what}: {tri} tris, {kb:.0f} kB")
+    ax[3].set_xticks(np.arange(len(nets)) + 0.2, nets, fontsize=7)
+    ax[3].set_ylabel("ms to the first rasterized frame")
+    ax[3].legend(fontsize=7)
+    ax[3].set_title(f"first frame: LPM vs full mesh ({Path(res['first_frame']['scene']).stem})")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -208,11 +259,25 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--requests", type=int, default=8, help="per client in the throughput runs")
+    ap.add_argument(
+        "--first-frame-scene",
+        default=None,
+        help="scene of the LPM vs full-mesh first-frame runs (default: Sponza when found, "
+        "else --scene)",
+    )
     args = ap.parse_args()
+    if args.first_frame_scene is None:
+        sponza = Path(os.environ.get("ICBTOOL_SPONZA", REPO.parent / "shared/scenes/sponza"))
+        if (sponza / "sponza_textured.obj").is_file():
+            os.environ["ICBTOOL_SPONZA"] = str(sponza)
+            args.first_frame_scene = str(REPO / "data" / "scenes" / "sponza.toml")
+        else:
+            args.first_frame_scene = args.scene
     scene = load_scene(args.scene)
     OUT.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="icb_net_bench_") as tmp:
+        ttff = first_frame(load_scene(args.first_frame_scene), args, Path(tmp))
         lat = latency_runs(scene, args, Path(tmp))
         tp = throughput(scene, args, Path(tmp))
     base = next(r for r in lat if r["network"] == NETWORKS[0].label() and r["phase"] == "cold")
@@ -229,6 +294,7 @@ def main() -> None:
             "scene_info_bytes": base["bytes_received"].get("scene_info", 0),
         },
         "throughput": tp,
+        "first_frame": {"scene": args.first_frame_scene, "runs": ttff},
         "wall_s": time.perf_counter() - t0,
         "load_average": os.getloadavg(),
         "run_info": run_info(),

@@ -325,10 +325,14 @@ class NetworkSource(GISource):
             "up": i.get("up", [0.0, 1.0, 0.0]),
         }
 
-    def request_lpm(self, max_level: int | None = None) -> None:
-        """Ask for the mesh levels 0..max_level (default: all); they arrive in the background."""
+    def request_lpm(self, max_level: int | None = None, min_level: int = 0) -> None:
+        """Ask for the mesh levels min_level..max_level (default: all), streamed coarse to fine;
+        they arrive in the background (:meth:`wait_level`, :meth:`best_scene`)."""
         top = len(self.levels) - 1 if max_level is None else int(max_level)
-        self._call(self._send_raw(protocol.Message("lpm_request", {"max_level": top}, b"")))
+        fields = {"max_level": top}
+        if min_level:
+            fields["min_level"] = int(min_level)
+        self._call(self._send_raw(protocol.Message("lpm_request", fields, b"")))
 
     def levels_done(self) -> list[int]:
         with self._level_cond:

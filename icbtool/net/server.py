@@ -654,11 +654,18 @@ class _Connection:
         """Levels 0..max_level, coarse to fine, each file in pieces of at most ``chunk_bytes``."""
         srv = self.server
         top = fields["max_level"]
+        low = fields.get("min_level", 0)  # optional (beyond the schema): skip coarser levels
+        if not isinstance(low, int) or isinstance(low, bool):
+            await self.error("bad_field", "lpm_request.min_level: must be an integer")
+            self.streaming_lpm = False
+            return
         step = srv.config.chunk_bytes
         try:
             for lv in srv.mesh.levels:
                 if lv.index > top:
                     break
+                if lv.index < low:
+                    continue
                 pieces = [
                     (name, part, data[i : i + step])
                     for name, part, data in lv.chunks
