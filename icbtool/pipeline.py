@@ -84,6 +84,10 @@ class LoopConfig:
     """A trained GAN run directory (:func:`icbtool.gan.train`): the client makes its GI with it
     (the paper's rule) and asks the cloud only when the generator cannot answer
     (:class:`icbtool.system.GeneratorSource`). None: every GI map comes from the cloud."""
+    compare_cloud: bool = True
+    """With a generator: on the frames that get a truth, also ask the cloud for its (warped) GI
+    and write cloud GI | generated GI | truth GI side by side (``frames/NNN_gi.png``; the SSIM in
+    ``ssim_gi_cloud``). Those extra cloud answers are counted apart (``comparison_renders``)."""
 
     def __post_init__(self) -> None:
         for k in ("frames", "height", "width", "spp", "max_depth", "truth_spp"):
@@ -164,6 +168,9 @@ class FrameStats:
     """The client's mesh level (LPM) it rasterized (-1: the full scene, in-process)."""
     rx_bytes: int = 0
     """Bytes the client received during this frame (network sources)."""
+    ssim_gi_cloud: float | None = None
+    """With a generator and ``compare_cloud``: SSIM of the cloud's warped GI against the truth's
+    GI on the same frame (``ssim_gi`` is the generated one's)."""
 
 
 @dataclass
@@ -174,6 +181,8 @@ class LoopReport:
     config: LoopConfig
     frames: list[FrameStats] = field(default_factory=list)
     cloud_renders: int = 0
+    comparison_renders: int = 0
+    """Cloud renders made only for ``LoopConfig.compare_cloud`` (not in ``cloud_renders``)."""
     total_s: float = 0.0
 
     @property
@@ -227,6 +236,8 @@ class LoopReport:
             t = timing_summary([f.generate_ms for f in gen])
             out["median_generate_ms"] = t["median"]
             out["first_generate_ms"] = t["first"]
+            out["mean_ssim_gi_cloud_vs_truth"] = mean("ssim_gi_cloud")
+            out["comparison_renders"] = self.comparison_renders
         out["total_s"] = self.total_s
         return out
 
@@ -330,6 +341,11 @@ def run_loop(
             client = stack.enter_context(
                 system.Client(client_mesh, source, cfg.client_config(), rasterizer=rz)
             )
+            cloud_view = (
+                stack.enter_context(_comparison_client(cfg, scene, cloud, rz))
+                if cloud is not None
+                else None
+            )
             for k, t in enumerate(times):
                 if client_scene is not None:
                     new_level, new_mesh = client_scene()
@@ -383,6 +399,17 @@ def run_loop(
                     fs.ssim_dl_only = metrics.ssim(fr.wrt.dl, truth.full)
                     fs.mse_final = metrics.mse(fr.final, truth.full)
                     fs.mse_dl_only = metrics.mse(fr.wrt.dl, truth.full)
+                    if cloud_view is not None and fs.gi_source == "generator":
+                        before = cloud.renders
+                        fc = cloud_view.frame(cam, request)
+                        report.comparison_renders += cloud.renders - before
+                        fs.ssim_gi_cloud = metrics.ssim(fc.gi, truth.gi)
+                        if out is not None:
+                            _write_strip(
+                                out / "frames" / f"{k:03d}_gi.png",
+                                [fc.gi, fr.gi, truth.gi],
+                                imageio,
+                            )
                 report.frames.append(fs)
                 if out is not None:
                     _write_frame(
@@ -397,7 +424,7 @@ def run_loop(
                     bar.update(1)
                     bar.set_postfix(hit=fs.cache_hit, holes=f"{fs.hole_ratio_combined:.3f}")
             report.cloud_renders = (
-                cloud.renders
+                cloud.renders - report.comparison_renders
                 if cloud is not None
                 else sum(1 for f in report.frames if f.gi_source == "cloud" and not f.cache_hit)
             )
@@ -426,6 +453,27 @@ def _gi_source(cfg: LoopConfig, cloud: Any) -> Any:
     from icbtool.gan import Generator
 
     return system.GeneratorSource(Generator.load(cfg.generator), fallback=cloud)
+
+
+def _comparison_client(cfg: LoopConfig, scene: Any, cloud: Any, rz: Any) -> Any:
+    """A second client on the cloud for :attr:`LoopConfig.compare_cloud` (else None)."""
+    import contextlib
+
+    from icbtool import system
+
+    if cfg.generator is None or not cfg.compare_cloud or not cfg.truth_every:
+        return contextlib.nullcontext(None)
+    return system.Client(scene, cloud, cfg.client_config(), rasterizer=rz)
+
+
+def _write_strip(path: Path, images: list[np.ndarray], imageio: Any) -> None:
+    """Linear HDR images side by side (display transform), white 2-pixel gaps."""
+    tiles = [imageio.to_display(a, _EXPOSURE) for a in images]
+    sep = np.full((tiles[0].shape[0], 2, 3), 255, np.uint8)
+    strip = tiles[0]
+    for t in tiles[1:]:
+        strip = np.concatenate([strip, sep, t], axis=1)
+    imageio.write_png(path, strip)
 
 
 def _write_frame(path: Path, wrt: Any, w: Any, final: np.ndarray, truth: Any, imageio: Any) -> None:
