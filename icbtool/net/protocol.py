@@ -196,10 +196,11 @@ _PART_FIELDS = (
     _f(
         "name",
         "string",
-        '"gi" ([H, W, 3] linear radiance) or "depth" ([H, W] or [H, W, 1] view-space z)',
+        '"gi" ([H, W, 3] linear radiance), "depth" ([H, W] or [H, W, 1] view-space z) or "mask" '
+        "([H, W] or [H, W, 1], 1 where the reference camera sees geometry)",
     ),
     _f("codec", "string", "codec of this part (section Codecs)"),
-    _f("shape", "array", "array shape, e.g. [H, W, 3]", items=Field("", "integer", "", minimum=0)),
+    _f("shape", "array", "array shape, e.g. [H, W, 3]", items=Field("", "integer", "", minimum=1)),
     _f("dtype", "string", 'element type after decoding: "float32"'),
     _f("bytes", "integer", "encoded size of this part in the payload, bytes", **_NAT),
 )
@@ -940,6 +941,27 @@ def request_from_json(d: Any, where: str = "request") -> GIRequest:
         raise ProtocolError("bad_field", f"{where}: {e}") from None
 
 
+DOC_BEGIN = "<!-- BEGIN GENERATED: icbtool.net.protocol.schema_markdown() -->"
+DOC_END = "<!-- END GENERATED -->"
+
+
+def update_doc(path: str) -> bool:
+    """Rewrite the generated block of docs/protocol.md from :data:`KINDS`; True if it changed.
+
+    ``python -m icbtool.net docs/protocol.md`` runs it.
+    """
+    from pathlib import Path
+
+    p = Path(path)
+    text = p.read_text()
+    head, rest = text.split(DOC_BEGIN, 1)
+    _, tail = rest.split(DOC_END, 1)
+    new = f"{head}{DOC_BEGIN}\n\n{schema_markdown()}\n{DOC_END}{tail}"
+    if new != text:
+        p.write_text(new)
+    return new != text
+
+
 __all__ = [
     "DEFAULT_MAX_MESSAGE",
     "ERROR_CODES",
@@ -962,4 +984,5 @@ __all__ = [
     "request_to_json",
     "schema_markdown",
     "unb64",
+    "update_doc",
 ]
