@@ -503,10 +503,13 @@ def schema_markdown() -> str:
     out = []
     for spec in KINDS.values():
         sealed = "sealed" if spec.sealed else "plain (handshake)"
+        if spec.kind == "error":
+            sealed = "plain during the handshake, sealed after it"
+        sender = "either side" if spec.sender == "both" else f"the {spec.sender}"
         out += [
             f"### `{spec.kind}`",
             "",
-            f"Sent by the {spec.sender}; {sealed}. {spec.doc[0].upper()}{spec.doc[1:]}.",
+            f"Sent by {sender}; {sealed}. {spec.doc[0].upper()}{spec.doc[1:]}.",
             "",
         ]
         if spec.fields:
