@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import time
 from pathlib import Path
@@ -233,9 +234,7 @@ def choose(rows: list[dict]) -> dict:
         "gi_candidates": ok_gi,
         "depth": ok_d[0],
         "depth_candidates": ok_d,
-        "rule": choose.__doc__.split("\n\n")[0].replace("\n", " ").strip()
-        if choose.__doc__
-        else "",
+        "rule": " ".join((choose.__doc__ or "").split()),
     }
 
 
@@ -250,18 +249,24 @@ def plot(rows: list[dict], path: Path) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.8))
     codecs = sorted({r["codec"] for r in main})
     colors = dict(zip(codecs, plt.cm.tab10.colors, strict=False))
-    marks = {"gi_denoised": "o", "gi_raw": "s"}
     ax = axes[0]
+    marks = {("cornell_box", "gi_denoised"): "o", ("cornell_box", "gi_raw"): "s",
+             ("sponza", "gi_denoised"): "^", ("sponza", "gi_raw"): "D"}  # fmt: skip
     for r in main:
-        if r["map"] in marks:
+        key = (r["scene"], r["map"])
+        if key in marks:
             ax.scatter(r["bytes_mean"] / 1024, 1 - r["ssim_min"] + 1e-7, color=colors[r["codec"]],
-                       marker=marks[r["map"]], s=50)  # fmt: skip
-            ax.annotate(f"{r['codec']}\n{r['scene']}/{r['map'][3:]}", (r["bytes_mean"] / 1024,
-                        1 - r["ssim_min"] + 1e-7), fontsize=6)  # fmt: skip
+                       marker=marks[key], s=45, alpha=0.85)  # fmt: skip
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color=colors[c], marker="o", ls="", label=c) for c in codecs]
+    handles += [Line2D([], [], color="k", marker=m, ls="", mfc="none", label=f"{s} {k[3:]}")
+                for (s, k), m in marks.items() if s in scenes]  # fmt: skip
+    ax.legend(handles=handles, fontsize=6, loc="upper right")
     ax.set_yscale("log")
     ax.set_xlabel("KiB per 256x256 GI map")
     ax.set_ylabel("1 - SSIM (display scale, worst view); 1e-7 = exact")
-    ax.set_title("GI: size against error (o denoised, s raw)")
+    ax.set_title("GI: size against display error (worst view)")
     for ax, kind, title in ((axes[1], "gi_denoised", "denoised GI"), (axes[2], "depth", "depth")):
         sub = [r for r in rows if r["map"] == kind]
         names = sorted({r["codec"] for r in sub})
@@ -292,9 +297,13 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-sponza", action="store_true")
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--plot-only", action="store_true", help="redraw the PNG from the JSON")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.plot_only:
+        plot(json.loads((out / "gi_codec.json").read_text())["rows"], out / "gi_codec.png")
+        return
 
     scenes = [("cornell_box", lambda: icb.scene.cornell_box(height=args.size, width=args.size))]
     sp = None if args.no_sponza else sponza_dir()
