@@ -449,6 +449,10 @@ def test_bad_camera_and_request_json():
 # ------------------------------------------------------------------------- documentation
 def test_every_kind_field_and_error_code_is_documented():
     text = DOC.read_text()
+    block = text.split(P.DOC_BEGIN, 1)[1].split(P.DOC_END, 1)[0]
+    assert block.strip() == P.schema_markdown().strip(), (
+        "docs/protocol.md is out of date: run python -m icbtool.net docs/protocol.md"
+    )
     for kind, spec in KINDS.items():
         section = re.search(rf"^### `{kind}`.*?(?=^### |\Z)", text, re.M | re.S)
         assert section, f"docs/protocol.md has no '### `{kind}`' section"
@@ -456,9 +460,37 @@ def test_every_kind_field_and_error_code_is_documented():
             assert f"`{f.name}`" in section.group(0), f"{kind}.{f.name} is not documented"
     for code in P.ERROR_CODES:
         assert f"`{code}`" in text, f"error code {code} is not documented"
-    assert (
-        f"PROTOCOL_VERSION = {P.PROTOCOL_VERSION}" in text or f'"v": {P.PROTOCOL_VERSION}' in text
-    )
+    for name in codec.CODECS:
+        assert f"`{name}`" in text, f"codec {name} is not documented"
+    assert f"PROTOCOL_VERSION = {P.PROTOCOL_VERSION}" in text
+
+
+def test_the_documented_test_vectors():
+    """The handshake of docs/protocol.md section 10, recomputed from its keys."""
+    x25519 = pytest.importorskip("cryptography.hazmat.primitives.asymmetric.x25519")
+    text = DOC.read_text()
+    raw = text.split("<!-- BEGIN TEST VECTORS -->", 1)[1].split("<!-- END TEST VECTORS -->")[0]
+    v = json.loads(raw.strip().removeprefix("```json").removesuffix("```"))
+    h = bytes.fromhex
+    cpriv = x25519.X25519PrivateKey.from_private_bytes(h(v["client_private"]))
+    spriv = x25519.X25519PrivateKey.from_private_bytes(h(v["server_private"]))
+    assert cpriv.public_key().public_bytes_raw().hex() == v["client_pub"]
+    assert spriv.public_key().public_bytes_raw().hex() == v["server_pub"]
+    t = crypto.transcript(
+        h(v["client_pub"]), h(v["client_nonce"]), h(v["server_pub"]), h(v["server_nonce"]),
+        v["session"],
+    )  # fmt: skip
+    assert t.hex() == v["transcript"]
+    shared = cpriv.exchange(spriv.public_key())
+    assert shared.hex() == v["shared_secret"] == spriv.exchange(cpriv.public_key()).hex()
+    assert crypto.auth_mac(v["token"], t).hex() == v["mac"]
+    c2s, s2c = crypto.derive_keys(shared, v["token"], t)
+    assert (c2s.hex(), s2c.hex()) == (v["key_c2s"], v["key_s2c"])
+    ch = crypto.Channel(c2s, s2c, crypto.CLIENT_TO_SERVER, crypto.SERVER_TO_CLIENT)
+    m = v["first_client_message"]
+    assert P.encode(Message(m["kind"], m["fields"]), ch).hex() == m["frame"]
+    server = crypto.Channel(s2c, c2s, crypto.SERVER_TO_CLIENT, crypto.CLIENT_TO_SERVER)
+    assert P.decode(h(m["frame"]), server) == Message(m["kind"], m["fields"])
 
 
 # ------------------------------------------------------------------------- GI / depth codecs
@@ -481,7 +513,7 @@ def test_f32_zstd_is_exact_for_gi_and_depth():
         assert out.tobytes() == a.tobytes()
 
 
-@pytest.mark.parametrize("name", ["f16-zstd", "log-u16-png", "rgbe-png"])
+@pytest.mark.parametrize("name", [c for c in codec.CODECS if c != "f32-zstd"])
 def test_lossy_codecs_stay_within_their_relative_error(name: str):
     gi, depth = _gi_and_depth(1)
     c = codec.CODECS[name]
@@ -501,6 +533,18 @@ def test_lossy_codecs_stay_within_their_relative_error(name: str):
         assert np.array_equal(d == 0, depth == 0)  # ... or 0, exactly
         fin = np.isfinite(depth) & (depth > 0)
         assert (np.abs(d[fin] - depth[fin]) / depth[fin]).max() <= c.max_rel_error
+
+
+def test_diff_codecs_keep_the_float16_values_signs_and_specials():
+    gi, depth = _gi_and_depth(4)
+    gi[3, 3] = [np.nan, -2.5, 7e4]
+    plain = codec.decode(codec.encode(gi, "f16-zstd"), "f16-zstd", gi.shape)
+    diff = codec.decode(codec.encode(gi, "f16-diff-zstd"), "f16-diff-zstd", gi.shape)
+    assert np.array_equal(plain, diff, equal_nan=True)  # the same values, other bytes
+    m7 = codec.decode(codec.encode(gi, "f16m7-diff-zstd"), "f16m7-diff-zstd", gi.shape)
+    assert np.isnan(m7[3, 3, 0]) and m7[3, 3, 1] == -2.5 and m7[3, 3, 2] == 65280.0
+    with pytest.raises(ValueError, match="2 or more axes"):
+        codec.encode(np.ones(5, np.float32), "f16-diff-zstd")
 
 
 def test_f16_saturates_instead_of_overflowing_and_png_channels_are_rgb():

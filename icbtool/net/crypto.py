@@ -267,14 +267,20 @@ class ClientHandshake:
         self.session: str | None = None
 
     def hello_fields(
-        self, codecs: Sequence[str] = ("f16-zstd", "f32-zstd"), client: str | None = None
+        self, codecs: Sequence[str] | None = None, client: str | None = None
     ) -> dict[str, Any]:
         """The fields of the ``hello`` message.
 
         Args:
-            codecs: the codecs this client decodes, by preference.
+            codecs: the codecs this client decodes, by preference (default: every codec of
+                :data:`icbtool.net.codec.CODECS`, the defaults first).
             client: software name and version (default ``"icbtool/<version>"``).
         """
+        if codecs is None:
+            from icbtool.net import codec
+
+            first = [codec.DEFAULT_GI_CODEC, codec.DEFAULT_DEPTH_CODEC]
+            codecs = list(dict.fromkeys(first + list(codec.CODECS)))
         return {
             "client": client if client is not None else f"icbtool/{_version()}",
             "pub": b64(self.pub),

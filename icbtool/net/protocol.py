@@ -165,8 +165,8 @@ _VEC3 = {"items": Field("", "number", ""), "length": 3}
 _CAMERA_FIELDS = (
     _f("height", "integer", "image height, pixels", minimum=1),
     _f("width", "integer", "image width, pixels", minimum=1),
-    _f("fx", "number", "focal length along x, pixels", minimum=0),
-    _f("fy", "number", "focal length along y, pixels", minimum=0),
+    _f("fx", "number", "focal length along x, pixels (> 0)", minimum=0),
+    _f("fy", "number", "focal length along y, pixels (> 0)", minimum=0),
     _f("cx", "number", "principal point x, continuous pixel coordinates"),
     _f("cy", "number", "principal point y, continuous pixel coordinates"),
     _f(
@@ -193,9 +193,14 @@ _REQUEST_FIELDS = (
     ),
 )
 _PART_FIELDS = (
-    _f("name", "string", '"gi" (H,W,3 linear radiance) or "depth" (H,W view-space z)'),
-    _f("codec", "string", "codec of this part (codec.md section of docs/protocol.md)"),
-    _f("shape", "array", "array shape, e.g. [H, W, 3]", items=Field("", "integer", "", minimum=0)),
+    _f(
+        "name",
+        "string",
+        '"gi" ([H, W, 3] linear radiance), "depth" ([H, W] or [H, W, 1] view-space z) or "mask" '
+        "([H, W] or [H, W, 1], 1 where the reference camera sees geometry)",
+    ),
+    _f("codec", "string", "codec of this part (section Codecs)"),
+    _f("shape", "array", "array shape, e.g. [H, W, 3]", items=Field("", "integer", "", minimum=1)),
     _f("dtype", "string", 'element type after decoding: "float32"'),
     _f("bytes", "integer", "encoded size of this part in the payload, bytes", **_NAT),
 )
@@ -263,7 +268,8 @@ KINDS: dict[str, KindSpec] = {
                 _f(
                     "lights",
                     "array",
-                    "light sources, one object each (free-form, e.g. {type, position, intensity})",
+                    "light sources, one object each: kind (directional, point, spot or area) "
+                    "and that light's parameters (section Scene)",
                     items=Field("", "object", ""),
                 ),
                 _f(
@@ -306,6 +312,36 @@ KINDS: dict[str, KindSpec] = {
                     "array",
                     "GI/depth codecs the server can encode",
                     items=Field("", "string", ""),
+                ),
+                _f(
+                    "sky",
+                    "object",
+                    "the sky (section Scene), or null",
+                    required=False,
+                    nullable=True,
+                ),
+                _f("paths", "object", "named camera paths (section Scene)", required=False),
+                _f(
+                    "up",
+                    "array",
+                    "the scene's up direction, a unit 3-vector",
+                    required=False,
+                    **_VEC3,
+                ),
+                _f(
+                    "default_camera",
+                    "object",
+                    "the scene's own default camera, or null",
+                    required=False,
+                    nullable=True,
+                    fields=_CAMERA_FIELDS,
+                ),
+                _f(
+                    "max_pending",
+                    "integer",
+                    "most gi_requests a client may have unanswered (more: error busy)",
+                    required=False,
+                    minimum=1,
                 ),
             ),
         ),
@@ -380,6 +416,13 @@ KINDS: dict[str, KindSpec] = {
                 ),
                 _f("cache_hit", "boolean", "true: found in the server's store, no render"),
                 _f(
+                    "coalesced",
+                    "boolean",
+                    "true: answered by a render or lookup shared with "
+                    "identical concurrent requests",
+                    required=False,
+                ),
+                _f(
                     "timings_ms",
                     "object",
                     "server-side time per stage, ms (e.g. lookup, render, encode)",
@@ -421,6 +464,70 @@ KINDS: dict[str, KindSpec] = {
 
 #: The kinds exchanged before the session keys exist (never sealed).
 HANDSHAKE_KINDS = frozenset(k for k, s in KINDS.items() if not s.sealed)
+
+
+def _type_text(f: Field) -> str:
+    t = f.type
+    if t == "array":
+        inner = _type_text(f.items) if f.items is not None else "any"
+        t = f"array[{f.length}] of {inner}" if f.length is not None else f"array of {inner}"
+    elif t in ("base64", "hex") and f.length is not None:
+        t = f"{t} ({f.length} bytes)"
+    elif t == "integer" and f.minimum is not None:
+        t = f"integer >= {f.minimum:g}"
+    elif t == "number" and f.minimum is not None:
+        t = f"number >= {f.minimum:g}"
+    return t + (" or null" if f.nullable else "")
+
+
+def _field_rows(fields: tuple[Field, ...], prefix: str) -> list[str]:
+    rows = []
+    for f in fields:
+        name = prefix + f.name
+        req = "yes" if f.required else "no"
+        rows.append(f"| `{name}` | {_type_text(f)} | {req} | {f.doc} |")
+        sub = f.fields if f.type == "object" else None
+        if f.type == "array" and f.items is not None and f.items.fields is not None:
+            sub, name = f.items.fields, name + "[]"
+        if sub is not None and sub is not _CAMERA_FIELDS and sub is not _REQUEST_FIELDS:
+            rows += _field_rows(sub, name + ".")
+    return rows
+
+
+def schema_markdown() -> str:
+    """The message kinds as Markdown (the generated block of docs/protocol.md).
+
+    Every kind gets a ``### `kind` `` section: sender, whether it is sealed, what it does, a
+    table of its fields (nested objects flattened as ``a.b`` / ``a[].b``), its payload.
+    """
+    out = []
+    for spec in KINDS.values():
+        sealed = "sealed" if spec.sealed else "plain (handshake)"
+        if spec.kind == "error":
+            sealed = "plain during the handshake, sealed after it"
+        sender = "either side" if spec.sender == "both" else f"the {spec.sender}"
+        out += [
+            f"### `{spec.kind}`",
+            "",
+            f"Sent by {sender}; {sealed}. {spec.doc[0].upper()}{spec.doc[1:]}.",
+            "",
+        ]
+        if spec.fields:
+            out += ["| field | type | required | meaning |", "| --- | --- | --- | --- |"]
+            out += _field_rows(spec.fields, "")
+        else:
+            out.append("No fields.")
+        payload = spec.payload if spec.payload is not None else "none (must be empty)"
+        out += ["", f"Payload: {payload}.", ""]
+    out += ["### Nested objects", "", "Camera object (`camera`, `gi_reply.camera`, ...):", ""]
+    out += ["| field | type | required | meaning |", "| --- | --- | --- | --- |"]
+    out += _field_rows(_CAMERA_FIELDS, "")
+    out += ["", "GI request object (`gi_request.request`):", ""]
+    out += ["| field | type | required | meaning |", "| --- | --- | --- | --- |"]
+    out += _field_rows(_REQUEST_FIELDS, "")
+    out += ["", "### Error codes", "", "| code | meaning |", "| --- | --- |"]
+    out += [f"| `{c}` | {m} |" for c, m in ERROR_CODES.items()]
+    return "\n".join(out) + "\n"
 
 
 def _type_ok(value: Any, f: Field) -> bool:
@@ -837,6 +944,27 @@ def request_from_json(d: Any, where: str = "request") -> GIRequest:
         raise ProtocolError("bad_field", f"{where}: {e}") from None
 
 
+DOC_BEGIN = "<!-- BEGIN GENERATED: icbtool.net.protocol.schema_markdown() -->"
+DOC_END = "<!-- END GENERATED -->"
+
+
+def update_doc(path: str) -> bool:
+    """Rewrite the generated block of docs/protocol.md from :data:`KINDS`; True if it changed.
+
+    ``python -m icbtool.net docs/protocol.md`` runs it.
+    """
+    from pathlib import Path
+
+    p = Path(path)
+    text = p.read_text()
+    head, rest = text.split(DOC_BEGIN, 1)
+    _, tail = rest.split(DOC_END, 1)
+    new = f"{head}{DOC_BEGIN}\n\n{schema_markdown()}\n{DOC_END}{tail}"
+    if new != text:
+        p.write_text(new)
+    return new != text
+
+
 __all__ = [
     "DEFAULT_MAX_MESSAGE",
     "ERROR_CODES",
@@ -857,5 +985,7 @@ __all__ = [
     "raise_for_error",
     "request_from_json",
     "request_to_json",
+    "schema_markdown",
     "unb64",
+    "update_doc",
 ]
