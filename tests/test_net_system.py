@@ -72,7 +72,7 @@ def _client(server, **kw) -> NetworkSource:
 
 # ---------------------------------------------------------------------------- known answers
 def test_scene_info_lpm_and_gi_equal_the_in_process_cloud(server, scene, tmp_path):
-    with _client(server, gi_codec="f32-zstd") as src:
+    with _client(server, gi_codec="f32-zstd", depth_codec="f32-zstd") as src:
         info = src.scene_info
         assert info["name"] == "cornell_box"
         assert info["lpm"]["levels"][0]["triangles"] <= scene.n_triangles

@@ -48,7 +48,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="emulated bandwidth per direction (Mbit/s; default unlimited)",
     )
-    p.add_argument("--gi-codec", default="f16-zstd", help="codec asked for the GI maps")
+    p.add_argument(
+        "--gi-codec", default=None, help="codec asked for the GI maps (default: the library's)"
+    )
     p.add_argument("--no-generator", action="store_true", help="never fetch the generator")
     p.add_argument(
         "--truth-scene",
@@ -82,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     )
     ncfg = net.NetClientConfig(
         timeout_s=args.timeout,
-        gi_codec=args.gi_codec,
+        **({"gi_codec": args.gi_codec} if args.gi_codec else {}),
         shaper=net.ShaperConfig(latency_ms=args.latency_ms, bandwidth_mbit=args.bandwidth_mbit),
         use_generator=not args.no_generator,
     )

@@ -41,6 +41,7 @@ import numpy as np
 
 from icbtool._optional import require
 from icbtool.camera import Camera
+from icbtool.net import codec as codec_mod
 from icbtool.net import crypto, protocol
 from icbtool.net import mesh_stream as ms
 from icbtool.net.shaper import DelayLine, ShaperConfig
@@ -56,9 +57,9 @@ class NetClientConfig:
 
     timeout_s: float = 120.0
     """Longest wait for any answer (connect, handshake, a GI reply, a mesh level)."""
-    gi_codec: str = "f16-zstd"
-    """Codec asked for the GI maps."""
-    depth_codec: str = "f32-zstd"
+    gi_codec: str = codec_mod.DEFAULT_GI_CODEC
+    """Codec asked for the GI maps (:data:`icbtool.net.codec.CODECS`)."""
+    depth_codec: str = codec_mod.DEFAULT_DEPTH_CODEC
     """Codec asked for the reference depth (and mask)."""
     shaper: ShaperConfig = field(default_factory=ShaperConfig)
     """Emulated latency and bandwidth on both directions."""
@@ -72,6 +73,12 @@ class NetClientConfig:
             raise ValueError(f"NetClientConfig.timeout_s must be > 0, got {self.timeout_s}")
         if not isinstance(self.shaper, ShaperConfig):
             raise ValueError("NetClientConfig.shaper must be a ShaperConfig")
+        for k in ("gi_codec", "depth_codec"):
+            if getattr(self, k) not in codec_mod.CODECS:
+                raise ValueError(
+                    f"NetClientConfig.{k} {getattr(self, k)!r} is not one of "
+                    f"{sorted(codec_mod.CODECS)}"
+                )
 
 
 @dataclass(frozen=True)
@@ -171,7 +178,7 @@ class NetworkSource(GISource):
             raise NetError(f"{self.url}: no answer within {timeout_s} s", "timeout") from None
 
     async def _connect(self, token: str) -> None:
-        from websockets.asyncio.client import connect
+        connect = require("websockets.asyncio.client", "the networked ICB client").connect
 
         cfg = self.config
         try:
@@ -470,8 +477,6 @@ class NetworkSource(GISource):
         t1 = time.perf_counter()
         f = msg.fields
         arrays: dict[str, np.ndarray] = {}
-        from icbtool.net import codec as codec_mod
-
         off = 0
         for p in f["parts"]:
             blob = msg.payload[off : off + p["bytes"]]

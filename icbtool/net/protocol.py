@@ -348,8 +348,17 @@ KINDS: dict[str, KindSpec] = {
         KindSpec(
             "lpm_request",
             "client",
-            "asks for the LPM levels 0..max_level, streamed coarse to fine",
-            (_f("max_level", "integer", "finest level wanted (inclusive)", **_NAT),),
+            "asks for the LPM levels min_level..max_level, streamed coarse to fine",
+            (
+                _f("max_level", "integer", "finest level wanted (inclusive)", **_NAT),
+                _f(
+                    "min_level",
+                    "integer",
+                    "coarsest level wanted (inclusive; default 0): e.g. the finest level alone",
+                    required=False,
+                    **_NAT,
+                ),
+            ),
         ),
         KindSpec(
             "lpm_chunk",

@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from icbtool._optional import require
 from icbtool.net import codec as codec_mod
 from icbtool.net import crypto, protocol
 from icbtool.net.mesh_stream import MeshStream
@@ -74,10 +75,10 @@ class ServerConfig:
     """A connection whose messages cannot be sent for this long is closed (a client not reading)."""
     handshake_timeout_s: float = 10.0
     """Time a client has to complete the handshake."""
-    gi_codec: str = "f16-zstd"
+    gi_codec: str = codec_mod.DEFAULT_GI_CODEC
     """GI codec when the request names none."""
-    depth_codec: str = "f32-zstd"
-    """Codec of the reference depth (and mask)."""
+    depth_codec: str = codec_mod.DEFAULT_DEPTH_CODEC
+    """Codec of the reference depth (and mask) when the request names none."""
     lpm: bool = True
     """Stream levels of detail (icbtool.lpm) when available, else the full mesh as one level."""
     send_full_mesh: bool = False
@@ -219,7 +220,7 @@ class Server:
 
     async def serve(self) -> None:
         """Serve until :meth:`stop` (or the stop event) is set; then shut down cleanly."""
-        from websockets.asyncio.server import serve
+        serve = require("websockets.asyncio.server", "icbtool.net.Server").serve
 
         cfg = self.config
         self._loop = asyncio.get_running_loop()
@@ -440,7 +441,7 @@ class Server:
 
     # ------------------------------------------------------------------ connections
     async def _handle(self, ws: Any) -> None:
-        from websockets.exceptions import ConnectionClosed
+        ConnectionClosed = require("websockets.exceptions", "icbtool.net.Server").ConnectionClosed
 
         self.stats.connections += 1
         conn = _Connection(self, ws, next(self._conn_ids))
