@@ -28,6 +28,7 @@ import asyncio
 import contextlib
 import hashlib
 import itertools
+import json
 import logging
 import tempfile
 import threading
@@ -203,7 +204,13 @@ class NetworkSource(GISource):
         info = await self._recv_plain(sealed=True)
         if info.kind != "scene_info":
             raise NetError(f"{self.url}: expected scene_info, got {info.kind!r}")
-        self.scene_info = info.fields
+        self.scene_info = dict(info.fields)
+        try:
+            self.scene_info["paths"] = (
+                json.loads(info.payload.decode("utf-8"))["paths"] if info.payload else {}
+            )
+        except (UnicodeDecodeError, ValueError, KeyError, TypeError) as e:
+            raise NetError(f"{self.url}: scene_info payload is not paths JSON: {e}") from e
         shaped = cfg.shaper.active
         if shaped:
             self._up = DelayLine(cfg.shaper, self._ws.send)

@@ -320,7 +320,6 @@ KINDS: dict[str, KindSpec] = {
                     required=False,
                     nullable=True,
                 ),
-                _f("paths", "object", "named camera paths (section Scene)", required=False),
                 _f(
                     "up",
                     "array",
@@ -344,6 +343,9 @@ KINDS: dict[str, KindSpec] = {
                     minimum=1,
                 ),
             ),
+            payload='UTF-8 JSON object {"paths": {name: path}}: the named camera paths '
+            "(section Scene; in the payload, not the header: a path of a few hundred poses is "
+            "larger than the header limit), or empty",
         ),
         KindSpec(
             "lpm_request",

@@ -340,8 +340,8 @@ class Server:
         return list(codec_mod.CODECS)
 
     def scene_info(self) -> dict[str, Any]:
-        """The fields of ``scene_info``: the base (lights, paths, sky), LPM levels, codecs,
-        the generator on offer."""
+        """The fields of ``scene_info``: the base (lights, sky; the paths go in its payload,
+        :meth:`scene_paths`), LPM levels, codecs, the generator on offer."""
         base = self.mesh.base
         cam = self.scene.default_camera
         if cam is None:  # the schema wants one: the first camera of a path
@@ -366,11 +366,15 @@ class Server:
             "codecs": self.codecs,
             # beyond the schema's required fields: what a client needs to shade and move
             "sky": base["sky"],
-            "paths": base["paths"],
             "up": base["up"],
             "default_camera": base["default_camera"],
             "max_pending": self.config.max_pending,
         }
+
+    def scene_paths(self) -> bytes:
+        """The ``scene_info`` payload: the camera paths as UTF-8 JSON (empty without paths)."""
+        paths = self.mesh.base["paths"]
+        return json.dumps({"paths": paths}, separators=(",", ":")).encode() if paths else b""
 
     # ------------------------------------------------------------------ the cloud, coalesced
     def _cloud_job(self, fn: Any, *args: Any) -> asyncio.Future[Any]:
@@ -546,7 +550,7 @@ class _Connection:
         srv = self.server
         await self.handshake()
         self.writer = asyncio.get_running_loop().create_task(self._write())
-        await self.send(protocol.Message("scene_info", srv.scene_info(), b""))
+        await self.send(protocol.Message("scene_info", srv.scene_info(), srv.scene_paths()))
         async for data in self.ws:
             if self.writer.done():
                 raise _Closing("writer stopped")
