@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 
 from icbtool._optional import require
 from icbtool.cli._common import (
@@ -88,7 +89,11 @@ def run(args: argparse.Namespace) -> int:
         shaper=net.ShaperConfig(latency_ms=args.latency_ms, bandwidth_mbit=args.bandwidth_mbit),
         use_generator=not args.no_generator,
     )
-    rep = net.run_client(args.url, token, cfg, ncfg, out_dir=out, truth_scene=truth)
+    try:
+        rep = net.run_client(args.url, token, cfg, ncfg, out_dir=out, truth_scene=truth)
+    except net.NetError as e:  # refused, unreachable, a protocol error: one line, exit 1
+        print(f"icbtool client: error: {e}", file=sys.stderr)
+        return 1
     print(json.dumps(rep.loop.summary(), indent=2))
     print(json.dumps(rep.summary(), indent=2))
     print(f"outputs in {out}/ (frames/*.png, latency.csv, latency.png, net_summary.json)")
