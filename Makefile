@@ -27,8 +27,9 @@ sysdeps:
 
 install: sysdeps .venv/.installed
 
+# The in-process loop, then the same across processes (server subprocess + client on loopback).
 demo: install
-	$(PY) -m icbtool demo --out $(OUT)/demo
+	$(PY) -m icbtool demo --out $(OUT)/demo --network
 
 # CI (.ci/run) runs exactly this: lint, the wheel-install smoke test, then the quick tests.
 test: lint wheel-smoke pytest
