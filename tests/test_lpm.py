@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -85,9 +86,15 @@ def test_config_rejects_bad_values(kw, msg):
 
 
 # --------------------------------------------------------------------------- levels
-def test_triangle_counts_follow_the_ratios(plane_lpm):
-    n = plane_lpm.source.n_triangles
-    counts = [lv.n_triangles for lv in plane_lpm.levels]
+@pytest.mark.parametrize("budget", ["global", "per_group"])
+def test_triangle_counts_follow_the_ratios(plane_lpm, budget):
+    lp = (
+        plane_lpm
+        if budget == "global"
+        else lpm.build(plane_lpm.source, replace(CFG, budget=budget))
+    )
+    n = lp.source.n_triangles
+    counts = [lv.n_triangles for lv in lp.levels]
     assert counts[-1] == n
     for ratio, c in zip(CFG.ratios[:-1], counts):
         # open3d stops at the target or just under it (one collapse removes 1-2 triangles)
@@ -204,9 +211,11 @@ def _assert_scene_equal(a, b):
             assert np.array_equal(ma.texture, mb.texture)
 
 
-def test_chunk_round_trip_is_exact(plane_lpm):
+@pytest.mark.parametrize("max_bytes", [None, 4096, 5001, 65536])
+def test_chunk_round_trip_is_exact(plane_lpm, max_bytes):
     for lv in plane_lpm.levels:
-        chunks = lv.to_chunks()
+        chunks = lv.to_chunks(max_bytes)
+        assert max(len(c[2]) for c in chunks) <= (max_bytes or CFG.max_chunk_bytes)
         assert [c[1] for c in chunks][0] == "materials"
         got = lpm.assemble(chunks, base=plane_lpm.source)
         _assert_scene_equal(got, lv.scene)
@@ -219,6 +228,7 @@ def test_assemble_picks_the_finest_complete_level(plane_lpm):
     got = lpm.assemble(c0 + partial)
     assert got.n_triangles == plane_lpm.levels[0].n_triangles
     assert lpm.levels_in(c0 + c1) == [0, 1]
+    assert lpm.levels_in(plane_lpm.chunks()) == [0, 1, 2]
     assert lpm.assemble(c0 + c1).n_triangles == plane_lpm.levels[1].n_triangles
     with pytest.raises(ValueError, match="lacks 1 chunk"):
         lpm.assemble(c0 + partial, level=1)
@@ -314,3 +324,25 @@ def test_cornell_coarsest_level_renders_like_the_full_box():
     assert e["depth_rel_p95"] < 1e-5
     assert e["depth_bad_fraction"] == 0.0
     assert e["dl_ssim"] > 0.999
+
+
+@pytest.mark.gl
+def test_cli_writes_stats_previews_and_chunks(tmp_path):
+    from icbtool.cli import main
+
+    out = tmp_path / "lpm"
+    rc = main(["lpm", "cornell_box", "--out", str(out), "--cameras", "1", "--size", "24",
+               "--ratios", "0.5,1", "--chunks"])  # fmt: skip
+    assert rc == 0
+    data = json.loads((out / "lpm.json").read_text())
+    assert [r["triangles"] for r in data["levels"]] == [32, 32]
+    assert data["levels"][0]["client"]["depth_bad_fraction"] == 0.0
+    for f in ("lpm.csv", "lpm_levels.png", "lpm_dl.png", "chunks/scene_info.json"):
+        assert (out / f).is_file(), f
+    chunks = [
+        (str(p.relative_to(out / "chunks").with_suffix("")), None, p.read_bytes())
+        for p in sorted((out / "chunks").rglob("L0/**/*.bin"))
+    ]
+    chunks = [(n, chunk_header(d, n)[0]["part"], d) for n, _, d in chunks]
+    got = lpm.assemble(chunks, base=(out / "chunks" / "scene_info.json").read_bytes())
+    assert got.n_triangles == 32 and len(got.lights) == 1

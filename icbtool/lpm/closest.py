@@ -5,7 +5,12 @@ decimated to 461 triangles, 14 % of 20,000 points lying ON the mesh were reporte
 away (a point on a neighbouring triangle instead of the one that contains them). So its answer
 is used as a candidate only: the exact point-to-triangle distance (Ericson, "Real-Time Collision
 Detection" 5.1.5) is then taken over the candidate face's neighbourhood (faces sharing a vertex
-with it, ``rings`` times, vertices welded by position) and the nearest wins.
+with it, ``rings`` times, vertices welded by position) and the nearest wins. That makes the plane
+exact. What it cannot mend is a candidate on a face not connected to the true one: Sponza against
+itself, 4 of 200,000 points (on an 11 m long, 8 cm wide sliver) keep up to 0.65 mm of error
+(Hausdorff 3.4e-5 of the diagonal, the floor of :func:`~icbtool.lpm.metrics.geometric_error`),
+whether with 1, 2 or 3 rings; 1 is the default (2 rings around a high-valence vertex of a coarse
+level cover most of the mesh, 10x slower).
 """
 
 from __future__ import annotations
@@ -81,7 +86,7 @@ class ClosestPointQuery:
         rings: how many vertex rings around open3d's candidate face are searched.
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, rings: int = 2) -> None:
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, rings: int = 1) -> None:
         from scipy.sparse import csr_matrix
 
         o3d = require("open3d", "closest points (icbtool.lpm)")
