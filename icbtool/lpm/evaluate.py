@@ -3,9 +3,11 @@ warping with the client's LPM depth, and time to first frame. Shared by ``icbtoo
 benchmarks/lpm_levels.py.
 
 Cameras: ``n_cameras`` spread evenly over the scene's ``test`` path (else its default camera),
-at ``height`` x ``width``. The reference of each (where the cloud renders the GI map) is the
-client camera pulled back along its view by ``reference_back`` of the scene diagonal (the
-prefetch idea of ICB.md section 4); the reference GI is path traced on the FULL mesh
+at ``height`` x ``width``. The reference of each (where the cloud renders the GI map) is what the
+system warps: the prefetch camera (:func:`icbtool.prefetch.prefetch_camera`, ICB.md section 4) of
+the request the client sent ``latency_s`` earlier on the path, with the path's velocities then
+(a scene without a ``test`` path: the client camera pulled back along its view by
+``reference_back`` of the scene diagonal). The reference GI is path traced on the FULL mesh
 (``gi_spp`` samples per pixel, seeded), its depth rasterized from the full mesh.
 
 Time to first frame of a level: cut it into chunks, (transfer), assemble the Scene from the
@@ -45,8 +47,11 @@ class EvalConfig:
         n_cameras: client cameras (spread over the ``test`` path; 1 = the default camera when
             the scene has no such path).
         height, width: their image size.
-        reference_back: the reference camera is the client camera moved back along its view by
-            this fraction of the scene diagonal (0: no warp measurement).
+        latency_s: T_IL: the reference is the prefetch camera of the request sent this long
+            before the client camera (on the ``test`` path).
+        reference_back: without a ``test`` path, the reference camera is the client camera
+            moved back along its view by this fraction of the scene diagonal (0: no warp
+            measurement).
         gi_spp: samples per pixel of the reference GI maps (full mesh); 0: skip warping.
         n_samples: surface samples each way for the geometric error.
         uv_samples: samples for the uv error.
@@ -58,6 +63,7 @@ class EvalConfig:
     n_cameras: int = 3
     height: int = 128
     width: int = 128
+    latency_s: float = 0.1
     reference_back: float = 0.03
     gi_spp: int = 16
     n_samples: int = 100_000
@@ -74,23 +80,49 @@ class EvalConfig:
             raise ValueError("EvalConfig height and width must be >= 11 (SSIM window)")
         if not 0 <= self.reference_back < 1 or self.gi_spp < 0:
             raise ValueError("EvalConfig: reference_back must be in [0, 1), gi_spp >= 0")
+        if not (np.isfinite(self.latency_s) and self.latency_s >= 0):
+            raise ValueError(f"EvalConfig.latency_s must be finite and >= 0, got {self.latency_s}")
+
+
+def _path_indices(scene: Scene, cfg: EvalConfig) -> list[int]:
+    n = len(scene.paths["test"])
+    if cfg.n_cameras > 1:
+        return [int(i) for i in np.linspace(0, n - 1, cfg.n_cameras).round().astype(int)]
+    return [n // 2]
 
 
 def client_cameras(scene: Scene, cfg: EvalConfig) -> list[Camera]:
     """The client cameras (see the module docstring)."""
     from icbtool.camera import Camera
 
-    if "test" in scene.paths and cfg.n_cameras > 1:
-        path = scene.paths["test"]
-        idx = np.linspace(0, len(path) - 1, cfg.n_cameras).round().astype(int)
-        cams = [path[int(i)] for i in idx]
-    elif "test" in scene.paths:
-        cams = [scene.paths["test"][len(scene.paths["test"]) // 2]]
+    if "test" in scene.paths:
+        cams = [scene.paths["test"][i] for i in _path_indices(scene, cfg)]
     elif scene.default_camera is not None:
         cams = [scene.default_camera]
     else:
         cams = [Camera.frame(scene.bounds, up=scene.up, fov_y_deg=45.0)]
     return [c.resized(cfg.height, cfg.width) for c in cams]
+
+
+def reference_cameras(scene: Scene, cams: list[Camera], cfg: EvalConfig) -> list[Camera]:
+    """The reference camera of each client camera (see the module docstring)."""
+    if "test" not in scene.paths:
+        return [reference_camera(c, cfg.reference_back * scene.diagonal) for c in cams]
+    from icbtool import prefetch
+
+    path = scene.paths["test"]
+    out = []
+    for i, cam in zip(_path_indices(scene, cfg), cams):
+        t_req = max(float(path.times[i]) - cfg.latency_s, float(path.times[0]))
+        v_t, v_r = path.velocity_cam(t_req)
+        req = path.camera_at(t_req).resized(cam.height, cam.width)
+        seen = render_views(scene, [req], cfg.raster)[0]
+        try:
+            near_far = prefetch.depth_range_from_depth(seen.depth, seen.mask)
+        except ValueError:  # the request camera sees nothing: the prefetch default range
+            near_far = (0.1, 100.0)
+        out.append(prefetch.prefetch_camera(req, v_t, v_r, depth_range=near_far).camera)
+    return out
 
 
 def reference_camera(cam: Camera, back: float) -> Camera:
@@ -154,11 +186,11 @@ def evaluate(lpm: LPM, cfg: EvalConfig = EvalConfig(), progress: bool = False) -
     cams = client_cameras(full, cfg)
     fv = render_views(full, cams, cfg.raster)
     refs = []
-    if cfg.reference_back > 0 and cfg.gi_spp > 0:
+    has_path = "test" in full.paths
+    if (cfg.reference_back > 0 or has_path) and cfg.gi_spp > 0:
         from icbtool.trace import render_gi
 
-        for c in cams:
-            rc = reference_camera(c, cfg.reference_back * full.diagonal)
+        for rc in reference_cameras(full, cams, cfg):
             gi = render_gi(full, rc, spp=cfg.gi_spp, seed=cfg.seed)
             refs.append((gi, render_views(full, [rc], cfg.raster)[0]))
     stats = lpm.stats(error=False)
