@@ -670,6 +670,142 @@ def block_gan_time_error(results: Path) -> str:
     )
 
 
+def block_lpm(results: Path) -> str:
+    d = load("lpm/sponza.json", results)
+    e = d["eval_config"]
+    rows = []
+    for lv in d["levels"]:
+        g, c, ff = lv["geometric"], lv["client"], lv["first_frame"]
+        w = lv.get("warp", {})
+        rows.append(
+            f"| {lv['level']} ({100 * lv['ratio']:.0f} %) | {lv['triangles']:,} | "
+            f"{lv['bytes_geometry'] / 1e6:.2f} + {lv['bytes_texture'] / 1e6:.2f} | "
+            f"{g['rms']:.1e} / {g['hausdorff']:.1e} | {100 * c['depth_bad_fraction']:.1f} % | "
+            f"{c['dl_ssim']:.3f} | {w.get('ssim', float('nan')):.3f} | "
+            f"{ff['total_s']['10Mbit']:.2f} s |"
+        )
+    return (
+        "**LPM levels** (`benchmarks/lpm_levels.py`, Sponza, open3d quadric decimation with one "
+        f"queue over the material groups; {e['n_cameras']} cameras of the test path at "
+        f"{e['height']}x{e['width']}; geometric error as a fraction of the bounding-box "
+        "diagonal; the reference GI warped with the level's depth against the full mesh's; "
+        "first frame = chunks, 10 Mbit/s transfer, assemble, first raster; layout in "
+        "`docs/lpm.md`):\n\n"
+        "| level | triangles | MB geometry + textures | RMS / Hausdorff | depth off > 1 % | "
+        "DL SSIM | warp SSIM | first frame |\n|---|---|---|---|---|---|---|---|\n"
+        + "\n".join(rows)
+        + f"\n\nBuilding all levels: {d['build_total_s']:.1f} s.\n"
+    )
+
+
+def block_gan_warped(results: Path) -> str:
+    d = load("gan/warped/warped.json", results)
+    cfg = load("gan/warped/warped_config.json", results)
+    it = d["evals_pure"][-1]["iteration"]
+    ks = sorted(d["offsets"], key=int)
+    methods = [m for m in d["offsets"][ks[0]] if isinstance(d["offsets"][ks[0]][m], dict)]
+    head = " | ".join(f"{d['offsets'][k]['frames_back']} frames back" for k in ks)
+    rows = "\n".join(
+        f"| {m} | " + " | ".join(f"{d['offsets'][k][m]['ssim_mean']:.3f}" for k in ks) + " |"
+        for m in methods
+    )
+    holes = " / ".join(f"{d['offsets'][k]['holes_pct_mean']:.1f}" for k in ks)
+    return (
+        "**Beyond the paper: the generator with the warped reference** "
+        f"(`benchmarks/gan_warped.py`, configuration {cfg['args']['inputs']}, both generators "
+        f"trained {it} iterations with the Figure 7 settings; {d['views']} test views, the "
+        "reference k test views earlier; mean test SSIM; holes after warping "
+        f"{holes} % of the pixels):\n\n| method | {head} |\n|---|"
+        + "---|" * len(ks)
+        + f"\n{rows}\n"
+    )
+
+
+def block_gan_spp(results: Path) -> str:
+    d = load("gan/spp/spp.json", results)
+    rows = "\n".join(
+        f"| {name} | {v['bake_s']:.0f} s ({v['bake_s_per_view']:.2f} s/view) | "
+        f"{v['final_ssim']:.3f} | {v['final_mse']:.0f} |"
+        for name, v in d["sets"].items()
+    )
+    it = next(iter(d["sets"].values()))["iteration"][-1]
+    return (
+        "**The cost of the data** (`benchmarks/gan_spp.py`: configuration J trained "
+        f"{it} iterations on the train path baked at each sample count, noisy targets unless "
+        "denoised; same test truth):\n\n| train targets | baking time | test SSIM | test MSE "
+        f"|\n|---|---|---|---|\n{rows}\n"
+    )
+
+
+def block_net(results: Path) -> str:
+    d = load("net/net_latency.json", results)
+    c, b = d["config"], d["bytes"]
+    nets: dict[str, dict[str, Any]] = {}
+    for e in d["latency"]:
+        nets.setdefault(e["network"], {})[e["phase"]] = e
+
+    def cell(e: dict[str, Any] | None, mode: str, transfer: bool = True) -> str:
+        if e is None or mode not in e["median_request_ms"]:
+            return "-"
+        key = "median_generate_ms" if mode == "generator" else "median_request_ms"
+        txt = f"{e[key][mode]:.0f} ms"
+        if transfer and mode != "generator":
+            txt += f" ({e['median_transfer_ms'][mode]:.0f})"
+        return txt
+
+    def name(net: str) -> str:
+        return "loopback" if net.startswith("0ms/inf") else net.replace("/", " / ") + "/s"
+
+    rows = "\n".join(
+        f"| {name(n)} | {cell(ph.get('cold'), 'cloud_render')} | "
+        f"{cell(ph.get('warm'), 'cache_hit')} | {cell(ph.get('generator'), 'generator')} | "
+        f"{ph['generator']['first_frame_ms'] / 1e3:.1f} s |"
+        for n, ph in nets.items()
+        if "generator" in ph
+    )
+    ff: dict[str, dict[str, Any]] = {}
+    build = ""
+    for r in d["first_frame"]["runs"]:
+        if "network" in r:
+            ff.setdefault(r["network"], {})[r["mesh"]] = r
+        elif "lpm_build_s" in r:
+            build = f"; LPM build {r['lpm_build_s']:.1f} s once on the server"
+    lv0 = next(iter(ff.values()))["lpm_level0"]
+    full = next(iter(ff.values()))["full_mesh"]
+    ff_rows = "\n".join(
+        f"| {name(n)} | {v['lpm_level0']['mesh_in_hand_ms'] / 1e3:.2f} s / "
+        f"{v['lpm_level0']['first_frame_ms'] / 1e3:.1f} s | "
+        f"{v['full_mesh']['mesh_in_hand_ms'] / 1e3:.2f} s / "
+        f"{v['full_mesh']['first_frame_ms'] / 1e3:.1f} s |"
+        for n, v in ff.items()
+    )
+    tp = ", ".join(
+        f"{t['clients']} client{'s' if t['clients'] > 1 else ''} {t['replies_per_s']:.0f}/s "
+        f"(p50 {t['p50_ms']:.0f} ms, p99 {t['p99_ms']:.0f} ms, {t['errors']} errors)"
+        for t in d["throughput"]
+        if "clients" in t
+    )
+    la = d.get("load_average") or [float("nan")]
+    return (
+        f"**Networked system** (`benchmarks/net_latency.py`: {c['scene']}, {c['size']} x "
+        f"{c['size']} client, {c['spp']} spp GI, default codecs, {c['frames']} frames per run, "
+        f"medians; load average {la[0]:.1f} at the end). Request -> reply (of which transfer), "
+        "or the local generator's time (an untrained U-Net of the paper's shape, base 32: "
+        "timing only), and the time to the first frame when the generator is shipped first:\n\n"
+        "| network (RTT / rate) | cloud render | cache hit | local generator | first frame with "
+        "the generator |\n|---|---|---|---|---|\n"
+        f"{rows}\n\nA GI reply is {b['gi_reply_bytes_per_frame'] / 1e3:.1f} kB; the generator "
+        f"{b['generator_bytes'] / 1e6:.1f} MB: shipping it pays off after "
+        f"{b['break_even_frames']:.0f} remote frames ({b['break_even_frames'] / 30:.0f} s at 30 "
+        "fps).\n\nFirst rasterized frame with the LPM's coarsest level "
+        f"({lv0['triangles']:,} triangles, {lv0['bytes_received'] / 1e3:.0f} kB) against the full "
+        f"mesh ({full['triangles']:,} triangles, {full['bytes_received'] / 1e6:.1f} MB), Sponza; "
+        f"mesh in hand / first frame (including the client's rasterizer set-up){build}:\n\n"
+        "| network | LPM level 0 | full mesh |\n|---|---|---|\n"
+        f"{ff_rows}\n\nThroughput on loopback (cache hits, clients asking at once): {tp}.\n"
+    )
+
+
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "intro": block_intro,
     "raster": block_raster,
@@ -684,6 +820,9 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "gan-figure7": block_gan_figure7,
     "gan-figure8": block_gan_figure8,
     "gan-time-error": block_gan_time_error,
+    "gan-warped": block_gan_warped,
+    "lpm": block_lpm,
+    "net": block_net,
 }
 
 
