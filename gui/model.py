@@ -53,8 +53,9 @@ class ViewerConfig:
     speed: float = 1.0
     """The client traverses the path this many times faster than the path's own timing (its
     velocities, hence the prefetch camera, scale with it)."""
-    truth_spp: int = 0
-    """Samples per pixel of the path-traced truth of each frame (0: no truth, no heatmaps)."""
+    truth_spp: int = 32
+    """Samples per pixel of the path-traced truth of each frame, for the truth panel and the
+    SSIM / FLIP heatmaps (0: none)."""
     exposure: float = 1.0
     """Exposure of the display transform (panels and metrics)."""
     play_interval_ms: int = 200
