@@ -189,6 +189,7 @@ class MainWindow(QtWidgets.QMainWindow):
         )
         self.refresh_records()
         self._reset_path()
+        self.view.frame_all()
         if run_dir is not None:
             self.trainer.add_run(run_dir)
         self.go_to(0)
@@ -416,16 +417,19 @@ def load_scene(spec: str) -> Any:
     return icb.scene.load(spec)
 
 
-def quick_store(scene: Any, store_dir: str | Path, path: str = "test") -> Path:
-    """A small store baked on the fly (every 4th camera of ``path`` at 64x64, 4 spp, at the
-    prefetch camera): a few seconds on the Cornell box. An existing store is reused."""
+def quick_store(scene: Any, store_dir: str | Path) -> Path:
+    """A small store baked on the fly: every 4th camera of the scene's ``train`` and ``test``
+    paths (or of its paths, whatever their names) at 64x64, 4 spp, at the prefetch camera, so
+    that the client finds references and the trainer has train/test records: a few seconds on
+    the Cornell box. An existing store of the scene is reused."""
     d = Path(store_dir)
     with icb.store.open(d, icb.store.StoreConfig(fsync=False)) as st:
         if not any(r.meta.scene_hash == scene.content_hash for r in st):
             cfg = icb.bake.BakeConfig(
                 spp=4, resolution=(64, 64), stride=4, cloud_camera="prefetch", progress=False
             )
-            icb.bake.bake(scene, path, st, cfg)
+            for path in [p for p in ("train", "test") if p in scene.paths] or list(scene.paths):
+                icb.bake.bake(scene, path, st, cfg)
     return d
 
 
@@ -454,7 +458,7 @@ def open_window(
         path = "test" if "test" in scene.paths else next(iter(scene.paths), None)
         if path is None:
             raise ValueError(f"scene {scene_spec!r} has no camera path to follow")
-        store = quick_store(scene, Path("out/gui/store"), path)
+        store = quick_store(scene, Path("out/gui/store"))
         s_viewer = ViewerConfig(path=path, height=64, width=64)
         s_cloud = icb.system.CloudConfig(spp=4, denoise=False)
     elif not Path(store).is_dir():
@@ -512,8 +516,16 @@ def main(
         path = win.screenshot(screenshot)
         win.shutdown()
         win.close()
-        print(f"screenshot: {path}")
-        return 0
+        del win
+        if isinstance(ctx, contextlib.nullcontext):
+            print(f"screenshot: {path}")
+            return 0
+        # our Xvfb stops with the block: end Qt's X connection first, or Qt exits on an X I/O
+        # error when the server goes away
+        app.shutdown()
+        del app
+    print(f"screenshot: {path}")
+    return 0
 
 
 __all__ = ["FrameWorker", "MainWindow", "load_scene", "main", "open_window", "quick_store"]

@@ -204,6 +204,10 @@ class SceneView(QtCore.QObject):
             actor.prop.color = c
             actor.prop.edge_color = c
 
+    def frame_all(self) -> None:
+        """Fit everything shown (scene, path, frusta) in the view, keeping its direction."""
+        self.plotter.reset_camera()
+
     def render(self) -> None:
         self.plotter.render()
 
