@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from PySide6 import QtCore, QtGui, QtWidgets
 
@@ -77,6 +77,8 @@ class TrainerPanel(QtWidgets.QWidget):
 
     updated = QtCore.Signal()
     finished = QtCore.Signal(int)
+    painted = QtCore.Signal()
+    _paint = QtCore.Signal(object)
 
     def __init__(
         self,
@@ -119,10 +121,20 @@ class TrainerPanel(QtWidgets.QWidget):
             row.addWidget(b)
         self.status = QtWidgets.QLabel("idle")
         self.status.setWordWrap(True)
-        self.figure = Figure(figsize=(4.2, 4.6), tight_layout=True)
-        self.canvas = FigureCanvasQTAgg(self.figure)
+        # the curves are drawn by matplotlib (Agg) in a thread of their own (CurvePainter): the
+        # GUI thread only shows the finished image, so a slow redraw never blocks the window
+        self.canvas = QtWidgets.QLabel()
+        self.canvas.setAlignment(QtCore.Qt.AlignCenter)
         self.canvas.setMinimumHeight(300)
-        self.ax_loss, self.ax_ssim, self.ax_mse = self.figure.subplots(3, 1, sharex=True)
+        self.painter = CurvePainter()
+        self._paint_thread = QtCore.QThread(self)
+        self.painter.moveToThread(self._paint_thread)
+        self._paint.connect(self.painter.paint)
+        self.painter.painted.connect(self._painted)
+        self._paint_thread.start()
+        self._painting = False
+        self._dirty = False
+        self.curve_image: QtGui.QImage | None = None
         self.sample = QtWidgets.QLabel("samples: generated | real | difference")
         self.sample.setAlignment(QtCore.Qt.AlignCenter)
         self.sample.setMinimumHeight(80)
@@ -278,6 +290,7 @@ class TrainerPanel(QtWidgets.QWidget):
         """Stop the process (window closing)."""
         self.timer.stop()
         self.stop()
+        self.close_painter()
 
     # -------------------------------------------------------------- curves
     def runs(self) -> list[Path]:
@@ -346,32 +359,90 @@ class TrainerPanel(QtWidgets.QWidget):
         self.sample.setToolTip(f"{path}: generated | real | difference")
 
     def _draw(self) -> None:
-        ax = self.ax_loss
-        ax.clear()
-        ax.set_title("losses", fontsize=8)
-        if self.losses:
-            it = [r["iteration"] for r in self.losses]
-            for key in ("g", "l1", "d", "w"):
-                ys = [r.get(key, np.nan) for r in self.losses]
-                if not all(np.isnan(ys)):
-                    ax.plot(it, ys, label=key, lw=1)
-            ax.legend(fontsize=6, loc="upper right")
-        for a, key, title in (
-            (self.ax_ssim, "ssim", "test SSIM"),
-            (self.ax_mse, "mse", "test MSE"),
-        ):
-            a.clear()
+        """Hand the current data to the painter thread (only the latest data while it paints)."""
+        if self._painting:
+            self._dirty = True
+            return
+        self._painting, self._dirty = True, False
+        evals = {run_label(r): list(rows) for r, rows in self.evals.items() if rows}
+        self._paint.emit((list(self.losses), evals))
+
+    def _painted(self, image: QtGui.QImage) -> None:
+        self._painting = False
+        self.curve_image = image
+        self.canvas.setPixmap(QtGui.QPixmap.fromImage(image))
+        self.painted.emit()
+        if self._dirty:
+            self._draw()
+
+    @property
+    def ax_loss(self) -> Any:
+        return self.painter.ax_loss
+
+    @property
+    def ax_ssim(self) -> Any:
+        return self.painter.ax_ssim
+
+    def close_painter(self) -> None:
+        self._paint_thread.quit()
+        self._paint_thread.wait()
+
+
+class CurvePainter(QtCore.QObject):
+    """Draws the trainer's curves with matplotlib's Agg canvas in its own thread.
+
+    Signals:
+        painted(QImage): the finished figure.
+    """
+
+    painted = QtCore.Signal(QtGui.QImage)
+
+    def __init__(self, width: int = 420, height: int = 470) -> None:
+        super().__init__()
+        # a fixed layout (tight_layout costs more than the drawing) and persistent lines whose
+        # data are replaced
+        self.figure = Figure(figsize=(width / 100, height / 100), dpi=100)
+        self.figure.subplots_adjust(left=0.16, right=0.97, top=0.95, bottom=0.09, hspace=0.42)
+        self.agg = FigureCanvasAgg(self.figure)
+        self.ax_loss, self.ax_ssim, self.ax_mse = self.figure.subplots(3, 1, sharex=True)
+        for a, title in ((self.ax_loss, "losses"), (self.ax_ssim, "test SSIM"),
+                         (self.ax_mse, "test MSE")):  # fmt: skip
             a.set_title(title, fontsize=8)
-            for run, rows in self.evals.items():
-                if rows:
-                    a.plot([r["iteration"] for r in rows], [r[key] for r in rows], marker=".",
-                           lw=1, label=run_label(run))  # fmt: skip
-            if any(self.evals.values()):
-                a.legend(fontsize=6, loc="best")
-        self.ax_mse.set_xlabel("iteration", fontsize=8)
-        for a in (self.ax_loss, self.ax_ssim, self.ax_mse):
             a.tick_params(labelsize=6)
-        self.canvas.draw_idle()
+        self.ax_mse.set_xlabel("iteration", fontsize=8)
+        self._lines: dict[tuple[str, str], Any] = {}
+
+    def _line(self, ax: Any, key: tuple[str, str], label: str, **style: Any) -> Any:
+        line = self._lines.get(key)
+        if line is None:
+            (line,) = ax.plot([], [], label=label, lw=1, **style)
+            self._lines[key] = line
+            ax.legend(fontsize=6, loc="best")
+        return line
+
+    @QtCore.Slot(object)
+    def paint(self, data: tuple[list[dict[str, float]], dict[str, list[dict[str, float]]]]) -> None:
+        """Update the lines from (loss rows, {run label: evaluation rows}) and draw."""
+        losses, evals = data
+        if losses:
+            it = [r["iteration"] for r in losses]
+            for key in ("g", "l1", "d", "w"):
+                ys = [r.get(key, np.nan) for r in losses]
+                if not all(np.isnan(ys)):
+                    self._line(self.ax_loss, ("loss", key), key).set_data(it, ys)
+        for label, rows in evals.items():
+            it = [r["iteration"] for r in rows]
+            for ax, key in ((self.ax_ssim, "ssim"), (self.ax_mse, "mse")):
+                line = self._line(ax, (key, label), label, marker=".")
+                line.set_data(it, [r[key] for r in rows])
+        for ax in (self.ax_loss, self.ax_ssim, self.ax_mse):
+            ax.relim()
+            ax.autoscale_view()
+        self.agg.draw()
+        buf = np.asarray(self.agg.buffer_rgba())
+        h, w = buf.shape[:2]
+        img = QtGui.QImage(buf.tobytes(), w, h, 4 * w, QtGui.QImage.Format_RGBA8888).copy()
+        self.painted.emit(img)
 
 
-__all__ = ["TrainerPanel", "dedup", "read_csv", "run_label"]
+__all__ = ["CurvePainter", "TrainerPanel", "dedup", "read_csv", "run_label"]
