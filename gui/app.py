@@ -419,14 +419,15 @@ def load_scene(spec: str) -> Any:
 
 def quick_store(scene: Any, store_dir: str | Path) -> Path:
     """A small store baked on the fly: every 4th camera of the scene's ``train`` and ``test``
-    paths (or of its paths, whatever their names) at 64x64, 4 spp, at the prefetch camera, so
-    that the client finds references and the trainer has train/test records: a few seconds on
-    the Cornell box. An existing store of the scene is reused."""
+    paths (or of its paths, whatever their names) at 64x64 and 4 spp, at the path's cameras
+    (one image size, so that the trainer can use them; the client's prefetch cameras are
+    rendered by the cloud as it goes): a few seconds on the Cornell box. An existing store of
+    the scene is reused."""
     d = Path(store_dir)
     with icb.store.open(d, icb.store.StoreConfig(fsync=False)) as st:
         if not any(r.meta.scene_hash == scene.content_hash for r in st):
             cfg = icb.bake.BakeConfig(
-                spp=4, resolution=(64, 64), stride=4, cloud_camera="prefetch", progress=False
+                spp=4, resolution=(64, 64), stride=4, cloud_camera="same", progress=False
             )
             for path in [p for p in ("train", "test") if p in scene.paths] or list(scene.paths):
                 icb.bake.bake(scene, path, st, cfg)
@@ -510,7 +511,12 @@ def main(
         QtCore.QTimer.singleShot(300_000, loop.quit)
         if win.frame is None:
             loop.exec()
+        if win.frame is not None and win.view.used_record is not None:
+            win.show_record(win.view.used_record)  # the record panel: the frame's reference
         win.trainer.poll()
+        deadline = time.monotonic() + 30
+        while win.trainer._painting and time.monotonic() < deadline:
+            app.processEvents(QtCore.QEventLoop.AllEvents, 50)
         for _ in range(5):
             app.processEvents()
         path = win.screenshot(screenshot)

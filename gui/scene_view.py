@@ -160,8 +160,9 @@ class SceneView(QtCore.QObject):
                 boxes, scalars="records", cmap="plasma", clim=(0, hi), line_width=1.5,
                 name="leaves", pickable=False, reset_camera=False,
                 scalar_bar_args={"title": "records per leaf", "n_labels": 3, "fmt": "%.0f",
-                                 "position_x": 0.72, "position_y": 0.88, "width": 0.25,
-                                 "height": 0.08},
+                                 "position_x": 0.70, "position_y": 0.86, "width": 0.27,
+                                 "height": 0.09, "title_font_size": 12,
+                                 "label_font_size": 10},
             )  # fmt: skip
         else:
             p.remove_actor("leaves", render=False)
@@ -188,6 +189,11 @@ class SceneView(QtCore.QObject):
         self._used = record_id
         self._recolour()
         self.render()
+
+    @property
+    def used_record(self) -> int | None:
+        """The record that answered the current frame (None: rendered anew or generated)."""
+        return self._used
 
     def set_picked(self, record_id: int | None) -> None:
         self._picked = record_id

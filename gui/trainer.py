@@ -304,8 +304,15 @@ class TrainerPanel(QtWidgets.QWidget):
         return out
 
     def add_run(self, run: str | Path) -> None:
-        """Show an existing run (e.g. ``--run``) as the current one."""
+        """Show an existing run (e.g. ``--run``) as the current one, its config in the form."""
+        import icbtool as icb
+
         self.run_edit.setText(str(run))
+        try:
+            d = json.loads((Path(run) / "config.json").read_text())["train_config"]
+            self.form.set_value(icb.gan.TrainConfig.from_dict(d))
+        except (OSError, ValueError, KeyError, TypeError):
+            pass  # not a finished run's directory yet: the form keeps its values
         self._stamps.clear()
         self.poll()
 
@@ -365,7 +372,8 @@ class TrainerPanel(QtWidgets.QWidget):
             return
         self._painting, self._dirty = True, False
         evals = {run_label(r): list(rows) for r, rows in self.evals.items() if rows}
-        self._paint.emit((list(self.losses), evals))
+        size = (max(200, self.canvas.width()), max(200, self.canvas.height()))
+        self._paint.emit((list(self.losses), evals, size))
 
     def _painted(self, image: QtGui.QImage) -> None:
         self._painting = False
@@ -421,9 +429,12 @@ class CurvePainter(QtCore.QObject):
         return line
 
     @QtCore.Slot(object)
-    def paint(self, data: tuple[list[dict[str, float]], dict[str, list[dict[str, float]]]]) -> None:
-        """Update the lines from (loss rows, {run label: evaluation rows}) and draw."""
-        losses, evals = data
+    def paint(self, data: tuple[Any, ...]) -> None:
+        """Update the lines from (loss rows, {run label: evaluation rows}, (width, height) in
+        pixels) and draw."""
+        losses, evals, (width, height) = data
+        if (width, height) != tuple(self.agg.get_width_height()):
+            self.figure.set_size_inches(width / 100, height / 100)
         if losses:
             it = [r["iteration"] for r in losses]
             for key in ("g", "l1", "d", "w"):
@@ -436,8 +447,9 @@ class CurvePainter(QtCore.QObject):
                 line = self._line(ax, (key, label), label, marker=".")
                 line.set_data(it, [r[key] for r in rows])
         for ax in (self.ax_loss, self.ax_ssim, self.ax_mse):
-            ax.relim()
-            ax.autoscale_view()
+            if ax.lines:
+                ax.relim()
+                ax.autoscale_view()
         self.agg.draw()
         buf = np.asarray(self.agg.buffer_rgba())
         h, w = buf.shape[:2]
