@@ -5,8 +5,8 @@ image panels (:mod:`gui.panels`) in the middle, the trainer (:mod:`gui.trainer`)
 and below them the settings forms (:mod:`gui.forms`) and the equivalent Python
 (:mod:`gui.calls`).
 
-Client frames are computed in a worker thread that owns the OpenGL rasterizer, the cloud and the
-client (:class:`gui.model.FrameComputer`): the window keeps drawing while a frame renders. The
+Client frames are computed in a process of their own that owns the OpenGL rasterizer, the cloud
+and the client (:mod:`gui.frames`): the window keeps drawing while a frame renders. The
 client's frustum moves at once when stepping; its prefetch frustum is recomputed at once from
 the speed and latency settings (with the depth range of the last frame) and replaced by the one
 the cloud used when the frame arrives.
@@ -25,37 +25,11 @@ from PySide6 import QtCore, QtWidgets
 import icbtool as icb
 from gui.calls import CallLog, CallLogView
 from gui.forms import DataclassForm, call_repr
-from gui.model import FrameComputer, FrameResult, Session, ViewerConfig, frustum_depth
+from gui.frames import FrameProcess
+from gui.model import FrameResult, Session, ViewerConfig, frustum_depth, load_scene
 from gui.panels import FramePanels
 from gui.scene_view import SceneView
 from gui.trainer import TrainerPanel
-
-
-class FrameWorker(QtCore.QObject):
-    """Lives in the frame thread: computes frames with a :class:`FrameComputer` it owns."""
-
-    done = QtCore.Signal(object)
-    failed = QtCore.Signal(int, str)
-
-    def __init__(self, session: Session) -> None:
-        super().__init__()
-        self.session = session
-        self.computer: FrameComputer | None = None
-
-    @QtCore.Slot(int)
-    def compute(self, k: int) -> None:
-        try:
-            if self.computer is None:
-                self.computer = FrameComputer(self.session)
-            self.done.emit(self.computer.compute(k))
-        except Exception as e:  # noqa: BLE001 - shown in the window; the worker stays usable
-            self.failed.emit(k, f"{type(e).__name__}: {e}")
-
-    @QtCore.Slot()
-    def close(self) -> None:
-        if self.computer is not None:
-            self.computer.close()
-            self.computer = None
 
 
 class MainWindow(QtWidgets.QMainWindow):
@@ -73,7 +47,6 @@ class MainWindow(QtWidgets.QMainWindow):
 
     frame_shown = QtCore.Signal(object)
     frame_failed = QtCore.Signal(int, str)
-    _request = QtCore.Signal(int)
 
     def __init__(
         self, session: Session, scene_spec: str = "cornell_box", run_dir: str | Path | None = None
@@ -167,14 +140,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self.resizeDocks([dock], [210], QtCore.Qt.Vertical)
         self.statusBar().showMessage("ready")
 
-        # -- the frame thread
-        self._thread = QtCore.QThread(self)
-        self.worker = FrameWorker(session)
-        self.worker.moveToThread(self._thread)
-        self._request.connect(self.worker.compute)
-        self.worker.done.connect(self._on_frame)
-        self.worker.failed.connect(self._on_failed)
-        self._thread.start()
+        # -- the frame process (frames are CPU work that would hold the GIL in a thread)
+        self.frames = FrameProcess(
+            scene_spec, session.store_dir, session.run_dir,
+            (session.viewer, session.cloud, session.client), self,
+        )  # fmt: skip
+        self.frames.done.connect(self._on_frame)
+        self.frames.failed.connect(self._on_failed)
         self.play_timer = QtCore.QTimer(self)
         self.play_timer.timeout.connect(self._tick)
 
@@ -195,11 +167,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self.go_to(0)
 
     # -------------------------------------------------------------- store
-    def refresh_records(self) -> None:
+    def refresh_records(self, render: bool = True) -> None:
         """Re-read the store: one frustum per record, the octree leaves."""
         self.records = self.session.records()
         self._record_keys = {icb.store.camera_key(r.camera): r.record_id for r in self.records}
-        self.view.set_records(self.records, self.session.leaves(self.records))
+        self.view.set_records(self.records, self.session.leaves(self.records), render=render)
 
     def show_record(self, record_id: int) -> None:
         """Show a stored record's CRT-buffer GI (a picked frustum)."""
@@ -280,7 +252,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self._pending = None
         self._t_ask = time.perf_counter()
         self.statusBar().showMessage(f"computing frame {k} ...")
-        self._request.emit(k)
+        s = self.session
+        self.frames.compute(k, s.viewer, s.cloud, s.client)
 
     def _on_frame(self, f: FrameResult) -> None:
         self._busy = False
@@ -291,9 +264,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self.frame = f
         self._depth_range = f.request.depth_range
         if not f.cache_hit:
-            self.refresh_records()
-        self.view.set_client(f.camera, f.prefetch)
-        self.view.set_used(self._record_keys.get(icb.store.camera_key(f.reference_camera)))
+            self.refresh_records(render=False)
+        self.view.set_client(f.camera, f.prefetch, render=False)
+        used = self._record_keys.get(icb.store.camera_key(f.reference_camera))
+        self.view.set_used(used, render=False)
+        self.view.render()  # once per frame: a software-GL render is the window's largest cost
         self.panels.show_frame(f, self.session.viewer.exposure)
         hit = "cache hit" if f.cache_hit else "miss: rendered"
         ms = ", ".join(f"{k} {v:.0f}" for k, v in f.timings_ms.items())
@@ -393,12 +368,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._closed = True
         self.pause()
         self.trainer.close_process()
-        if self._thread.isRunning():
-            QtCore.QMetaObject.invokeMethod(
-                self.worker, "close", QtCore.Qt.BlockingQueuedConnection
-            )
-            self._thread.quit()
-            self._thread.wait()
+        self.frames.close()
         self.session.close()
         self.view.close()
 
@@ -410,13 +380,6 @@ def _scene_call(spec: str) -> str:
 
 
 # ------------------------------------------------------------------------------ entry point
-def load_scene(spec: str) -> Any:
-    """A procedural scene by name (``cornell_box`` ...) or a scene file."""
-    if spec in icb.scene.PROCEDURAL:
-        return icb.scene.PROCEDURAL[spec]()
-    return icb.scene.load(spec)
-
-
 def quick_store(scene: Any, store_dir: str | Path) -> Path:
     """A small store baked on the fly: every 4th camera of the scene's ``train`` and ``test``
     paths (or of its paths, whatever their names) at 64x64 and 4 spp, at the path's cameras
@@ -534,4 +497,4 @@ def main(
     return 0
 
 
-__all__ = ["FrameWorker", "MainWindow", "load_scene", "main", "open_window", "quick_store"]
+__all__ = ["MainWindow", "load_scene", "main", "open_window", "quick_store"]

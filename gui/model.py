@@ -290,7 +290,8 @@ class FrameComputer:
     """Computes client frames (:meth:`compute`): an :class:`icbtool.system.Client` against an
     :class:`icbtool.system.Cloud` on the session's store, sharing one rasterizer.
 
-    Create, use and close it in one thread (its OpenGL context belongs to that thread).
+    Create, use and close it in one thread (its OpenGL context belongs to that thread); the
+    window runs it in a process of its own (:mod:`gui.frames`).
     """
 
     def __init__(self, session: Session) -> None:
@@ -443,6 +444,14 @@ def frustum_depth(scene: Any, fraction: float = 0.08) -> float:
 
 
 # ----------------------------------------------------------------------------- defaults
+def load_scene(spec: str) -> Any:
+    """A procedural scene by name (``cornell_box`` ...) or a scene file
+    (:func:`icbtool.scene.load`)."""
+    if spec in icb.scene.PROCEDURAL:
+        return icb.scene.PROCEDURAL[spec]()
+    return icb.scene.load(spec)
+
+
 def demo_settings(
     demo_dir: str | Path,
 ) -> tuple[ViewerConfig, system.CloudConfig, system.ClientConfig] | None:
@@ -471,4 +480,5 @@ __all__ = [
     "frustum_depth",
     "frustum_points",
     "hole_image",
+    "load_scene",
 ]

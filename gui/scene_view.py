@@ -135,19 +135,23 @@ class SceneView(QtCore.QObject):
                 pickable=False,
             )  # fmt: skip
 
-    def set_records(self, records: list[Any], leaves: list[Leaf]) -> None:
-        """One pickable frustum actor per record, and the octree leaves coloured by records."""
+    def set_records(self, records: list[Any], leaves: list[Leaf], render: bool = True) -> None:
+        """One pickable frustum actor per record (only new records get a new actor, evicted
+        ones lose theirs), and the octree leaves coloured by records."""
         p = self.plotter
-        for actor in self.record_actors.values():
+        keep = {r.record_id for r in records}
+        for rid in [r for r in self.record_actors if r not in keep]:
+            actor = self.record_actors.pop(rid)
+            self._actor_ids.pop(id(actor), None)
+            self._picker.DeletePickList(actor)
             p.remove_actor(actor, render=False)
-        self.record_actors.clear()
-        self._actor_ids.clear()
-        self._picker.InitializePickList()
         for r in records:
+            if r.record_id in self.record_actors:
+                continue
             actor = p.add_mesh(
                 pyramid(frustum_points(r.camera, self._depth)), color=COLOURS["record"],
                 opacity=0.35, show_edges=True, edge_color=COLOURS["record"], pickable=True,
-                name=f"record-{r.record_id}", reset_camera=False,
+                name=f"record-{r.record_id}", reset_camera=False, render=False,
             )  # fmt: skip
             self.record_actors[r.record_id] = actor
             self._actor_ids[id(actor)] = r.record_id
@@ -158,7 +162,7 @@ class SceneView(QtCore.QObject):
             hi = max(1.0, float(boxes.cell_data["records"].max()))
             p.add_mesh(
                 boxes, scalars="records", cmap="plasma", clim=(0, hi), line_width=1.5,
-                name="leaves", pickable=False, reset_camera=False,
+                name="leaves", pickable=False, reset_camera=False, render=False,
                 scalar_bar_args={"title": "records per leaf", "n_labels": 3, "fmt": "%.0f",
                                  "position_x": 0.70, "position_y": 0.86, "width": 0.27,
                                  "height": 0.09, "title_font_size": 12,
@@ -167,28 +171,31 @@ class SceneView(QtCore.QObject):
         else:
             p.remove_actor("leaves", render=False)
         self._recolour()
-        self.render()
+        if render:
+            self.render()
 
-    def set_client(self, camera: Any, prefetch: Any) -> None:
+    def set_client(self, camera: Any, prefetch: Any, render: bool = True) -> None:
         """The client's frustum (green) and its prefetch frustum (orange, 1.5x as long)."""
         self.client_points = frustum_points(camera, self._depth)
         self.prefetch_points = frustum_points(prefetch, 1.5 * self._depth)
         p = self.plotter
         p.add_mesh(
             frustum_lines(self.client_points), color=COLOURS["client"], line_width=3,
-            name="client", pickable=False, reset_camera=False,
+            name="client", pickable=False, reset_camera=False, render=False,
         )  # fmt: skip
         p.add_mesh(
             frustum_lines(self.prefetch_points), color=COLOURS["prefetch"], line_width=2,
-            name="prefetch", pickable=False, reset_camera=False,
+            name="prefetch", pickable=False, reset_camera=False, render=False,
         )  # fmt: skip
-        self.render()
+        if render:
+            self.render()
 
-    def set_used(self, record_id: int | None) -> None:
+    def set_used(self, record_id: int | None, render: bool = True) -> None:
         """Highlight the record that answered the current frame (yellow)."""
         self._used = record_id
         self._recolour()
-        self.render()
+        if render:
+            self.render()
 
     @property
     def used_record(self) -> int | None:
