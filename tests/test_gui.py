@@ -320,3 +320,17 @@ def test_cli_screenshot_without_a_display(store_dir, tmp_path):
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert bad.returncode == 2 and "--store" in bad.stderr and "not a directory" in bad.stderr
+
+
+def test_cli_names_the_extra_when_qt_is_missing(tmp_path, store_dir):
+    code = (
+        "import sys; sys.modules['pyvistaqt'] = None\n"  # importing it now fails
+        "from icbtool.cli import main\n"
+        f"raise SystemExit(main(['gui', '--store', {str(store_dir)!r}]))"
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True,
+                       text=True, timeout=60)  # fmt: skip
+    assert r.returncode == 1, r.stderr
+    assert "icbtool gui: error:" in r.stderr and 'pip install "icbtool[gui]"' in r.stderr
+    assert "Traceback" not in r.stderr
