@@ -171,7 +171,12 @@ class MainWindow(QtWidgets.QMainWindow):
         """Re-read the store: one frustum per record, the octree leaves."""
         self.records = self.session.records()
         self._record_keys = {icb.store.camera_key(r.camera): r.record_id for r in self.records}
-        self.view.set_records(self.records, self.session.leaves(self.records), render=render)
+        self.view.set_records(
+            self.records,
+            self.session.leaves(self.records),
+            render=render,
+            colour_by=self.session.viewer.leaf_colour,
+        )
 
     def show_record(self, record_id: int) -> None:
         """Show a stored record's CRT-buffer GI (a picked frustum)."""
@@ -263,7 +268,7 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         self.frame = f
         self._depth_range = f.request.depth_range
-        if not f.cache_hit:
+        if not f.cache_hit or self.session.viewer.leaf_colour == "hits":
             self.refresh_records(render=False)
         self.view.set_client(f.camera, f.prefetch, render=False)
         used = self._record_keys.get(icb.store.camera_key(f.reference_camera))
@@ -330,6 +335,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.calls.call(
             "\n".join(f"{n}_cfg = {call_repr(v, mod[n])}" for n, v in changed), "settings"
         )
+        if any(n == "viewer" for n, _ in changed):
+            self.refresh_records(render=False)
         if path_changed:
             self._depth_range = None
             self._reset_path()

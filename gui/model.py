@@ -20,7 +20,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -60,6 +60,9 @@ class ViewerConfig:
     """Exposure of the display transform (panels and metrics)."""
     play_interval_ms: int = 200
     """Playing: the next frame is asked for this often (when the previous one is done)."""
+    leaf_colour: Literal["records", "hits"] = "records"
+    """Colour the octree leaves by their number of records or by their records' cache hits
+    (as the store has written them: the cloud writes its hits with its next new record)."""
 
     def __post_init__(self) -> None:
         for k in ("frames", "height", "width", "play_interval_ms"):
@@ -72,6 +75,10 @@ class ViewerConfig:
             )
         if not (math.isfinite(self.speed) and self.speed > 0):
             raise ValueError(f"ViewerConfig.speed must be finite and > 0, got {self.speed}")
+        if self.leaf_colour not in ("records", "hits"):
+            raise ValueError(
+                f"ViewerConfig.leaf_colour must be records|hits, got {self.leaf_colour!r}"
+            )
         if not (math.isfinite(self.exposure) and self.exposure > 0):
             raise ValueError(f"ViewerConfig.exposure must be finite and > 0, got {self.exposure}")
 

@@ -135,9 +135,16 @@ class SceneView(QtCore.QObject):
                 pickable=False,
             )  # fmt: skip
 
-    def set_records(self, records: list[Any], leaves: list[Leaf], render: bool = True) -> None:
+    def set_records(
+        self,
+        records: list[Any],
+        leaves: list[Leaf],
+        render: bool = True,
+        colour_by: str = "records",
+    ) -> None:
         """One pickable frustum actor per record (only new records get a new actor, evicted
-        ones lose theirs), and the octree leaves coloured by records."""
+        ones lose theirs), and the octree leaves coloured by ``colour_by`` ("records" or
+        "hits")."""
         p = self.plotter
         keep = {r.record_id for r in records}
         for rid in [r for r in self.record_actors if r not in keep]:
@@ -159,11 +166,12 @@ class SceneView(QtCore.QObject):
         self.leaf_count = len(leaves)
         if leaves:
             boxes = leaf_boxes(leaves)
-            hi = max(1.0, float(boxes.cell_data["records"].max()))
+            hi = max(1.0, float(boxes.cell_data[colour_by].max()))
+            p.remove_actor("leaves", render=False)  # its scalar bar title may change
             p.add_mesh(
-                boxes, scalars="records", cmap="plasma", clim=(0, hi), line_width=1.5,
+                boxes, scalars=colour_by, cmap="plasma", clim=(0, hi), line_width=1.5,
                 name="leaves", pickable=False, reset_camera=False, render=False,
-                scalar_bar_args={"title": "records per leaf", "n_labels": 3, "fmt": "%.0f",
+                scalar_bar_args={"title": f"{colour_by} per leaf", "n_labels": 3, "fmt": "%.0f",
                                  "position_x": 0.70, "position_y": 0.86, "width": 0.27,
                                  "height": 0.09, "title_font_size": 12,
                                  "label_font_size": 10},

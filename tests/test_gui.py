@@ -110,6 +110,13 @@ def test_one_frustum_actor_per_record_and_leaves_by_cell(qtbot, window, store_di
         tree = icb.store.SceneOctree(geom)
         cells = {tree.cell_of(r.camera.position) for r in st}
     assert window.view.leaf_count == len(cells) >= 2
+    leaves = window.view.plotter.renderer.actors["leaves"]
+    assert leaves.mapper.array_name == "records"
+    assert window.set_setting("viewer", leaf_colour="hits")
+    leaves = window.view.plotter.renderer.actors["leaves"]
+    assert leaves.mapper.array_name == "hits" and "leaf_colour='hits'" in window.calls.lines[-2]
+    with qtbot.waitSignal(window.frame_shown, timeout=60_000):
+        assert window.set_setting("viewer", leaf_colour="records")
 
 
 def test_picking_a_frustum_shows_its_gi(qtbot, window, store_dir):
