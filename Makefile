@@ -33,8 +33,9 @@ sysdeps:
 
 install: sysdeps .venv/.installed
 
+# The in-process loop, then the same across processes (server subprocess + client on loopback).
 demo: install
-	$(PY) -m icbtool demo --out $(OUT)/demo
+	$(PY) -m icbtool demo --out $(OUT)/demo --network
 
 # the desktop app on the demo's store (run `make demo` first; without it a small store is baked)
 gui: install

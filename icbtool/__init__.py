@@ -28,6 +28,7 @@ _SUBMODULES = (
     "cli",
     "pipeline",
     "gan",
+    "lpm",
 )
 
 if TYPE_CHECKING:  # pragma: no cover

@@ -24,6 +24,9 @@ EXTRAS: dict[str, tuple[str, str]] = {
     "onnx": ("gan", "onnx"),
     "onnxruntime": ("gan", "onnxruntime"),
     "tensorboard": ("gan", "tensorboard"),
+    "websockets": ("net", "websockets"),
+    "cryptography": ("net", "cryptography"),
+    "zstandard": ("net", "zstandard"),
 }
 
 

@@ -21,8 +21,10 @@ score the frame (SSIM on the display scale).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -82,6 +84,10 @@ class LoopConfig:
     """A trained GAN run directory (:func:`icbtool.gan.train`): the client makes its GI with it
     (the paper's rule) and asks the cloud only when the generator cannot answer
     (:class:`icbtool.system.GeneratorSource`). None: every GI map comes from the cloud."""
+    compare_cloud: bool = True
+    """With a generator: on the frames that get a truth, also ask the cloud for its (warped) GI
+    and write cloud GI | generated GI | truth GI side by side (``frames/NNN_gi.png``; the SSIM in
+    ``ssim_gi_cloud``). Those extra cloud answers are counted apart (``comparison_renders``)."""
 
     def __post_init__(self) -> None:
         for k in ("frames", "height", "width", "spp", "max_depth", "truth_spp"):
@@ -148,6 +154,23 @@ class FrameStats:
     """Who made this frame's GI: "cloud" or "generator"."""
     generate_ms: float = 0.0
     """Time of the local generator (0 when the cloud answered)."""
+    request_ms: float = 0.0
+    """The whole request -> reply time the client waited (in-process: the cloud's call)."""
+    queue_ms: float = 0.0
+    """Over a network: the request's wait for the server's cloud thread."""
+    encode_ms: float = 0.0
+    """Over a network: the server's encoding of the reply."""
+    transfer_ms: float = 0.0
+    """Over a network: both directions on the wire and the server's send queue."""
+    decode_ms: float = 0.0
+    """Over a network: the client's decoding of the reply."""
+    mesh_level: int = -1
+    """The client's mesh level (LPM) it rasterized (-1: the full scene, in-process)."""
+    rx_bytes: int = 0
+    """Bytes the client received during this frame (network sources)."""
+    ssim_gi_cloud: float | None = None
+    """With a generator and ``compare_cloud``: SSIM of the cloud's warped GI against the truth's
+    GI on the same frame (``ssim_gi`` is the generated one's)."""
 
 
 @dataclass
@@ -158,6 +181,8 @@ class LoopReport:
     config: LoopConfig
     frames: list[FrameStats] = field(default_factory=list)
     cloud_renders: int = 0
+    comparison_renders: int = 0
+    """Cloud renders made only for ``LoopConfig.compare_cloud`` (not in ``cloud_renders``)."""
     total_s: float = 0.0
 
     @property
@@ -198,13 +223,21 @@ class LoopReport:
             out[f"median_{name}_ms"] = t["median"]
             out[f"first_{name}_ms"] = t["first"]
             out[f"median_{name}_ms_after_first"] = t["median_after_first"]
+        if any(f.transfer_ms or f.decode_ms for f in self.frames):  # over a network
+            remote = [f for f in self.frames if f.gi_source == "cloud"]
+            for stage in ("request_ms", "queue_ms", "encode_ms", "transfer_ms", "decode_ms"):
+                t = timing_summary([getattr(f, stage) for f in remote])
+                out[f"median_{stage.removesuffix('_ms')}_ms"] = t["median"]
+            out["rx_bytes"] = int(sum(f.rx_bytes for f in self.frames))
         gen = [f for f in self.frames if f.gi_source == "generator"]
-        if self.config.generator is not None:
+        if self.config.generator is not None or gen:
             out["generated_frames"] = len(gen)
             out["cloud_fallback_frames"] = len(self.frames) - len(gen)
             t = timing_summary([f.generate_ms for f in gen])
             out["median_generate_ms"] = t["median"]
             out["first_generate_ms"] = t["first"]
+            out["mean_ssim_gi_cloud_vs_truth"] = mean("ssim_gi_cloud")
+            out["comparison_renders"] = self.comparison_renders
         out["total_s"] = self.total_s
         return out
 
@@ -244,18 +277,27 @@ def run_loop(
     out_dir: str | Path | None = None,
     store_dir: str | Path | None = None,
     progress: bool = True,
+    *,
+    source: Any = None,
+    client_scene: Callable[[], tuple[int, Any]] | None = None,
 ) -> LoopReport:
     """Drive a :class:`~icbtool.system.Client` along a path against an in-process
-    :class:`~icbtool.system.Cloud` (see module docstring).
+    :class:`~icbtool.system.Cloud` (see module docstring), or against another GI source.
 
     Args:
-        scene: an :class:`icbtool.scene.Scene` with the named path.
+        scene: an :class:`icbtool.scene.Scene` with the named path (and the truth's scene).
         config: :class:`LoopConfig`.
         out_dir: where to write frame images (PNG), ``frames.csv``, ``summary.json`` and
             ``config.json``; None writes nothing.
         store_dir: the cloud's cache (an :func:`icbtool.store.open` directory); default
             ``out_dir / "cache"``, or a temporary directory when ``out_dir`` is None.
         progress: show a progress bar.
+        source: a :class:`~icbtool.system.GISource` to ask instead of an in-process cloud (a
+            network client); not closed here. ``config.generator`` is then ignored (the source
+            decides) and no store is opened.
+        client_scene: ``() -> (level, scene)``, asked before every frame: the scene the client
+            rasterizes (the finest mesh level it holds); a new level replaces the client's
+            rasterizer. None: the client rasterizes ``scene``.
 
     Returns:
         A :class:`LoopReport`.
@@ -268,7 +310,9 @@ def run_loop(
     path = _client_path(scene, cfg)
     out = Path(out_dir) if out_dir is not None else None
     tmp = None
-    if store_dir is None:
+    if source is not None:
+        pass
+    elif store_dir is None:
         if out is not None:
             store_dir = out / "cache"
         else:
@@ -284,14 +328,31 @@ def run_loop(
         from tqdm import tqdm
 
         bar = tqdm(total=cfg.frames, desc=f"icb loop {scene.name}", unit="frame")
+    level, client_mesh = (-1, scene) if client_scene is None else client_scene()
     try:
-        with (
-            raster.Rasterizer(scene) as rz,
-            system.Cloud(scene, store_dir, cfg.cloud_config(), rasterizer=rz) as cloud,
-            _gi_source(cfg, cloud) as source,
-            system.Client(scene, source, cfg.client_config(), rasterizer=rz) as client,
-        ):
+        with contextlib.ExitStack() as stack:
+            rz = stack.enter_context(raster.Rasterizer(client_mesh))
+            cloud = None
+            if source is None:
+                cloud = stack.enter_context(
+                    system.Cloud(scene, store_dir, cfg.cloud_config(), rasterizer=rz)
+                )
+                source = stack.enter_context(_gi_source(cfg, cloud))
+            client = stack.enter_context(
+                system.Client(client_mesh, source, cfg.client_config(), rasterizer=rz)
+            )
+            cloud_view = (
+                stack.enter_context(_comparison_client(cfg, scene, cloud, rz))
+                if cloud is not None
+                else None
+            )
             for k, t in enumerate(times):
+                if client_scene is not None:
+                    new_level, new_mesh = client_scene()
+                    if new_level != level:
+                        level = new_level
+                        client.use_scene(new_mesh)
+                rx0 = sum(getattr(source, "bytes_received", {}).values())
                 cam = path.camera_at(float(t))
                 # the request the client sent T_IL ago
                 t_req = max(float(t) - cfg.latency_s, float(path.times[0]))
@@ -316,6 +377,13 @@ def run_loop(
                         else "cloud"
                     ),
                     generate_ms=fr.reply.timings_ms.get("generate", 0.0),
+                    request_ms=fr.request_ms,
+                    queue_ms=fr.reply.timings_ms.get("queue", 0.0),
+                    encode_ms=fr.reply.timings_ms.get("encode", 0.0),
+                    transfer_ms=fr.reply.timings_ms.get("transfer", 0.0),
+                    decode_ms=fr.reply.timings_ms.get("decode", 0.0),
+                    mesh_level=level,
+                    rx_bytes=sum(getattr(source, "bytes_received", {}).values()) - rx0,
                 )
                 truth = None
                 if cfg.truth_every and k % cfg.truth_every == 0:
@@ -331,6 +399,17 @@ def run_loop(
                     fs.ssim_dl_only = metrics.ssim(fr.wrt.dl, truth.full)
                     fs.mse_final = metrics.mse(fr.final, truth.full)
                     fs.mse_dl_only = metrics.mse(fr.wrt.dl, truth.full)
+                    if cloud_view is not None and fs.gi_source == "generator":
+                        before = cloud.renders
+                        fc = cloud_view.frame(cam, request)
+                        report.comparison_renders += cloud.renders - before
+                        fs.ssim_gi_cloud = metrics.ssim(fc.gi, truth.gi)
+                        if out is not None:
+                            _write_strip(
+                                out / "frames" / f"{k:03d}_gi.png",
+                                [fc.gi, fr.gi, truth.gi],
+                                imageio,
+                            )
                 report.frames.append(fs)
                 if out is not None:
                     _write_frame(
@@ -344,7 +423,11 @@ def run_loop(
                 if bar is not None:
                     bar.update(1)
                     bar.set_postfix(hit=fs.cache_hit, holes=f"{fs.hole_ratio_combined:.3f}")
-            report.cloud_renders = cloud.renders
+            report.cloud_renders = (
+                cloud.renders - report.comparison_renders
+                if cloud is not None
+                else sum(1 for f in report.frames if f.gi_source == "cloud" and not f.cache_hit)
+            )
     finally:
         if bar is not None:
             bar.close()
@@ -370,6 +453,27 @@ def _gi_source(cfg: LoopConfig, cloud: Any) -> Any:
     from icbtool.gan import Generator
 
     return system.GeneratorSource(Generator.load(cfg.generator), fallback=cloud)
+
+
+def _comparison_client(cfg: LoopConfig, scene: Any, cloud: Any, rz: Any) -> Any:
+    """A second client on the cloud for :attr:`LoopConfig.compare_cloud` (else None)."""
+    import contextlib
+
+    from icbtool import system
+
+    if cfg.generator is None or not cfg.compare_cloud or not cfg.truth_every:
+        return contextlib.nullcontext(None)
+    return system.Client(scene, cloud, cfg.client_config(), rasterizer=rz)
+
+
+def _write_strip(path: Path, images: list[np.ndarray], imageio: Any) -> None:
+    """Linear HDR images side by side (display transform), white 2-pixel gaps."""
+    tiles = [imageio.to_display(a, _EXPOSURE) for a in images]
+    sep = np.full((tiles[0].shape[0], 2, 3), 255, np.uint8)
+    strip = tiles[0]
+    for t in tiles[1:]:
+        strip = np.concatenate([strip, sep, t], axis=1)
+    imageio.write_png(path, strip)
 
 
 def _write_frame(path: Path, wrt: Any, w: Any, final: np.ndarray, truth: Any, imageio: Any) -> None:

@@ -466,6 +466,32 @@ def test_loop_with_a_generator_never_asks_the_cloud(store, tmp_path):
     assert Generator.load(tmp_path / "run").inputs == ("albedo", "dl", "normal_view")
 
 
+def test_loop_compares_generated_with_cloud_gi_and_truth(store, tmp_path):
+    """With a generator, truth frames also get the cloud's warped GI side by side; on the first
+    frame it is exactly what a cloud-only loop shows (same request, same seeds, no history)."""
+    import icbtool as icb
+    from icbtool.imageio import read_png
+    from icbtool.pipeline import LoopConfig, run_loop
+
+    T.train(store, tiny(iterations=1, inputs="E"), tmp_path / "run", progress=False)
+    scene = icb.scene.cornell_box()
+    kw = dict(frames=3, height=32, width=32, truth_every=2, truth_spp=4, spp=4, denoise=False)
+    rep = run_loop(scene, LoopConfig(**kw, generator=str(tmp_path / "run")),
+                   out_dir=tmp_path / "gen", progress=False)  # fmt: skip
+    ref = run_loop(scene, LoopConfig(**kw), out_dir=tmp_path / "cloud", progress=False)
+    assert rep.cloud_renders == 0 and rep.comparison_renders >= 1
+    assert [f.ssim_gi_cloud is not None for f in rep.frames] == [True, False, True]
+    assert rep.frames[0].ssim_gi_cloud == pytest.approx(ref.frames[0].ssim_gi, abs=1e-12)
+    assert rep.frames[0].ssim_gi != rep.frames[0].ssim_gi_cloud  # the generated GI is its own
+    strip = read_png(tmp_path / "gen" / "frames" / "000_gi.png")
+    assert strip.shape[:2] == (32, 3 * 32 + 2 * 2)
+    assert not (tmp_path / "gen" / "frames" / "001_gi.png").exists()
+    s = rep.summary()
+    assert s["mean_ssim_gi_cloud_vs_truth"] == pytest.approx(
+        np.mean([rep.frames[0].ssim_gi_cloud, rep.frames[2].ssim_gi_cloud])
+    )
+
+
 def test_demodulated_targets_round_trip_and_the_generator_remodulates(store, tmp_path):
     from icbtool.gan.data import ALBEDO_FLOOR, InputEncoding
 
@@ -487,3 +513,96 @@ def test_demodulated_targets_round_trip_and_the_generator_remodulates(store, tmp
     raw = gen.encoding.hdr.decode(gen.module(torch.from_numpy(gen.encode(rec))[None]).detach())
     expect = raw[0].permute(1, 2, 0).numpy() * rec.albedo
     np.testing.assert_allclose(gen.generate(rec), expect, rtol=1e-5, atol=1e-7)
+
+
+# ------------------------------------------------------------------------------ warped reference
+def plane_record(i: int, size: int = 32, path: str = "train") -> S.CRTBuffer:
+    """A view of the plane z = 2 from a camera at x = 0.1 i looking down +z; GI is a function of
+    the world x coordinate, so another view's GI warped here must equal this view's GI."""
+    h = w = size
+    m = np.eye(4)
+    m[0, 3] = 0.1 * i
+    cam = Camera.from_fov(60.0, h, w, m)
+    u = np.arange(w, dtype=np.float64) + 0.5
+    wx = 0.1 * i + (u - cam.cx) / cam.fx * 2.0
+    g = (0.2 + 0.1 * np.sin(3.0 * wx))[None, :, None] * np.array([1.0, 0.8, 0.6])
+    gi = np.broadcast_to(g, (h, w, 3)).astype(np.float32)
+    ones = np.ones((h, w, 3), np.float32)
+    return S.CRTBuffer(
+        camera=cam,
+        meta=S.RecordMeta("plane", "ph", "lh", spp=4, tags={"path": path, "index": i}),
+        gi=gi,
+        dl=0.5 * ones,
+        albedo=0.7 * ones,
+        normal_world=np.broadcast_to(np.float32([0, 0, -1]), (h, w, 3)).copy(),
+        depth=np.full((h, w, 1), 2.0, np.float32),
+        mask=np.ones((h, w, 1), np.float32),
+    )
+
+
+@pytest.fixture
+def plane_store(tmp_path):
+    with S.open(tmp_path / "plane", S.StoreConfig(fsync=False)) as st:
+        for i in range(4):
+            st.put(plane_record(i, path="train"))
+        for i in range(4, 7):
+            st.put(plane_record(i, path="test"))
+        yield st
+
+
+def test_warped_reference_matches_the_view_and_marks_the_uncovered_columns(plane_store):
+    ds = S.Dataset(plane_store, split="train", inputs="H")
+    refs = D.WarpedReferences(plane_store, ds.record_ids)
+    assert [refs.reference(i, 1) for i in range(4)] == [1, 0, 1, 2]  # earlier, else later
+    assert refs.reference(0, 9) == 3  # clamped to the path
+    img, holes = refs.warped(2, 1)  # reference 0.1 to the left: shifted by fx * 0.1 / 2 pixels
+    cam = plane_record(2).camera
+    shift = cam.fx * 0.1 / 2.0
+    # a target column c (centre c + 0.5) samples the reference at c + 0.5 + shift: outside the
+    # reference's image (0..32) exactly when that passes 32
+    cols = np.flatnonzero(holes.any(0))
+    assert holes.all(0)[cols].all()
+    assert set(cols) == {c for c in range(32) if c + 0.5 + shift > 32} and len(cols) >= 1
+    truth = plane_record(2).gi
+    inner = np.array([c + 0.5 + shift <= 31.5 for c in range(32)])  # between reference centres
+    np.testing.assert_allclose(img[:, inner], truth[:, inner], atol=1e-3)  # bilinear error only
+    assert np.abs(img[~holes] - truth[~holes]).max() < 1e-2  # the last column: edge-clamped
+    assert np.all(img[holes] == 0)
+    img_r, holes_r = refs.warped(1, 2)  # reference to the right: the holes are on the left
+    assert set(np.flatnonzero(holes_r.any(0))) == {c for c in range(32) if c + 0.5 - shift < 0}
+    enc = D.InputEncoding(("albedo", "dl", "normal_world"), HDRTransform(), warped=True)
+    assert enc.n_channels == 9 + 4 and enc.all_inputs[-2:] == ("warped_gi", "warp_holes")
+    e = refs.encoded(2, 1, enc)
+    assert e.shape == (4, 32, 32)
+    np.testing.assert_allclose(e[:3], enc.hdr.encode(img).transpose(2, 0, 1))
+    assert np.array_equal(e[3], np.where(holes, 1.0, -1.0))
+    assert D.InputEncoding.from_dict(enc.to_dict()) == enc
+
+
+def test_training_with_a_warped_reference_resumes_exactly_and_generates(plane_store, tmp_path):
+    cfg = tiny(
+        inputs="H", iterations=4, n_critic=1, warped_reference=True, reference_offsets=(1, 2)
+    )
+    res = T.train(plane_store, cfg, tmp_path / "full", progress=False)
+    assert res.step == 4 and len(res.evals) == 2
+    T.train(plane_store, T.TrainConfig.from_dict({**cfg.to_dict(), "iterations": 2}),
+            tmp_path / "cut", progress=False)  # fmt: skip
+    T.train(plane_store, cfg, tmp_path / "cut", resume=True, progress=False)
+    a = torch.load(tmp_path / "full" / "generator.pt", weights_only=False)["generator"]
+    b = torch.load(tmp_path / "cut" / "generator.pt", weights_only=False)["generator"]
+    assert all(torch.equal(v, b[k]) for k, v in a.items())
+    gen = Generator.load(tmp_path / "full")
+    assert gen.inputs == ("albedo", "dl", "normal_world", "warped_gi", "warp_holes")
+    assert gen.module.config.in_channels == 13
+    rec = plane_record(5)
+    with pytest.raises(ValueError, match="lacks the input buffer 'warped_gi'"):
+        gen.generate(rec)
+    maps = {n: getattr(rec, n) for n in ("albedo", "dl", "normal_world")}
+    maps.update(warped_gi=rec.gi, warp_holes=np.zeros((32, 32), np.float32))
+    assert gen.generate(maps).shape == (32, 32, 3)
+    from icbtool.system import GeneratorSource
+
+    with pytest.raises(ValueError, match="warped reference"):
+        GeneratorSource(gen)
+    with pytest.raises(ValueError, match="reference_offsets"):
+        tiny(reference_offsets=(0,))

@@ -29,11 +29,13 @@ LAYERS: dict[str, int] = {
     "store": 3,
     "bake": 4,
     "gan": 4,
+    "lpm": 4,
     "system": 5,
     "pipeline": 6,
-    "cli": 7,
-    "__main__": 8,
-    "__init__": 8,
+    "net": 7,
+    "cli": 8,
+    "__main__": 9,
+    "__init__": 9,
     "_optional": 0,
 }
 

@@ -2,7 +2,10 @@
 
 1. the client's buffers (DL, albedo, normals, depth, position, mask) at the default camera;
 2. the ICB loop along the scene's test path (:mod:`icbtool.pipeline`): raster, cache lookup or
-   cloud render at the prefetch camera, warp, combine, inpaint, DL + GI, scored against the truth.
+   cloud render at the prefetch camera, warp, combine, inpaint, DL + GI, scored against the truth;
+3. with --network, the same loop across processes: an ``icbtool serve`` subprocess on a free
+   loopback port and a networked client (:func:`icbtool.net.run_client`) writing into
+   OUT/network what step 2 writes, plus the latency split and the bytes received by kind.
 """
 
 from __future__ import annotations
@@ -57,6 +60,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_denoise_quality_argument(p)
     p.add_argument("--fresh", action="store_true", help="empty the cloud cache first")
     p.add_argument(
+        "--network",
+        action="store_true",
+        help="also run the system across processes: a server subprocess and a client on "
+        "loopback (outputs in OUT/network)",
+    )
+    p.add_argument(
+        "--net-latency-ms", type=float_in(0.0), default=50.0, help="emulated RTT of --network"
+    )
+    p.add_argument(
+        "--net-bandwidth-mbit",
+        type=float_in(0.0, lo_open=True),
+        default=50.0,
+        help="emulated bandwidth of --network (Mbit/s)",
+    )
+    p.add_argument(
         "--generator",
         default=None,
         metavar="RUN",
@@ -109,8 +127,68 @@ def run(args: argparse.Namespace) -> int:
     report = pipeline.run_loop(scene, cfg, out_dir=out)
     s = report.summary()
     print(json.dumps(s, indent=2))
+    if args.network:
+        run_network(args, scene, cfg, out / "network")
     print(
         f"done in {time.perf_counter() - t0:.1f} s; outputs in {out}/ "
         "(frames/*.png, loop.png, summary.json, frames.csv, buffers/*.png)"
     )
     return 0
+
+
+def run_network(args: argparse.Namespace, scene: object, cfg: object, out: Path) -> None:
+    """Step 3: a server subprocess on a free loopback port, a client here, the server stopped
+    with SIGTERM (its store kept in OUT/network/cache)."""
+    import os
+    import secrets
+    import signal
+    import subprocess
+    import sys
+
+    from icbtool import net
+
+    require("websockets", "the networked demo (--network)")
+    token = secrets.token_urlsafe(16)
+    cmd = [sys.executable, "-m", "icbtool", "serve", args.scene, "--store", str(out / "cache"),
+           "--port", "0", "--spp", str(args.spp), "--latency", str(args.latency),
+           "--denoise-quality", args.denoise_quality, "--log-level", "WARNING"]  # fmt: skip
+    if args.no_denoise:
+        cmd.append("--no-denoise")
+    if args.no_prefetch:
+        cmd.append("--no-prefetch")
+    if args.generator is not None:
+        cmd += ["--generator", args.generator]
+    if args.fresh and (out / "cache").exists():
+        import shutil
+
+        shutil.rmtree(out / "cache")
+    env = {**os.environ, "ICBTOOL_TOKEN": token}
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        if "listening on " not in line:
+            raise RuntimeError(f"the server did not start: {line!r} (exit {proc.poll()})")
+        url = line.split("listening on ", 1)[1].strip()
+        print(f"server subprocess {proc.pid} on {url}")
+        rep = net.run_client(
+            url,
+            token,
+            cfg,
+            net.NetClientConfig(
+                shaper=net.ShaperConfig(
+                    latency_ms=args.net_latency_ms, bandwidth_mbit=args.net_bandwidth_mbit
+                ),
+            ),
+            out_dir=out,
+            truth_scene=scene,
+        )
+        print(json.dumps(rep.summary(), indent=2))
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(10)
+    print(f"networked run -> {out}/ (frames/*.png, latency.csv, latency.png, net_summary.json)")

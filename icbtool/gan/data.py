@@ -9,7 +9,15 @@ Input encoding (one rule per buffer, fitted on the train split and saved with th
 ``depth``          2 z / depth_max - 1 (depth_max: largest train depth; 0 = background -> -1)
 ``position``       (p - center) / half_extent (train surface bounds)
 ``mask``           2 m - 1
+``warped_gi``      the HDR transform (0 on holes)
+``warp_holes``     2 h - 1
 =================  ==========================================================
+
+``warped_gi`` and ``warp_holes`` (our addition to the paper, ``InputEncoding.warped``): the GI
+map of another view of the same path warped to this view with :func:`icbtool.warp.backward`, and
+its hole mask: what a client holds when it warps a cached or streamed reference. The network then
+has to fill the holes and correct the warp rather than make all of the GI up. Training draws the
+reference at a random offset along the path (:class:`WarpedReferences`), testing uses a fixed one.
 
 The GI target goes through the same HDR transform as DL. Paired augmentation draws one crop and one
 horizontal flip per sample and applies them to the input and the target alike; a flip negates the
@@ -18,7 +26,7 @@ x component of ``normal_view`` (a mirrored view), world-space maps are left as t
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -26,6 +34,10 @@ import numpy as np
 from icbtool.buffers import CHANNELS
 from icbtool.gan.hdr import HDRTransform
 from icbtool.store.dataset import INPUT_CONFIGS, Dataset
+
+#: Inputs of a generator conditioned on a warped reference (``InputEncoding.warped``), after the
+#: store buffers, with their channel counts.
+WARPED_INPUTS: dict[str, int] = {"warped_gi": 3, "warp_holes": 1}
 
 
 def resolve_inputs(inputs: str | tuple[str, ...] | list[str]) -> tuple[str, ...]:
@@ -72,6 +84,8 @@ class InputEncoding:
             :data:`ALBEDO_FLOOR`) and its output is multiplied by the albedo: texture detail then
             comes from the albedo input exactly instead of through the U-Net (our addition to the
             paper; needs "albedo" among the inputs).
+        warped: the input also holds a reference GI map warped to this view and its hole mask
+            (:data:`WARPED_INPUTS`, after the buffers of ``inputs``; module doc).
     """
 
     inputs: tuple[str, ...]
@@ -80,6 +94,7 @@ class InputEncoding:
     position_center: tuple[float, float, float] = (0.0, 0.0, 0.0)
     position_half_extent: float = 1.0
     demodulate: bool = False
+    warped: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "inputs", resolve_inputs(tuple(self.inputs)))
@@ -93,23 +108,28 @@ class InputEncoding:
                 raise ValueError(f"InputEncoding.{n} must be finite and > 0, got {v}")
 
     @property
+    def all_inputs(self) -> tuple[str, ...]:
+        """Every map the network reads, in channel order: ``inputs`` (+ :data:`WARPED_INPUTS`)."""
+        return self.inputs + (tuple(WARPED_INPUTS) if self.warped else ())
+
+    @property
     def n_channels(self) -> int:
-        return sum(CHANNELS[n] for n in self.inputs)
+        return sum(_channels(n) for n in self.all_inputs)
 
     def channel_slices(self) -> dict[str, slice]:
-        """Buffer name -> its channels in the stacked input."""
+        """Map name -> its channels in the stacked input (every name of :attr:`all_inputs`)."""
         out, c = {}, 0
-        for n in self.inputs:
-            out[n] = slice(c, c + CHANNELS[n])
-            c += CHANNELS[n]
+        for n in self.all_inputs:
+            out[n] = slice(c, c + _channels(n))
+            c += _channels(n)
         return out
 
     def encode_map(self, name: str, a: np.ndarray) -> np.ndarray:
         """One (H, W, C) map of buffer ``name`` -> the network's range (float32)."""
         a = np.asarray(a, np.float32)
-        if name == "dl":
+        if name in ("dl", "warped_gi"):
             return self.hdr.encode(a)
-        if name in ("albedo", "mask"):
+        if name in ("albedo", "mask", "warp_holes"):
             return 2.0 * a - 1.0
         if name in ("normal_world", "normal_view"):
             return a
@@ -139,15 +159,15 @@ class InputEncoding:
             ValueError: a missing buffer, mismatched sizes, or non-finite values (naming them).
         """
         parts, hw = [], None
-        for n in self.inputs:
+        for n in self.all_inputs:
             if n not in maps or maps[n] is None:
-                need = list(self.inputs)
+                need = list(self.all_inputs)
                 raise ValueError(f"{where} lacks the input buffer {n!r} (needs {need})")
             a = np.asarray(maps[n], np.float32)
             if a.ndim == 2:
                 a = a[..., None]
-            if a.ndim != 3 or a.shape[2] != CHANNELS[n]:
-                raise ValueError(f"{where}.{n} must be (H, W, {CHANNELS[n]}), got {a.shape}")
+            if a.ndim != 3 or a.shape[2] != _channels(n):
+                raise ValueError(f"{where}.{n} must be (H, W, {_channels(n)}), got {a.shape}")
             if hw is None:
                 hw = a.shape[:2]
             elif a.shape[:2] != hw:
@@ -164,6 +184,7 @@ class InputEncoding:
         hdr: HDRTransform,
         samples: list[Any],
         demodulate: bool = False,
+        warped: bool = False,
     ) -> InputEncoding:
         """Depth and position ranges from the surface pixels of train samples (``Sample`` list)."""
         inputs = resolve_inputs(inputs)
@@ -181,7 +202,7 @@ class InputEncoding:
                 lo, hi = p.min(0), p.max(0)
                 center = tuple(float(v) for v in (lo + hi) / 2)
                 half = float(max((hi - lo).max() / 2, 1e-6))
-        return cls(inputs, hdr, depth_max, center, half, demodulate)
+        return cls(inputs, hdr, depth_max, center, half, demodulate, warped)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -198,7 +219,70 @@ class InputEncoding:
             tuple(d["position_center"]),  # type: ignore[arg-type]
             float(d["position_half_extent"]),
             bool(d.get("demodulate", False)),  # runs written before the option: False
+            bool(d.get("warped", False)),
         )
+
+
+def _channels(name: str) -> int:
+    return WARPED_INPUTS[name] if name in WARPED_INPUTS else CHANNELS[name]
+
+
+class WarpedReferences:
+    """The GI maps of one split's views warped to other views of the same split.
+
+    View ``i``'s reference at offset ``k`` is view ``i - k`` (the view ``k`` records earlier along
+    the path), or ``i + k`` where the path has no view ``i - k``. Warps are computed on demand
+    with :func:`icbtool.warp.backward` (target depth and mask of view ``i``) and kept.
+
+    Args:
+        store: the store the split's records come from.
+        record_ids: the split's records in path order (``Dataset.record_ids``).
+    """
+
+    def __init__(self, store: Any, record_ids: list[int]) -> None:
+        self._views = []
+        for rid in record_ids:
+            rec = store.get(rid)
+            for n in ("gi", "depth", "camera"):
+                if getattr(rec, n, None) is None:
+                    raise ValueError(f"store record {rid} has no {n!r}: cannot warp its GI")
+            m = rec.mask if rec.mask is not None else np.ones(rec.depth.shape, np.float32)
+            self._views.append((rec.camera, np.asarray(rec.gi, np.float32), rec.depth, m))
+        self._cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+    def __len__(self) -> int:
+        return len(self._views)
+
+    def reference(self, i: int, offset: int) -> int:
+        """Index of view ``i``'s reference ``offset`` (>= 1) views away (earlier if it exists)."""
+        if offset < 1:
+            raise ValueError(f"reference offset must be >= 1, got {offset}")
+        if len(self) < 2:
+            raise ValueError("a warped reference needs at least 2 views in the split")
+        offset = min(offset, len(self) - 1)
+        return i - offset if i - offset >= 0 else min(i + offset, len(self) - 1)
+
+    def warped(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """View ``j``'s GI warped to view ``i``: ((H, W, 3) float32, 0 on holes; (H, W) bool holes
+        that have geometry)."""
+        key = (i, j)
+        if key not in self._cache:
+            from icbtool.warp import backward
+
+            cam_i, _, depth_i, mask_i = self._views[i]
+            cam_j, gi_j, depth_j, mask_j = self._views[j]
+            r = backward(gi_j, depth_j, cam_j, depth_i, cam_i, mask_j, mask_i)
+            holes = r.holes & ~r.no_geometry
+            img = np.where(r.holes[..., None], 0.0, r.image).astype(np.float32)
+            self._cache[key] = (img, holes)
+        return self._cache[key]
+
+    def encoded(self, i: int, j: int, encoding: InputEncoding) -> np.ndarray:
+        """(4, H, W) encoded ``warped_gi`` + ``warp_holes`` of view ``j`` at view ``i``."""
+        img, holes = self.warped(i, j)
+        a = encoding.encode_map("warped_gi", img)
+        b = encoding.encode_map("warp_holes", holes[..., None].astype(np.float32))
+        return np.ascontiguousarray(np.concatenate([a, b], axis=2).transpose(2, 0, 1))
 
 
 class PairData:
@@ -225,12 +309,13 @@ class PairData:
         if len(shapes) > 1:
             raise ValueError(f"the {dataset.split!r} split mixes image sizes {sorted(shapes)}")
         xs, ys = [], []
+        base = replace(encoding, warped=False)  # x holds the store's buffers only
         for s in samples:
             maps = {}
-            for n, sl in encoding.channel_slices().items():
+            for n, sl in base.channel_slices().items():
                 maps[n] = s.inputs[sl].transpose(1, 2, 0)
             where = f"store record {s.record_id}"
-            xs.append(encoding.encode(maps, where))
+            xs.append(base.encode(maps, where))
             if not np.isfinite(s.target).all():
                 raise ValueError(f"{where}.{dataset.target} holds NaN or Inf values")
             alb = maps.get("albedo")
@@ -248,6 +333,21 @@ class PairData:
         self.channels = dataset.channels
         self.encoding = encoding
         self._samples = samples
+        #: The split's warped references when ``encoding.warped`` (x then lacks their 4 channels:
+        #: :meth:`with_reference` and :class:`BatchSampler` add them).
+        self.references = (
+            WarpedReferences(dataset.store, self.record_ids) if encoding.warped else None
+        )
+
+    def with_reference(self, offset: int, n: int | None = None) -> np.ndarray:
+        """(N, C + 4, H, W) inputs of the first ``n`` views with their reference ``offset`` views
+        away warped in (:meth:`WarpedReferences.reference`); ``x`` itself without ``warped``."""
+        k = len(self) if n is None else min(n, len(self))
+        if self.references is None:
+            return self.x[:k]
+        refs = self.references
+        extra = [refs.encoded(i, refs.reference(i, offset), self.encoding) for i in range(k)]
+        return np.concatenate([self.x[:k], np.stack(extra)], axis=1)
 
     @property
     def samples(self) -> list[Any]:
@@ -276,7 +376,15 @@ class BatchSampler:
         seed: seed of the draws.
     """
 
-    def __init__(self, data: PairData, batch_size: int, crop: int, flip: bool, seed: int) -> None:
+    def __init__(
+        self,
+        data: PairData,
+        batch_size: int,
+        crop: int,
+        flip: bool,
+        seed: int,
+        reference_offsets: tuple[int, ...] = (1,),
+    ) -> None:
         if crop > data.height or crop > data.width:
             raise ValueError(
                 f"crop {crop} is larger than the training images ({data.height} x {data.width})"
@@ -284,6 +392,9 @@ class BatchSampler:
         self.data, self.batch_size, self.crop, self.flip = data, batch_size, crop, flip
         self.rng = np.random.default_rng(seed)
         self.drawn = 0
+        if data.references is not None and (not reference_offsets or min(reference_offsets) < 1):
+            raise ValueError(f"reference offsets must be integers >= 1, got {reference_offsets}")
+        self.reference_offsets = tuple(int(k) for k in reference_offsets)
         sl = data.encoding.channel_slices()
         self._view_x = sl["normal_view"].start if "normal_view" in sl else None
 
@@ -294,9 +405,18 @@ class BatchSampler:
         top = self.rng.integers(0, d.height - c + 1, self.batch_size)
         left = self.rng.integers(0, d.width - c + 1, self.batch_size)
         flips = self.rng.random(self.batch_size) < 0.5 if self.flip else [False] * self.batch_size
+        refs = d.references
+        if refs is not None:  # drawn only then: runs without references keep their streams
+            offs = self.rng.choice(self.reference_offsets, self.batch_size)
+            later = self.rng.random(self.batch_size) < 0.5
         xs, ys = [], []
-        for i, t, l, f in zip(idx, top, left, flips):
+        for b, (i, t, l, f) in enumerate(zip(idx, top, left, flips)):
             x = d.x[i, :, t : t + c, l : l + c]
+            if refs is not None:
+                k = int(min(offs[b], len(refs) - 1))
+                j = i + k if (later[b] and i + k < len(refs)) or i - k < 0 else i - k
+                w = refs.encoded(int(i), int(j), d.encoding)[:, t : t + c, l : l + c]
+                x = np.concatenate([x, w], axis=0)
             y = d.y[i, :, t : t + c, l : l + c]
             if f:
                 x, y = x[:, :, ::-1].copy(), y[:, :, ::-1].copy()
@@ -315,4 +435,11 @@ class BatchSampler:
         self.drawn = int(state["drawn"])
 
 
-__all__ = ["BatchSampler", "InputEncoding", "PairData", "resolve_inputs"]
+__all__ = [
+    "WARPED_INPUTS",
+    "BatchSampler",
+    "InputEncoding",
+    "PairData",
+    "WarpedReferences",
+    "resolve_inputs",
+]

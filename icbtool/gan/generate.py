@@ -49,8 +49,9 @@ class Generator:
 
     @property
     def inputs(self) -> tuple[str, ...]:
-        """Buffer names the generator needs, in channel order."""
-        return self.encoding.inputs
+        """Maps the generator needs, in channel order (buffer names, then ``warped_gi`` and
+        ``warp_holes`` for a generator conditioned on a warped reference)."""
+        return self.encoding.all_inputs
 
     @classmethod
     def load(cls, run_dir: str | os.PathLike, device: str = "cpu") -> Generator:
@@ -158,7 +159,7 @@ class Generator:
                 "input": "maps (B, C, H, W) float32, H and W multiples of 32",
                 "output": "gi_encoded (B, 3, H, W) in [-1, 1]; linear GI = hdr.decode(output), "
                 "times the albedo input map when encoding.demodulate is true",
-                "channels": list(self.encoding.inputs),
+                "channels": list(self.encoding.all_inputs),
                 "encoding": self.encoding.to_dict(),
                 "hdr_decode": "scale * expm1((clip(y, -1, 1) + 1) / 2 * log1p(max_value / scale))",
             },

@@ -84,6 +84,12 @@ class TrainConfig:
         hdr_scale, hdr_max: the :class:`~icbtool.gan.hdr.HDRTransform` of DL and GI.
         demodulate: learn the indirect irradiance GI / albedo and multiply the output by the
             albedo (:class:`~icbtool.gan.data.InputEncoding`; our addition, off in the presets).
+        warped_reference: the generator also reads the GI of another view of the path warped to
+            this view and its hole mask (:class:`~icbtool.gan.data.WarpedReferences`; our
+            addition, off in the presets): what a client holds when it warps a cached reference.
+        reference_offsets: training draws the reference this many views away (uniformly from
+            these, earlier or later along the train path).
+        test_reference_offset: the test frames' reference is this many views earlier.
         train_path, test_path: the camera-path tags of the two splits in the store.
         flip: random horizontal flips (paired augmentation).
         eval_every: evaluate (and write a sample) every this many iterations (and at the end).
@@ -114,6 +120,9 @@ class TrainConfig:
     hdr_scale: float = 0.25
     hdr_max: float = 64.0
     demodulate: bool = False
+    warped_reference: bool = False
+    reference_offsets: tuple[int, ...] = (1, 2, 3, 4, 6)
+    test_reference_offset: int = 1
     train_path: str = "train"
     test_path: str = "test"
     flip: bool = True
@@ -144,6 +153,18 @@ class TrainConfig:
         if len(self.betas) != 2 or not all(0 <= b < 1 for b in self.betas):
             raise ValueError(f"TrainConfig.betas must be two numbers in [0, 1), got {self.betas}")
         object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
+        offs = tuple(self.reference_offsets)
+        if not offs or any(isinstance(k, bool) or int(k) != k or k < 1 for k in offs):
+            raise ValueError(
+                "TrainConfig.reference_offsets must be integers >= 1, got "
+                f"{self.reference_offsets!r}"
+            )
+        object.__setattr__(self, "reference_offsets", tuple(int(k) for k in offs))
+        k = self.test_reference_offset
+        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+            raise ValueError(
+                f"TrainConfig.test_reference_offset must be an integer >= 1, got {k!r}"
+            )
         if self.device not in ("cpu", "cuda"):
             raise ValueError(f"TrainConfig.device must be 'cpu' or 'cuda', got {self.device!r}")
         GeneratorConfig(1, base=self.base, norm=self.norm)
@@ -181,6 +202,7 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["betas"] = list(self.betas)
+        d["reference_offsets"] = list(self.reference_offsets)
         return d
 
     @classmethod
@@ -190,8 +212,9 @@ class TrainConfig:
         if bad:
             raise ValueError(f"unknown TrainConfig field(s) {bad}")
         d = dict(d)
-        if "betas" in d:
-            d["betas"] = tuple(d["betas"])
+        for k in ("betas", "reference_offsets"):
+            if k in d:
+                d[k] = tuple(d[k])
         return cls(**d)
 
 
@@ -226,8 +249,11 @@ def _atomic_save(obj: Any, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def _eval_frames(data: PairData, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """(N, C, h, w) inputs, (N, 3, h, w) linear GI and raw albedo (None without one),
+def _eval_frames(
+    data: PairData, n: int, reference_offset: int = 1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(N, C, h, w) inputs (with the warped reference ``reference_offset`` views earlier when the
+    encoding is ``warped``), (N, 3, h, w) linear GI and raw albedo (None without one),
     centre-cropped to multiples of 32."""
     h, w = data.height // MULTIPLE * MULTIPLE, data.width // MULTIPLE * MULTIPLE
     if h == 0 or w == 0:
@@ -237,7 +263,7 @@ def _eval_frames(data: PairData, n: int) -> tuple[np.ndarray, np.ndarray, np.nda
     t, l = (data.height - h) // 2, (data.width - w) // 2
     crop = (slice(None, n), slice(None), slice(t, t + h), slice(l, l + w))
     albedo = None if data.albedo is None else data.albedo[crop]
-    return data.x[crop], data.gi[crop], albedo
+    return data.with_reference(reference_offset, n)[crop], data.gi[crop], albedo
 
 
 def evaluate(
@@ -358,9 +384,13 @@ def train(
     inputs = config.input_buffers
     ds_train = Dataset(store, scene, "train", inputs, paths=paths)
     ds_test = Dataset(store, scene, "test", inputs, paths=paths)
-    enc = InputEncoding.fit(inputs, hdr, list(ds_train), demodulate=config.demodulate)
+    enc = InputEncoding.fit(
+        inputs, hdr, list(ds_train), demodulate=config.demodulate, warped=config.warped_reference
+    )
     train_data, test_data = PairData(ds_train, enc), PairData(ds_test, enc)
-    x_eval, gi_eval, albedo_eval = _eval_frames(test_data, config.eval_frames)
+    x_eval, gi_eval, albedo_eval = _eval_frames(
+        test_data, config.eval_frames, config.test_reference_offset
+    )
 
     perceptual, p_status = (None, "off: TrainConfig.weight_perceptual is 0")
     if config.weight_perceptual > 0:
@@ -382,7 +412,14 @@ def train(
     critic.to(device).train()
     opt_g = torch.optim.Adam(gen.parameters(), lr=config.lr, betas=config.betas)
     opt_d = torch.optim.Adam(critic.parameters(), lr=config.lr, betas=config.betas)
-    sampler = BatchSampler(train_data, config.batch_size, config.crop, config.flip, config.seed)
+    sampler = BatchSampler(
+        train_data,
+        config.batch_size,
+        config.crop,
+        config.flip,
+        config.seed,
+        config.reference_offsets,
+    )
     step, evals = 0, []
     if resume and ckpt_path.exists():
         ck = torch.load(ckpt_path, map_location=device, weights_only=False)

@@ -61,6 +61,7 @@ class ClientFrame:
         gi: (H, W, 3) float32 the GI the client shows.
         final: (H, W, 3) float32 ``dl + gi_weight * gi``.
         raster_ms, warp_ms: time of the client's raster and of warp + combine + inpaint.
+        request_ms: time of the source's answer (request -> reply, as the client waited).
     """
 
     camera: Camera
@@ -73,6 +74,7 @@ class ClientFrame:
     final: np.ndarray
     raster_ms: float
     warp_ms: float
+    request_ms: float = 0.0
 
 
 class Client:
@@ -106,6 +108,17 @@ class Client:
         self.rasterizer = rasterizer
         self._previous: Any = None
 
+    def use_scene(self, scene: Any) -> None:
+        """Rasterize ``scene`` from now on (a finer mesh level arrived): a new rasterizer of it
+        (owned and closed by the client)."""
+        from icbtool import raster
+
+        if self._own_rasterizer:
+            self.rasterizer.close()
+        self.scene = scene
+        self.rasterizer = raster.Rasterizer(scene)
+        self._own_rasterizer = True
+
     def rasterize(self, camera: Camera) -> Any:
         """The WRT-buffer at ``camera``, plus any buffer the GI source needs."""
         extra = tuple(b for b in self.source.needs if b not in WRT_BUFFERS and b != "mask")
@@ -123,7 +136,9 @@ class Client:
         raster_ms = 1e3 * (time.perf_counter() - t0)
         if request.depth_range is None:
             request = dataclasses.replace(request, depth_range=visible_depth_range(wrt))
+        t0 = time.perf_counter()
         reply = self.source.request(request, wrt)
+        request_ms = 1e3 * (time.perf_counter() - t0)
         ref = reply.reference
         cfg = self.config
         t0 = time.perf_counter()
@@ -154,6 +169,7 @@ class Client:
             final=wrt.dl + cfg.gi_weight * gi,
             raster_ms=raster_ms,
             warp_ms=warp_ms,
+            request_ms=request_ms,
         )
 
     def close(self) -> None:

@@ -66,6 +66,14 @@ class GeneratorSource(GISource):
     def __init__(self, generator: Any, fallback: GISource | None = None, multiple: int = 32):
         if fallback is not None and not isinstance(fallback, GISource):
             raise TypeError(f"fallback must be a GISource, got {type(fallback).__name__}")
+        enc = getattr(generator, "encoding", None)
+        if getattr(enc, "warped", False):
+            raise ValueError(
+                "this generator reads a warped reference GI (trained with "
+                "TrainConfig.warped_reference): the loop's GeneratorSource makes GI from the "
+                "client's own buffers only; use Generator.generate with 'warped_gi' and "
+                "'warp_holes' maps (see benchmarks/gan_warped.py)"
+            )
         self.generator = generator
         self.fallback = fallback
         self.multiple = int(multiple)
