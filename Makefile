@@ -4,15 +4,21 @@ PY := .venv/bin/python
 PIP := .venv/bin/pip
 OUT ?= out
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+# The desktop app (`icbtool gui`, tests marked gui): Qt's xcb platform plugin and VTK's OpenGL
+# under X (Mesa's llvmpipe through GLX), and Xvfb + xauth for headless runs (pytest-xvfb starts it).
+DEB_GUI := xvfb xauth libgl1 libegl1 libgl1-mesa-dri libglib2.0-0 libfontconfig1 libdbus-1-3 \
+  libxkbcommon0 libxkbcommon-x11-0 libx11-xcb1 libxcb-cursor0 libxcb-icccm4 libxcb-image0 \
+  libxcb-keysyms1 libxcb-randr0 libxcb-render-util0 libxcb-shape0 libxcb-xinerama0 libxcb-xkb1 \
+  libxcb-xfixes0 libxcb-sync1 libxcb-shm0
 # OSMesa for headless OpenGL; libusb is needed to import open3d.
-DEB_PKGS := libosmesa6 libusb-1.0-0
+DEB_PKGS := libosmesa6 libusb-1.0-0 $(DEB_GUI)
 # Mitsuba's llvm variant (benchmark peer only).
 DEB_BENCH := libllvm19
 
-# Lint only the folders that exist (gui/ comes later).
+# Lint only the folders that exist.
 LINT_DIRS := $(wildcard icbtool tests benchmarks gui)
 
-.PHONY: demo test test-all lint format bench sysdeps install clean wheel-smoke pytest
+.PHONY: gui demo test test-all lint format bench sysdeps install clean wheel-smoke pytest
 
 sysdeps:
 	@dpkg -s $(DEB_PKGS) >/dev/null 2>&1 || { \
@@ -30,6 +36,14 @@ install: sysdeps .venv/.installed
 # The in-process loop, then the same across processes (server subprocess + client on loopback).
 demo: install
 	$(PY) -m icbtool demo --out $(OUT)/demo --network
+
+# the desktop app on the demo's store (run `make demo` first; without it a small store is baked)
+gui: install
+	$(PY) -m icbtool gui
+
+# the README's screenshot (offscreen: Xvfb is started when there is no display)
+docs/images/gui.png: install
+	$(PY) -m icbtool gui --screenshot $@
 
 # CI (.ci/run) runs exactly this: lint, the wheel-install smoke test, then the quick tests.
 test: lint wheel-smoke pytest

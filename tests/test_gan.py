@@ -285,6 +285,19 @@ def test_resume_equals_uninterrupted_bitwise(store, tmp_path):
         assert any((tmp_path / "full" / "tb").glob("events.out.tfevents.*"))
 
 
+def test_on_step_sees_every_iteration_with_its_losses(store, tmp_path):
+    seen = []
+    res = T.train(store, tiny(iterations=4), tmp_path / "run", progress=False,
+                  on_step=lambda step, losses: seen.append((step, losses)))  # fmt: skip
+    assert [s for s, _ in seen] == [1, 2, 3, 4] and res.step == 4
+    for _, losses in seen:
+        assert {"g", "l1", "d", "gp", "w", "g_adv"} <= set(losses)
+        assert all(np.isfinite(v) for v in losses.values())
+    assert seen[-1][1]["g"] == pytest.approx(
+        100.0 * seen[-1][1]["l1"] + seen[-1][1]["g_adv"], rel=1e-5
+    )  # g = weight_l1 * L_c + weight_adv * L_a (no perceptual term)
+
+
 def test_nan_input_is_a_clear_error(tmp_path):
     with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as st:
         st.put(make_record(0, path="train", nan=True))

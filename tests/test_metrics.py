@@ -43,3 +43,29 @@ def test_shape_mismatch_is_a_clear_error():
 
 def test_rmse_linear():
     assert metrics.rmse_linear(np.zeros(4), np.full(4, 2.0)) == pytest.approx(2.0)
+
+
+def test_ssim_map_valid_mean_is_ssim(rng):
+    a = rng.uniform(0, 1, size=(40, 36, 3)).astype(np.float32)
+    b = np.clip(a + rng.normal(0, 0.1, size=a.shape).astype(np.float32), 0, 1)
+    m = metrics.ssim_map(a, b, padding="valid")
+    w = metrics.SSIM_WINDOW - 1
+    assert m.shape == (40 - w, 36 - w)
+    assert float(m.mean(dtype=np.float64)) == pytest.approx(metrics.ssim(a, b), abs=1e-6)
+    same = metrics.ssim_map(a, b)  # 'same': its interior equals the 'valid' map
+    np.testing.assert_allclose(same[w // 2 : -w // 2, w // 2 : -w // 2], m, atol=1e-6)
+    with pytest.raises(ValueError, match="padding"):
+        metrics.ssim_map(a, b, padding="full")
+
+
+def test_flip_map_mean_is_flip_evaluators_mean(rng):
+    fe = pytest.importorskip("flip_evaluator", reason="extra metrics (flip-evaluator)")
+    a = rng.uniform(0, 1, size=(24, 20, 3)).astype(np.float32)
+    b = np.clip(a + rng.normal(0, 0.1, size=a.shape).astype(np.float32), 0, 1)
+    m = metrics.flip_map(a, b)
+    assert m.shape == (24, 20) and m.min() >= 0
+    ref = (metrics.to_display(a) / 255).astype(np.float32)
+    test = (metrics.to_display(b) / 255).astype(np.float32)
+    _, mean, _ = fe.evaluate(ref, test, "LDR")
+    assert metrics.flip(a, b) == pytest.approx(mean, abs=1e-6)
+    assert metrics.flip(a, a) == 0.0

@@ -35,10 +35,10 @@ def _cfg() -> configparser.ConfigParser:
     return cfg
 
 
-def _third_party_imports() -> dict[str, set[str]]:
-    """Top-level module -> files importing it (module level or inside functions)."""
+def _third_party_imports(root: Path = PKG) -> dict[str, set[str]]:
+    """Top-level module -> files under ``root`` importing it (module level or inside functions)."""
     found: dict[str, set[str]] = {}
-    for path in PKG.rglob("*.py"):
+    for path in root.rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
             if isinstance(node, ast.Import):
                 names = [a.name for a in node.names]
@@ -48,7 +48,8 @@ def _third_party_imports() -> dict[str, set[str]]:
                 continue
             for n in names:
                 top = n.split(".")[0]
-                if top != "icbtool" and top not in sys.stdlib_module_names and top != "__future__":
+                first_party = top in ("icbtool", "gui", "__future__")
+                if not first_party and top not in sys.stdlib_module_names:
                     found.setdefault(top, set()).add(str(path.relative_to(REPO)))
     return found
 
@@ -82,6 +83,22 @@ def test_every_runtime_import_is_declared():
         if not owners & declared:
             undeclared[module] = (sorted(owners), sorted(files))
     assert not undeclared, f"imported but not in install_requires: {undeclared}"
+
+
+def test_the_desktop_app_imports_only_what_install_requires_and_its_extra_declare():
+    """gui/ (installed with icbtool, imported by `icbtool gui`) may use the ``gui`` extra."""
+    cfg = _cfg()
+    declared = _requirements(cfg["options"]["install_requires"])
+    declared |= _requirements(cfg["options.extras_require"]["gui"])
+    dists = _module_owners()
+    imports = _third_party_imports(REPO / "gui")
+    assert {"PySide6", "pyvista", "pyvistaqt", "matplotlib"} <= set(imports)
+    undeclared = {
+        m: (sorted(dists.get(m, set())), sorted(f))
+        for m, f in imports.items()
+        if not dists.get(m, set()) & declared
+    }
+    assert not undeclared, f"gui/ imports these, declared nowhere: {undeclared}"
 
 
 def test_the_known_imports_are_found():

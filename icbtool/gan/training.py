@@ -24,6 +24,7 @@ import math
 import os
 import random
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -331,6 +332,7 @@ def train(
     scene: Any = None,
     resume: bool = False,
     progress: bool = True,
+    on_step: Callable[[int, dict[str, float]], None] | None = None,
 ) -> TrainResult:
     """Train a generator on a store's train path, evaluating on its test path.
 
@@ -343,6 +345,10 @@ def train(
         resume: continue from ``out_dir/checkpoints/last.pt`` (the config must match except
             ``iterations``); without a checkpoint the run starts from scratch.
         progress: show a tqdm progress bar with the losses.
+        on_step: called after every generator update with the iteration (1-based) and that
+            iteration's losses (``g``, ``l1``, and with a critic ``d``, ``gp``, ``w``, ``g_adv``;
+            ``g_p`` with the perceptual term), e.g. to log live loss curves
+            (``gui.train_job`` writes them to ``losses.csv``).
 
     Returns:
         The :class:`TrainResult`.
@@ -555,6 +561,8 @@ def train(
             opt_g.step()
             step += 1
             bar.update(1)
+            if on_step is not None:
+                on_step(step, dict(losses))
             bar.set_postfix({k: f"{v:.3g}" for k, v in losses.items()})
             if writer is not None:
                 for k, v in losses.items():

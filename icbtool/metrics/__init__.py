@@ -61,16 +61,63 @@ def ssim(a: np.ndarray, b: np.ndarray, exposure: float = 1.0) -> float:
     return float(m.mean())
 
 
-def ssim_map(a: np.ndarray, b: np.ndarray, exposure: float = 1.0) -> np.ndarray:
-    """(H, W) per-pixel SSIM (mean over channels), 'same' padding so it aligns with the image."""
+#: Side of SSIM's Gaussian window; a 'valid' map is ``SSIM_WINDOW - 1`` pixels smaller per axis.
+SSIM_WINDOW = 11
+
+
+def ssim_map(
+    a: np.ndarray, b: np.ndarray, exposure: float = 1.0, padding: str = "same"
+) -> np.ndarray:
+    """Per-pixel SSIM (mean over channels) on the display scale.
+
+    Args:
+        a, b: (H, W, C) images of the same shape.
+        padding: ``"same"``: (H, W), aligned with the image (border windows read reflected
+            pixels); ``"valid"``: (H - 10, W - 10), only whole windows, whose mean is exactly
+            :func:`ssim` (up to float32 rounding).
+
+    Returns:
+        (H, W) or (H - 10, W - 10) float32.
+    """
     import torch
     from kornia.metrics import ssim as kssim
 
-    x = torch.from_numpy(_as_display(a, exposure)).float().permute(2, 0, 1)[None] / 255.0
-    y = torch.from_numpy(_as_display(b, exposure)).float().permute(2, 0, 1)[None] / 255.0
+    if np.shape(a) != np.shape(b):
+        raise ValueError(f"ssim_map: shapes differ: {np.shape(a)} vs {np.shape(b)}")
+    if padding not in ("same", "valid"):
+        raise ValueError(f"ssim_map: padding must be 'same' or 'valid', got {padding!r}")
+    x = torch.from_numpy(_as_display(a, exposure)).float()
+    y = torch.from_numpy(_as_display(b, exposure)).float()
+    if x.ndim == 2:
+        x, y = x[..., None], y[..., None]
+    x = x.permute(2, 0, 1)[None] / 255.0
+    y = y.permute(2, 0, 1)[None] / 255.0
     with torch.no_grad():
-        m = kssim(x, y, window_size=11, max_val=1.0, padding="same")
+        m = kssim(x, y, window_size=SSIM_WINDOW, max_val=1.0, padding=padding)
     return m[0].mean(0).numpy()
+
+
+def flip_map(reference: np.ndarray, test: np.ndarray, exposure: float = 1.0) -> np.ndarray:
+    """(H, W) per-pixel NVIDIA FLIP error (LDR, on the display transform); its mean is
+    :func:`flip`. Needs the optional ``flip-evaluator`` (extra ``metrics``).
+
+    Args:
+        reference, test: (H, W, 3) images of the same shape (linear HDR floats or uint8).
+    """
+    from icbtool._optional import require
+
+    fe = require("flip_evaluator", "the FLIP metric")
+    if np.shape(reference) != np.shape(test):
+        raise ValueError(f"flip_map: shapes differ: {np.shape(reference)} vs {np.shape(test)}")
+    r = (_as_display(reference, exposure) / 255.0).astype(np.float32)
+    t = (_as_display(test, exposure) / 255.0).astype(np.float32)
+    err, _, _ = fe.evaluate(r, t, "LDR", applyMagma=False)
+    return np.asarray(err, np.float32).reshape(r.shape[:2])
+
+
+def flip(reference: np.ndarray, test: np.ndarray, exposure: float = 1.0) -> float:
+    """Mean NVIDIA FLIP error (LDR, display transform): the mean of :func:`flip_map`."""
+    return float(flip_map(reference, test, exposure).mean(dtype=np.float64))
 
 
 def rmse_linear(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
@@ -81,4 +128,4 @@ def rmse_linear(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) ->
     return float(np.sqrt(d.mean()))
 
 
-__all__ = ["mse", "rmse_linear", "ssim", "ssim_map"]
+__all__ = ["SSIM_WINDOW", "flip", "flip_map", "mse", "rmse_linear", "ssim", "ssim_map"]
