@@ -13,7 +13,9 @@ The evaluations (SSIM, MSE) are the run's own ``evals.csv``. ``JOB.json``::
 from __future__ import annotations
 
 import json
+import os
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -65,7 +67,33 @@ def run(job_path: str | Path) -> int:
     return 0
 
 
+#: The window's process id, set by the trainer in the job's environment.
+PARENT_ENV = "ICBTOOL_GUI_PID"
+
+
+def exit_with_parent(poll_s: float = 1.0) -> threading.Thread:
+    """End this process when the process that started it ends (a window killed without closing
+    its trainer must not leave a training behind; its last checkpoint stays).
+
+    The parent is ``$ICBTOOL_GUI_PID`` when set (the window may be gone before this process
+    looks), else the current parent.
+    """
+    parent = int(os.environ.get(PARENT_ENV) or os.getppid())
+
+    def watch() -> None:
+        while True:
+            time.sleep(poll_s)
+            if os.getppid() != parent:  # re-parented: the window is gone
+                print("the window that started this training is gone: stopping", file=sys.stderr)
+                os._exit(3)
+
+    t = threading.Thread(target=watch, name="exit-with-parent", daemon=True)
+    t.start()
+    return t
+
+
 if __name__ == "__main__":
     if len(sys.argv) != 2:
         raise SystemExit("usage: python -m gui.train_job JOB.json")
+    exit_with_parent()
     raise SystemExit(run(sys.argv[1]))

@@ -201,6 +201,7 @@ class TrainerPanel(QtWidgets.QWidget):
         path = env.value("PYTHONPATH", "")
         env.insert("PYTHONPATH", str(_REPO) + (os.pathsep + path if path else ""))
         env.insert("OMP_NUM_THREADS", str(self.threads.value()))
+        env.insert(train_job.PARENT_ENV, str(os.getpid()))  # the job ends with this window
         proc.setProcessEnvironment(env)
         proc.setProcessChannelMode(QtCore.QProcess.MergedChannels)
         proc.readyReadStandardOutput.connect(self._read_output)

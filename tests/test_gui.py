@@ -341,3 +341,32 @@ def test_cli_names_the_extra_when_qt_is_missing(tmp_path, store_dir):
     assert r.returncode == 1, r.stderr
     assert "icbtool gui: error:" in r.stderr and 'pip install "icbtool[gui]"' in r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_a_training_job_ends_with_the_window_that_started_it(tmp_path):
+    """A window killed without closing its trainer (SIGKILL, a crash) leaves no training behind:
+    the job process watches its parent and exits when it is gone."""
+    repo = Path(__file__).resolve().parents[1]
+    child = (
+        "import time; from gui.train_job import exit_with_parent; exit_with_parent(0.1); "
+        "time.sleep(120)"
+    )
+    parent = (  # exits at once, maybe before the child has looked at its parent
+        "import os, subprocess, sys; "
+        "env = {**os.environ, 'ICBTOOL_GUI_PID': str(os.getpid())}; "
+        f"p = subprocess.Popen([sys.executable, '-c', {child!r}], env=env, "
+        "stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL); print(p.pid, flush=True)"
+    )
+    env = {**os.environ, "PYTHONPATH": str(repo)}
+    out = subprocess.run([sys.executable, "-c", parent], env=env, capture_output=True, text=True,
+                         timeout=60, check=True)  # fmt: skip
+    pid = int(out.stdout.split()[0])
+    for _ in range(200):  # the parent is gone: the child must follow within a few polls
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        os.kill(pid, 9)
+        pytest.fail(f"job process {pid} outlived the process that started it")
