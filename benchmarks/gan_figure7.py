@@ -40,6 +40,38 @@ OUT = REPO / "benchmarks" / "results" / "gan"
 NORMAL_PAIRS = (("E", "H"), ("F", "I"), ("G", "J"))
 
 
+def add_training_arguments(ap: argparse.ArgumentParser) -> None:
+    """The training settings Figure 7 and the experiments built on it share."""
+    ap.add_argument("--chunk", type=int, default=250, help="round-robin step (iterations)")
+    ap.add_argument("--crop", type=int, default=64, help="training crop (multiple of 32)")
+    ap.add_argument("--base", type=int, default=32)
+    ap.add_argument("--eval-frames", type=int, default=50)
+    # Sponza's GI (train set: median 0.11, 99th percentile 0.36, max 0.93) spread over the tanh
+    # range: 0.11 -> -0.47, 0.36 -> -0.04, 0.93 -> 0.35 (the defaults 0.25 / 64 would squeeze it
+    # into [-1, -0.75])
+    ap.add_argument("--hdr-scale", type=float, default=0.05)
+    ap.add_argument("--hdr-max", type=float, default=4.0)
+
+
+def train_config(args: argparse.Namespace, inputs: str, **overrides):
+    """The ``cpu`` preset with the settings of :func:`add_training_arguments` (one chunk)."""
+    from icbtool import gan
+
+    return gan.TrainConfig.preset(
+        "cpu",
+        inputs=inputs,
+        iterations=args.chunk,
+        crop=args.crop,
+        base=args.base,
+        eval_every=args.chunk,
+        checkpoint_every=args.chunk,
+        eval_frames=args.eval_frames,
+        hdr_scale=args.hdr_scale,
+        hdr_max=args.hdr_max,
+        **overrides,
+    )
+
+
 def noise_ceiling(store_dir: str, ceiling_dir: str, scene: str, exposure: float) -> dict:
     """SSIM / MSE between two independently traced truths of the same test cameras."""
     import icbtool.store as S
@@ -163,15 +195,7 @@ def main() -> None:
     ap.add_argument("--scene", default="sponza", help="scene name (or hash) in the store")
     ap.add_argument("--configs", default="ABCDEFGHIJ")
     ap.add_argument("--iterations", type=int, default=2000)
-    ap.add_argument("--chunk", type=int, default=250, help="round-robin step (iterations)")
-    ap.add_argument("--crop", type=int, default=64, help="training crop (multiple of 32)")
-    ap.add_argument("--base", type=int, default=32)
-    ap.add_argument("--eval-frames", type=int, default=50)
-    # Sponza's GI (train set: median 0.11, 99th percentile 0.36, max 0.93) spread over the tanh
-    # range: 0.11 -> -0.47, 0.36 -> -0.04, 0.93 -> 0.35 (the defaults 0.25 / 64 would squeeze it
-    # into [-1, -0.75])
-    ap.add_argument("--hdr-scale", type=float, default=0.05)
-    ap.add_argument("--hdr-max", type=float, default=4.0)
+    add_training_arguments(ap)
     ap.add_argument(
         "--report-only",
         action="store_true",
@@ -195,22 +219,7 @@ def main() -> None:
 
     out, runs = Path(args.out), Path(args.runs)
     out.mkdir(parents=True, exist_ok=True)
-    cfgs = {
-        c: gan.TrainConfig.preset(
-            "cpu",
-            inputs=c,
-            iterations=args.chunk,
-            crop=args.crop,
-            base=args.base,
-            eval_every=args.chunk,
-            checkpoint_every=args.chunk,
-            eval_frames=args.eval_frames,
-            hdr_scale=args.hdr_scale,
-            hdr_max=args.hdr_max,
-            demodulate=args.demodulate,
-        )
-        for c in args.configs
-    }
+    cfgs = {c: train_config(args, c, demodulate=args.demodulate) for c in args.configs}
     exposure = next(iter(cfgs.values())).display_exposure
     write_json(
         out / "figure7_config.json",

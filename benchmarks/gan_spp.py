@@ -25,6 +25,8 @@ import time
 import warnings
 from pathlib import Path
 
+from gan_figure7 import add_training_arguments, train_config  # noqa: E402 (a sibling script)
+
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan" / "spp"
 SCENE_FILE = REPO / "data" / "scenes" / "sponza.toml"
@@ -78,12 +80,7 @@ def main() -> None:
     ap.add_argument("--spp", type=int, nargs="+", default=[4, 16, 64])
     ap.add_argument("--inputs", default="J")
     ap.add_argument("--iterations", type=int, default=1000)
-    ap.add_argument("--chunk", type=int, default=250)
-    ap.add_argument("--crop", type=int, default=64)
-    ap.add_argument("--base", type=int, default=32)
-    ap.add_argument("--eval-frames", type=int, default=50)
-    ap.add_argument("--hdr-scale", type=float, default=0.05)
-    ap.add_argument("--hdr-max", type=float, default=4.0)
+    add_training_arguments(ap)
     ap.add_argument("--runs", default=str(REPO / "out" / "gan_spp"))
     ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args()
@@ -101,17 +98,7 @@ def main() -> None:
     for n in args.spp:
         bake_store(n, sets[f"{n} spp"], args.store, args.scene)
     sets["64 spp + OIDN"] = Path(args.store)
-    cfg = gan.TrainConfig.preset(
-        "cpu",
-        inputs=args.inputs,
-        crop=args.crop,
-        base=args.base,
-        eval_every=args.chunk,
-        checkpoint_every=args.chunk,
-        eval_frames=args.eval_frames,
-        hdr_scale=args.hdr_scale,
-        hdr_max=args.hdr_max,
-    )
+    cfg = train_config(args, args.inputs)
     write_json(out / "spp_config.json", {"args": vars(args), "train_config": cfg,
                                          "run": run_info()})  # fmt: skip
     ro = S.StoreConfig(readonly=True, record_hits=False)

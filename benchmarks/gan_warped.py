@@ -33,6 +33,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from gan_figure7 import add_training_arguments, train_config  # noqa: E402 (a sibling script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan" / "warped"
@@ -49,18 +50,7 @@ def train_runs(args: argparse.Namespace, runs: Path) -> dict:
     import icbtool.store as S
     from icbtool import gan
 
-    base = gan.TrainConfig.preset(
-        "cpu",
-        inputs=args.inputs,
-        iterations=args.chunk,
-        crop=args.crop,
-        base=args.base,
-        eval_every=args.chunk,
-        checkpoint_every=args.chunk,
-        eval_frames=args.eval_frames,
-        hdr_scale=args.hdr_scale,
-        hdr_max=args.hdr_max,
-    )
+    base = train_config(args, args.inputs)
     cfgs = {
         "pure": base,
         "warped": dataclasses.replace(
@@ -184,12 +174,7 @@ def main() -> None:
     ap.add_argument("--scene", default="sponza")
     ap.add_argument("--inputs", default="J", help="configuration of both generators")
     ap.add_argument("--iterations", type=int, default=2000)
-    ap.add_argument("--chunk", type=int, default=250)
-    ap.add_argument("--crop", type=int, default=64)
-    ap.add_argument("--base", type=int, default=32)
-    ap.add_argument("--eval-frames", type=int, default=50)
-    ap.add_argument("--hdr-scale", type=float, default=0.05)
-    ap.add_argument("--hdr-max", type=float, default=4.0)
+    add_training_arguments(ap)
     ap.add_argument("--offsets", type=int, nargs="+", default=[1, 2, 4])
     ap.add_argument("--report-only", action="store_true", help="compare the runs as they are")
     ap.add_argument("--runs", default=str(REPO / "out" / "gan_warped"))
