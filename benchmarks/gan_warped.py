@@ -16,6 +16,9 @@ reference ``k`` test views earlier (k = 1, 2, 4; the test path keeps every 3rd c
 - ``warped generator``: the generator that reads the warped reference and its holes;
 - ``warp+warped generator``: the warped reference, holes filled by the warped generator.
 
+Scores: SSIM / MSE of the whole frame, and the per-pixel SSIM map averaged over the holes alone
+(how well each method fills what the reference did not see).
+
 Resumable (the runs train in chunks); writes ``benchmarks/results/gan/warped/warped.{json,png}``
 and ``warped_config.json``::
 
@@ -46,17 +49,21 @@ METHODS = (
 )
 
 
-def train_runs(args: argparse.Namespace, runs: Path) -> dict:
-    import icbtool.store as S
-    from icbtool import gan
-
+def configs(args: argparse.Namespace) -> dict:
+    """The two runs' TrainConfig (one chunk; training raises ``iterations``)."""
     base = train_config(args, args.inputs)
-    cfgs = {
+    return {
         "pure": base,
         "warped": dataclasses.replace(
             base, warped_reference=True, test_reference_offset=args.offsets[0]
         ),
     }
+
+
+def train_runs(args: argparse.Namespace, runs: Path, cfgs: dict) -> None:
+    import icbtool.store as S
+    from icbtool import gan
+
     ro = S.StoreConfig(readonly=True, record_hits=False)
     for target in range(args.chunk, args.iterations + 1, args.chunk):
         for name, cfg in cfgs.items():
@@ -73,7 +80,6 @@ def train_runs(args: argparse.Namespace, runs: Path) -> dict:
                         scene=args.scene,
                         resume=True,
                     )
-    return cfgs
 
 
 def compare(args: argparse.Namespace, runs: Path) -> dict:
@@ -98,7 +104,7 @@ def compare(args: argparse.Namespace, runs: Path) -> dict:
     out: dict = {"offsets": {}, "views": len(recs)}
     examples = {}
     for k in args.offsets:
-        rows = {m: {"ssim": [], "mse": []} for m in METHODS}
+        rows = {m: {"ssim": [], "mse": [], "ssim_holes": []} for m in METHODS}
         holes_pct = []
         for i, rec in enumerate(recs):
             j = refs.reference(i, k)
@@ -118,6 +124,9 @@ def compare(args: argparse.Namespace, runs: Path) -> dict:
             for m, p in preds.items():
                 rows[m]["ssim"].append(metrics.ssim(p, rec.gi, exposure))
                 rows[m]["mse"].append(metrics.mse(p, rec.gi, exposure))
+                if holes.any():  # how well the holes themselves are filled
+                    smap = metrics.ssim_map(p, rec.gi, exposure)
+                    rows[m]["ssim_holes"].append(float(smap[holes].mean()))
             if k == args.offsets[-1] and (not examples or holes_pct[-1] > examples["holes"]):
                 examples = {"i": i, "holes": holes_pct[-1], "truth": rec.gi, **preds}
         out["offsets"][str(k)] = {
@@ -128,6 +137,9 @@ def compare(args: argparse.Namespace, runs: Path) -> dict:
                 m: {
                     "ssim_mean": float(np.mean(v["ssim"])),
                     "mse_mean": float(np.mean(v["mse"])),
+                    # per-pixel SSIM ('same' padding) averaged over the hole pixels of the views
+                    # that have holes
+                    "ssim_holes_mean": float(np.mean(v["ssim_holes"])),
                     "ssim_per_view": [float(s) for s in v["ssim"]],
                 }
                 for m, v in rows.items()
@@ -187,7 +199,9 @@ def main() -> None:
     out, runs = Path(args.out), Path(args.runs)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    cfgs = None if args.report_only else train_runs(args, runs)
+    cfgs = configs(args)
+    if not args.report_only:
+        train_runs(args, runs, cfgs)
     write_json(out / "warped_config.json", {"args": vars(args), "train_configs": cfgs,
                                             "run": run_info()})  # fmt: skip
     res = compare(args, runs)

@@ -714,7 +714,8 @@ def block_gan_warped(results: Path) -> str:
         "**Beyond the paper: the generator with the warped reference** "
         f"(`benchmarks/gan_warped.py`, configuration {cfg['args']['inputs']}, both generators "
         f"trained {it} iterations with the Figure 7 settings; {d['views']} test views, the "
-        "reference k test views earlier; mean test SSIM; holes after warping "
+        "reference k test views earlier; mean test SSIM of the frame (in brackets: of the hole "
+        "pixels alone); holes after warping "
         f"{holes} % of the pixels):\n\n| method | {head} |\n|---|"
         + "---|" * len(ks)
         + f"\n{rows}\n"
@@ -731,8 +732,10 @@ def block_gan_spp(results: Path) -> str:
     it = next(iter(d["sets"].values()))["iteration"][-1]
     return (
         "**The cost of the data** (`benchmarks/gan_spp.py`: configuration J trained "
-        f"{it} iterations on the train path baked at each sample count, noisy targets unless "
-        "denoised; same test truth):\n\n| train targets | baking time | test SSIM | test MSE "
+        f"{it} iterations with the Figure 7 settings on the train path (150 views, 128x128) "
+        "baked at each sample count, noisy targets unless denoised; the same 256-spp test truth; "
+        "baking times are the records' own, taken when each store was baked, under different "
+        "loads of this 2-core machine):\n\n| train targets | baking time | test SSIM | test MSE "
         f"|\n|---|---|---|---|\n{rows}\n"
     )
 
@@ -821,6 +824,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "gan-figure8": block_gan_figure8,
     "gan-time-error": block_gan_time_error,
     "gan-warped": block_gan_warped,
+    "gan-spp": block_gan_spp,
     "lpm": block_lpm,
     "net": block_net,
 }
