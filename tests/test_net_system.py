@@ -454,3 +454,22 @@ def test_cli_client_runs_against_a_server_and_refusals_are_one_line(server, tmp_
             "--size", "32", "--out", str(tmp_path / "gone"), "--timeout", "10"]  # fmt: skip
     assert main(gone) == 1
     assert "cannot connect" in capsys.readouterr().err
+
+
+def test_mesh_stream_without_levels_sends_the_full_mesh_in_the_lpm_layout(scene):
+    """lpm=False (as without open3d): one level, the full scene, in the same chunk layout the
+    client reads for LPM levels; it assembles back exactly, with the base's paths."""
+    from icbtool.net import mesh_stream as ms
+
+    stream = ms.MeshStream(scene, lpm=False)
+    assert len(stream.levels) == 1 and stream.levels[0].triangles == scene.n_triangles
+    chunks = list(stream.levels[0].chunks)
+    assert all(name.startswith("L0/") for name, _, _ in chunks)
+    assert {part for _, part, _ in chunks} <= {"materials", "geometry", "texture"}
+    back = ms.assemble(chunks, stream.base)
+    np.testing.assert_array_equal(back.vertices, scene.vertices)
+    np.testing.assert_array_equal(back.faces, scene.faces)
+    np.testing.assert_array_equal(back.face_material, scene.face_material)
+    assert sorted(back.paths) == sorted(scene.paths) and len(back.lights) == len(scene.lights)
+    with pytest.raises(ValueError, match="LPM"):
+        ms.assemble(chunks[1:], stream.base)  # a chunk missing

@@ -370,7 +370,11 @@ KINDS: dict[str, KindSpec] = {
                 _f("level", "integer", "LPM level", **_NAT),
                 _f("index", "integer", "index of this chunk within its level, from 0", **_NAT),
                 _f("count", "integer", "number of chunks of the level", minimum=1),
-                _f("part", "string", 'what the file is: "mesh" or "texture"'),
+                _f(
+                    "part",
+                    "string",
+                    'what the file is: "materials", "geometry" or "texture" (docs/lpm.md)',
+                ),
                 _f(
                     "name",
                     "string",
