@@ -310,9 +310,7 @@ def run_loop(
     path = _client_path(scene, cfg)
     out = Path(out_dir) if out_dir is not None else None
     tmp = None
-    if source is not None:
-        pass
-    elif store_dir is None:
+    if source is None and store_dir is None:  # a given source needs no store here
         if out is not None:
             store_dir = out / "cache"
         else:
@@ -444,8 +442,6 @@ _EXPOSURE = 1.0
 
 def _gi_source(cfg: LoopConfig, cloud: Any) -> Any:
     """The client's GI source: the cloud, or a generator with the cloud as fallback."""
-    import contextlib
-
     from icbtool import system
 
     if cfg.generator is None:
@@ -457,8 +453,6 @@ def _gi_source(cfg: LoopConfig, cloud: Any) -> Any:
 
 def _comparison_client(cfg: LoopConfig, scene: Any, cloud: Any, rz: Any) -> Any:
     """A second client on the cloud for :attr:`LoopConfig.compare_cloud` (else None)."""
-    import contextlib
-
     from icbtool import system
 
     if cfg.generator is None or not cfg.compare_cloud or not cfg.truth_every:
@@ -466,14 +460,18 @@ def _comparison_client(cfg: LoopConfig, scene: Any, cloud: Any, rz: Any) -> Any:
     return system.Client(scene, cloud, cfg.client_config(), rasterizer=rz)
 
 
-def _write_strip(path: Path, images: list[np.ndarray], imageio: Any) -> None:
-    """Linear HDR images side by side (display transform), white 2-pixel gaps."""
-    tiles = [imageio.to_display(a, _EXPOSURE) for a in images]
+def _write_tiles(path: Path, tiles: list[np.ndarray], imageio: Any) -> None:
+    """(H, W_k, 3) uint8 tiles side by side, white 2-pixel gaps, as a PNG."""
     sep = np.full((tiles[0].shape[0], 2, 3), 255, np.uint8)
     strip = tiles[0]
     for t in tiles[1:]:
         strip = np.concatenate([strip, sep, t], axis=1)
     imageio.write_png(path, strip)
+
+
+def _write_strip(path: Path, images: list[np.ndarray], imageio: Any) -> None:
+    """Linear HDR images side by side (display transform), white 2-pixel gaps."""
+    _write_tiles(path, [imageio.to_display(a, _EXPOSURE) for a in images], imageio)
 
 
 def _write_frame(path: Path, wrt: Any, w: Any, final: np.ndarray, truth: Any, imageio: Any) -> None:
@@ -490,11 +488,7 @@ def _write_frame(path: Path, wrt: Any, w: Any, final: np.ndarray, truth: Any, im
     ]
     if truth is not None:
         tiles.append(imageio.to_display(truth.full, _EXPOSURE))
-    sep = np.full((final.shape[0], 2, 3), 255, np.uint8)
-    strip = tiles[0]
-    for t in tiles[1:]:
-        strip = np.concatenate([strip, sep, t], axis=1)
-    imageio.write_png(path, strip)
+    _write_tiles(path, tiles, imageio)
 
 
 def _write_report(out: Path, report: LoopReport) -> None:
