@@ -555,6 +555,8 @@ def test_warped_reference_matches_the_view_and_marks_the_uncovered_columns(plane
     refs = D.WarpedReferences(plane_store, ds.record_ids)
     assert [refs.reference(i, 1) for i in range(4)] == [1, 0, 1, 2]  # earlier, else later
     assert refs.reference(0, 9) == 3  # clamped to the path
+    assert [refs.reference(i, 1, later=True) for i in range(4)] == [1, 2, 3, 2]
+    assert refs.reference(1, 2, later=True) == 3 and refs.reference(2, 3, later=True) == 3
     img, holes = refs.warped(2, 1)  # reference 0.1 to the left: shifted by fx * 0.1 / 2 pixels
     cam = plane_record(2).camera
     shift = cam.fx * 0.1 / 2.0

@@ -253,14 +253,19 @@ class WarpedReferences:
     def __len__(self) -> int:
         return len(self._views)
 
-    def reference(self, i: int, offset: int) -> int:
-        """Index of view ``i``'s reference ``offset`` (>= 1) views away (earlier if it exists)."""
+    def reference(self, i: int, offset: int, later: bool = False) -> int:
+        """Index of view ``i``'s reference ``offset`` (>= 1) views away: earlier if it exists
+        (later first with ``later``), else the other way, clamped to the split."""
         if offset < 1:
             raise ValueError(f"reference offset must be >= 1, got {offset}")
-        if len(self) < 2:
+        n = len(self)
+        if n < 2:
             raise ValueError("a warped reference needs at least 2 views in the split")
-        offset = min(offset, len(self) - 1)
-        return i - offset if i - offset >= 0 else min(i + offset, len(self) - 1)
+        offset = min(offset, n - 1)
+        before, after = i - offset, i + offset
+        if (later and after < n) or before < 0:
+            return min(after, n - 1)
+        return before
 
     def warped(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
         """View ``j``'s GI warped to view ``i``: ((H, W, 3) float32, 0 on holes; (H, W) bool holes
@@ -413,9 +418,8 @@ class BatchSampler:
         for b, (i, t, l, f) in enumerate(zip(idx, top, left, flips)):
             x = d.x[i, :, t : t + c, l : l + c]
             if refs is not None:
-                k = int(min(offs[b], len(refs) - 1))
-                j = i + k if (later[b] and i + k < len(refs)) or i - k < 0 else i - k
-                w = refs.encoded(int(i), int(j), d.encoding)[:, t : t + c, l : l + c]
+                j = refs.reference(int(i), int(offs[b]), later=bool(later[b]))
+                w = refs.encoded(int(i), j, d.encoding)[:, t : t + c, l : l + c]
                 x = np.concatenate([x, w], axis=0)
             y = d.y[i, :, t : t + c, l : l + c]
             if f:
