@@ -111,12 +111,13 @@ def reference_cameras(scene: Scene, cams: list[Camera], cfg: EvalConfig) -> list
     from icbtool import prefetch
 
     path = scene.paths["test"]
-    out = []
+    reqs = []
     for i, cam in zip(_path_indices(scene, cfg), cams):
         t_req = max(float(path.times[i]) - cfg.latency_s, float(path.times[0]))
+        reqs.append((path.camera_at(t_req).resized(cam.height, cam.width), t_req))
+    out = []
+    for (req, t_req), seen in zip(reqs, render_views(scene, [r for r, _ in reqs], cfg.raster)):
         v_t, v_r = path.velocity_cam(t_req)
-        req = path.camera_at(t_req).resized(cam.height, cam.width)
-        seen = render_views(scene, [req], cfg.raster)[0]
         try:
             near_far = prefetch.depth_range_from_depth(seen.depth, seen.mask)
         except ValueError:  # the request camera sees nothing: the prefetch default range
@@ -190,9 +191,9 @@ def evaluate(lpm: LPM, cfg: EvalConfig = EvalConfig(), progress: bool = False) -
     if (cfg.reference_back > 0 or has_path) and cfg.gi_spp > 0:
         from icbtool.trace import render_gi
 
-        for rc in reference_cameras(full, cams, cfg):
-            gi = render_gi(full, rc, spp=cfg.gi_spp, seed=cfg.seed)
-            refs.append((gi, render_views(full, [rc], cfg.raster)[0]))
+        rcs = reference_cameras(full, cams, cfg)
+        for rc, view in zip(rcs, render_views(full, rcs, cfg.raster)):  # one GL context
+            refs.append((render_gi(full, rc, spp=cfg.gi_spp, seed=cfg.seed), view))
     stats = lpm.stats(error=False)
     rows, previews = [], []
     exposure = auto_exposure(fv[0].dl, fv[0].valid)
