@@ -30,7 +30,9 @@ import json
 import os
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -70,6 +72,48 @@ def train_config(args: argparse.Namespace, inputs: str, **overrides):
         hdr_max=args.hdr_max,
         **overrides,
     )
+
+
+def last_iteration(run: Path) -> int:
+    """The last evaluated iteration of a run directory (0 without evaluations)."""
+    p = run / "evals.json"
+    if not p.exists():
+        return 0
+    ev = json.loads(p.read_text())
+    ev = ev["evals"] if isinstance(ev, dict) else ev
+    return max((int(e["iteration"]) for e in ev), default=0)
+
+
+def train_round_robin(
+    jobs: dict[str, tuple[str | Path, Any, Path]],
+    iterations: int,
+    chunk: int,
+    scene: str,
+    after_chunk: Callable[[int], None] | None = None,
+) -> None:
+    """Train every job to ``chunk`` iterations, then every one to ``2 chunk``, ... up to
+    ``iterations`` (resuming; a job already there is skipped), so an interrupted experiment
+    always has comparable runs.
+
+    Args:
+        jobs: name -> (store directory, TrainConfig, run directory).
+        after_chunk: called with the iteration count every job has reached.
+    """
+    import icbtool.store as S
+    from icbtool import gan
+
+    ro = S.StoreConfig(readonly=True, record_hits=False)
+    for target in range(chunk, iterations + 1, chunk):
+        for store_dir, cfg, run in jobs.values():
+            if last_iteration(run) >= target:
+                continue
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # the once-per-run VGG notice
+                with S.open(store_dir, ro) as store:
+                    gan.train(store, dataclasses.replace(cfg, iterations=target), run,
+                              scene=scene, resume=True)  # fmt: skip
+        if after_chunk is not None:
+            after_chunk(target)
 
 
 def noise_ceiling(store_dir: str, ceiling_dir: str, scene: str, exposure: float) -> dict:
@@ -213,8 +257,6 @@ def main() -> None:
     if not args.store:
         raise SystemExit("give --store (or set ICBTOOL_GAN_STORE): a baked Sponza store")
 
-    import icbtool.store as S
-    from icbtool import gan
     from icbtool.provenance import run_info, write_json
 
     out, runs = Path(args.out), Path(args.runs)
@@ -233,25 +275,15 @@ def main() -> None:
             f"SSIM {ceiling['ssim_mean']:.4f} (min {ceiling['ssim_min']:.4f})"
         )
     t0 = time.perf_counter()
-    ro = S.StoreConfig(readonly=True, record_hits=False)
-    targets = [] if args.report_only else range(args.chunk, args.iterations + 1, args.chunk)
-    for target in targets:
-        for c, cfg in cfgs.items():
-            run = runs / c
-            cv = curves(runs, c)
-            if c in cv and max(cv[c]["iteration"]) >= target:
-                continue
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)  # the once-per-run VGG notice
-                with S.open(args.store, ro) as store:
-                    gan.train(
-                        store,
-                        dataclasses.replace(cfg, iterations=target),
-                        run,
-                        scene=args.scene,
-                        resume=True,
-                    )
-        report(runs, args, out, ceiling, t0, target)
+    if not args.report_only:
+        jobs = {c: (args.store, cfg, runs / c) for c, cfg in cfgs.items()}
+        train_round_robin(
+            jobs,
+            args.iterations,
+            args.chunk,
+            args.scene,
+            lambda target: report(runs, args, out, ceiling, t0, target),
+        )
     if args.report_only:
         report(runs, args, out, ceiling, t0, None)
 

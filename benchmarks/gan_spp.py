@@ -16,16 +16,18 @@ Writes ``benchmarks/results/gan/spp/spp.{json,png}`` and ``spp_config.json``.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import subprocess
 import sys
 import time
-import warnings
 from pathlib import Path
 
-from gan_figure7 import add_training_arguments, train_config  # noqa: E402 (a sibling script)
+from gan_figure7 import (  # noqa: E402 (a sibling script)
+    add_training_arguments,
+    train_config,
+    train_round_robin,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan" / "spp"
@@ -87,8 +89,6 @@ def main() -> None:
     if not args.store:
         raise SystemExit("give --store (or set ICBTOOL_GAN_STORE): the Figure 7 Sponza store")
 
-    import icbtool.store as S
-    from icbtool import gan
     from icbtool.provenance import run_info, write_json
 
     out, runs, stores = Path(args.out), Path(args.runs), Path(args.stores)
@@ -101,22 +101,12 @@ def main() -> None:
     cfg = train_config(args, args.inputs)
     write_json(out / "spp_config.json", {"args": vars(args), "train_config": cfg,
                                          "run": run_info()})  # fmt: skip
-    ro = S.StoreConfig(readonly=True, record_hits=False)
-    for target in range(args.chunk, args.iterations + 1, args.chunk):
-        for name, sdir in sets.items():
-            run = runs / name.replace(" ", "_").replace("+", "")
-            ev = run / "evals.json"
-            if ev.exists() and max(e["iteration"] for e in json.loads(ev.read_text())) >= target:
-                continue
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)
-                with S.open(sdir, ro) as store:
-                    gan.train(store, dataclasses.replace(cfg, iterations=target), run,
-                              scene=args.scene, resume=True)  # fmt: skip
+    run_dirs = {name: runs / name.replace(" ", "_").replace("+", "") for name in sets}
+    jobs = {name: (sdir, cfg, run_dirs[name]) for name, sdir in sets.items()}
+    train_round_robin(jobs, args.iterations, args.chunk, args.scene)
     res: dict = {"sets": {}}
     for name, sdir in sets.items():
-        run = runs / name.replace(" ", "_").replace("+", "")
-        ev = json.loads((run / "evals.json").read_text())
+        ev = json.loads((run_dirs[name] / "evals.json").read_text())
         secs, n, spps = bake_seconds(str(sdir), args.scene)
         res["sets"][name] = {
             "store": str(sdir),

@@ -32,11 +32,14 @@ import dataclasses
 import json
 import os
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
-from gan_figure7 import add_training_arguments, train_config  # noqa: E402 (a sibling script)
+from gan_figure7 import (  # noqa: E402 (a sibling script)
+    add_training_arguments,
+    train_config,
+    train_round_robin,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan" / "warped"
@@ -58,28 +61,6 @@ def configs(args: argparse.Namespace) -> dict:
             base, warped_reference=True, test_reference_offset=args.offsets[0]
         ),
     }
-
-
-def train_runs(args: argparse.Namespace, runs: Path, cfgs: dict) -> None:
-    import icbtool.store as S
-    from icbtool import gan
-
-    ro = S.StoreConfig(readonly=True, record_hits=False)
-    for target in range(args.chunk, args.iterations + 1, args.chunk):
-        for name, cfg in cfgs.items():
-            ev = runs / name / "evals.json"
-            if ev.exists() and max(e["iteration"] for e in json.loads(ev.read_text())) >= target:
-                continue
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)  # the once-per-run VGG notice
-                with S.open(args.store, ro) as store:
-                    gan.train(
-                        store,
-                        dataclasses.replace(cfg, iterations=target),
-                        runs / name,
-                        scene=args.scene,
-                        resume=True,
-                    )
 
 
 def compare(args: argparse.Namespace, runs: Path) -> dict:
@@ -201,7 +182,8 @@ def main() -> None:
     t0 = time.perf_counter()
     cfgs = configs(args)
     if not args.report_only:
-        train_runs(args, runs, cfgs)
+        jobs = {name: (args.store, cfg, runs / name) for name, cfg in cfgs.items()}
+        train_round_robin(jobs, args.iterations, args.chunk, args.scene)
     write_json(out / "warped_config.json", {"args": vars(args), "train_configs": cfgs,
                                             "run": run_info()})  # fmt: skip
     res = compare(args, runs)
