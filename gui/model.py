@@ -28,14 +28,7 @@ import icbtool as icb
 from icbtool import metrics, prefetch, system
 from icbtool.camera import Camera, CameraPath
 from icbtool.imageio import to_display
-
-#: Colours of the hole causes (as in the demo's frame strips): outside the reference's view,
-#: disoccluded (hidden in the reference), no geometry in the reference.
-HOLE_COLOURS = {
-    "outside": (255, 64, 64),
-    "disoccluded": (255, 200, 0),
-    "no_geometry": (40, 40, 40),
-}
+from icbtool.warp import HOLE_COLOURS  # the demo's colours of the hole causes
 
 
 @dataclass(frozen=True)

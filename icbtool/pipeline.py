@@ -476,10 +476,11 @@ def _write_strip(path: Path, images: list[np.ndarray], imageio: Any) -> None:
 
 def _write_frame(path: Path, wrt: Any, w: Any, final: np.ndarray, truth: Any, imageio: Any) -> None:
     """One strip: DL | warped GI | holes by cause | final | truth (when rendered)."""
+    from icbtool.warp import HOLE_COLOURS
+
     holes = np.zeros((*w.holes.shape, 3), np.uint8)
-    holes[w.outside] = (255, 64, 64)
-    holes[w.disoccluded] = (255, 200, 0)
-    holes[w.no_geometry] = (40, 40, 40)
+    for cause, colour in HOLE_COLOURS.items():
+        holes[getattr(w, cause)] = colour
     tiles = [
         imageio.to_display(wrt.dl, _EXPOSURE),
         imageio.to_display(w.image, _EXPOSURE),

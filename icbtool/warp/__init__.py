@@ -16,6 +16,7 @@ torch when first used (``import icbtool`` alone does not load it).
 """
 
 from icbtool.warp.api import (
+    HOLE_COLOURS,
     ForwardWarpResult,
     WarpConfig,
     WarpResult,
@@ -35,6 +36,7 @@ from icbtool.warp.functional import (
 )
 
 __all__ = [
+    "HOLE_COLOURS",
     "BackwardWarp",
     "BackwardWarpOutput",
     "ForwardWarp",

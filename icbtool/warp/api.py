@@ -26,6 +26,7 @@ import numpy as np
 from icbtool.camera import Camera
 
 __all__ = [
+    "HOLE_COLOURS",
     "ForwardWarpResult",
     "WarpConfig",
     "WarpResult",
@@ -89,6 +90,15 @@ class WarpConfig:
             or self.threads < 1
         ):
             raise ValueError(f"WarpConfig.threads must be an int >= 1, got {self.threads!r}")
+
+
+#: RGB colour of each hole cause of a :class:`WarpResult` in pictures of its holes (the demo's
+#: frame strips, the desktop app): outside every reference frustum, disoccluded, no geometry.
+HOLE_COLOURS: dict[str, tuple[int, int, int]] = {
+    "outside": (255, 64, 64),
+    "disoccluded": (255, 200, 0),
+    "no_geometry": (40, 40, 40),
+}
 
 
 @dataclass
