@@ -12,6 +12,7 @@ to move (paths), and none of it is the protected full-detail mesh.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
 import time
 from dataclasses import dataclass
@@ -112,6 +113,7 @@ class MeshStream:
     ) -> None:
         self.base = scene_base(scene)
         self.levels: list[MeshLevel] = []
+        self._pieces: dict[tuple[int, int], list[tuple[str, str, bytes, str]]] = {}
         from icbtool import lpm as lpm_mod
         from icbtool._optional import MissingOptionalDependency
 
@@ -131,6 +133,21 @@ class MeshStream:
         self.levels = [MeshLevel(lv.index, lv.n_triangles, tuple(lv.to_chunks())) for lv in kept]
         self.build_s = time.perf_counter() - t0
 
+    def pieces(self, level: MeshLevel, chunk_bytes: int) -> list[tuple[str, str, bytes, str]]:
+        """``level``'s files cut into pieces of at most ``chunk_bytes``, in sending order, as
+        ``(name, part, piece, sha256 hex)``: the ``lpm_chunk`` messages (cut and hashed once per
+        level and size, not for every client)."""
+        key = (level.index, chunk_bytes)
+        if key not in self._pieces:
+            self._pieces[key] = [
+                (name, part, piece, hashlib.sha256(piece).hexdigest())
+                for name, part, data in level.chunks
+                for piece in (
+                    data[i : i + chunk_bytes] for i in range(0, max(len(data), 1), chunk_bytes)
+                )
+            ]
+        return self._pieces[key]
+
     def info(self, chunk_bytes: int) -> list[dict[str, Any]]:
         """Per level: level, triangles, bytes, chunks (messages when files are cut into pieces of
         ``chunk_bytes``): the ``scene_info.lpm.levels`` entries."""
@@ -139,7 +156,7 @@ class MeshStream:
                 "level": lv.index,
                 "triangles": lv.triangles,
                 "bytes": lv.nbytes,
-                "chunks": sum(max(1, -(-len(d) // chunk_bytes)) for _, _, d in lv.chunks),
+                "chunks": len(self.pieces(lv, chunk_bytes)),
             }
             for lv in self.levels
         ]

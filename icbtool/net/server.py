@@ -664,19 +664,14 @@ class _Connection:
             await self.error("bad_field", "lpm_request.min_level: must be an integer")
             self.streaming_lpm = False
             return
-        step = srv.config.chunk_bytes
         try:
             for lv in srv.mesh.levels:
                 if lv.index > top:
                     break
                 if lv.index < low:
                     continue
-                pieces = [
-                    (name, part, data[i : i + step])
-                    for name, part, data in lv.chunks
-                    for i in range(0, max(len(data), 1), step)
-                ]
-                for k, (name, part, piece) in enumerate(pieces):
+                pieces = srv.mesh.pieces(lv, srv.config.chunk_bytes)
+                for k, (name, part, piece, sha) in enumerate(pieces):
                     await self.send(
                         protocol.Message(
                             "lpm_chunk",
@@ -686,7 +681,7 @@ class _Connection:
                                 "count": len(pieces),
                                 "part": part,
                                 "name": name,
-                                "sha256": hashlib.sha256(piece).hexdigest(),
+                                "sha256": sha,
                             },
                             piece,
                         )
