@@ -555,6 +555,10 @@ def test_warped_reference_matches_the_view_and_marks_the_uncovered_columns(plane
     refs = D.WarpedReferences(plane_store, ds.record_ids)
     assert [refs.reference(i, 1) for i in range(4)] == [1, 0, 1, 2]  # earlier, else later
     assert refs.reference(0, 9) == 3  # clamped to the path
+    with pytest.raises(ValueError, match="reference offset must be >= 1"):
+        refs.reference(0, 0)
+    with pytest.raises(ValueError, match="at least 2 views"):
+        D.WarpedReferences(plane_store, ds.record_ids[:1]).reference(0, 1)
     assert [refs.reference(i, 1, later=True) for i in range(4)] == [1, 2, 3, 2]
     assert refs.reference(1, 2, later=True) == 3 and refs.reference(2, 3, later=True) == 3
     img, holes = refs.warped(2, 1)  # reference 0.1 to the left: shifted by fx * 0.1 / 2 pixels
@@ -608,3 +612,5 @@ def test_training_with_a_warped_reference_resumes_exactly_and_generates(plane_st
         GeneratorSource(gen)
     with pytest.raises(ValueError, match="reference_offsets"):
         tiny(reference_offsets=(0,))
+    with pytest.raises(ValueError, match="test_reference_offset must be an integer >= 1"):
+        tiny(test_reference_offset=0)

@@ -346,3 +346,11 @@ def test_cli_writes_stats_previews_and_chunks(tmp_path):
     chunks = [(n, chunk_header(d, n)[0]["part"], d) for n, _, d in chunks]
     got = lpm.assemble(chunks, base=(out / "chunks" / "scene_info.json").read_bytes())
     assert got.n_triangles == 32 and len(got.lights) == 1
+
+
+def test_eval_config_rejects_a_bad_latency():
+    from icbtool.lpm.evaluate import EvalConfig
+
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="EvalConfig.latency_s must be finite and >= 0"):
+            EvalConfig(latency_s=bad)
