@@ -614,3 +614,110 @@ def test_training_with_a_warped_reference_resumes_exactly_and_generates(plane_st
         tiny(reference_offsets=(0,))
     with pytest.raises(ValueError, match="test_reference_offset must be an integer >= 1"):
         tiny(test_reference_offset=0)
+
+
+# ------------------------------------------------------------------------------ issue 17 additions
+def test_ssim_loss_is_zero_for_equal_maps_and_grows_with_noise():
+    from icbtool.gan.losses import ssim_loss
+
+    g = torch.Generator().manual_seed(0)
+    y = torch.rand(2, 3, 32, 32, generator=g) * 2 - 1
+    assert float(ssim_loss(y, y)) == pytest.approx(0.0, abs=1e-6)
+    small = ssim_loss(y + 0.05 * torch.randn(y.shape, generator=g), y)
+    large = ssim_loss(y + 0.5 * torch.randn(y.shape, generator=g), y)
+    assert 0 < float(small) < float(large) <= 2
+    with pytest.raises(ValueError, match="ssim_loss"):
+        ssim_loss(y, y[:, :1])
+
+
+def test_cosine_learning_rate_falls_from_lr_to_lr_final():
+    c = T.TrainConfig(iterations=100, lr=1e-3, lr_schedule="cosine", lr_final=0.1)
+    assert T.learning_rate(c, 0) == pytest.approx(1e-3)
+    assert T.learning_rate(c, 50) == pytest.approx(1e-3 * (0.1 + 0.9 * 0.5))
+    assert T.learning_rate(c, 100) == pytest.approx(1e-4)
+    assert T.learning_rate(T.TrainConfig(lr=3e-4), 77) == 3e-4
+    with pytest.raises(ValueError, match="lr_schedule"):
+        T.TrainConfig(lr_schedule="step")
+    with pytest.raises(ValueError, match="ema"):
+        T.TrainConfig(ema=1.0)
+
+
+def test_full_resolution_skip_sees_the_input_pixel():
+    """With the skip, one input pixel changes the output at that pixel through the 3x3 head even
+    with every U-Net weight zeroed; without it, a zeroed U-Net outputs a constant."""
+    cfg = M.GeneratorConfig(in_channels=2, base=4, norm="none", full_res_skip=True)
+    g = M.UNetGenerator(cfg).eval()
+    with torch.no_grad():
+        for p in g.parameters():
+            p.zero_()
+        g.head[0].weight[:, :, 1, 1] = 1.0  # centre tap: out = tanh(sum of features + inputs)
+        x = torch.zeros(1, 2, 32, 32)
+        x[0, 1, 7, 9] = 0.5
+        out = g(x)
+    assert out.shape == (1, 3, 32, 32)
+    assert float(out[0, 0, 7, 9]) == pytest.approx(np.tanh(0.5), abs=1e-6)
+    assert float(out.abs().sum()) == pytest.approx(3 * np.tanh(0.5), abs=1e-5)
+
+
+def test_weight_average_is_what_is_saved_and_resumes_exactly(store, tmp_path):
+    cfg = tiny(iterations=4, ema=0.9, weight_ssim=1.0, lr_schedule="cosine", full_res_skip=True)
+    T.train(store, cfg, tmp_path / "full", progress=False)
+
+    class Killed(Exception):
+        pass
+
+    def kill_at_3(step, losses):
+        if step == 3:
+            raise Killed  # as a kill after the checkpoint of iteration 2
+
+    with pytest.raises(Killed):
+        T.train(store, cfg, tmp_path / "cut", progress=False, on_step=kill_at_3)
+    T.train(store, cfg, tmp_path / "cut", resume=True, progress=False)
+    a = torch.load(tmp_path / "full" / "checkpoints" / "last.pt", weights_only=False)
+    b = torch.load(tmp_path / "cut" / "checkpoints" / "last.pt", weights_only=False)
+    for part in ("generator", "generator_ema", "critic"):
+        for k, v in a[part].items():
+            assert torch.equal(v, b[part][k]), (part, k)
+    saved = torch.load(tmp_path / "full" / "generator.pt", weights_only=False)["generator"]
+    for k, v in a["generator_ema"].items():
+        assert torch.equal(saved[k], v)
+    assert any(not torch.equal(a["generator"][k], v) for k, v in a["generator_ema"].items())
+
+
+def test_evaluation_covers_every_test_view_and_says_so(store, tmp_path, capsys):
+    res = T.train(store, tiny(iterations=2), tmp_path / "run", progress=False)
+    assert res.eval_views == 2 and res.evals[-1]["views"] == 2  # the store's 2 test records
+    assert "(mean of 2 test views)" in capsys.readouterr().out
+    one = T.train(store, tiny(iterations=2, eval_frames=1), tmp_path / "one", progress=False)
+    assert one.eval_views == 1
+
+
+def test_resume_continues_seconds_and_tensorboard_steps(store, tmp_path):
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cfg = tiny(iterations=4, eval_every=2, checkpoint_every=2)
+    T.train(store, T.TrainConfig.from_dict({**cfg.to_dict(), "iterations": 2}), tmp_path / "r",
+            progress=False)  # fmt: skip
+    res = T.train(store, cfg, tmp_path / "r", resume=True, progress=False)
+    s = [e["seconds"] for e in res.evals]
+    assert s[1] > s[0] > 0  # the clock goes on from the checkpoint
+    steps = set()
+    for f in sorted((tmp_path / "r" / "tb").glob("events.out.tfevents.*")):
+        acc = EventAccumulator(str(f))
+        acc.Reload()
+        if "loss/g" in acc.Tags()["scalars"]:
+            steps |= {e.step for e in acc.Scalars("loss/g")}
+    assert steps == {1, 2, 3, 4}
+
+
+def test_training_on_several_paths_takes_each_paths_records(tmp_path):
+    with S.open(tmp_path / "s", S.StoreConfig(fsync=False)) as st:
+        for i, p in enumerate(["train", "train", "cover", "test", "other"]):
+            st.put(make_record(i, path=p))
+        from icbtool.store import Dataset
+
+        ds = Dataset(st, None, "train", "I", paths={"train": "train,cover", "test": "test"})
+        assert len(ds) == 3
+        tags = [st.get(r).meta.tags["path"] for r in ds.record_ids]
+        assert tags == ["train", "train", "cover"]

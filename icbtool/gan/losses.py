@@ -89,6 +89,18 @@ def l1_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (pred - target).abs().mean()
 
 
+def ssim_loss(pred: torch.Tensor, target: torch.Tensor, window: int = 7) -> torch.Tensor:
+    """1 - mean SSIM of two (B, C, H, W) maps in the HDR transform's [-1, 1] range (mapped to
+    [0, 1]; kornia's SSIM, Gaussian window ``window``, "same" padding). Our addition to the paper's
+    loss: a structure term that needs no pretrained weights (docs/gan.md, "Losses")."""
+    import kornia
+
+    if pred.shape != target.shape:
+        raise ValueError(f"ssim_loss: pred {tuple(pred.shape)} != target {tuple(target.shape)}")
+    s = kornia.metrics.ssim((pred + 1) / 2, (target + 1) / 2, window, max_val=1.0)
+    return 1 - s.mean()
+
+
 class VGG19Features(nn.Sequential):
     """torchvision's ``vgg19().features`` rebuilt layer by layer (same indices, same state-dict
     keys without the ``features.`` prefix), with untrained weights until loaded."""
@@ -229,4 +241,5 @@ __all__ = [
     "gradient_penalty",
     "l1_loss",
     "load_vgg19_features",
+    "ssim_loss",
 ]

@@ -39,12 +39,18 @@ class GeneratorConfig:
         out_channels: channels of the output (3: RGB GI).
         base: width of the first level; levels have base * (1, 2, 4, 8, 8) channels.
         norm: normalisation after each inner convolution.
+        full_res_skip: the last level also sees the input maps at full resolution (our addition:
+            the paper's U-Net has no skip at full resolution, so its last transposed
+            convolution invents every pixel's detail from half-resolution features; with the
+            skip, the last up level outputs ``base`` features that are concatenated with the
+            input and mapped to the output by a 3x3 convolution).
     """
 
     in_channels: int
     out_channels: int = 3
     base: int = 32
     norm: Norm = "batch"
+    full_res_skip: bool = False
 
     def __post_init__(self) -> None:
         _check_int("GeneratorConfig", "in_channels", self.in_channels, 1)
@@ -123,19 +129,33 @@ class UNetGenerator(nn.Module):
                 )
             )
             c_in = 2 * w
-        self.up.append(
-            nn.Sequential(nn.ConvTranspose2d(c_in, config.out_channels, 4, 2, 1), nn.Tanh())
-        )
+        if config.full_res_skip:
+            self.up.append(
+                nn.Sequential(
+                    nn.ConvTranspose2d(c_in, b, 4, 2, 1, bias=n == "none"), _norm(n, b), nn.ReLU()
+                )  # fmt: skip
+            )
+            self.head = nn.Sequential(
+                nn.Conv2d(b + config.in_channels, config.out_channels, 3, 1, 1), nn.Tanh()
+            )
+        else:
+            self.up.append(
+                nn.Sequential(nn.ConvTranspose2d(c_in, config.out_channels, 4, 2, 1), nn.Tanh())
+            )
+            self.head = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        skips = []
+        inp, skips = x, []
         for layer in self.down:
             x = layer(x)
             skips.append(x)
         skips.pop()  # the bottleneck is not a skip
         for layer in self.up[:-1]:
             x = torch.cat([layer(x), skips.pop()], dim=1)
-        return self.up[-1](x)
+        x = self.up[-1](x)
+        if self.head is not None:
+            x = self.head(torch.cat([x, inp], dim=1))
+        return x
 
 
 class PatchDiscriminator(nn.Module):

@@ -18,6 +18,7 @@ with bit-identical weights to an uninterrupted run on the same machine and threa
 
 from __future__ import annotations
 
+import copy
 import csv
 import json
 import math
@@ -39,6 +40,7 @@ from icbtool.gan.losses import (
     critic_score,
     gradient_penalty,
     l1_loss,
+    ssim_loss,
 )
 from icbtool.gan.models import (
     MULTIPLE,
@@ -80,6 +82,8 @@ class TrainConfig:
         weight_adv: weight of L_a (0: no critic, pure L1 (+ perceptual) regression).
         weight_l1: weight of L_c.
         weight_perceptual: weight of L_p (needs ``vgg19_weights``; 0 turns it off silently).
+        weight_ssim: weight of an SSIM term, 1 - SSIM of output and target in the network's
+            range (our addition: structure without pretrained weights; 0: off).
         vgg19_weights: local torchvision VGG19 state-dict file; None or missing: L_p off + warning.
         hdr_scale, hdr_max: the :class:`~icbtool.gan.hdr.HDRTransform` of DL and GI.
         demodulate: learn the indirect irradiance GI / albedo and multiply the output by the
@@ -90,10 +94,20 @@ class TrainConfig:
         reference_offsets: training draws the reference this many views away (uniformly from
             these, earlier or later along the train path).
         test_reference_offset: the test frames' reference is this many views earlier.
-        train_path, test_path: the camera-path tags of the two splits in the store.
+        train_path, test_path: the camera-path tags of the two splits in the store; several
+            comma-separated tags ("train,cover") train on the records of each.
+        full_res_skip: the generator's last level also sees the input at full resolution
+            (:class:`~icbtool.gan.models.GeneratorConfig`; our addition).
+        lr_schedule: "constant", or "cosine": the learning rate falls from ``lr`` to
+            ``lr * lr_final`` along a half cosine over ``iterations`` (a resume that raises
+            ``iterations`` stretches the rest of the schedule; one with the same ``iterations``
+            is bit-exact).
+        lr_final: the cosine schedule's last learning rate as a fraction of ``lr``.
+        ema: decay of an exponential moving average of the generator's weights, which is then
+            what is evaluated and saved (our addition; 0: off, e.g. 0.999).
         flip: random horizontal flips (paired augmentation).
         eval_every: evaluate (and write a sample) every this many iterations (and at the end).
-        eval_frames: at most this many test frames per evaluation (the first ones).
+        eval_frames: at most this many test frames per evaluation (the first ones; 0: all).
         checkpoint_every: checkpoint every this many iterations (and at the end).
         display_exposure: exposure of the display transform of the metrics (RGB 0-255).
         divergence_limit: a loss whose magnitude exceeds this stops training.
@@ -116,6 +130,7 @@ class TrainConfig:
     weight_adv: float = 1.0
     weight_l1: float = 100.0
     weight_perceptual: float = 1.0
+    weight_ssim: float = 0.0
     vgg19_weights: str | None = None
     hdr_scale: float = 0.25
     hdr_max: float = 64.0
@@ -126,8 +141,12 @@ class TrainConfig:
     train_path: str = "train"
     test_path: str = "test"
     flip: bool = True
+    full_res_skip: bool = False
+    lr_schedule: Literal["constant", "cosine"] = "constant"
+    lr_final: float = 0.05
+    ema: float = 0.0
     eval_every: int = 250
-    eval_frames: int = 8
+    eval_frames: int = 0
     checkpoint_every: int = 250
     display_exposure: float = 1.0
     divergence_limit: float = 1e6
@@ -138,13 +157,13 @@ class TrainConfig:
         resolve_inputs(self.inputs)
         for n in ("iterations", "crop", "base", "batch_size", "n_critic", "eval_every",
                   "eval_frames", "checkpoint_every"):  # fmt: skip
-            v = getattr(self, n)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ValueError(f"TrainConfig.{n} must be an integer >= 1, got {v!r}")
+            v, lo = getattr(self, n), 0 if n == "eval_frames" else 1
+            if not isinstance(v, int) or isinstance(v, bool) or v < lo:
+                raise ValueError(f"TrainConfig.{n} must be an integer >= {lo}, got {v!r}")
         if self.crop % MULTIPLE:
             raise ValueError(f"TrainConfig.crop must be a multiple of {MULTIPLE}, got {self.crop}")
         for n in ("lr", "lambda_gp", "gp_target", "weight_adv", "weight_l1", "weight_perceptual",
-                  "display_exposure", "divergence_limit"):  # fmt: skip
+                  "weight_ssim", "display_exposure", "divergence_limit"):  # fmt: skip
             v = getattr(self, n)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"TrainConfig.{n} must be a finite number >= 0, got {v!r}")
@@ -165,6 +184,14 @@ class TrainConfig:
             raise ValueError(
                 f"TrainConfig.test_reference_offset must be an integer >= 1, got {k!r}"
             )
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(
+                f"TrainConfig.lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}"
+            )
+        for n in ("lr_final", "ema"):
+            v = getattr(self, n)
+            if not (isinstance(v, (int, float)) and 0 <= v < 1) or isinstance(v, bool):
+                raise ValueError(f"TrainConfig.{n} must be a number in [0, 1), got {v!r}")
         if self.device not in ("cpu", "cuda"):
             raise ValueError(f"TrainConfig.device must be 'cpu' or 'cuda', got {self.device!r}")
         GeneratorConfig(1, base=self.base, norm=self.norm)
@@ -225,9 +252,10 @@ class TrainResult:
     Attributes:
         run_dir: the run directory.
         step: iterations done.
-        evals: every evaluation so far (dicts: iteration, ssim, mse, l1).
+        evals: every evaluation so far (dicts: iteration, ssim, mse, l1, seconds, views).
         perceptual: "on: FILE" or "off: REASON".
         seconds: wall time of this call.
+        eval_views: test views each evaluation scores.
     """
 
     run_dir: Path
@@ -235,6 +263,7 @@ class TrainResult:
     evals: list[dict[str, float]]
     perceptual: str
     seconds: float
+    eval_views: int = 0
 
 
 def _device(name: str) -> torch.device:
@@ -254,12 +283,13 @@ def _eval_frames(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """(N, C, h, w) inputs (with the warped reference ``reference_offset`` views earlier when the
     encoding is ``warped``), (N, 3, h, w) linear GI and raw albedo (None without one),
-    centre-cropped to multiples of 32."""
+    centre-cropped to multiples of 32. ``n`` = 0: every frame."""
     h, w = data.height // MULTIPLE * MULTIPLE, data.width // MULTIPLE * MULTIPLE
     if h == 0 or w == 0:
         raise ValueError(
             f"test images ({data.height} x {data.width}) are smaller than {MULTIPLE} pixels"
         )
+    n = len(data) if n == 0 else min(n, len(data))
     t, l = (data.height - h) // 2, (data.width - w) // 2
     crop = (slice(None, n), slice(None), slice(t, t + h), slice(l, l + w))
     albedo = None if data.albedo is None else data.albedo[crop]
@@ -281,7 +311,8 @@ def evaluate(
     ``encoding`` and ``albedo`` ((N, 3, H, W) raw) remodulate a demodulating generator's output.
 
     Returns:
-        (metrics, (H, W, 3) linear prediction of the first frame).
+        (metrics, (H, W, 3) linear prediction of the first frame); metrics hold ``views``, the
+        number of frames scored.
     """
     was = gen.training
     gen.eval()
@@ -299,7 +330,13 @@ def evaluate(
             if first is None:
                 first = pred
     gen.train(was)
-    return {"ssim": float(np.mean(s)), "mse": float(np.mean(m)), "l1": float(np.mean(l1))}, first
+    metrics = {
+        "ssim": float(np.mean(s)),
+        "mse": float(np.mean(m)),
+        "l1": float(np.mean(l1)),
+        "views": len(x),
+    }
+    return metrics, first
 
 
 def _sample_png(path: Path, pred: np.ndarray, truth: np.ndarray, exposure: float) -> None:
@@ -316,13 +353,302 @@ def _scene_key(scene: Any) -> str | None:
 
 def _write_evals(run_dir: Path, evals: list[dict[str, float]]) -> None:
     write_json(run_dir / "evals.json", evals)
-    cols = ["iteration", "ssim", "mse", "l1", "seconds"]
+    cols = ["iteration", "ssim", "mse", "l1", "seconds", "views"]
     tmp = run_dir / "evals.csv.tmp"
     with open(tmp, "w", newline="") as f:
         wr = csv.DictWriter(f, cols, extrasaction="ignore")
         wr.writeheader()
         wr.writerows(evals)
     os.replace(tmp, run_dir / "evals.csv")
+
+
+def learning_rate(config: TrainConfig, step: int) -> float:
+    """The learning rate of update ``step`` (0-based) under ``config.lr_schedule``."""
+    if config.lr_schedule == "constant":
+        return config.lr
+    t = min(step / max(config.iterations, 1), 1.0)
+    f = config.lr_final + (1 - config.lr_final) * 0.5 * (1 + math.cos(math.pi * t))
+    return config.lr * f
+
+
+def _check_resumable(run_dir: Path, config: TrainConfig) -> None:
+    """A run's config may change only in ``iterations`` when resumed."""
+    cfg_path = run_dir / "config.json"
+    if not cfg_path.exists():
+        return
+    old_d = json.loads(cfg_path.read_text())["train_config"]
+    # fields added after a run was started take their defaults
+    old = TrainConfig.from_dict({k: v for k, v in old_d.items() if k in config.to_dict()})
+    if replace(old, iterations=config.iterations) != config:
+        diff = {
+            k: (v, getattr(config, k))
+            for k, v in old.to_dict().items()
+            if k != "iterations" and config.to_dict()[k] != v
+        }
+        raise ValueError(f"cannot resume {run_dir}: config differs (old, new): {diff}")
+
+
+class _Run:
+    """The state of one training run: data, models, optimisers, RNGs, history (pix2pix's model
+    lifecycle: :meth:`critic_step`, :meth:`generator_step`, :meth:`evaluate`, :meth:`save`)."""
+
+    def __init__(self, store: Any, config: TrainConfig, run_dir: Path, scene: Any) -> None:
+        self.config, self.run_dir = config, run_dir
+        self.device = _device(config.device)
+        self.hdr = HDRTransform(config.hdr_scale, config.hdr_max)
+        self.ckpt_path = run_dir / "checkpoints" / "last.pt"
+        self._load_data(store, scene)
+        self._build_models()
+        self.step, self.evals, self.elapsed0, self.saved_step = 0, [], 0.0, 0
+
+    # -- set-up
+    def _load_data(self, store: Any, scene: Any) -> None:
+        c = self.config
+        paths = {"train": c.train_path, "test": c.test_path}
+        inputs = c.input_buffers
+        ds_train = Dataset(store, scene, "train", inputs, paths=paths)
+        ds_test = Dataset(store, scene, "test", inputs, paths=paths)
+        self.enc = InputEncoding.fit(
+            inputs, self.hdr, list(ds_train), demodulate=c.demodulate, warped=c.warped_reference
+        )
+        self.train_data = PairData(ds_train, self.enc)
+        self.test_data = PairData(ds_test, self.enc)
+        self.x_eval, self.gi_eval, self.albedo_eval = _eval_frames(
+            self.test_data, c.eval_frames, c.test_reference_offset
+        )
+        self.sampler = BatchSampler(
+            self.train_data, c.batch_size, c.crop, c.flip, c.seed, c.reference_offsets
+        )
+
+    def _build_models(self) -> None:
+        c, dev = self.config, self.device
+        torch.manual_seed(c.seed)
+        random.seed(c.seed)
+        init_gen = torch.Generator().manual_seed(c.seed)
+        self.gp_gen = torch.Generator().manual_seed(c.seed + 1)
+        self.g_cfg = GeneratorConfig(
+            self.enc.n_channels, 3, c.base, c.norm, full_res_skip=c.full_res_skip
+        )
+        self.d_cfg = DiscriminatorConfig(self.enc.n_channels, 3, c.base, c.critic_norm)
+        self.gen, self.critic = UNetGenerator(self.g_cfg), PatchDiscriminator(self.d_cfg)
+        init_weights(self.gen, init_gen)
+        init_weights(self.critic, init_gen)
+        self.gen.to(dev).train()
+        self.critic.to(dev).train()
+        self.ema = None
+        if c.ema > 0:
+            self.ema = copy.deepcopy(self.gen).eval()
+            for p in self.ema.parameters():
+                p.requires_grad_(False)
+        self.opt_g = torch.optim.Adam(self.gen.parameters(), lr=c.lr, betas=c.betas)
+        self.opt_d = torch.optim.Adam(self.critic.parameters(), lr=c.lr, betas=c.betas)
+        self.perceptual, self.p_status = None, "off: TrainConfig.weight_perceptual is 0"
+        if c.weight_perceptual > 0:
+            self.perceptual, self.p_status = build_perceptual(c.vgg19_weights)
+        if self.perceptual is not None:
+            self.perceptual = self.perceptual.to(dev)
+
+    def restore(self) -> None:
+        """Everything from the last checkpoint (module doc: resuming is bit-exact)."""
+        ck = torch.load(self.ckpt_path, map_location=self.device, weights_only=False)
+        self.gen.load_state_dict(ck["generator"])
+        self.critic.load_state_dict(ck["critic"])
+        if self.ema is not None:
+            self.ema.load_state_dict(ck["generator_ema"])
+        self.opt_g.load_state_dict(ck["opt_g"])
+        self.opt_d.load_state_dict(ck["opt_d"])
+        self.sampler.load_state_dict(ck["sampler"])
+        self.gp_gen.set_state(ck["gp_rng"])
+        torch.set_rng_state(ck["torch_rng"])
+        np.random.set_state(ck["numpy_rng"])  # noqa: NPY002 - global state, saved
+        random.setstate(ck["python_rng"])
+        self.step, self.evals = int(ck["step"]), list(ck["evals"])
+        self.saved_step = self.step
+        last = self.evals[-1]["seconds"] if self.evals else 0.0
+        self.elapsed0 = float(ck.get("elapsed", last))
+
+    def write_config(self, store: Any, scene: Any, tb_status: str) -> None:
+        write_json(
+            self.run_dir / "config.json",
+            {
+                "train_config": self.config.to_dict(),
+                "scene": _scene_key(scene),
+                "store": str(getattr(store, "root", store)),
+                "encoding": self.enc.to_dict(),
+                "generator_config": asdict(self.g_cfg),
+                "critic_config": asdict(self.d_cfg),
+                "perceptual": self.p_status,
+                "tensorboard": tb_status,
+                "train_records": self.train_data.record_ids,
+                "test_records": self.test_data.record_ids,
+                "eval_records": self.test_data.record_ids[: len(self.x_eval)],
+                "run": run_info(),
+            },
+        )
+
+    # -- one iteration
+    def _batch(self) -> tuple[torch.Tensor, torch.Tensor]:
+        xb, yb = self.sampler.next()
+        return torch.from_numpy(xb).to(self.device), torch.from_numpy(yb).to(self.device)
+
+    def critic_step(self) -> tuple[dict[str, float], torch.Tensor, torch.Tensor]:
+        """``n_critic`` WGAN-GP critic updates; returns their losses and the last batch."""
+        c, losses = self.config, {}
+        for _ in range(c.n_critic):
+            x, y = self._batch()
+            with torch.no_grad():
+                fake = self.gen(x)
+            d_real = critic_score(self.critic, x, y).mean()
+            d_fake = critic_score(self.critic, x, fake).mean()
+            gp = gradient_penalty(self.critic, x, y, fake, c.lambda_gp, c.gp_target, self.gp_gen)
+            d_loss = d_fake - d_real + gp
+            self.opt_d.zero_grad(set_to_none=True)
+            d_loss.backward()
+            self.opt_d.step()
+            losses.update(
+                d=float(d_loss.detach()), gp=float(gp.detach()), w=float((d_real - d_fake).detach())
+            )
+        return losses, x, y
+
+    def generator_loss(
+        self, x: torch.Tensor, y: torch.Tensor, losses: dict[str, float]
+    ) -> torch.Tensor:
+        c = self.config
+        fake = self.gen(x)
+        g_l1 = l1_loss(fake, y)
+        g_loss = c.weight_l1 * g_l1
+        if c.weight_adv > 0:
+            g_adv = -critic_score(self.critic, x, fake).mean()
+            g_loss = g_loss + c.weight_adv * g_adv
+            losses["g_adv"] = float(g_adv.detach())
+        if self.perceptual is not None:
+            g_p = self.perceptual(fake, y)
+            g_loss = g_loss + c.weight_perceptual * g_p
+            losses["g_p"] = float(g_p.detach())
+        if c.weight_ssim > 0:
+            g_s = ssim_loss(fake, y)
+            g_loss = g_loss + c.weight_ssim * g_s
+            losses["g_ssim"] = float(g_s.detach())
+        losses.update(g=float(g_loss.detach()), l1=float(g_l1.detach()))
+        return g_loss
+
+    def check_finite(self, losses: dict[str, float]) -> None:
+        limit = self.config.divergence_limit
+        bad = {k: v for k, v in losses.items() if not math.isfinite(v) or abs(v) > limit}
+        if bad:
+            last = (
+                f"{self.ckpt_path} (iteration {self.saved_step})"
+                if self.ckpt_path.exists()
+                else "none (no checkpoint was written yet)"
+            )
+            raise TrainingDivergedError(
+                f"training diverged at iteration {self.step + 1}: losses {bad} are non-finite or "
+                f"beyond divergence_limit={limit:g}. The last good checkpoint is kept: {last}. "
+                "Lower TrainConfig.lr or check the data."
+            )
+
+    def iteration(self) -> dict[str, float]:
+        """One generator update (after ``n_critic`` critic updates when L_a is on)."""
+        c = self.config
+        lr = learning_rate(c, self.step)
+        for opt in (self.opt_g, self.opt_d):
+            for g in opt.param_groups:
+                g["lr"] = lr
+        losses: dict[str, float] = {}
+        if c.weight_adv > 0:
+            losses, x, y = self.critic_step()
+        else:
+            x, y = self._batch()
+        g_loss = self.generator_loss(x, y, losses)
+        self.check_finite(losses)
+        self.opt_g.zero_grad(set_to_none=True)
+        g_loss.backward()
+        self.opt_g.step()
+        if self.ema is not None:
+            self._update_ema()
+        self.step += 1
+        return losses
+
+    @torch.no_grad()
+    def _update_ema(self) -> None:
+        d = self.config.ema
+        for pe, p in zip(self.ema.parameters(), self.gen.parameters()):
+            pe.mul_(d).add_(p.detach(), alpha=1 - d)
+        for be, b in zip(self.ema.buffers(), self.gen.buffers()):
+            be.copy_(b)
+
+    @property
+    def model(self) -> torch.nn.Module:
+        """The generator that is evaluated and saved (the weight average when ``ema`` > 0)."""
+        return self.gen if self.ema is None else self.ema
+
+    # -- evaluation and checkpoints
+    def evaluate(self, t0: float) -> dict[str, float]:
+        c = self.config
+        m, first = evaluate(
+            self.model, self.x_eval, self.gi_eval, self.hdr, c.display_exposure, self.device,
+            self.enc, self.albedo_eval,
+        )  # fmt: skip
+        row = {
+            "iteration": self.step,
+            **m,
+            "seconds": self.elapsed0 + time.perf_counter() - t0,
+        }
+        self.evals.append(row)
+        _write_evals(self.run_dir, self.evals)
+        _sample_png(
+            self.run_dir / "samples" / f"iter_{self.step:06d}.png",
+            first,
+            self.gi_eval[0].transpose(1, 2, 0),
+            c.display_exposure,
+        )
+        return row
+
+    def save(self, t0: float) -> None:
+        """Checkpoint (everything, to resume) and ``generator.pt`` (to generate), atomically."""
+        g_state = self.model.state_dict()
+        ck = {
+            "step": self.step,
+            "generator": self.gen.state_dict(),
+            "critic": self.critic.state_dict(),
+            "opt_g": self.opt_g.state_dict(),
+            "opt_d": self.opt_d.state_dict(),
+            "sampler": self.sampler.state_dict(),
+            "gp_rng": self.gp_gen.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "numpy_rng": np.random.get_state(),  # noqa: NPY002
+            "python_rng": random.getstate(),
+            "evals": self.evals,
+            "elapsed": self.elapsed0 + time.perf_counter() - t0,
+        }
+        if self.ema is not None:
+            ck["generator_ema"] = g_state
+        _atomic_save(ck, self.ckpt_path)
+        _atomic_save(
+            {
+                "step": self.step,
+                "generator": g_state,
+                "generator_config": asdict(self.g_cfg),
+                "encoding": self.enc.to_dict(),
+                "train_config": self.config.to_dict(),
+            },
+            self.run_dir / "generator.pt",
+        )
+        self.saved_step = self.step
+
+
+def _open_tensorboard(run_dir: Path, step: int) -> tuple[Any, str]:
+    """A SummaryWriter continuing at ``step`` (events after the checkpoint are dropped, the
+    checkpoint's own step kept), or None and why not."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(run_dir / "tb"), purge_step=step + 1 if step else None)
+        return writer, f"on: {run_dir / 'tb'}"
+    except Exception as e:  # noqa: BLE001 - tensorboard missing or broken: say so, go on
+        status = f"unavailable: {type(e).__name__}: {e}"
+        print(f"TensorBoard event files are not written ({status}); evals.csv/json are.")
+        return None, status
 
 
 def train(
@@ -347,8 +673,8 @@ def train(
         progress: show a tqdm progress bar with the losses.
         on_step: called after every generator update with the iteration (1-based) and that
             iteration's losses (``g``, ``l1``, and with a critic ``d``, ``gp``, ``w``, ``g_adv``;
-            ``g_p`` with the perceptual term), e.g. to log live loss curves
-            (``gui.train_job`` writes them to ``losses.csv``).
+            ``g_p`` with the perceptual term, ``g_ssim`` with the SSIM term), e.g. to log live
+            loss curves (``gui.train_job`` writes them to ``losses.csv``).
 
     Returns:
         The :class:`TrainResult`.
@@ -359,207 +685,33 @@ def train(
         TrainingDivergedError: a loss became non-finite or exceeded ``divergence_limit``.
     """
     t0 = time.perf_counter()
-    device = _device(config.device)
     run_dir = Path(out_dir)
-    ckpt_dir = run_dir / "checkpoints"
-    ckpt_path = ckpt_dir / "last.pt"
+    ckpt_path = run_dir / "checkpoints" / "last.pt"
     if ckpt_path.exists() and not resume:
         raise ValueError(
             f"{run_dir} already holds a run: resume it (resume=True, --resume) or choose another "
             "output directory"
         )
-    cfg_path = run_dir / "config.json"
-    if resume and ckpt_path.exists() and cfg_path.exists():
-        old = TrainConfig.from_dict(json.loads(cfg_path.read_text())["train_config"])
-        if replace(old, iterations=config.iterations) != config:
-            diff = {
-                k: (v, getattr(config, k))
-                for k, v in old.to_dict().items()
-                if k != "iterations" and config.to_dict()[k] != v
-            }
-            raise ValueError(f"cannot resume {run_dir}: config differs (old, new): {diff}")
-
-    hdr = HDRTransform(config.hdr_scale, config.hdr_max)
-    paths = {"train": config.train_path, "test": config.test_path}
-    inputs = config.input_buffers
-    ds_train = Dataset(store, scene, "train", inputs, paths=paths)
-    ds_test = Dataset(store, scene, "test", inputs, paths=paths)
-    enc = InputEncoding.fit(
-        inputs, hdr, list(ds_train), demodulate=config.demodulate, warped=config.warped_reference
-    )
-    train_data, test_data = PairData(ds_train, enc), PairData(ds_test, enc)
-    x_eval, gi_eval, albedo_eval = _eval_frames(
-        test_data, config.eval_frames, config.test_reference_offset
-    )
-
-    perceptual, p_status = (None, "off: TrainConfig.weight_perceptual is 0")
-    if config.weight_perceptual > 0:
-        perceptual, p_status = build_perceptual(config.vgg19_weights)
-    if perceptual is not None:
-        perceptual = perceptual.to(device)
-
-    # -- models, optimisers, RNGs
-    torch.manual_seed(config.seed)
-    random.seed(config.seed)
-    init_gen = torch.Generator().manual_seed(config.seed)
-    gp_gen = torch.Generator().manual_seed(config.seed + 1)
-    g_cfg = GeneratorConfig(enc.n_channels, 3, config.base, config.norm)
-    d_cfg = DiscriminatorConfig(enc.n_channels, 3, config.base, config.critic_norm)
-    gen, critic = UNetGenerator(g_cfg), PatchDiscriminator(d_cfg)
-    init_weights(gen, init_gen)
-    init_weights(critic, init_gen)
-    gen.to(device).train()
-    critic.to(device).train()
-    opt_g = torch.optim.Adam(gen.parameters(), lr=config.lr, betas=config.betas)
-    opt_d = torch.optim.Adam(critic.parameters(), lr=config.lr, betas=config.betas)
-    sampler = BatchSampler(
-        train_data,
-        config.batch_size,
-        config.crop,
-        config.flip,
-        config.seed,
-        config.reference_offsets,
-    )
-    step, evals = 0, []
     if resume and ckpt_path.exists():
-        ck = torch.load(ckpt_path, map_location=device, weights_only=False)
-        gen.load_state_dict(ck["generator"])
-        critic.load_state_dict(ck["critic"])
-        opt_g.load_state_dict(ck["opt_g"])
-        opt_d.load_state_dict(ck["opt_d"])
-        sampler.load_state_dict(ck["sampler"])
-        gp_gen.set_state(ck["gp_rng"])
-        torch.set_rng_state(ck["torch_rng"])
-        np.random.set_state(ck["numpy_rng"])  # noqa: NPY002 - global state, saved
-        random.setstate(ck["python_rng"])
-        step, evals = int(ck["step"]), list(ck["evals"])
-    saved_step = step
-
-    # -- run directory, config, TensorBoard
+        _check_resumable(run_dir, config)
+    run = _Run(store, config, run_dir, scene)
+    if resume and ckpt_path.exists():
+        run.restore()
     (run_dir / "samples").mkdir(parents=True, exist_ok=True)
-    ckpt_dir.mkdir(exist_ok=True)
-    writer, tb_status = None, "off"
-    try:
-        from torch.utils.tensorboard import SummaryWriter
-
-        writer = SummaryWriter(str(run_dir / "tb"), purge_step=step or None)
-        tb_status = f"on: {run_dir / 'tb'}"
-    except Exception as e:  # noqa: BLE001 - tensorboard missing or broken: say so, go on
-        tb_status = f"unavailable: {type(e).__name__}: {e}"
-        print(f"TensorBoard event files are not written ({tb_status}); evals.csv/json are.")
-    write_json(
-        cfg_path,
-        {
-            "train_config": config.to_dict(),
-            "scene": _scene_key(scene),
-            "store": str(getattr(store, "root", store)),
-            "encoding": enc.to_dict(),
-            "generator_config": asdict(g_cfg),
-            "critic_config": asdict(d_cfg),
-            "perceptual": p_status,
-            "tensorboard": tb_status,
-            "train_records": train_data.record_ids,
-            "test_records": test_data.record_ids,
-            "eval_records": test_data.record_ids[: len(x_eval)],
-            "run": run_info(),
-        },
-    )
-
-    def save_checkpoint() -> None:
-        nonlocal saved_step
-        _atomic_save(
-            {
-                "step": step,
-                "generator": gen.state_dict(),
-                "critic": critic.state_dict(),
-                "opt_g": opt_g.state_dict(),
-                "opt_d": opt_d.state_dict(),
-                "sampler": sampler.state_dict(),
-                "gp_rng": gp_gen.get_state(),
-                "torch_rng": torch.get_rng_state(),
-                "numpy_rng": np.random.get_state(),  # noqa: NPY002
-                "python_rng": random.getstate(),
-                "evals": evals,
-            },
-            ckpt_path,
-        )
-        _atomic_save(
-            {
-                "step": step,
-                "generator": gen.state_dict(),
-                "generator_config": asdict(g_cfg),
-                "encoding": enc.to_dict(),
-                "train_config": config.to_dict(),
-            },
-            run_dir / "generator.pt",
-        )
-        saved_step = step
-
-    def to_t(a: np.ndarray) -> torch.Tensor:
-        return torch.from_numpy(a).to(device)
+    ckpt_path.parent.mkdir(exist_ok=True)
+    writer, tb_status = _open_tensorboard(run_dir, run.step)
+    run.write_config(store, scene, tb_status)
+    n_views = len(run.x_eval)
 
     from tqdm import tqdm
 
-    bar = tqdm(total=config.iterations, initial=step, disable=not progress, desc="gan", unit="it")
+    bar = tqdm(
+        total=config.iterations, initial=run.step, disable=not progress, desc="gan", unit="it"
+    )
     try:
-        while step < config.iterations:
-            losses: dict[str, float] = {}
-            x = y = None
-            if config.weight_adv > 0:
-                for _ in range(config.n_critic):
-                    xb, yb = sampler.next()
-                    x, y = to_t(xb), to_t(yb)
-                    with torch.no_grad():
-                        fake = gen(x)
-                    d_real = critic_score(critic, x, y).mean()
-                    d_fake = critic_score(critic, x, fake).mean()
-                    gp = gradient_penalty(
-                        critic, x, y, fake, config.lambda_gp, config.gp_target, gp_gen
-                    )
-                    d_loss = d_fake - d_real + gp
-                    opt_d.zero_grad(set_to_none=True)
-                    d_loss.backward()
-                    opt_d.step()
-                    losses.update(
-                        d=float(d_loss.detach()),
-                        gp=float(gp.detach()),
-                        w=float((d_real - d_fake).detach()),
-                    )
-            if x is None:
-                xb, yb = sampler.next()
-                x, y = to_t(xb), to_t(yb)
-            fake = gen(x)
-            g_l1 = l1_loss(fake, y)
-            g_loss = config.weight_l1 * g_l1
-            if config.weight_adv > 0:
-                g_adv = -critic_score(critic, x, fake).mean()
-                g_loss = g_loss + config.weight_adv * g_adv
-                losses["g_adv"] = float(g_adv.detach())
-            if perceptual is not None:
-                g_p = perceptual(fake, y)
-                g_loss = g_loss + config.weight_perceptual * g_p
-                losses["g_p"] = float(g_p.detach())
-            losses.update(g=float(g_loss.detach()), l1=float(g_l1.detach()))
-            bad = {
-                k: v
-                for k, v in losses.items()
-                if not math.isfinite(v) or abs(v) > config.divergence_limit
-            }
-            if bad:
-                last = (
-                    f"{ckpt_path} (iteration {saved_step})"
-                    if ckpt_path.exists()
-                    else "none (no checkpoint was written yet)"
-                )
-                raise TrainingDivergedError(
-                    f"training diverged at iteration {step + 1}: losses {bad} are non-finite or "
-                    f"beyond divergence_limit={config.divergence_limit:g}. The last good "
-                    f"checkpoint is kept: {last}. Lower TrainConfig.lr or check the data."
-                )
-            opt_g.zero_grad(set_to_none=True)
-            g_loss.backward()
-            opt_g.step()
-            step += 1
+        while run.step < config.iterations:
+            losses = run.iteration()
+            step = run.step
             bar.update(1)
             if on_step is not None:
                 on_step(step, dict(losses))
@@ -568,31 +720,32 @@ def train(
                 for k, v in losses.items():
                     writer.add_scalar(f"loss/{k}", v, step)
             if step % config.eval_every == 0 or step == config.iterations:
-                m, first = evaluate(
-                    gen, x_eval, gi_eval, hdr, config.display_exposure, device, enc, albedo_eval
-                )
-                row = {"iteration": step, **m, "seconds": time.perf_counter() - t0}
-                evals.append(row)
-                _write_evals(run_dir, evals)
-                _sample_png(
-                    run_dir / "samples" / f"iter_{step:06d}.png",
-                    first,
-                    gi_eval[0].transpose(1, 2, 0),
-                    config.display_exposure,
-                )
+                row = run.evaluate(t0)
                 if writer is not None:
-                    for k, v in m.items():
-                        writer.add_scalar(f"test/{k}", v, step)
-                bar.write(f"iteration {step}: test SSIM {m['ssim']:.4f}  MSE {m['mse']:.2f}")
+                    for k in ("ssim", "mse", "l1"):
+                        writer.add_scalar(f"test/{k}", row[k], step)
+                bar.write(
+                    f"iteration {step}: test SSIM {row['ssim']:.4f}  MSE {row['mse']:.2f} "
+                    f"(mean of {n_views} test views)"
+                )
             if step % config.checkpoint_every == 0 or step == config.iterations:
-                save_checkpoint()
+                run.save(t0)
     finally:
         bar.close()
         if writer is not None:
             writer.close()
-    if evals:
-        _write_evals(run_dir, evals)
-    return TrainResult(run_dir, step, evals, p_status, time.perf_counter() - t0)
+    if run.evals:
+        _write_evals(run_dir, run.evals)
+    return TrainResult(
+        run_dir, run.step, run.evals, run.p_status, time.perf_counter() - t0, n_views
+    )
 
 
-__all__ = ["TrainConfig", "TrainResult", "TrainingDivergedError", "evaluate", "train"]
+__all__ = [
+    "TrainConfig",
+    "TrainResult",
+    "TrainingDivergedError",
+    "evaluate",
+    "learning_rate",
+    "train",
+]

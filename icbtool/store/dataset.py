@@ -57,7 +57,8 @@ class Dataset:
         inputs: buffer names, or a configuration letter "A".."J" (:data:`INPUT_CONFIGS`).
         target: the target buffer (default "gi").
         split_by: "path" (records tagged with the train / test path names) or "random".
-        paths: the path names of the two splits for ``split_by="path"``.
+        paths: the path names of the two splits for ``split_by="path"``; a comma-separated value
+            ("train,cover") takes the records of several paths, path by path in that order.
         test_fraction: fraction of records in the test split for ``split_by="random"``.
         seed: seed of the random split.
         cache: keep decoded records in memory.
@@ -110,9 +111,11 @@ class Dataset:
 
         infos = [i for i in store if wanted(i)]
         if split_by == "path":
-            name = paths[split]
-            chosen = [i for i in infos if i.meta.tags.get("path") == name]
-            chosen.sort(key=lambda i: (i.meta.tags.get("index", 0), i.record_id))
+            names = [n.strip() for n in paths[split].split(",")]
+            chosen = [i for i in infos if i.meta.tags.get("path") in names]
+            chosen.sort(
+                key=lambda i: (names.index(i.meta.tags["path"]), i.meta.tags.get("index", 0), i.record_id)
+            )
         else:
             ids = sorted(i.record_id for i in infos)
             perm = np.random.default_rng(seed).permutation(len(ids))
