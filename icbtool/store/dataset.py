@@ -114,7 +114,11 @@ class Dataset:
             names = [n.strip() for n in paths[split].split(",")]
             chosen = [i for i in infos if i.meta.tags.get("path") in names]
             chosen.sort(
-                key=lambda i: (names.index(i.meta.tags["path"]), i.meta.tags.get("index", 0), i.record_id)
+                key=lambda i: (
+                    names.index(i.meta.tags["path"]),
+                    i.meta.tags.get("index", 0),
+                    i.record_id,
+                )
             )
         else:
             ids = sorted(i.record_id for i in infos)
