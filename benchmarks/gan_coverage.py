@@ -55,6 +55,14 @@ def main() -> None:
     ap.add_argument("--eval-paths", default="test,walk")
     ap.add_argument("--no-denoise", action="store_true")
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument(
+        "--phase",
+        choices=("all", "plan", "bake", "measure"),
+        default="all",
+        help="plan: choose the views (store opened read-only) and save them to "
+        "OUT/coverage_plan.npz; bake: bake the first --views of a saved plan; measure: the "
+        "coverage of the evaluation paths; all: the three",
+    )
     args = ap.parse_args()
     if not args.store:
         ap.error("--store (or ICBTOOL_GAN_STORE) is required")
@@ -68,31 +76,65 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     scene = icb.scene.load(args.scene)
     load0 = os.getloadavg()[0]
-    with icb.store.Store(args.store) as store:
+    plan_file = out / "coverage_plan.npz"
+    ro = icb.store.StoreConfig(readonly=True, create=False)
+    with icb.store.open(args.store, ro) as store:
         train_pts = store_points(store, [args.train_path], scene, stride=2)
-        first = next(iter(icb.store.dataset.Dataset(
+        first = next(iter(icb.store.Dataset(
             store, scene, "train", ("position",), paths={"train": args.train_path}
-        )))
+        )))  # fmt: skip
         h, w = first.mask.shape[1:]
-        intr = scene.paths[args.train_path].intrinsics.resized(h, w)
+    intr = scene.paths[args.train_path].intrinsics.resized(h, w)
+    if args.phase in ("all", "plan"):
         t0 = time.perf_counter()
         plan = plan_coverage(
             scene, args.views, intr, covered=train_pts, radius=args.radius, name=args.cover_path
         )
         t_plan = time.perf_counter() - t0
+        np.savez(
+            plan_file,
+            world_from_cam=plan.path.world_from_cam,
+            gain=plan.gain,
+            before=plan.uncovered_before,
+            after=plan.uncovered_after,
+            candidates=plan.candidates,
+            seconds=t_plan,
+        )
         print(
             f"plan: {plan.candidates} candidates, uncovered {100 * plan.uncovered_before:.1f} % -> "
-            f"{100 * plan.uncovered_after:.1f} % in {t_plan:.0f} s"
+            f"{100 * plan.uncovered_after:.1f} % in {t_plan:.0f} s -> {plan_file}"
         )
-        t0 = time.perf_counter()
-        rep = bake(
-            scene,
-            plan.path,
-            store,
-            BakeConfig(spp=args.spp, seed=args.seed, denoise=not args.no_denoise,
-                       resolution=(h, w)),  # fmt: skip
+        if args.phase == "plan":
+            return
+    saved = np.load(plan_file)
+    # the plan is greedy: its first n views are the best n-view plan
+    poses = saved["world_from_cam"][: args.views]
+    bake_file = out / "coverage_bake.json"
+    if args.phase in ("all", "bake"):
+        path = icb.camera.CameraPath(
+            np.arange(len(poses)) / 30.0, poses, intr, name=args.cover_path
         )
-        t_bake = time.perf_counter() - t0
+        cfg = BakeConfig(
+            spp=args.spp, seed=args.seed, denoise=not args.no_denoise, resolution=(h, w)
+        )
+        with icb.store.open(args.store) as store:
+            t0 = time.perf_counter()
+            rep = bake(scene, path, store, cfg)
+            write_json(
+                bake_file,
+                {
+                    "views": len(poses),
+                    "rendered": len(rep.rendered),
+                    "seconds": time.perf_counter() - t0,
+                    "spp": args.spp,
+                    "denoise": not args.no_denoise,
+                    "load_1min": [load0, os.getloadavg()[0]],
+                },
+            )
+        if args.phase == "bake":
+            return
+    baked = json.loads(bake_file.read_text())
+    with icb.store.open(args.store, ro) as store:
         cover_pts = store_points(store, [args.cover_path], scene, stride=2)
         both = np.concatenate([train_pts, cover_pts])
         cov = {}
@@ -101,19 +143,16 @@ def main() -> None:
                 "train": view_coverage(store, scene, p, train_pts),
                 "train+cover": view_coverage(store, scene, p, both),
             }
-    summary = {
-        p: {k: float(np.median(v)) for k, v in d.items()} for p, d in cov.items()
-    }
+    summary = {p: {k: float(np.median(v)) for k, v in d.items()} for p, d in cov.items()}
     result = {
-        "candidates": plan.candidates,
-        "views": args.views,
+        "candidates": int(saved["candidates"]),
+        "views": len(poses),
         "radius": args.radius,
-        "uncovered_before": plan.uncovered_before,
-        "uncovered_after": plan.uncovered_after,
-        "gain": plan.gain.tolist(),
-        "plan_seconds": t_plan,
-        "bake_seconds": t_bake,
-        "bake_rendered": len(rep.rendered) if hasattr(rep, "rendered") else None,
+        "uncovered_before": float(saved["before"]),
+        "uncovered_after": float(saved["after"]),
+        "gain": saved["gain"].tolist(),
+        "plan_seconds": float(saved["seconds"]),
+        "bake": baked,
         "coverage_per_view": cov,
         "median_coverage": summary,
         "load_1min": [load0, os.getloadavg()[0]],
@@ -128,7 +167,7 @@ def main() -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
-    ax[0].plot(100 * plan.gain)
+    ax[0].plot(100 * saved["gain"])
     ax[0].set(xlabel="chosen view", ylabel="% of its pixels newly covered", title="greedy plan")
     for p, d in cov.items():
         for k, v in d.items():

@@ -721,3 +721,62 @@ def test_training_on_several_paths_takes_each_paths_records(tmp_path):
         assert len(ds) == 3
         tags = [st.get(r).meta.tags["path"] for r in ds.record_ids]
         assert tags == ["train", "train", "cover"]
+
+
+# ------------------------------------------------------------------------------ baselines
+def test_albedo_scale_and_constant_are_the_least_squares_fits():
+    from icbtool.gan.baselines import AlbedoScaledGI, ConstantGI
+
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0.1, 0.9, (3, 3, 8, 8)).astype(np.float32)
+    k_true = np.array([0.3, 0.5, 0.7], np.float32)
+    gi = a * k_true[None, :, None, None]
+    mask = np.ones((3, 1, 8, 8), np.float32)
+    mask[0, 0, :4] = 0  # background pixels do not count
+    gi[0, :, :4] = 100.0
+    fit = AlbedoScaledGI.fit(a, gi, mask)
+    np.testing.assert_allclose(fit.k, k_true, rtol=1e-5)
+    const = ConstantGI.fit(a, gi, mask)
+    m = mask[:, 0] > 0.5
+    np.testing.assert_allclose(const.colour, gi.transpose(0, 2, 3, 1)[m].mean(0), rtol=1e-5)
+    rec = {"albedo": a[1].transpose(1, 2, 0), "mask": np.ones((8, 8, 1), np.float32)}
+    np.testing.assert_allclose(fit.generate(rec), gi[1].transpose(1, 2, 0), rtol=1e-5)
+    rec["mask"][0, 0] = 0
+    assert np.all(const.generate(rec)[0, 0] == 0)
+    with pytest.raises(ValueError, match="no surface pixels"):
+        AlbedoScaledGI.fit(a, gi, np.zeros_like(mask))
+
+
+def test_nearest_irradiance_reproduces_a_function_of_position_and_keeps_wall_sides_apart():
+    from icbtool.gan.baselines import NearestIrradiance
+
+    rng = np.random.default_rng(1)
+    p = rng.uniform(0, 1, (2000, 3))
+    p = np.concatenate([p, p])  # the two sides of a wall share positions
+    n = np.tile([0.0, 0.0, 1.0], (4000, 1))
+    n[2000:] *= -1
+    e = np.where(n[:, 2:] > 0, 0.2, 0.8) * np.ones((1, 3))
+    nn = NearestIrradiance(p, n, e, np.array([[0, 0, 0], [1, 1, 1.0]]), k=4, normal_weight=0.5)
+    q = rng.uniform(0, 1, (16, 16, 3)).astype(np.float32)
+    qn = np.tile(np.float32([0, 0, 1]), (16, 16, 1))
+    qn[:8] *= -1
+    albedo = np.full((16, 16, 3), 0.5, np.float32)
+    out = nn.generate({"albedo": albedo, "position": q, "normal_world": qn})
+    expect = np.where(qn[..., 2:] > 0, 0.2, 0.8) * albedo
+    np.testing.assert_allclose(out, expect, rtol=1e-6)
+
+
+def test_equal_quality_interpolates_in_log_cost_and_says_when_there_is_no_equal_point():
+    from icbtool.gan.baselines import equal_quality
+
+    costs, q = [10.0, 100.0, 1000.0], [0.5, 0.7, 0.9]
+    r = equal_quality(costs, q, 0.6)  # halfway in log cost between 10 and 100
+    assert r.status == "interpolated" and r.cost == pytest.approx(10**1.5)
+    assert equal_quality(costs, q, 0.7).cost == pytest.approx(100.0)
+    above = equal_quality(costs, q, 0.4)
+    assert above.status == "above" and above.cost is None and above.cheapest == (10.0, 0.5)
+    assert equal_quality(costs, q, 0.95).status == "below"
+    # a slower setting that scores lower is never chosen (monotone envelope)
+    assert equal_quality([10, 50, 100], [0.5, 0.95, 0.7], 0.9).cost < 50
+    with pytest.raises(ValueError, match="costs"):
+        equal_quality([0.0, 1.0], [0.1, 0.2], 0.15)
