@@ -647,26 +647,53 @@ def block_gan_time_error(results: Path) -> str:
     d = load("gan/time_error.json", results)
     e = d["summary"]["equal_ssim"]
     sizes = d["summary"]["generator_ms_by_size"]
-    tr = e["tracer"]
+    targets = e["target_speedup"]
+    if not isinstance(targets, dict):  # results written before the equal-quality rule
+        targets = {"raw": targets, "denoised": targets}
 
     def speed(kind: str) -> str:
-        t = tr[kind]
+        from icbtool.gan.baselines import equal_quality
+
+        pts = d["summary"]["tracer"][kind]
+        # recomputed from the measured curve (results written before the equal-quality rule
+        # took the cheapest point whenever it was already better)
+        eq = equal_quality([p["ms"] for p in pts], [p["ssim"] for p in pts], e["ssim"])
+        t = {
+            "tracer_ms": eq.cost,
+            "status": eq.status,
+            "cheapest": {"ms": eq.cheapest[0], "ssim": eq.cheapest[1]},
+            "speedup": None if eq.cost is None else eq.cost / e["ms"],
+        }
+        status = t["status"]
+        if status == "above":
+            c = t["cheapest"]
+            return (
+                f"{kind}: no equal point, its cheapest setting ({c['ms']:.0f} ms) already scores "
+                f"{c['ssim']:.3f}"
+            )
         if t["tracer_ms"] is None:
             return f"{kind}: never reaches it in the measured spp"
-        return f"{kind}: {t['tracer_ms']:.0f} ms, {t['speedup']:.0f}x"
+        ok = "met" if t["speedup"] >= targets[kind] else "NOT met"
+        return (
+            f"{kind}: {t['tracer_ms']:.0f} ms ({status}), {t['speedup']:.0f}x "
+            f"(target {targets[kind]}x: {ok})"
+        )
 
     size_txt = "; ".join(
         f"{side}: torch {v['torch_1t']:.0f} / {v['torch_2t']:.0f} ms, onnxruntime "
         f"{v['onnxruntime_1t']:.0f} / {v['onnxruntime_2t']:.0f} ms"
         for side, v in sizes.items()
     )
-    met = any(tr[k]["speedup"] is not None and tr[k]["speedup"] >= e["target_speedup"] for k in tr)
+    load_txt = ""
+    if "load_1min" in d:
+        load_txt = f" 1-minute load {d['load_1min'][0]:.1f} at the start."
     return (
         "**Generator against path tracer** (`benchmarks/gan_time_error.py`, Sponza test frames at "
-        f"the store's size, run {Path(d['run']).name}):\nthe generator ({e['generator']}) takes "
-        f"{e['ms']:.1f} ms for SSIM {e['ssim']:.3f}; the path tracer needs for the same SSIM "
-        f"{speed('raw')}; {speed('denoised')}\n(target {e['target_speedup']}x: "
-        f"{'met' if met else 'NOT met'}). Generator alone (1 / 2 threads), by size: {size_txt}.\n"
+        f"the store's size, run {Path(d['run']).name}; equal SSIM found on the tracer's measured "
+        f"curve):\nthe generator ({e['generator']}) takes "
+        f"{e['ms']:.1f} ms for SSIM {e['ssim']:.3f}; the path tracer at that SSIM: "
+        f"{speed('raw')}; {speed('denoised')}.\nGenerator alone (1 / 2 threads), by size: "
+        f"{size_txt}.{load_txt}\n"
     )
 
 

@@ -1,0 +1,187 @@
+"""What limits learned GI: the recipe, and one change at a time (issue 17's ablation).
+
+The recipe (``RECIPE``, the ``cpu`` preset's training): configuration J (albedo, DL, world
+normals, world positions), demodulated targets, the full-resolution skip, width 16, L1 + SSIM loss without
+the critic, cosine learning rate, weight averaging, 64-pixel crops in batches of 8, trained on the
+train path plus the coverage views (``train,cover``: benchmarks/gan_coverage.py). Each variant
+changes exactly one thing. Runs train round-robin in chunks (resumable: a rerun continues), then
+every run is scored on ALL views of the test path and of the held-out walk.
+
+    ICBTOOL_GL_BACKEND=osmesa ICBTOOL_GAN_STORE=STORE .venv/bin/python benchmarks/gan_ablation.py \\
+        --runs /work/runs/ablation --iterations 3000
+
+Writes benchmarks/results/gan/ablation.json, ablation.csv, ablation.png (test SSIM against
+iterations, one curve per variant) and ablation_config.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+OUT = REPO / "benchmarks" / "results" / "gan"
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+#: The recipe's TrainConfig fields (over the ``cpu`` preset).
+RECIPE = dict(
+    inputs="J",
+    demodulate=True,
+    full_res_skip=True,
+    weight_adv=0.0,
+    weight_l1=100.0,
+    weight_ssim=20.0,
+    weight_perceptual=0.0,
+    lr=2e-4,
+    lr_schedule="cosine",
+    ema=0.999,
+    crop=64,
+    batch_size=8,
+    base=16,
+    hdr_scale=0.05,
+    hdr_max=4.0,
+    train_path="train,cover",
+)
+
+#: name -> (what changes, the fields that change)
+VARIANTS: dict[str, tuple[str, dict]] = {
+    "recipe": ("the recipe", {}),
+    "no cover": ("train path only (no coverage views)", {"train_path": "train"}),
+    "no demodulation": ("targets are GI, not GI / albedo", {"demodulate": False}),
+    "no full-res skip": ("the paper's U-Net (no full-resolution skip)", {"full_res_skip": False}),
+    "no SSIM term": ("L1 alone", {"weight_ssim": 0.0}),
+    "paper loss": (
+        "L_a + L_c (WGAN-GP critic, weights 1 / 1)",
+        {"weight_adv": 1.0, "weight_l1": 1.0, "weight_ssim": 0.0},
+    ),  # fmt: skip
+    "constant lr": ("no cosine schedule", {"lr_schedule": "constant"}),
+    "no averaging": ("no weight averaging", {"ema": 0.0}),
+    "crop 128": (
+        "whole 128 x 128 images (no crop augmentation), batch 2",
+        {"crop": 128, "batch_size": 2},
+    ),  # fmt: skip
+    "base 32": ("twice the width (the cpu preset before)", {"base": 32}),
+    "input I": ("configuration I (depth instead of position)", {"inputs": "I"}),
+}
+
+
+def config(name: str, iterations: int, chunk: int):
+    from icbtool import gan
+
+    fields = {**RECIPE, **VARIANTS[name][1]}
+    return gan.TrainConfig.preset(
+        "cpu", iterations=iterations, eval_every=chunk, checkpoint_every=chunk, **fields
+    )
+
+
+def score(store, scene, run: Path, paths: list[str], exposure: float) -> dict:
+    """Mean SSIM / MSE of a run's generator over every view of each path."""
+    from icbtool import gan, metrics
+    from icbtool.store.dataset import Dataset
+
+    g = gan.Generator.load(run)
+    out = {}
+    for p in paths:
+        ids = Dataset(store, scene, "test", g.inputs, paths={"test": p}).record_ids
+        s, m = [], []
+        for rid in ids:
+            rec = store.get(rid)
+            pred = g.generate(rec)
+            s.append(metrics.ssim(pred, rec.gi, exposure))
+            m.append(metrics.mse(pred, rec.gi, exposure))
+        out[p] = {"views": len(ids), "ssim": float(np.mean(s)), "mse": float(np.mean(m))}
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--store", default=os.environ.get("ICBTOOL_GAN_STORE"))
+    ap.add_argument("--scene", default="sponza")
+    ap.add_argument("--runs", default="/work/runs/ablation")
+    ap.add_argument("--iterations", type=int, default=3000)
+    ap.add_argument("--chunk", type=int, default=500)
+    ap.add_argument("--only", nargs="*", default=None, help="variant names (default: all)")
+    ap.add_argument("--eval-paths", default="test,walk")
+    ap.add_argument("--score-only", action="store_true", help="no training, score what exists")
+    ap.add_argument("--out", default=str(OUT))
+    args = ap.parse_args()
+    if not args.store:
+        ap.error("--store (or ICBTOOL_GAN_STORE) is required")
+
+    from gan_figure7 import curves, train_round_robin
+
+    import icbtool.store as S
+    from icbtool.provenance import run_info, write_json
+
+    names = args.only or list(VARIANTS)
+    bad = sorted(set(names) - set(VARIANTS))
+    if bad:
+        ap.error(f"unknown variants {bad}; choose from {list(VARIANTS)}")
+    runs = Path(args.runs)
+    load0 = os.getloadavg()[0]
+    jobs = {
+        n: (args.store, config(n, args.iterations, args.chunk), runs / n.replace(" ", "_"))
+        for n in names
+    }
+    if not args.score_only:
+        train_round_robin(jobs, args.iterations, args.chunk, args.scene)
+    ro = S.StoreConfig(readonly=True, record_hits=False)
+    res: dict = {"recipe": RECIPE, "variants": {}}
+    paths = [p for p in args.eval_paths.split(",") if p]
+    with S.open(args.store, ro) as store:
+        for n, (_, cfg, run) in jobs.items():
+            if not (run / "generator.pt").exists():
+                continue
+            cv = curves(run.parent, [run.name]).get(run.name, {})
+            res["variants"][n] = {
+                "change": VARIANTS[n][0],
+                "iteration": cv["iteration"][-1] if cv else None,
+                "seconds": _seconds(run),
+                "curve": cv,
+                **score(store, args.scene, run, paths, cfg.display_exposure),
+            }
+            v = res["variants"][n]
+            print(f"{n:18s} " + "  ".join(f"{p} {v[p]['ssim']:.3f}" for p in paths))
+    res["load_1min"] = [load0, os.getloadavg()[0]]
+    out = Path(args.out)
+    write_json(out / "ablation.json", res)
+    write_json(out / "ablation_config.json", {"args": vars(args), "run": run_info()})
+    with open(out / "ablation.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["variant", "change", "iteration", *[f"{p}_{k}" for p in paths
+                                                         for k in ("ssim", "mse")]])  # fmt: skip
+        for n, v in res["variants"].items():
+            w.writerow([n, v["change"], v["iteration"],
+                        *[f"{v[p][k]:.4f}" for p in paths for k in ("ssim", "mse")]])  # fmt: skip
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for n, v in res["variants"].items():
+        if v["curve"]:
+            ax.plot(v["curve"]["iteration"], v["curve"]["ssim"], label=n, marker=".")
+    ax.set(xlabel="iteration", ylabel="test SSIM (every test view)", title="ablation")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "ablation.png", dpi=110)
+
+
+def _seconds(run: Path) -> float | None:
+    import json
+
+    p = run / "evals.json"
+    if not p.exists():
+        return None
+    ev = json.loads(p.read_text())
+    return float(ev[-1]["seconds"]) if ev else None
+
+
+if __name__ == "__main__":
+    main()
