@@ -1,11 +1,11 @@
 """What limits learned GI: the recipe, and one change at a time (issue 17's ablation).
 
 The recipe (``RECIPE``, the ``cpu`` preset's training): configuration J (albedo, DL, world
-normals, world positions), demodulated targets, the full-resolution skip, width 16, L1 + SSIM loss without
-the critic, cosine learning rate, weight averaging, 64-pixel crops in batches of 8, trained on the
-train path plus the coverage views (``train,cover``: benchmarks/gan_coverage.py). Each variant
-changes exactly one thing. Runs train round-robin in chunks (resumable: a rerun continues), then
-every run is scored on ALL views of the test path and of the held-out walk.
+normals, world positions), demodulated targets, the full-resolution skip, width 16, L1 + SSIM
+loss without the critic, cosine learning rate, weight averaging, 64-pixel crops in batches of 8,
+trained on the train path plus the coverage views (``train,cover``: benchmarks/gan_coverage.py).
+Each variant changes exactly one thing. Runs train round-robin in chunks (resumable: a rerun
+continues), then every run is scored on ALL views of the test path and of the held-out walk.
 
     ICBTOOL_GL_BACKEND=osmesa ICBTOOL_GAN_STORE=STORE .venv/bin/python benchmarks/gan_ablation.py \\
         --runs /work/runs/ablation --iterations 3000

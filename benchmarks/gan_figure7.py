@@ -56,11 +56,12 @@ def add_training_arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def train_config(args: argparse.Namespace, inputs: str, **overrides):
-    """The ``cpu`` preset with the settings of :func:`add_training_arguments` (one chunk)."""
+    """The ``paper-cpu`` preset (the paper's design at CPU size) with the settings of
+    :func:`add_training_arguments` (one chunk)."""
     from icbtool import gan
 
     return gan.TrainConfig.preset(
-        "cpu",
+        "paper-cpu",
         inputs=inputs,
         iterations=args.chunk,
         crop=args.crop,

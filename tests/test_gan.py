@@ -78,7 +78,7 @@ def store(tmp_path):
 def tiny(**kw) -> T.TrainConfig:
     base = dict(crop=32, base=4, batch_size=2, iterations=4, eval_every=2, checkpoint_every=2)
     base["weight_perceptual"] = 0.0  # no VGG here (its own test checks the warning)
-    return T.TrainConfig.preset("cpu", **{**base, **kw})
+    return T.TrainConfig.preset("paper-cpu", **{**base, **kw})
 
 
 # ------------------------------------------------------------------------------ lazy import
@@ -327,8 +327,11 @@ def test_config_validation_and_presets():
     p = T.TrainConfig.preset("paper")
     assert (p.crop, p.base, p.iterations, p.lr, p.batch_size) == (256, 64, 20000, 1e-4, 4)
     assert p.vgg19_weights is not None
-    c = T.TrainConfig.preset("cpu")
-    assert (c.crop, c.base, c.device) == (128, 32, "cpu")
+    c = T.TrainConfig.preset("paper-cpu")
+    assert (c.crop, c.base, c.device, c.inputs, c.weight_adv) == (128, 32, "cpu", "I", 1.0)
+    r = T.TrainConfig.preset("cpu")  # the measured recipe (docs/gan.md)
+    assert (r.crop, r.base, r.inputs, r.demodulate, r.full_res_skip) == (64, 16, "J", True, True)
+    assert (r.weight_adv, r.weight_ssim, r.lr_schedule, r.ema) == (0.0, 20.0, "cosine", 0.999)
     with pytest.raises(ValueError, match="multiple of 32"):
         T.TrainConfig(crop=100)
     with pytest.raises(ValueError, match="unknown TrainConfig field"):

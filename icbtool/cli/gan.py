@@ -19,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("store", help="store directory (baked with `icbtool bake`)")
     p.add_argument("--scene", default=None, help="scene name or hash in the store (default: all)")
     p.add_argument("--inputs", default="I", help="configuration A..J or comma-separated buffers")
-    p.add_argument("--preset", choices=("cpu", "paper"), default="cpu")
+    p.add_argument("--preset", choices=("cpu", "paper-cpu", "paper"), default="cpu")
     p.add_argument("--out", required=True, help="run directory (e.g. runs/sponza_I)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--iterations", type=int, default=None, help="override the preset's")

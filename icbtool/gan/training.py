@@ -104,7 +104,8 @@ class TrainConfig:
             is bit-exact).
         lr_final: the cosine schedule's last learning rate as a fraction of ``lr``.
         ema: decay of an exponential moving average of the generator's weights, which is then
-            what is evaluated and saved (our addition; 0: off, e.g. 0.999).
+            what is evaluated and saved (our addition; 0: off, e.g. 0.999; at iteration t the
+            decay is min(ema, (1 + t) / (10 + t)), so early averages forget the initial weights).
         flip: random horizontal flips (paired augmentation).
         eval_every: evaluate (and write a sample) every this many iterations (and at the end).
         eval_frames: at most this many test frames per evaluation (the first ones; 0: all).
@@ -203,10 +204,16 @@ class TrainConfig:
         return resolve_inputs(self.inputs)
 
     @classmethod
-    def preset(cls, name: Literal["cpu", "paper"], **overrides: Any) -> TrainConfig:
+    def preset(cls, name: Literal["cpu", "paper-cpu", "paper"], **overrides: Any) -> TrainConfig:
         """A named preset with field overrides.
 
-        - ``cpu``: 128 x 128 crops, base 32, 3000 iterations, no VGG (sized for 2 CPU cores).
+        - ``cpu``: the recipe measured best on 2 CPU cores (docs/gan.md; README "Learned GI"):
+          configuration J (albedo, DL, world normals, positions), demodulated targets, the
+          full-resolution skip, width 16, L1 + SSIM without the critic, cosine learning rate
+          from 2e-4, weight averaging, 64-pixel crops in batches of 8, 3000 iterations. Give it
+          the coverage views too (``train_path="train,cover"``, benchmarks/gan_coverage.py).
+        - ``paper-cpu``: the paper's design at CPU size (configuration I, L_a + 100 L_c with the
+          WGAN-GP critic, base 32, 128-pixel crops, no VGG): what ``cpu`` was before.
         - ``paper``: 256 x 256, base 64, VGG19 perceptual loss (``vgg19_weights`` defaults to
           torchvision's file name ``vgg19-dcbb9e9d.pth`` in the working directory), 20k
           iterations (a GPU job).
@@ -215,7 +222,26 @@ class TrainConfig:
             ValueError: unknown preset or field.
         """
         presets = {
-            "cpu": dict(crop=128, base=32, iterations=3000, vgg19_weights=None),
+            "cpu": dict(
+                inputs="J",
+                demodulate=True,
+                full_res_skip=True,
+                base=16,
+                crop=64,
+                batch_size=8,
+                weight_adv=0.0,
+                weight_l1=100.0,
+                weight_ssim=20.0,
+                weight_perceptual=0.0,
+                lr=2e-4,
+                lr_schedule="cosine",
+                ema=0.999,
+                hdr_scale=0.05,
+                hdr_max=4.0,
+                iterations=3000,
+                vgg19_weights=None,
+            ),  # fmt: skip
+            "paper-cpu": dict(crop=128, base=32, iterations=3000, vgg19_weights=None),
             "paper": dict(crop=256, base=64, iterations=20000, vgg19_weights="vgg19-dcbb9e9d.pth"),
         }
         if name not in presets:
@@ -571,7 +597,9 @@ class _Run:
 
     @torch.no_grad()
     def _update_ema(self) -> None:
-        d = self.config.ema
+        # warm-up: early averages would otherwise hold the random initial weights for ~1/(1-ema)
+        # iterations
+        d = min(self.config.ema, (1 + self.step) / (10 + self.step))
         for pe, p in zip(self.ema.parameters(), self.gen.parameters()):
             pe.mul_(d).add_(p.detach(), alpha=1 - d)
         for be, b in zip(self.ema.buffers(), self.gen.buffers()):
