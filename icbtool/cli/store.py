@@ -83,7 +83,11 @@ def _rebuild(args: argparse.Namespace) -> int:
     from icbtool import store
 
     r = store.rebuild(args.dir)
-    print(f"rebuilt the index of {r.path}: {len(r.recovered)} record(s) recovered")
+    if not r.rebuilt:
+        n = len(r.recovered)
+        print(f"the index of {r.path} is healthy and complete: left alone ({n} record(s) recovered)")
+    else:
+        print(f"rebuilt the index of {r.path}: {len(r.recovered)} record(s) recovered")
     if r.old_index:
         print(f"  old index database kept as {r.old_index}")
     print(f"  hit counts restored from the old index for {r.hits_restored} record(s)")

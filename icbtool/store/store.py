@@ -321,6 +321,8 @@ class RebuildReport:
         old_index: where the previous database was kept, or None if there was none.
         hits_restored: records whose hit counts could be read from the old database.
         renumbered: {old id: new id} for payloads that claimed an id already taken.
+        rebuilt: False when the old index was healthy and listed exactly the intact payloads:
+            it was left alone (no new database, nothing kept aside).
     """
 
     path: str
@@ -331,6 +333,7 @@ class RebuildReport:
     old_index: str | None
     hits_restored: int
     renumbered: dict[int, int]
+    rebuilt: bool = True
 
     @property
     def ok(self) -> bool:
@@ -1617,6 +1620,43 @@ def _salvage_old_index(db_path: Path) -> dict[str, tuple[int, int, float]]:
     return out
 
 
+def _index_matches(db_path: Path, found: list[tuple]) -> bool:
+    """Whether the index database at ``db_path`` is healthy and lists exactly the payloads of
+    ``found`` (id, file, size, checksum and scene octree), so that a rebuild would only copy it.
+
+    ``found``: the rebuild's ``(id, rel, camera, meta, scene, present, nbytes, digest, geometry)``
+    of every intact payload."""
+    if not db_path.exists():
+        return False
+    try:
+        con = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True, timeout=1.0)
+    except sqlite3.Error:
+        return False
+    try:
+        meta = dict(con.execute("SELECT key, value FROM meta").fetchall())
+        if meta.get("kind") != STORE_KIND or meta.get("format_version") != str(FORMAT_VERSION):
+            return False
+        if [r[0] for r in con.execute("PRAGMA quick_check").fetchall()] != ["ok"]:
+            return False
+        rows = set(con.execute("SELECT id, payload, nbytes, checksum FROM records").fetchall())
+        scenes = {
+            sh: (tuple(json.loads(rmin)), float(size), int(depth))
+            for sh, rmin, size, depth in con.execute(
+                "SELECT scene_hash, root_min, root_size, depth FROM scenes"
+            )
+        }
+    except (sqlite3.Error, TypeError, ValueError):
+        return False
+    finally:
+        con.close()
+    if rows != {(f[0], f[1], f[6], f[7]) for f in found}:
+        return False
+    return all(
+        scenes.get(f[3].scene_hash) == (tuple(f[8].root_min), f[8].root_size, f[8].depth)
+        for f in found
+    )
+
+
 def _unused_name(path: Path) -> Path:
     k, out = 1, path
     while out.exists() or Path(f"{out}-wal").exists():
@@ -1633,7 +1673,9 @@ def rebuild(root: str | os.PathLike, config: StoreConfig | None = None) -> Rebui
     in with ``os.replace`` (their ids, metadata, cameras and scene octrees come from the payload
     headers; hit counts from the old database where it can still be read). The old database
     (and its -wal/-shm files) is kept as ``icbstore.sqlite.damaged-<YYYYmmdd-HHMMSS>``; damaged
-    payloads are moved to ``quarantine/<YYYYmmdd-HHMMSS>/``. Nothing is deleted.
+    payloads are moved to ``quarantine/<YYYYmmdd-HHMMSS>/``. Nothing is deleted. A healthy index
+    that already lists exactly the intact payloads is left alone (``report.rebuilt`` is False):
+    running the rebuild again changes nothing and leaves no file behind.
 
     Takes the writer lock (waits ``config.lock_timeout_s``, as :func:`open`).
 
@@ -1703,6 +1745,11 @@ def rebuild(root: str | os.PathLike, config: StoreConfig | None = None) -> Rebui
         for rel, (rid, _h, _t) in sorted(old.items(), key=lambda kv: kv[1][0]):
             if rel not in seen_rel:
                 damaged.append(Damage(rid, str(payload_root / rel), "payload file missing"))
+        if not damaged and _index_matches(db_path, found):
+            # a healthy index that lists exactly the intact payloads: left alone (no new file)
+            log.info("store %s: its index is healthy and complete; nothing to rebuild", root)
+            ids = sorted(f[0] for f in found)
+            return RebuildReport(str(root), ids, [], [], orphans, None, len(ids), {}, rebuilt=False)
 
         # the new database, in a temporary file
         tmp = root / f"{DB_NAME}.rebuild-tmp"
