@@ -22,7 +22,7 @@ from icbtool.camera.camera import Camera, CameraPlacementError, pose_from_forwar
 from icbtool.camera.path import CameraPath
 
 if TYPE_CHECKING:  # pragma: no cover
-    from icbtool.scene import Scene
+    from icbtool.scene.types import Scene
 
 
 def _embree(scene: Scene):
