@@ -124,8 +124,8 @@ CONCEPTS: dict[str, Spelling] = {
     "spp": Spelling(type=positive_int),
     "truth_spp": Spelling(type=positive_int),
     "seed": Spelling(type=int_at_least(0)),
-    "height": Spelling(type=positive_int),
-    "width": Spelling(type=positive_int),
+    "height": Spelling(type=positive_int, metavar="H"),
+    "width": Spelling(type=positive_int, metavar="W"),
     "frames": Spelling(type=positive_int),
     "threads": Spelling(type=positive_int),
     "stride": Spelling(type=positive_int),
@@ -144,6 +144,7 @@ CONCEPTS: dict[str, Spelling] = {
     "max_pending": Spelling(type=positive_int),
     "iterations": Spelling(type=positive_int),
     "n_cameras": Spelling(type=positive_int),
+    "generator": Spelling(metavar="RUN"),
 }
 
 
@@ -220,11 +221,11 @@ def _kind(tp: Any) -> dict[str, Any] | None:
     if tp is bool:
         return {"action": Flag}
     if tp is int:
-        return {"type": _integer}
+        return {"type": _integer, "metavar": "N"}
     if tp is float:
-        return {"type": _number}
+        return {"type": _number, "metavar": "X"}
     if tp is str:
-        return {"type": str}
+        return {"type": str, "metavar": "TEXT"}
     if get_origin(tp) is Literal:
         choices = get_args(tp)
         if all(isinstance(c, str) for c in choices):
@@ -412,7 +413,7 @@ def _add_fields(group, cls, path, out, skip, only, spell, defaults, unset, prefi
         s = spell.get(key) or CONCEPTS.get(f.name) or Spelling()
         concept = CONCEPTS.get(f.name)
         vtype = s.type or (concept.type if concept else None)
-        if vtype is not None and "type" in kw and kw.get("metavar") is None:
+        if vtype is not None and "type" in kw and "," not in kw.get("metavar", ""):
             kw["type"] = vtype
         if s.metavar:
             kw["metavar"] = s.metavar
