@@ -794,6 +794,7 @@ def test_rebuild_leaves_a_healthy_index_alone(tmp_path, capsys):
     d = tmp_path / "s"
     ids, before = _seven_records(d)
     db = d / "icbstore.sqlite"
+
     def listing():  # SQLite's own -wal/-shm side files come and go with connections
         return sorted(p.name for p in d.iterdir() if not p.name.endswith(("-wal", "-shm")))
 

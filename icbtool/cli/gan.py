@@ -116,7 +116,7 @@ def _train(args: argparse.Namespace) -> int:
     factory = lambda **kw: TrainConfig.preset(args.preset, **kw)  # noqa: E731
     cfg = args.train_options.call(factory, args)  # a bad setting: one line, exit 2
     if not Path(args.store).is_dir():
-        raise UsageError(f"store {args.store!r} does not exist (or is not a directory)")
+        raise FileNotFoundError(f"store {args.store!r} does not exist (or is not a directory)")
     out = Path(args.out)
     if args.resume and not out.is_dir():
         raise UsageError(f"--resume: --out {args.out!r} is not a run directory")
