@@ -11,8 +11,8 @@ import logging
 import os
 import sqlite3
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from icbtool.store.base import (
     DB_NAME,
@@ -290,142 +290,23 @@ def rebuild(root: str | os.PathLike, config: StoreConfig | None = None) -> Rebui
     fd = _acquire_lock(root, cfg.lock_timeout_s)
     try:
         old = _salvage_old_index(db_path)
-        damaged: list[Damage] = []
-        bad_files: list[tuple[Path, str]] = []
-        orphans: list[str] = []
-        found: list[tuple[int, str, Any, Any, dict, tuple, int, str]] = []
-        seen_rel: set[str] = set()
-        files = (
-            sorted(p for p in payload_root.rglob("*") if p.is_file())
-            if (payload_root.is_dir())
-            else []
-        )
-        for p in files:
-            rel = p.relative_to(payload_root).as_posix()
-            if rel.startswith("tmp/") or not p.name.endswith(PAYLOAD_SUFFIX):
-                orphans.append(str(p))
-                continue
-            seen_rel.add(rel)
-            try:
-                data = p.read_bytes()
-                header = payload_header(data, str(p))
-                cam, meta = record_from_header(header, str(p))
-                decode_payload(data, str(p), verify=False)
-                rec = header["record"]
-                rid, scene = int(rec["id"]), rec["scene"]
-                geom = OctreeGeometry(
-                    tuple(map(float, scene["root_min"])),
-                    float(scene["root_size"]),
-                    int(scene["depth"]),
-                )
-                present = tuple(e[0] for e in header["buffers"])
-            except (OSError, ValueError, KeyError, TypeError) as e:
-                problem = str(e)
-                if problem.startswith(str(p) + ": "):
-                    problem = problem[len(str(p)) + 2 :]
-                damaged.append(Damage(old.get(rel, (None,))[0], str(p), problem))
-                bad_files.append((p, rel))
-                continue
-            found.append((rid, rel, cam, meta, scene, present, len(data), _checksum(data), geom))
-        for rel, (rid, _h, _t) in sorted(old.items(), key=lambda kv: kv[1][0]):
-            if rel not in seen_rel:
-                damaged.append(Damage(rid, str(payload_root / rel), "payload file missing"))
-        if not damaged and _index_matches(db_path, found):
+        scan = _scan_payloads(payload_root, old)
+        if not scan.damaged and _index_matches(db_path, scan.found):
             # a healthy index that lists exactly the intact payloads: left alone (no new file)
             log.info("store %s: its index is healthy and complete; nothing to rebuild", root)
-            ids = sorted(f[0] for f in found)
-            return RebuildReport(str(root), ids, [], [], orphans, None, len(ids), {}, rebuilt=False)
-
-        # the new database, in a temporary file
+            ids = sorted(f[0] for f in scan.found)
+            return RebuildReport(
+                str(root), ids, [], [], scan.orphans, None, len(ids), {}, rebuilt=False
+            )
         tmp = root / f"{DB_NAME}.rebuild-tmp"
-        for suffix in ("", "-wal", "-shm", "-journal"):
-            with contextlib.suppress(FileNotFoundError):
-                Path(f"{tmp}{suffix}").unlink()
-        conn = sqlite3.connect(tmp, isolation_level=None)
-        recovered: list[int] = []
-        renumbered: dict[int, int] = {}
-        hits_restored = 0
-        try:
-            _create_schema(conn)
-            conn.execute("BEGIN")
-            taken: set[int] = set()
-            next_free = max([f[0] for f in found] + [r[0] for r in old.values()] + [0]) + 1
-            scene_geoms: dict[str, OctreeGeometry] = {}  # the first (lowest id) payload's wins
-            for rid, rel, cam, meta, scene, present, nbytes, digest, geom in sorted(
-                found, key=lambda f: (f[0], f[3].created, f[1])
-            ):
-                if meta.scene_hash not in scene_geoms:
-                    scene_geoms[meta.scene_hash] = geom
-                    conn.execute(
-                        "INSERT INTO scenes VALUES (?, ?, ?, ?, ?, ?)",
-                        (
-                            meta.scene_hash,
-                            str(scene.get("name", meta.scene_name)),
-                            json.dumps(scene.get("bounds")),
-                            json.dumps(list(geom.root_min)),
-                            geom.root_size,
-                            geom.depth,
-                        ),
-                    )
-                geom = scene_geoms[meta.scene_hash]
-                if rid in taken or rid < 1:
-                    renumbered[rid] = next_free
-                    rid, next_free = next_free, next_free + 1
-                taken.add(rid)
-                hits, last_hit = 0, float(meta.created)
-                prev = old.get(rel)
-                if prev is not None and prev[0] == rid:
-                    hits, last_hit = prev[1], max(prev[2], last_hit)
-                    hits_restored += 1
-                values = _record_values(meta, cam, present, rel, nbytes, digest, geom)
-                conn.execute(_INSERT_SQL, (rid, *values, hits, last_hit))
-                recovered.append(rid)
-            # ids are never reused: continue after the largest id any index or payload knew
-            conn.execute(
-                "UPDATE sqlite_sequence SET seq=MAX(seq, ?) WHERE name='records'", (next_free - 1,)
-            )
-            conn.execute(
-                "INSERT INTO sqlite_sequence (name, seq) SELECT 'records', ? WHERE NOT EXISTS "
-                "(SELECT 1 FROM sqlite_sequence WHERE name='records')",
-                (next_free - 1,),
-            )
-            conn.execute("COMMIT")
-            conn.execute("PRAGMA journal_mode=WAL")
-        finally:
-            conn.close()
-        if cfg.fsync:
-            tfd = os.open(tmp, os.O_RDONLY)
-            try:
-                os.fsync(tfd)
-            finally:
-                os.close(tfd)
-
-        # keep the old database aside (never deleted), then swap the new one in atomically
-        old_index: str | None = None
-        if db_path.exists():
-            aside = _unused_name(root / f"{DB_NAME}.damaged-{stamp}")
-            os.link(db_path, aside)
-            old_index = str(aside)
-        for suffix in ("-wal", "-shm", "-journal"):
-            side = Path(f"{db_path}{suffix}")
-            if side.exists():  # must not be applied to the new database
-                base = Path(old_index) if old_index else root / f"{DB_NAME}.damaged-{stamp}"
-                os.replace(side, Path(f"{base}{suffix}"))
-        os.replace(tmp, db_path)
-
-        # damaged payloads go to the quarantine (not payloads/, whose strays a writer removes)
-        quarantined: list[str] = []
-        if bad_files:
-            qdir = root / QUARANTINE_DIR / stamp
-            for p, rel in bad_files:
-                dest = qdir / rel
-                dest.parent.mkdir(parents=True, exist_ok=True)
-                os.replace(p, dest)
-                quarantined.append(str(dest))
+        recovered, renumbered, hits_restored = _write_index(tmp, scan.found, old, cfg.fsync)
+        old_index = _swap_in(tmp, db_path, stamp)
+        quarantined = _quarantine(root / QUARANTINE_DIR / stamp, scan.bad_files)
         if cfg.fsync:
             _fsync_dir(root)
     finally:
         _release_lock(fd)
+    damaged, orphans = scan.damaged, scan.orphans
     report = RebuildReport(
         str(root),
         sorted(recovered),
@@ -445,3 +326,159 @@ def rebuild(root: str | os.PathLike, config: StoreConfig | None = None) -> Rebui
         old_index,
     )
     return report
+
+
+@dataclass
+class _Scan:
+    """What the payload files hold: the intact records (``found``: id, payload path, camera,
+    meta, scene entry, buffers, size, checksum, octree geometry), the damaged files and the
+    records the old index lists whose file is missing (``damaged``), the damaged files to move
+    aside (``bad_files``: path, relative path) and the files that are not payloads."""
+
+    found: list[tuple] = field(default_factory=list)
+    damaged: list[Damage] = field(default_factory=list)
+    bad_files: list[tuple[Path, str]] = field(default_factory=list)
+    orphans: list[str] = field(default_factory=list)
+
+
+def _scan_payloads(payload_root: Path, old: dict[str, tuple[int, int, float]]) -> _Scan:
+    """Read and verify every payload file (its digest, header, every buffer decodes)."""
+    scan = _Scan()
+    seen_rel: set[str] = set()
+    files = (
+        sorted(p for p in payload_root.rglob("*") if p.is_file()) if payload_root.is_dir() else []
+    )
+    for p in files:
+        rel = p.relative_to(payload_root).as_posix()
+        if rel.startswith("tmp/") or not p.name.endswith(PAYLOAD_SUFFIX):
+            scan.orphans.append(str(p))
+            continue
+        seen_rel.add(rel)
+        try:
+            data = p.read_bytes()
+            header = payload_header(data, str(p))
+            cam, meta = record_from_header(header, str(p))
+            decode_payload(data, str(p), verify=False)
+            rec = header["record"]
+            rid, scene = int(rec["id"]), rec["scene"]
+            geom = OctreeGeometry(
+                tuple(map(float, scene["root_min"])),
+                float(scene["root_size"]),
+                int(scene["depth"]),
+            )
+            present = tuple(e[0] for e in header["buffers"])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            problem = str(e)
+            if problem.startswith(str(p) + ": "):
+                problem = problem[len(str(p)) + 2 :]
+            scan.damaged.append(Damage(old.get(rel, (None,))[0], str(p), problem))
+            scan.bad_files.append((p, rel))
+            continue
+        scan.found.append((rid, rel, cam, meta, scene, present, len(data), _checksum(data), geom))
+    for rel, (rid, _h, _t) in sorted(old.items(), key=lambda kv: kv[1][0]):
+        if rel not in seen_rel:
+            scan.damaged.append(Damage(rid, str(payload_root / rel), "payload file missing"))
+    return scan
+
+
+def _write_index(
+    tmp: Path, found: list[tuple], old: dict[str, tuple[int, int, float]], fsync: bool
+) -> tuple[list[int], dict[int, int], int]:
+    """Build the new index database of the ``found`` records in the file ``tmp``.
+
+    Returns:
+        (recovered ids, {old id: new id} of the renumbered, records whose hits were restored).
+    """
+    for suffix in ("", "-wal", "-shm", "-journal"):
+        with contextlib.suppress(FileNotFoundError):
+            Path(f"{tmp}{suffix}").unlink()
+    conn = sqlite3.connect(tmp, isolation_level=None)
+    recovered: list[int] = []
+    renumbered: dict[int, int] = {}
+    hits_restored = 0
+    try:
+        _create_schema(conn)
+        conn.execute("BEGIN")
+        taken: set[int] = set()
+        next_free = max([f[0] for f in found] + [r[0] for r in old.values()] + [0]) + 1
+        scene_geoms: dict[str, OctreeGeometry] = {}  # the first (lowest id) payload's wins
+        for rid, rel, cam, meta, scene, present, nbytes, digest, geom in sorted(
+            found, key=lambda f: (f[0], f[3].created, f[1])
+        ):
+            if meta.scene_hash not in scene_geoms:
+                scene_geoms[meta.scene_hash] = geom
+                conn.execute(
+                    "INSERT INTO scenes VALUES (?, ?, ?, ?, ?, ?)",
+                    (
+                        meta.scene_hash,
+                        str(scene.get("name", meta.scene_name)),
+                        json.dumps(scene.get("bounds")),
+                        json.dumps(list(geom.root_min)),
+                        geom.root_size,
+                        geom.depth,
+                    ),
+                )
+            geom = scene_geoms[meta.scene_hash]
+            if rid in taken or rid < 1:
+                renumbered[rid] = next_free
+                rid, next_free = next_free, next_free + 1
+            taken.add(rid)
+            hits, last_hit = 0, float(meta.created)
+            prev = old.get(rel)
+            if prev is not None and prev[0] == rid:
+                hits, last_hit = prev[1], max(prev[2], last_hit)
+                hits_restored += 1
+            values = _record_values(meta, cam, present, rel, nbytes, digest, geom)
+            conn.execute(_INSERT_SQL, (rid, *values, hits, last_hit))
+            recovered.append(rid)
+        # ids are never reused: continue after the largest id any index or payload knew
+        conn.execute(
+            "UPDATE sqlite_sequence SET seq=MAX(seq, ?) WHERE name='records'", (next_free - 1,)
+        )
+        conn.execute(
+            "INSERT INTO sqlite_sequence (name, seq) SELECT 'records', ? WHERE NOT EXISTS "
+            "(SELECT 1 FROM sqlite_sequence WHERE name='records')",
+            (next_free - 1,),
+        )
+        conn.execute("COMMIT")
+        conn.execute("PRAGMA journal_mode=WAL")
+    finally:
+        conn.close()
+    if fsync:
+        tfd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(tfd)
+        finally:
+            os.close(tfd)
+    return recovered, renumbered, hits_restored
+
+
+def _swap_in(tmp: Path, db_path: Path, stamp: str) -> str | None:
+    """Keep the old database aside (never deleted: ``DB.damaged-<stamp>``, with its -wal/-shm),
+    then replace it by ``tmp`` atomically. Returns where the old one went (None: there was none).
+    """
+    root = db_path.parent
+    old_index: str | None = None
+    if db_path.exists():
+        aside = _unused_name(root / f"{DB_NAME}.damaged-{stamp}")
+        os.link(db_path, aside)
+        old_index = str(aside)
+    for suffix in ("-wal", "-shm", "-journal"):
+        side = Path(f"{db_path}{suffix}")
+        if side.exists():  # must not be applied to the new database
+            base = Path(old_index) if old_index else root / f"{DB_NAME}.damaged-{stamp}"
+            os.replace(side, Path(f"{base}{suffix}"))
+    os.replace(tmp, db_path)
+    return old_index
+
+
+def _quarantine(qdir: Path, bad_files: list[tuple[Path, str]]) -> list[str]:
+    """Move the damaged payload files to ``qdir`` (not payloads/, whose strays a writer
+    removes); returns their new paths."""
+    quarantined: list[str] = []
+    for p, rel in bad_files:
+        dest = qdir / rel
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(p, dest)
+        quarantined.append(str(dest))
+    return quarantined
