@@ -483,3 +483,14 @@ def test_generator_reads_docstrings_nests_and_sees_new_fields():
     assert cfg == NewOuter(_Inner(9, "b"), (3, 4, 5), False, "n", 2.0)
     with pytest.raises(SystemExit):
         p.parse_args(["--spp", "0"])  # CONCEPTS: spp is an integer >= 1 everywhere
+
+
+def test_an_old_spelling_is_an_error_of_the_command_that_names_the_new_one(tmp_path, capsys):
+    argv = ["bake", "cornell_box", "--path", "test", "--store", str(tmp_path / "s"),
+            "--size", "64", "64"]  # fmt: skip
+    rc, err = _run(argv, capsys)
+    assert rc == 2 and err == [
+        "icbtool bake: error: unrecognized arguments: --size 64 64 "
+        "(--size is now --height H --width W)"
+    ]
+    assert not (tmp_path / "s").exists()

@@ -18,6 +18,15 @@ import warnings
 from collections.abc import Iterator
 from typing import Any
 
+#: Options of earlier versions that have another spelling now (one spelling per concept).
+RENAMED = {
+    "--size": "--height H --width W",
+    "--latency-ms": "--net-latency-ms",
+    "--bandwidth-mbit": "--net-bandwidth-mbit",
+    "--fast-embree": "--no-robust",
+    "--no-generator": "--no-use-generator",
+}
+
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
     """Descriptions as written; every option's help ends with its default (unless it says it
@@ -101,10 +110,15 @@ def main(argv: list[str] | None = None) -> int:
     command = "icbtool"
     try:
         parser = build_parser()
-        args = parser.parse_args(argv)
+        args, extras = parser.parse_known_args(argv)
         if not getattr(args, "func", None):
             parser.print_help()
             return 2
+        if extras:  # reported by the command's parser, with the new spelling of an old option
+            chosen = next(a for a in parser._actions if isinstance(a, _Commands))
+            renamed = [f"{o} is now {RENAMED[o]}" for o in extras if o in RENAMED]
+            hint = f" ({'; '.join(renamed)})" if renamed else ""
+            chosen.choices[args.command].error(f"unrecognized arguments: {' '.join(extras)}{hint}")
         command = f"icbtool {args.command}"
         from icbtool._optional import MissingOptionalDependency
         from icbtool.cli._common import UsageError
