@@ -1,9 +1,10 @@
 """The persistent octree CRT-buffer manager (ICB.md section 3).
 
 The :class:`Store` is split by concern: opening and the schema (:mod:`icbtool.store.schema`),
-the writer lock (:mod:`icbtool.store.locking`), lookups (:mod:`icbtool.store.lookup`), checks
-and rebuilds (:mod:`icbtool.store.repair`); this module keeps the records (put, get, delete,
-evict) and the public API.
+the writer lock (:mod:`icbtool.store.locking`), the scenes' octrees (:mod:`icbtool.store.scenes`),
+lookups (:mod:`icbtool.store.lookup`), checks and rebuilds (:mod:`icbtool.store.repair`),
+eviction (:mod:`icbtool.store.eviction`); this module keeps the records (put, get, delete) and
+the public API.
 
 On disk, a store is a directory::
 
@@ -118,6 +119,7 @@ from icbtool.store.repair import (  # noqa: F401
     _unused_name,
     rebuild,
 )
+from icbtool.store.scenes import ScenesMixin
 from icbtool.store.schema import (  # noqa: F401
     _INFO_COLS,
     _INSERT_COLS,
@@ -139,7 +141,7 @@ from icbtool.store.schema import (  # noqa: F401
 log = logging.getLogger("icbtool.store.store")
 
 
-class Store(SchemaMixin, LookupMixin, RepairMixin, EvictionMixin):
+class Store(SchemaMixin, ScenesMixin, LookupMixin, RepairMixin, EvictionMixin):
     """An open CRT-buffer store. Create with :func:`open` (a context manager)."""
 
     def __init__(self, root: str | os.PathLike, config: StoreConfig | None = None) -> None:
@@ -208,74 +210,6 @@ class Store(SchemaMixin, LookupMixin, RepairMixin, EvictionMixin):
         return rebuild(root, config)
 
     # -------------------------------------------------------------- records
-    def register_scene(
-        self,
-        scene: Any = None,
-        *,
-        scene_hash: str | None = None,
-        bounds: Any = None,
-        name: str = "",
-    ) -> OctreeGeometry:
-        """Fix the octree of a scene (from a :class:`~icbtool.scene.Scene` or hash + bounds).
-
-        The geometry of a scene never changes once registered (records keep their leaves). A scene
-        first seen through :meth:`put` is registered from ``meta.scene_bounds`` or, without them,
-        from the record's masked positions and camera centre.
-        """
-        if scene is not None:
-            scene_hash, bounds, name = scene.content_hash, scene.bounds, scene.name
-        if scene_hash is None or bounds is None:
-            raise ValueError("register_scene needs a scene, or scene_hash and bounds")
-        if scene_hash in self._geoms:
-            return self._geoms[scene_hash]
-        conn = self._writable()
-        leaf = self.config.leaf_size or 2.0 * self.config.alpha_pos
-        geom = OctreeGeometry.for_bounds(
-            np.asarray(bounds, np.float64), leaf, self.config.max_depth
-        )
-        conn.execute(
-            "INSERT OR IGNORE INTO scenes VALUES (?, ?, ?, ?, ?, ?)",
-            (
-                scene_hash,
-                name,
-                json.dumps(np.asarray(bounds, np.float64).tolist()),
-                json.dumps(list(geom.root_min)),
-                geom.root_size,
-                geom.depth,
-            ),
-        )
-        row = conn.execute(
-            "SELECT root_min, root_size, depth FROM scenes WHERE scene_hash=?", (scene_hash,)
-        ).fetchone()
-        geom = OctreeGeometry(tuple(json.loads(row[0])), row[1], row[2])
-        self._geoms[scene_hash] = geom
-        return geom
-
-    def geometry(self, scene_hash: str) -> OctreeGeometry:
-        """The octree geometry (root cube, depth) of a registered scene.
-
-        Raises:
-            KeyError: if the scene is not registered.
-        """
-        if scene_hash not in self._geoms:
-            raise KeyError(f"scene {scene_hash!r} is not registered in store {self.root}")
-        return self._geoms[scene_hash]
-
-    def _bounds_for(self, buf: CRTBuffer) -> np.ndarray:
-        if buf.meta.scene_bounds is not None:
-            return np.asarray(buf.meta.scene_bounds, np.float64)
-        pts = [buf.camera.position[None]]
-        if buf.position is not None:
-            m = (
-                buf.mask[..., 0] > 0
-                if buf.mask is not None
-                else np.ones(buf.position.shape[:2], bool)
-            )
-            pts.append(buf.position[m].astype(np.float64))
-        p = np.concatenate(pts)
-        p = p[np.all(np.isfinite(p), axis=1)]  # the camera centre is always finite
-        return np.stack([p.min(0), p.max(0)])
-
     def put(self, buf: CRTBuffer) -> int:
         """Store a CRT-buffer durably; returns its record id.
 
@@ -368,25 +302,6 @@ class Store(SchemaMixin, LookupMixin, RepairMixin, EvictionMixin):
         ).fetchone()
         (top,) = conn.execute("SELECT COALESCE(MAX(id), 0) FROM records").fetchone()
         return max(int(seq), int(top), self._max_id) + 1
-
-    def _scene_entry(self, scene_hash: str) -> dict[str, Any]:
-        """A registered scene's row, as written into its records' payload headers."""
-        name, bounds, root_min, size, depth = (
-            self._db()
-            .execute(
-                "SELECT scene_name, bounds, root_min, root_size, depth FROM scenes "
-                "WHERE scene_hash=?",
-                (scene_hash,),
-            )
-            .fetchone()
-        )
-        return {
-            "name": name,
-            "bounds": json.loads(bounds),
-            "root_min": json.loads(root_min),
-            "root_size": size,
-            "depth": depth,
-        }
 
     def _write_payload(
         self, buf: CRTBuffer, record: dict[str, Any]
