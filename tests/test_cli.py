@@ -264,6 +264,7 @@ def _all_commands():
 
 def test_every_option_has_help_and_shows_its_default():
     from icbtool.cli import HelpFormatter
+    from icbtool.cli._options import UNDOCUMENTED
 
     for name, parser in _all_commands().items():
         for a in parser._actions:
@@ -272,6 +273,7 @@ def test_every_option_has_help_and_shows_its_default():
             if a.__class__.__name__ == "_SubParsersAction":
                 continue
             assert a.help, f"icbtool {name} {a.option_strings or a.dest}: no help"
+            assert UNDOCUMENTED not in a.help, f"icbtool {name} {a.option_strings}: no docstring"
             text = HelpFormatter("x")._get_help_string(a) % {"default": a.default}
             if a.option_strings and a.default not in (None, False) and not a.required:
                 assert "default" in text, f"icbtool {name} {a.option_strings}: default not shown"
@@ -464,11 +466,13 @@ def test_generator_reads_docstrings_nests_and_sees_new_fields():
     a field, types to parsers, nested configs flattened; a field added later is an option too."""
     import argparse
 
-    from icbtool.cli._options import add_config
+    from icbtool.cli._options import UNDOCUMENTED, add_config
 
     NewOuter = dataclasses.make_dataclass(  # a field added later
-        "NewOuter", [("extra_knob", float, dataclasses.field(default=0.5))], bases=(_Outer,),
-        frozen=True,
+        "NewOuter",
+        [("extra_knob", float, dataclasses.field(default=0.5)),
+         ("tags", dict, dataclasses.field(default_factory=dict))],  # no docstring, no CLI type
+        bases=(_Outer,), frozen=True,
     )  # fmt: skip
     NewOuter.__doc__ = "New.\n\nAttributes:\n    extra_knob: a new knob.\n"
     p = argparse.ArgumentParser()
@@ -480,7 +484,9 @@ def test_generator_reads_docstrings_nests_and_sees_new_fields():
     args = p.parse_args(["--spp", "9", "--mode", "b", "--sizes", "3,4,5", "--no-flag",
                          "--name", "n", "--extra-knob", "2"])  # fmt: skip
     cfg = opts.build(args)
-    assert cfg == NewOuter(_Inner(9, "b"), (3, 4, 5), False, "n", 2.0)
+    assert cfg == NewOuter(_Inner(9, "b"), (3, 4, 5), False, "n", 2.0, {})
+    assert helps["--tags"] == f"{UNDOCUMENTED} (default: {{}})"  # reachable, and flagged
+    assert opts.build(p.parse_args(["--tags", '{"k": [1, 2]}'])).tags == {"k": [1, 2]}
     with pytest.raises(SystemExit):
         p.parse_args(["--spp", "0"])  # CONCEPTS: spp is an integer >= 1 everywhere
 
