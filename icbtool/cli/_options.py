@@ -427,8 +427,9 @@ def _add_fields(group, cls, path, out, skip, only, spell, defaults, unset, prefi
         vtype = s.type or (concept.type if concept else None)
         if vtype is not None and "type" in kw and "," not in kw.get("metavar", ""):
             kw["type"] = vtype
-        if s.metavar:
-            kw["metavar"] = s.metavar
+        metavar = s.metavar or (concept.metavar if concept else None)
+        if metavar:
+            kw["metavar"] = metavar
         if key in defaults:
             default = defaults[key]
         elif unset:
