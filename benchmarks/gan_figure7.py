@@ -7,11 +7,11 @@ other seeds (the noise ceiling: SSIM of two truths). The 128x128 stores used for
 results were made by::
 
     icbtool bake data/scenes/sponza.toml --path train --store STORE --spp 64 \\
-        --size 128 128 --denoise
+        --height 128 --width 128 --denoise
     icbtool bake data/scenes/sponza.toml --path test --store STORE --spp 256 --stride 3 \\
-        --seed 100000 --size 128 128 --denoise
+        --seed 100000 --height 128 --width 128 --denoise
     icbtool bake data/scenes/sponza.toml --path test --store CEILING --spp 256 --stride 15 \\
-        --seed 200000 --size 128 128 --denoise
+        --seed 200000 --height 128 --width 128 --denoise
 
 Training is round-robin in chunks (every configuration to 250 iterations, then every one to 500,
 ...), each run resumable, so an interrupted experiment always has comparable curves and a rerun

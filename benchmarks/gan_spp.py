@@ -39,7 +39,8 @@ def bake_store(spp: int, store_dir: Path, test_store: str, scene: str) -> None:
     import icbtool.store as S
 
     cmd = [sys.executable, "-m", "icbtool", "bake", str(SCENE_FILE), "--path", "train",
-           "--store", str(store_dir), "--spp", str(spp), "--size", "128", "128"]  # fmt: skip
+           "--store", str(store_dir), "--spp", str(spp),
+           "--height", "128", "--width", "128"]  # fmt: skip
     subprocess.run(cmd, check=True)
     ro = S.StoreConfig(readonly=True, record_hits=False)
     with S.open(test_store, ro) as src, S.open(store_dir) as dst:

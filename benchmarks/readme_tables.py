@@ -539,6 +539,7 @@ def block_loop(results: Path) -> str:
     cfg = load("loop/config.json", results)
     run = load("loop/loop_demo.json", results)
     lc = cfg.get("loop", cfg)
+    lc = {**lc, **lc.get("cloud", {})}  # the cloud's settings are nested since LoopConfig.cloud
     scene = {"cornell_box": "Cornell box"}.get(s["scene"], s["scene"])
     den = "denoised" if lc["denoise"] else "raw"
     return (

@@ -23,7 +23,14 @@ from PySide6 import QtCore, QtWidgets
 
 def field_docs(cls: type) -> dict[str, str]:
     """Each field's documentation: the string literal after its definition, else its entry in
-    the class docstring's ``Attributes:`` section."""
+    the class docstring's ``Attributes:`` section; inherited fields from the base classes."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__[:-1]):  # bases first: a subclass's own text wins
+        docs.update(_own_field_docs(klass))
+    return docs
+
+
+def _own_field_docs(cls: type) -> dict[str, str]:
     docs: dict[str, str] = {}
     for line in (cls.__doc__ or "").splitlines():  # "    name: text" lines of Attributes:
         name, sep, text = line.strip().partition(": ")

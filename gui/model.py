@@ -14,7 +14,6 @@ prefetch camera (:meth:`Session.prefetch_camera`, the rule of
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import time
@@ -28,21 +27,15 @@ import icbtool as icb
 from icbtool import metrics, prefetch, system
 from icbtool.camera import Camera, CameraPath
 from icbtool.imageio import to_display
+from icbtool.pipeline import PathConfig
 from icbtool.warp import HOLE_COLOURS  # the demo's colours of the hole causes
 
 
 @dataclass(frozen=True)
-class ViewerConfig:
-    """How the window moves the client along its path."""
+class ViewerConfig(PathConfig):
+    """How the window moves the client along its path (path, frames, height and width: the
+    loop's :class:`icbtool.pipeline.PathConfig`)."""
 
-    path: str = "test"
-    """Name of the scene's camera path the client follows."""
-    frames: int = 24
-    """Client frames, evenly spaced in time along the path."""
-    height: int = 128
-    """Client image height (pixels)."""
-    width: int = 128
-    """Client image width (pixels)."""
     speed: float = 1.0
     """The client traverses the path this many times faster than the path's own timing (its
     velocities, hence the prefetch camera, scale with it)."""
@@ -58,10 +51,10 @@ class ViewerConfig:
     (as the store has written them: the cloud writes its hits with its next new record)."""
 
     def __post_init__(self) -> None:
-        for k in ("frames", "height", "width", "play_interval_ms"):
-            v = getattr(self, k)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ValueError(f"ViewerConfig.{k} must be an integer >= 1, got {v!r}")
+        super().__post_init__()
+        v = self.play_interval_ms
+        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            raise ValueError(f"ViewerConfig.play_interval_ms must be an integer >= 1, got {v!r}")
         if not isinstance(self.truth_spp, int) or self.truth_spp < 0:
             raise ValueError(
                 f"ViewerConfig.truth_spp must be an integer >= 0, got {self.truth_spp}"
@@ -460,11 +453,9 @@ def demo_settings(
     p = Path(demo_dir) / "config.json"
     if not p.is_file():
         return None
-    loop = json.loads(p.read_text()).get("loop", {})
-    known = {f.name for f in dataclasses.fields(icb.pipeline.LoopConfig)}
-    cfg = icb.pipeline.LoopConfig(**{k: v for k, v in loop.items() if k in known})
+    cfg = icb.pipeline.LoopConfig.from_dict(json.loads(p.read_text()).get("loop", {}))
     viewer = ViewerConfig(path=cfg.path, frames=cfg.frames, height=cfg.height, width=cfg.width)
-    return viewer, cfg.cloud_config(), cfg.client_config()
+    return viewer, cfg.cloud, cfg.client
 
 
 __all__ = [

@@ -22,6 +22,8 @@ score the frame (SSIM on the display scale).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import functools
 import json
 import time
 from collections.abc import Callable
@@ -34,12 +36,12 @@ import numpy as np
 from icbtool.camera import CameraPath
 from icbtool.system.client import ClientConfig
 from icbtool.system.cloud import CloudConfig
-from icbtool.trace.tracer import DenoiseQuality, check_denoise_quality
 
 
 @dataclass(frozen=True)
-class LoopConfig:
-    """How :func:`run_loop` drives the client and the cloud."""
+class PathConfig:
+    """Which camera path a client follows, how many frames, at what image size (the part of a
+    client's settings that :class:`LoopConfig` and the desktop app's viewer share)."""
 
     path: str = "test"
     """Name of the scene's camera path the client follows."""
@@ -49,37 +51,41 @@ class LoopConfig:
     """Client image height (pixels)."""
     width: int = 128
     """Client image width (pixels)."""
-    latency_s: float = 0.1
-    """Interaction latency T_IL: the reference for frame t is requested at t - T_IL."""
-    prefetch: bool = True
-    """Render the cloud reference at the prefetch camera (else at the client's old camera)."""
-    fov_step_deg: float = 2.0
-    """The cloud rounds the prefetch FOV up to a multiple of this (0: no rounding), so a stored
-    reference covers the slightly different FOVs of the next requests and can be reused."""
-    spp: int = 16
-    """Path-tracing samples per pixel of the cloud's GI maps."""
-    denoise: bool = True
-    """Denoise the GI maps the cloud serves (OIDN with albedo and normal)."""
-    denoise_quality: DenoiseQuality = "high"
-    """OIDN quality of the served maps ('fast': about half the denoising time)."""
-    max_depth: int = 8
-    """Longest traced path (segments)."""
-    alpha_pos: float = 0.1
-    """Cache position threshold (scene units)."""
-    alpha_dir: float = 0.01
-    """Cache direction threshold on 1 - dot (0.01 = 8.1 degrees)."""
-    combine_previous: bool = True
-    """Combine the warp of the current reference with the previous one."""
-    inpaint: bool = True
-    """Inpaint the holes left after combining (they stay reported)."""
-    gi_weight: float = 1.0
-    """Final = DL + gi_weight * GI (1 is physically right)."""
+
+    def __post_init__(self) -> None:
+        for k in ("frames", "height", "width"):
+            v = getattr(self, k)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"{type(self).__name__}.{k} must be an integer >= 1, got {v!r}")
+
+
+#: Fields of the nested cloud and client configs that :class:`LoopConfig` still accepts (and
+#: reads) flat, as before they were nested: ``LoopConfig(spp=4)`` is
+#: ``LoopConfig(cloud=CloudConfig(spp=4))``, ``cfg.spp`` is ``cfg.cloud.spp``.
+_NESTED_FLAT = {
+    **{f.name: "cloud" for f in dataclasses.fields(CloudConfig)},
+    **{f.name: "client" for f in dataclasses.fields(ClientConfig)},
+}
+
+
+@dataclass(frozen=True)
+class LoopConfig(PathConfig):
+    """How :func:`run_loop` drives the client and the cloud: the client's path and size, the
+    cloud's settings (:class:`~icbtool.system.CloudConfig`), the client's
+    (:class:`~icbtool.system.ClientConfig`), and the scoring against the truth.
+
+    The fields of ``cloud`` and ``client`` are also accepted as keywords (``LoopConfig(spp=4,
+    inpaint=False)``) and readable as attributes (``cfg.spp``), as before they were nested."""
+
+    cloud: CloudConfig = field(default_factory=CloudConfig)
+    """The cloud's settings: prefetch, T_IL (``latency_s``), spp, denoising, cache thresholds,
+    seed (the truth's seeds follow it too)."""
+    client: ClientConfig = field(default_factory=ClientConfig)
+    """The client's settings: combining with the previous reference, inpainting, GI weight."""
     truth_every: int = 6
     """Render the ground truth every this many frames (0: never)."""
     truth_spp: int = 128
     """Samples per pixel of the ground truth."""
-    seed: int = 0
-    """Base seed of every traced image."""
     generator: str | None = None
     """A trained GAN run directory (:func:`icbtool.gan.train`): the client makes its GI with it
     (the paper's rule) and asks the cloud only when the generator cannot answer
@@ -90,40 +96,61 @@ class LoopConfig:
     ``ssim_gi_cloud``). Those extra cloud answers are counted apart (``comparison_renders``)."""
 
     def __post_init__(self) -> None:
-        for k in ("frames", "height", "width", "spp", "max_depth", "truth_spp"):
-            v = getattr(self, k)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ValueError(f"LoopConfig.{k} must be an integer >= 1, got {v!r}")
-        if self.latency_s < 0 or not np.isfinite(self.latency_s):
-            raise ValueError(f"LoopConfig.latency_s must be finite and >= 0, got {self.latency_s}")
+        super().__post_init__()
+        if not isinstance(self.cloud, CloudConfig) or not isinstance(self.client, ClientConfig):
+            raise TypeError("LoopConfig.cloud/.client must be a CloudConfig / ClientConfig")
+        v = self.truth_spp
+        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            raise ValueError(f"LoopConfig.truth_spp must be an integer >= 1, got {v!r}")
         if self.truth_every < 0:
             raise ValueError(f"LoopConfig.truth_every must be >= 0, got {self.truth_every}")
-        if not 0.0 <= self.fov_step_deg < 30.0:
-            raise ValueError(f"LoopConfig.fov_step_deg must be in [0, 30), got {self.fov_step_deg}")
-        if self.alpha_pos <= 0 or self.alpha_dir <= 0:
-            raise ValueError("LoopConfig.alpha_pos and alpha_dir must be > 0")
-        check_denoise_quality(self.denoise_quality, "LoopConfig.denoise_quality")
+
+    def __getattr__(self, name: str) -> Any:  # only called for names that are not fields
+        part = _NESTED_FLAT.get(name)
+        if part is None:
+            raise AttributeError(f"'LoopConfig' object has no attribute {name!r}")
+        return getattr(object.__getattribute__(self, part), name)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> LoopConfig:
+        """The config of a ``config.json``'s ``"loop"`` entry (nested, or flat as written before
+        the cloud and client settings were nested); unknown keys are ignored."""
+        known = {f.name for f in dataclasses.fields(cls)} | set(_NESTED_FLAT)
+        kw = {k: v for k, v in d.items() if k in known and k not in ("cloud", "client")}
+        if isinstance(d.get("cloud"), dict):
+            kw["cloud"] = CloudConfig(**d["cloud"])
+        if isinstance(d.get("client"), dict):
+            kw["client"] = ClientConfig(**d["client"])
+        return cls(**kw)
 
     def cloud_config(self) -> CloudConfig:
-        """The cloud's part of this configuration."""
-        return CloudConfig(
-            prefetch=self.prefetch,
-            latency_s=self.latency_s,
-            fov_step_deg=self.fov_step_deg,
-            spp=self.spp,
-            denoise=self.denoise,
-            denoise_quality=self.denoise_quality,
-            max_depth=self.max_depth,
-            alpha_pos=self.alpha_pos,
-            alpha_dir=self.alpha_dir,
-            seed=self.seed,
-        )
+        """The cloud's part of this configuration (``self.cloud``)."""
+        return self.cloud
 
     def client_config(self) -> ClientConfig:
-        """The client's part of this configuration."""
-        return ClientConfig(
-            combine_previous=self.combine_previous, inpaint=self.inpaint, gi_weight=self.gi_weight
-        )
+        """The client's part of this configuration (``self.client``)."""
+        return self.client
+
+
+def _accept_flat_keywords(cls: type) -> type:
+    """Let ``cls(**kw)`` take the nested configs' fields flat (see :data:`_NESTED_FLAT`)."""
+    init = cls.__init__
+
+    @functools.wraps(init)
+    def __init__(self: Any, *args: Any, **kw: Any) -> None:
+        nested: dict[str, dict[str, Any]] = {}
+        for k in [k for k in kw if k in _NESTED_FLAT]:
+            nested.setdefault(_NESTED_FLAT[k], {})[k] = kw.pop(k)
+        for part, values in nested.items():
+            base = kw.get(part) or (CloudConfig() if part == "cloud" else ClientConfig())
+            kw[part] = dataclasses.replace(base, **values)
+        init(self, *args, **kw)
+
+    cls.__init__ = __init__  # type: ignore[method-assign]
+    return cls
+
+
+_accept_flat_keywords(LoopConfig)
 
 
 @dataclass
@@ -333,11 +360,11 @@ def run_loop(
             cloud = None
             if source is None:
                 cloud = stack.enter_context(
-                    system.Cloud(scene, store_dir, cfg.cloud_config(), rasterizer=rz)
+                    system.Cloud(scene, store_dir, cfg.cloud, rasterizer=rz)
                 )
                 source = stack.enter_context(_gi_source(cfg, cloud))
             client = stack.enter_context(
-                system.Client(client_mesh, source, cfg.client_config(), rasterizer=rz)
+                system.Client(client_mesh, source, cfg.client, rasterizer=rz)
             )
             cloud_view = (
                 stack.enter_context(_comparison_client(cfg, scene, cloud, rz))
@@ -353,7 +380,7 @@ def run_loop(
                 rx0 = sum(getattr(source, "bytes_received", {}).values())
                 cam = path.camera_at(float(t))
                 # the request the client sent T_IL ago
-                t_req = max(float(t) - cfg.latency_s, float(path.times[0]))
+                t_req = max(float(t) - cfg.cloud.latency_s, float(path.times[0]))
                 v_t, v_r = path.velocity_cam(t_req)
                 request = system.GIRequest(path.camera_at(t_req), v_t, v_r, t_req, seq=k)
                 fr = client.frame(cam, request)
@@ -389,7 +416,9 @@ def run_loop(
                         scene,
                         cam,
                         trace.TraceConfig(
-                            spp=cfg.truth_spp, seed=cfg.seed + 5000 + k, max_depth=cfg.max_depth
+                            spp=cfg.truth_spp,
+                            seed=cfg.cloud.seed + 5000 + k,
+                            max_depth=cfg.cloud.max_depth,
                         ),
                     )
                     fs.ssim_final = metrics.ssim(fr.final, truth.full)
@@ -457,7 +486,7 @@ def _comparison_client(cfg: LoopConfig, scene: Any, cloud: Any, rz: Any) -> Any:
 
     if cfg.generator is None or not cfg.compare_cloud or not cfg.truth_every:
         return contextlib.nullcontext(None)
-    return system.Client(scene, cloud, cfg.client_config(), rasterizer=rz)
+    return system.Client(scene, cloud, cfg.client, rasterizer=rz)
 
 
 def _write_tiles(path: Path, tiles: list[np.ndarray], imageio: Any) -> None:

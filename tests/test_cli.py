@@ -5,6 +5,7 @@ dependencies name the extra to install."""
 from __future__ import annotations
 
 import configparser
+import dataclasses
 import errno
 import json
 import os
@@ -13,6 +14,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import pytest
@@ -59,12 +61,13 @@ BAD_ARGS = [
     (["trace", "cornell_box", "--out", "{out}", "--threads", "0"], "argument --threads", "got 0"),
     (["trace", "cornell_box", "--out", "{out}", "--max-depth", "0"], "--max-depth", "or -1"),
     (["trace", "cornell_box", "--out", "{out}", "--time-budget", "-1"], "--time-budget", "-1"),
-    (["bake", "cornell_box", "--path", "test", "--store", "{out}", "--size", "0", "8"], "--size",
-     "got 0"),
+    (["bake", "cornell_box", "--path", "test", "--store", "{out}", "--width", "8", "--height", "0"],
+     "argument --height", "got 0"),
     (["bake", "cornell_box", "--path", "test", "--store", "{out}", "--spp", "-2"], "--spp", "-2"),
     (["bake", "cornell_box", "--path", "test", "--store", "{out}", "--stride", "0"], "--stride",
      "got 0"),
-    (["demo", "--out", "{out}", "--size", "0"], "argument --size", "got 0"),
+    (["demo", "--out", "{out}", "--height", "0"], "argument --height", "got 0"),
+    (["demo", "--out", "{out}", "--width", "-3"], "argument --width", "got -3"),
     (["demo", "--out", "{out}", "--frames", "0"], "argument --frames", "got 0"),
     (["demo", "--out", "{out}", "--latency", "-0.1"], "argument --latency", "got -0.1"),
 ]  # fmt: skip
@@ -128,8 +131,9 @@ def test_unwritable_out_permission_bits():
     """A real 0o500 folder: as an unprivileged user (a forked child drops root to nobody, since
     root may write anyway) --out fails with 'not writable (Permission denied)', exit code 2."""
     from icbtool.cli import build_parser
+    from icbtool.cli._common import commands
 
-    build_parser()  # import every command module before dropping privileges
+    commands(build_parser())  # import every command and its options before dropping privileges
     top = Path(tempfile.mkdtemp(prefix="icbtool-test-"))  # /tmp: searchable by nobody
     try:
         top.chmod(0o755)
@@ -248,3 +252,251 @@ def test_cli_missing_optional_is_one_line_before_work(argv, tmp_path, capsys, mo
     assert err[0].startswith(f"icbtool {argv[0]}: error: ")
     assert "needs the optional package 'pyoidn'" in err[0]
     assert 'pip install "icbtool[denoise]"' in err[0]
+
+
+# ----------------------------------------------------------------------------- one convention
+def _all_commands():
+    from icbtool.cli import build_parser
+    from icbtool.cli._common import commands
+
+    return commands(build_parser())
+
+
+def test_every_option_has_help_and_shows_its_default():
+    from icbtool.cli import HelpFormatter
+    from icbtool.cli._options import UNDOCUMENTED
+
+    for name, parser in _all_commands().items():
+        for a in parser._actions:
+            if a.help == "show this help message and exit" or not (a.option_strings or a.dest):
+                continue
+            if a.__class__.__name__ == "_SubParsersAction":
+                continue
+            assert a.help, f"icbtool {name} {a.option_strings or a.dest}: no help"
+            assert UNDOCUMENTED not in a.help, f"icbtool {name} {a.option_strings}: no docstring"
+            text = HelpFormatter("x")._get_help_string(a) % {"default": a.default}
+            if a.option_strings and a.default not in (None, False) and not a.required:
+                assert "default" in text, f"icbtool {name} {a.option_strings}: default not shown"
+
+
+def test_one_spelling_per_concept():
+    """Image size is --height/--width, denoising --denoise/--no-denoise, the emulated network
+    --net-latency-ms/--net-bandwidth-mbit, on every command that has them."""
+    cmds = _all_commands()
+    opts = {n: {o for a in p._actions for o in a.option_strings} for n, p in cmds.items()}
+    for name, o in opts.items():
+        assert not o & {"--size", "--latency-ms", "--bandwidth-mbit", "--latency", "--fast-embree"}
+        assert ("--height" in o) == ("--width" in o), name
+        assert ("--denoise" in o) == ("--no-denoise" in o), name
+        assert ("--net-latency-ms" in o) == ("--net-bandwidth-mbit" in o), name
+    for name in ("render", "trace", "bake", "demo", "client", "generate", "export", "lpm"):
+        assert {"--height", "--width"} <= opts[name], name
+    for name in ("trace", "bake", "demo", "serve"):
+        assert {"--spp", "--seed", "--denoise", "--denoise-quality"} <= opts[name], name
+    for name in ("train", "lpm", "client"):
+        assert "--seed" in opts[name], name
+    assert {"--net-latency-ms", "--net-bandwidth-mbit"} <= opts["demo"] & opts["client"]
+    # the T_IL latency is --latency-s wherever the loop's latency is set
+    for name in ("demo", "client", "serve"):
+        assert "--latency-s" in opts[name], name
+
+
+def test_train_reaches_every_trainconfig_field():
+    """Every TrainConfig field is an option of `icbtool train` (generated: a new field appears
+    without a CLI edit), unset ones keep the preset's value."""
+    import dataclasses
+
+    pytest.importorskip("torch")
+    from icbtool.cli import build_parser
+    from icbtool.gan.training import TrainConfig
+
+    parser = build_parser()
+    args = parser.parse_args(["train", "S", "--out", "R", "--preset", "paper"])
+    assert args.train_options.call(
+        lambda **kw: TrainConfig.preset("paper", **kw), args
+    ) == TrainConfig.preset("paper")
+    opts = {f.path[-1]: f.option for f in args.train_options.fields}
+    assert set(opts) == {f.name for f in dataclasses.fields(TrainConfig)}
+    argv = ["train", "S", "--out", "R", "--crop", "64", "--betas", "0.4,0.9", "--no-flip",
+            "--reference-offsets", "1,3", "--vgg19-weights", "none", "--norm", "instance",
+            "--lr", "2e-4", "--seed", "5"]  # fmt: skip
+    args = parser.parse_args(argv)
+    cfg = args.train_options.call(lambda **kw: TrainConfig.preset("cpu", **kw), args)
+    assert cfg == TrainConfig.preset(
+        "cpu", crop=64, betas=(0.4, 0.9), flip=False, reference_offsets=(1, 3),
+        vgg19_weights=None, norm="instance", lr=2e-4, seed=5,
+    )  # fmt: skip
+
+
+def test_train_bad_setting_is_one_line_naming_the_option(tmp_path, capsys):
+    pytest.importorskip("torch")
+    rc, err = _run(["train", str(tmp_path), "--out", str(tmp_path / "r"), "--crop", "100"], capsys)
+    assert rc == 2 and len(err) == 1
+    assert err[0].startswith("icbtool train: error: --crop: TrainConfig.crop must be a multiple")
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["train", "{store}", "--out", "{out}"],
+        ["generate", "{store}", "cornell_box", "--out", "{out}"],
+    ],
+    ids=lambda a: a[0],
+)
+def test_train_and_generate_check_out_before_work(argv, tmp_path, capsys, monkeypatch):
+    if argv[0] == "train":
+        pytest.importorskip("torch")
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    (tmp_path / "store").mkdir()
+
+    def refuse(*a, **k):
+        raise AssertionError("started working despite a bad --out")
+
+    monkeypatch.setattr("icbtool.store.open", refuse)
+    monkeypatch.setattr("icbtool.gan.generate.Generator.load", refuse, raising=False)
+    out = afile / "sub"
+    argv = [a.replace("{store}", str(tmp_path / "store")).replace("{out}", str(out)) for a in argv]
+    rc, err = _run(argv, capsys)
+    assert rc == 2
+    assert err == [f"icbtool {argv[0]}: error: --out '{out}': '{afile}' is a file, not a directory"]
+
+
+def test_demo_options_build_the_nested_loop_config():
+    from icbtool.cli import build_parser
+    from icbtool.cli.demo import config_argv
+    from icbtool.net import ShaperConfig
+    from icbtool.pipeline import LoopConfig
+    from icbtool.system import CloudConfig
+
+    parser = build_parser()
+    args = parser.parse_args(["demo", "--height", "64", "--width", "48", "--spp", "4",
+                              "--no-denoise", "--latency-s", "0.2", "--no-inpaint",
+                              "--net-latency-ms", "10"])  # fmt: skip
+    cfg = args.loop_options.build(args)
+    assert cfg == LoopConfig(height=64, width=48, spp=4, denoise=False, latency_s=0.2,
+                             inpaint=False)  # fmt: skip
+    assert args.shaper_options.build(args) == ShaperConfig(latency_ms=10.0, bandwidth_mbit=50.0)
+    # --network hands the same cloud settings to `icbtool serve`, spelled the same way
+    argv = ["serve", "cornell_box", "--store", "S", *config_argv(cfg.cloud, args.loop_options,
+                                                                  "cloud")]  # fmt: skip
+    served = parser.parse_args(argv)
+    assert (
+        served.cloud_options.build(served)
+        == cfg.cloud
+        == CloudConfig(spp=4, denoise=False, latency_s=0.2)
+    )
+
+
+def test_a_misspelt_scene_suggests_the_builtin_name(tmp_path, capsys):
+    rc, err = _run(["render", "cornel_box", "--out", str(tmp_path / "o")], capsys)
+    assert rc == 2
+    assert err == [
+        "icbtool render: error: argument scene: 'cornel_box' is neither a file nor a built-in "
+        "scene; did you mean 'cornell_box'? built-in scenes: boxes_on_floor, cornell_box, "
+        "plane, white_furnace"
+    ]
+    assert not (tmp_path / "o").exists()
+
+
+def test_ctrl_c_exits_130_with_one_line_and_the_store_committed(tmp_path, capsys, monkeypatch):
+    """A KeyboardInterrupt in the middle of a bake: exit code 130, one line, no traceback; the
+    records committed before it are in the store (closed on the way out)."""
+    import icbtool.bake as B
+    from icbtool import store as st
+
+    real_bake = B.bake
+
+    def bake_then_interrupt(scene, path, store, cfg):
+        real_bake(scene, path, store, dataclasses.replace(cfg, limit=1))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(B, "bake", bake_then_interrupt)
+    d = tmp_path / "store"
+    argv = ["bake", "plane", "--path", "test", "--store", str(d), "--spp", "1", "--height",
+            "8", "--width", "8", "--no-denoise"]  # fmt: skip
+    if "test" not in __import__("icbtool").scene.PROCEDURAL["plane"]().paths:
+        argv[1] = "cornell_box"
+    rc, err = _run(argv, capsys)  # (no traceback: _run checks)
+    assert rc == 130 and [ln for ln in err if "icbtool" in ln] == ["icbtool bake: interrupted"]
+    with st.open(d, st.StoreConfig(readonly=True)) as store:
+        assert len(store) == 1 and store.check().ok
+
+
+def test_warnings_print_as_one_line(capsys, monkeypatch):
+    import warnings
+
+    from icbtool.cli import one_line_warnings
+
+    with one_line_warnings("render"):
+        warnings.warn("a mesh without normals:\n  computed them", UserWarning, stacklevel=1)
+    err = capsys.readouterr().err
+    assert err == "icbtool render: warning: a mesh without normals: computed them\n"
+
+
+@dataclasses.dataclass(frozen=True)
+class _Inner:
+    """Inner part.
+
+    Attributes:
+        spp: samples per pixel.
+        mode, other: the two modes (one text for both).
+    """
+
+    spp: int = 4
+    mode: Literal["a", "b"] = "a"
+    other: Literal["x", "y"] = "y"
+
+
+@dataclasses.dataclass(frozen=True)
+class _Outer:
+    inner: _Inner = dataclasses.field(default_factory=_Inner)
+    """Nested."""
+    sizes: tuple[int, ...] = (1, 2)
+    """Sizes."""
+    flag: bool = True
+    """A flag."""
+    name: str | None = None
+    """A name."""
+
+
+def test_generator_reads_docstrings_nests_and_sees_new_fields():
+    """The generator on a toy config: help from the Attributes section and from the string under
+    a field, types to parsers, nested configs flattened; a field added later is an option too."""
+    import argparse
+
+    from icbtool.cli._options import UNDOCUMENTED, add_config
+
+    NewOuter = dataclasses.make_dataclass(  # a field added later
+        "NewOuter",
+        [("extra_knob", float, dataclasses.field(default=0.5)),
+         ("tags", dict, dataclasses.field(default_factory=dict))],  # no docstring, no CLI type
+        bases=(_Outer,), frozen=True,
+    )  # fmt: skip
+    NewOuter.__doc__ = "New.\n\nAttributes:\n    extra_knob: a new knob.\n"
+    p = argparse.ArgumentParser()
+    opts = add_config(p, NewOuter)
+    helps = {o: a.help for a in p._actions for o in a.option_strings}
+    assert helps["--spp"] == "samples per pixel. (default: 4)"
+    assert helps["--other"].startswith("the two modes (one text for both).")
+    assert helps["--extra-knob"] == "a new knob. (default: 0.5)"
+    args = p.parse_args(["--spp", "9", "--mode", "b", "--sizes", "3,4,5", "--no-flag",
+                         "--name", "n", "--extra-knob", "2"])  # fmt: skip
+    cfg = opts.build(args)
+    assert cfg == NewOuter(_Inner(9, "b"), (3, 4, 5), False, "n", 2.0, {})
+    assert helps["--tags"] == f"{UNDOCUMENTED} (default: {{}})"  # reachable, and flagged
+    assert opts.build(p.parse_args(["--tags", '{"k": [1, 2]}'])).tags == {"k": [1, 2]}
+    with pytest.raises(SystemExit):
+        p.parse_args(["--spp", "0"])  # CONCEPTS: spp is an integer >= 1 everywhere
+
+
+def test_an_old_spelling_is_an_error_of_the_command_that_names_the_new_one(tmp_path, capsys):
+    argv = ["bake", "cornell_box", "--path", "test", "--store", str(tmp_path / "s"),
+            "--size", "64", "64"]  # fmt: skip
+    rc, err = _run(argv, capsys)
+    assert rc == 2 and err == [
+        "icbtool bake: error: unrecognized arguments: --size 64 64 "
+        "(--size is now --height H --width W)"
+    ]
+    assert not (tmp_path / "s").exists()

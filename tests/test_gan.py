@@ -414,7 +414,9 @@ def test_cli_train_resume_export(store, tmp_path, capsys):
     assert gen.inputs == ("albedo", "dl", "normal_world")
     if importlib.util.find_spec("onnx") is not None:
         onnx_path = str(tmp_path / "g.onnx")
-        assert main(["export", str(run), "--onnx", onnx_path, "--size", "32", "32"]) == 0
+        assert (
+            main(["export", str(run), "--onnx", onnx_path, "--height", "32", "--width", "32"]) == 0
+        )
         assert (tmp_path / "g.onnx").is_file() and (tmp_path / "g.onnx.json").is_file()
     assert main(["train", str(tmp_path / "nostore"), "--out", str(tmp_path / "x")]) == 1
 
@@ -426,12 +428,12 @@ def test_cli_generate_on_a_procedural_scene(store, tmp_path, capsys):
 
     T.train(store, tiny(iterations=1, inputs="I"), tmp_path / "run", progress=False)
     out = tmp_path / "gen"
-    rc = main(["generate", str(tmp_path / "run"), "cornell_box", "--size", "64", "64",
+    rc = main(["generate", str(tmp_path / "run"), "cornell_box", "--height", "64", "--width", "64",
                "--out", str(out)])  # fmt: skip
     assert rc == 0, capsys.readouterr().err
     gi = read_exr(out / "default_gi.exr")
     assert gi.shape == (64, 64, 3) and np.isfinite(gi).all() and gi.min() >= 0
-    rc = main(["generate", str(tmp_path / "run"), "cornell_box", "--size", "60", "64",
+    rc = main(["generate", str(tmp_path / "run"), "cornell_box", "--height", "60", "--width", "64",
                "--out", str(out)])  # fmt: skip
     assert rc == 1 and "multiples of 32" in capsys.readouterr().err
 

@@ -331,8 +331,8 @@ def test_cli_writes_stats_previews_and_chunks(tmp_path):
     from icbtool.cli import main
 
     out = tmp_path / "lpm"
-    rc = main(["lpm", "cornell_box", "--out", str(out), "--cameras", "1", "--size", "24",
-               "--ratios", "0.5,1", "--chunks"])  # fmt: skip
+    rc = main(["lpm", "cornell_box", "--out", str(out), "--cameras", "1", "--height", "24",
+               "--width", "24", "--ratios", "0.5,1", "--chunks"])  # fmt: skip
     assert rc == 0
     data = json.loads((out / "lpm.json").read_text())
     assert [r["triangles"] for r in data["levels"]] == [32, 32]

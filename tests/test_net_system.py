@@ -439,19 +439,21 @@ def test_cli_client_runs_against_a_server_and_refusals_are_one_line(server, tmp_
 
     out = tmp_path / "c"
     argv = ["client", server.url, "--token", TOKEN, "--path", "test", "--frames", "2",
-            "--size", "32", "--out", str(out), "--timeout", str(T)]  # fmt: skip
+            "--height", "32", "--width", "32", "--out", str(out),
+            "--timeout-s", str(T)]  # fmt: skip
     assert main(argv) == 0
     assert sorted(p.name for p in (out / "frames").glob("*.png")) == ["000.png", "001.png"]
     rows = (out / "latency.csv").read_text().strip().splitlines()
     assert len(rows) == 3  # header + one row per frame
     capsys.readouterr()
-    bad = ["client", server.url, "--token", "not-it", "--frames", "1", "--size", "32",
-           "--out", str(tmp_path / "bad"), "--timeout", str(T)]  # fmt: skip
+    bad = ["client", server.url, "--token", "not-it", "--frames", "1", "--height", "32",
+           "--width", "32", "--out", str(tmp_path / "bad"), "--timeout-s", str(T)]  # fmt: skip
     assert main(bad) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("icbtool client: error:") and "auth" in err and "\n" not in err
     gone = ["client", f"ws://127.0.0.1:{_free_port()}", "--token", TOKEN, "--frames", "1",
-            "--size", "32", "--out", str(tmp_path / "gone"), "--timeout", "10"]  # fmt: skip
+            "--height", "32", "--width", "32", "--out", str(tmp_path / "gone"),
+            "--timeout-s", "10"]  # fmt: skip
     assert main(gone) == 1
     assert "cannot connect" in capsys.readouterr().err
 

@@ -62,7 +62,12 @@ def test_loop_config_validation():
 def test_cli_unknown_scene_is_one_clear_line(capsys, tmp_path):
     from icbtool.cli import main
 
-    assert main(["demo", "no_such_scene", "--out", str(tmp_path)]) == 1
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["icbtool demo: error: scene file not found: no_such_scene"]
-    assert not (tmp_path / "summary.json").exists()
+    with pytest.raises(SystemExit) as e:  # an argparse error, before any work: exit 2
+        main(["demo", "no_such_scene", "--out", str(tmp_path / "o")])
+    assert e.value.code == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("icbtool")]
+    assert err == [
+        "icbtool demo: error: argument scene: 'no_such_scene' is neither a file nor a built-in "
+        "scene; built-in scenes: boxes_on_floor, cornell_box, plane, white_furnace"
+    ]
+    assert not (tmp_path / "o").exists()

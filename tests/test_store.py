@@ -786,6 +786,37 @@ def test_rebuild_quarantines_damaged_payloads_and_reports_orphans(tmp_path):
     assert len(kept) == 1  # the first rebuild had no database to keep
 
 
+def test_rebuild_leaves_a_healthy_index_alone(tmp_path, capsys):
+    """A healthy index that lists exactly the intact payloads is not swapped: no
+    ``damaged-<time>`` file, the database byte for byte, hit counts kept, run after run."""
+    from icbtool.cli import main
+
+    d = tmp_path / "s"
+    ids, before = _seven_records(d)
+    db = d / "icbstore.sqlite"
+
+    def listing():  # SQLite's own -wal/-shm side files come and go with connections
+        return sorted(p.name for p in d.iterdir() if not p.name.endswith(("-wal", "-shm")))
+
+    files = listing()
+    db_bytes = db.read_bytes()
+    for _ in range(2):
+        rep = S.rebuild(d)
+        assert not rep.rebuilt and rep.ok and rep.old_index is None
+        assert rep.recovered == ids and rep.hits_restored == 7 and rep.quarantined == []
+        assert listing() == files  # nothing new in the store
+        assert db.read_bytes() == db_bytes
+    assert main(["store", "check", str(d), "--rebuild"]) == 0
+    assert "is healthy and complete: left alone (7 record(s) recovered)" in capsys.readouterr().out
+    assert not list(d.glob("icbstore.sqlite.damaged-*"))
+    with S.open(d) as store:
+        assert [store.info(r).hits for r in ids] == [before[r].hits for r in ids]
+    # a record the index lists but whose payload is gone: not healthy, rebuilt
+    before[ids[0]].payload.unlink()
+    rep = S.rebuild(d)
+    assert rep.rebuilt and rep.recovered == ids[1:] and rep.old_index is not None
+
+
 def test_cli_check_rebuild(tmp_path, capsys):
     from icbtool.cli import main
 

@@ -494,7 +494,7 @@ def test_cli_trace_writes_outputs(tmp_path):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["config"]["spp"] == 2 and summary["views"][0]["stats"]["passes"] == 1
     assert summary["config"]["sky_sampling"] == "auto" and summary["config"]["robust"] is True
-    opts = ["--sky-sampling", "mis", "--sampler", "independent", "--fast-embree"]
+    opts = ["--sky-sampling", "mis", "--sampler", "independent", "--no-robust"]
     rc = main(
         ["trace", "plane", "--out", str(tmp_path / "b"), "--spp", "1", "--height", "8", *opts]
     )

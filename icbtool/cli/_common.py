@@ -12,6 +12,37 @@ from typing import Any
 from icbtool.provenance import run_info, to_jsonable, write_json
 
 
+def populate(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add a command's options now if :func:`add_command` deferred them (idempotent)."""
+    options = parser.__dict__.pop("icb_options", None)
+    if options is not None:
+        options(parser)
+    return parser
+
+
+def add_command(
+    sub: argparse._SubParsersAction,
+    name: str,
+    options: Callable[[argparse.ArgumentParser], None],
+    **kwargs: Any,
+) -> argparse.ArgumentParser:
+    """A subcommand whose options ``options(parser)`` adds when the command is chosen."""
+    p = sub.add_parser(name, **kwargs)
+    p.icb_options = options  # type: ignore[attr-defined]
+    return p
+
+
+def commands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """Every (sub)command's parser by its name (``"store check"``), options added."""
+    out: dict[str, argparse.ArgumentParser] = {}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for p in action.choices.values():
+                out[p.prog.removeprefix("icbtool").strip()] = populate(p)
+                out.update(commands(p))
+    return out
+
+
 class UsageError(ValueError):
     """A bad command-line value found before any work: ``icbtool CMD: error: ...``, exit code 2."""
 
@@ -104,23 +135,73 @@ def check_out_dir(path: str | Path, option: str = "--out") -> Path:
     return p
 
 
-def add_scene_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "scene",
-        help="a procedural scene name (cornell_box, white_furnace, plane, boxes_on_floor), "
-        "a scene description (.toml) or a mesh file (.obj, .ply, .glb, .gltf)",
+def scene_spec(text: str) -> str:
+    """An argparse ``type`` for a scene: a built-in (procedural) scene name or an existing file;
+    anything else is an argparse error that suggests the closest built-in name and lists them."""
+    import difflib
+
+    from icbtool.scene import PROCEDURAL
+
+    if text in PROCEDURAL or Path(text).exists():
+        return text
+    names = sorted(PROCEDURAL)
+    close = difflib.get_close_matches(text, names, n=1)
+    hint = f"did you mean {close[0]!r}? " if close else ""
+    raise argparse.ArgumentTypeError(
+        f"{text!r} is neither a file nor a built-in scene; {hint}built-in scenes: "
+        + ", ".join(names)
     )
 
 
-def add_denoise_quality_argument(p: argparse.ArgumentParser) -> None:
-    from icbtool.trace.tracer import DENOISE_QUALITIES
+scene_spec.__name__ = "scene"
 
-    p.add_argument(
-        "--denoise-quality",
-        choices=DENOISE_QUALITIES,
-        default="high",
-        help="OIDN quality ('fast': about half the denoising time)",
-    )
+SCENE_HELP = (
+    "a built-in scene (cornell_box, white_furnace, plane, boxes_on_floor), a scene description "
+    "(.toml) or a mesh file (.obj, .ply, .glb, .gltf)"
+)
+
+
+def add_scene_argument(p: argparse.ArgumentParser, optional: bool = False) -> None:
+    """The positional SCENE (``optional``: may be left out, default cornell_box)."""
+    if optional:
+        p.add_argument(
+            "scene",
+            nargs="?",
+            default="cornell_box",
+            type=scene_spec,
+            help=SCENE_HELP + " (default: cornell_box)",
+        )
+    else:
+        p.add_argument("scene", type=scene_spec, help=SCENE_HELP)
+
+
+def add_size_arguments(
+    p: argparse.ArgumentParser, default: tuple[int, int] | None = None, what: str = "image"
+) -> None:
+    """``--height H --width W``: the one spelling of an image size on every command."""
+    for side, i in (("height", 0), ("width", 1)):
+        if default is None:
+            text = f"{what} {side} (default: the camera's; alone, the other side keeps the aspect)"
+        else:
+            text = f"{what} {side} (default: {default[i]})"
+        p.add_argument(
+            f"--{side}",
+            type=positive_int,
+            default=None if default is None else default[i],
+            metavar=side[0].upper(),
+            help=text,
+        )
+
+
+def add_out_argument(
+    p: argparse.ArgumentParser, default: str | None = None, what: str = ""
+) -> None:
+    """``--out DIR``: checked (created, writable) before any work by :func:`check_out_dir`."""
+    text = f"output directory{what} (created if missing; checked before any work)"
+    if default is None:
+        p.add_argument("--out", required=True, metavar="DIR", help=text)
+    else:
+        p.add_argument("--out", default=default, metavar="DIR", help=text)
 
 
 def add_up_axis_argument(p: argparse.ArgumentParser) -> None:
@@ -128,8 +209,8 @@ def add_up_axis_argument(p: argparse.ArgumentParser) -> None:
         "--up-axis",
         choices=("auto", "y", "z", "x"),
         default=None,
-        help="the mesh file's up axis (rotated to +y); default 'auto': y for glTF, guessed for "
-        "OBJ/PLY (see icbtool.scene.load.guess_up_axis)",
+        help="the mesh file's up axis (rotated to +y) (default: the file's or description's; "
+        "'auto': y for glTF, guessed for OBJ/PLY, see icbtool.scene.load.guess_up_axis)",
     )
 
 
@@ -224,8 +305,14 @@ def select_cameras(
 
 
 __all__ = [
+    "add_command",
+    "commands",
+    "populate",
+    "SCENE_HELP",
     "UsageError",
+    "add_out_argument",
     "add_scene_argument",
+    "add_size_arguments",
     "check_out_dir",
     "float_in",
     "fov_deg",
@@ -235,6 +322,7 @@ __all__ = [
     "add_up_axis_argument",
     "load_scene",
     "run_info",
+    "scene_spec",
     "select_cameras",
     "to_jsonable",
     "write_json",

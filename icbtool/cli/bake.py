@@ -6,74 +6,50 @@ import argparse
 
 from icbtool._optional import require
 from icbtool.cli._common import (
-    add_denoise_quality_argument,
+    UsageError,
+    add_command,
     add_scene_argument,
+    add_size_arguments,
     check_out_dir,
-    float_in,
-    int_at_least,
     load_scene,
-    positive_int,
 )
+from icbtool.cli._options import add_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bake", help="render the CRT-buffers of a camera path into a store")
+    add_command(
+        sub,
+        "bake",
+        help="render the CRT-buffers of a camera path into a store",
+        options=_options,
+    )
+
+
+def _options(p: argparse.ArgumentParser) -> None:
+    from icbtool.bake import BakeConfig
+
     add_scene_argument(p)
     p.add_argument("--path", required=True, help="camera path name in the scene (e.g. train)")
-    p.add_argument("--store", required=True, help="store directory (created if missing)")
-    p.add_argument("--spp", type=positive_int, default=16, help="GI samples per pixel")
     p.add_argument(
-        "--seed", type=int_at_least(0), default=0, help="base seed (view k uses seed + k)"
+        "--store", required=True, metavar="DIR", help="store directory (created if missing)"
     )
-    p.add_argument(
-        "--gbuffer",
-        choices=("raster", "trace"),
-        default="raster",
-        help="DL and G-buffers from the rasterizer or a primary ray cast",
-    )
-    p.add_argument("--cloud-camera", choices=("same", "wider", "prefetch"), default="same")
-    p.add_argument(
-        "--fov-multiplier", type=float_in(1.0), default=1.5, help="--cloud-camera wider: FOV factor"
-    )
-    p.add_argument(
-        "--pullback", type=float_in(0.0), default=0.0, help="--cloud-camera wider: pull-back"
-    )
-    p.add_argument(
-        "--size",
-        type=positive_int,
-        nargs=2,
-        default=None,
-        metavar=("H", "W"),
-        help="render size (default: the path's)",
-    )
-    p.add_argument("--stride", type=positive_int, default=1, help="bake every n-th camera")
-    p.add_argument("--limit", type=positive_int, default=None, help="at most this many cameras")
-    p.add_argument("--denoise", action="store_true", help="denoise GI with OIDN")
-    add_denoise_quality_argument(p)
-    p.set_defaults(func=_run)
+    add_size_arguments(p, what="render")
+    bake = add_config(p, BakeConfig, skip=("resolution", "prefetch_config", "progress", "tags"))
+    p.set_defaults(func=_run, bake_options=bake)
 
 
 def _run(args: argparse.Namespace) -> int:
-    check_out_dir(args.store, "--store")  # before any work
-    if args.denoise:
+    if (args.height is None) != (args.width is None):
+        raise UsageError("--height and --width go together (default: the path's size)")
+    size = None if args.height is None else (args.height, args.width)
+    cfg = args.bake_options.build(args, resolution=size)  # a bad setting: exit 2, no work
+    check_out_dir(args.store, "--store")
+    if cfg.denoise:
         require("pyoidn", "--denoise (Open Image Denoise)")
     from icbtool import bake as B
     from icbtool import store as st
 
     scene = load_scene(args.scene)
-    cfg = B.BakeConfig(
-        spp=args.spp,
-        seed=args.seed,
-        gbuffer=args.gbuffer,
-        cloud_camera=args.cloud_camera,
-        fov_multiplier=args.fov_multiplier,
-        pullback=args.pullback,
-        resolution=None if args.size is None else tuple(args.size),
-        stride=args.stride,
-        limit=args.limit,
-        denoise=args.denoise,
-        denoise_quality=args.denoise_quality,
-    )
     with st.open(args.store) as store:
         rep = B.bake(scene, args.path, store, cfg)
         n = len(store)

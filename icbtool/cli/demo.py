@@ -18,46 +18,31 @@ from pathlib import Path
 from icbtool._optional import require
 from icbtool.cli._common import (
     UsageError,
-    add_denoise_quality_argument,
+    add_command,
+    add_out_argument,
+    add_scene_argument,
     check_out_dir,
-    float_in,
-    int_at_least,
     load_scene,
-    positive_int,
 )
+from icbtool.cli._options import ConfigOptions, add_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    add_command(
+        sub,
         "demo",
         help="run the main job on the default scene (Cornell box)",
         description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        options=_options,
     )
-    p.add_argument(
-        "scene",
-        nargs="?",
-        default="cornell_box",
-        help="procedural scene name, scene description (.toml) or mesh file (default: cornell_box)",
-    )
-    p.set_defaults(func=run)
-    p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
-    p.add_argument("--path", default="test", help="camera path the client follows")
-    p.add_argument("--frames", type=positive_int, default=24, help="client frames along the path")
-    p.add_argument("--size", type=positive_int, default=128, help="client image size (square)")
-    p.add_argument("--spp", type=positive_int, default=16, help="samples per pixel of the cloud GI")
-    p.add_argument(
-        "--latency", type=float_in(0.0), default=0.1, help="interaction latency T_IL (s)"
-    )
-    p.add_argument(
-        "--truth-every", type=int_at_least(0), default=6, help="score every N-th frame (0: never)"
-    )
-    p.add_argument(
-        "--truth-spp", type=positive_int, default=128, help="samples per pixel of the truth"
-    )
-    p.add_argument("--no-prefetch", action="store_true", help="reference at the old camera")
-    p.add_argument("--no-denoise", action="store_true", help="serve raw (noisy) GI maps")
-    add_denoise_quality_argument(p)
+
+
+def _options(p: argparse.ArgumentParser) -> None:
+    from icbtool.net.shaper import ShaperConfig
+    from icbtool.pipeline import LoopConfig
+
+    add_scene_argument(p, optional=True)
+    add_out_argument(p, default="out/demo")
     p.add_argument("--fresh", action="store_true", help="empty the cloud cache first")
     p.add_argument(
         "--network",
@@ -65,22 +50,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="also run the system across processes: a server subprocess and a client on "
         "loopback (outputs in OUT/network)",
     )
-    p.add_argument(
-        "--net-latency-ms", type=float_in(0.0), default=50.0, help="emulated RTT of --network"
+    loop = add_config(p, LoopConfig)
+    shaper = add_config(
+        p,
+        ShaperConfig,
+        prefix="net-",
+        defaults={"latency_ms": 50.0, "bandwidth_mbit": 50.0},
+        title="the emulated network of --network (ShaperConfig)",
     )
-    p.add_argument(
-        "--net-bandwidth-mbit",
-        type=float_in(0.0, lo_open=True),
-        default=50.0,
-        help="emulated bandwidth of --network (Mbit/s)",
-    )
-    p.add_argument(
-        "--generator",
-        default=None,
-        metavar="RUN",
-        help="a trained GAN run (icbtool train): the client generates its GI with it and asks "
-        "the cloud only when it cannot (the paper's rule)",
-    )
+    p.set_defaults(func=run, loop_options=loop, shaper_options=shaper)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -88,10 +66,12 @@ def run(args: argparse.Namespace) -> int:
 
     from icbtool import imageio, pipeline, raster
 
-    out = check_out_dir(args.out)  # before any work
-    if args.generator is not None and not (Path(args.generator) / "generator.pt").is_file():
-        raise UsageError(f"--generator {args.generator!r}: no generator.pt in that run directory")
-    if not args.no_denoise:
+    cfg = args.loop_options.build(args)  # a bad setting: one line, exit 2, before any work
+    shaper = args.shaper_options.build(args)
+    out = check_out_dir(args.out)
+    if cfg.generator is not None and not (Path(cfg.generator) / "generator.pt").is_file():
+        raise UsageError(f"--generator {cfg.generator!r}: no generator.pt in that run directory")
+    if cfg.cloud.denoise:
         require("pyoidn", "denoising the demo's GI maps (--no-denoise skips it)")
     if args.fresh and (out / "cache").exists():
         shutil.rmtree(out / "cache")
@@ -101,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     cam = scene.default_camera
     if cam is None:
         raise ValueError(f"scene {args.scene!r} has no default camera")
-    cam = cam.resized(2 * args.size, 2 * args.size)
+    cam = cam.resized(2 * cfg.height, 2 * cfg.width)
     buf = raster.render(scene, cam)
     for name in buf.names:
         arr = getattr(buf, name)
@@ -110,25 +90,11 @@ def run(args: argparse.Namespace) -> int:
             imageio.preview(arr, raster.PREVIEW_KIND[name], mask=buf.valid),
         )
     print(f"client buffers at the default camera -> {out / 'buffers'}")
-    cfg = pipeline.LoopConfig(
-        path=args.path,
-        frames=args.frames,
-        height=args.size,
-        width=args.size,
-        spp=args.spp,
-        latency_s=args.latency,
-        truth_every=args.truth_every,
-        truth_spp=args.truth_spp,
-        prefetch=not args.no_prefetch,
-        denoise=not args.no_denoise,
-        denoise_quality=args.denoise_quality,
-        generator=args.generator,
-    )
     report = pipeline.run_loop(scene, cfg, out_dir=out)
     s = report.summary()
     print(json.dumps(s, indent=2))
     if args.network:
-        run_network(args, scene, cfg, out / "network")
+        run_network(args, scene, cfg, shaper, out / "network")
     print(
         f"done in {time.perf_counter() - t0:.1f} s; outputs in {out}/ "
         "(frames/*.png, loop.png, summary.json, frames.csv, buffers/*.png)"
@@ -136,7 +102,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_network(args: argparse.Namespace, scene: object, cfg: object, out: Path) -> None:
+def run_network(
+    args: argparse.Namespace, scene: object, cfg: object, shaper: object, out: Path
+) -> None:
     """Step 3: a server subprocess on a free loopback port, a client here, the server stopped
     with SIGTERM (its store kept in OUT/network/cache)."""
     import os
@@ -150,14 +118,10 @@ def run_network(args: argparse.Namespace, scene: object, cfg: object, out: Path)
     require("websockets", "the networked demo (--network)")
     token = secrets.token_urlsafe(16)
     cmd = [sys.executable, "-m", "icbtool", "serve", args.scene, "--store", str(out / "cache"),
-           "--port", "0", "--spp", str(args.spp), "--latency", str(args.latency),
-           "--denoise-quality", args.denoise_quality, "--log-level", "WARNING"]  # fmt: skip
-    if args.no_denoise:
-        cmd.append("--no-denoise")
-    if args.no_prefetch:
-        cmd.append("--no-prefetch")
-    if args.generator is not None:
-        cmd += ["--generator", args.generator]
+           "--port", "0", "--log-level", "WARNING"]  # fmt: skip
+    cmd += config_argv(cfg.cloud, args.loop_options, "cloud")  # the same cloud settings
+    if cfg.generator is not None:
+        cmd += ["--generator", cfg.generator]
     if args.fresh and (out / "cache").exists():
         import shutil
 
@@ -175,11 +139,7 @@ def run_network(args: argparse.Namespace, scene: object, cfg: object, out: Path)
             url,
             token,
             cfg,
-            net.NetClientConfig(
-                shaper=net.ShaperConfig(
-                    latency_ms=args.net_latency_ms, bandwidth_mbit=args.net_bandwidth_mbit
-                ),
-            ),
+            net.NetClientConfig(shaper=shaper),
             out_dir=out,
             truth_scene=scene,
         )
@@ -192,3 +152,18 @@ def run_network(args: argparse.Namespace, scene: object, cfg: object, out: Path)
             proc.kill()
             proc.wait(10)
     print(f"networked run -> {out}/ (frames/*.png, latency.csv, latency.png, net_summary.json)")
+
+
+def config_argv(config: object, options: ConfigOptions, part: str) -> list[str]:
+    """The command-line options that give every field of ``config`` (the nested config
+    ``part`` of ``options``' class) its value: the same spellings on every command."""
+    argv: list[str] = []
+    for f in options.fields:
+        if f.path[:-1] != (part,):
+            continue
+        v = getattr(config, f.path[-1])
+        if isinstance(v, bool):
+            argv.append(f.option if v else "--no-" + f.option[2:])
+        elif v is not None:
+            argv += [f.option, ",".join(map(str, v)) if isinstance(v, tuple) else str(v)]
+    return argv

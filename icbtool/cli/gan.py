@@ -1,55 +1,109 @@
-"""GAN pre-renderer commands (ICB.md section 5):
+"""GAN pre-renderer commands (docs/gan.md):
 
 - ``icbtool train STORE --scene S --inputs I --preset cpu --out runs/NAME [--resume]``
-- ``icbtool generate RUN SCENE --camera default|path:NAME --out DIR``
-- ``icbtool export RUN --onnx FILE``
+- ``icbtool generate RUN SCENE --camera default|path:NAME --out DIR [--height H --width W]``
+- ``icbtool export RUN --onnx FILE [--height H --width W]``
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
-from icbtool.cli._common import add_scene_argument, load_scene, run_info, select_cameras, write_json
+from icbtool.cli._common import (
+    UsageError,
+    add_command,
+    add_out_argument,
+    add_scene_argument,
+    add_size_arguments,
+    check_out_dir,
+    float_in,
+    load_scene,
+    positive_int,
+    run_info,
+    select_cameras,
+    write_json,
+)
+from icbtool.cli._options import Spelling, add_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("train", help="train the GAN pre-renderer on a store's baked paths")
+    add_command(
+        sub,
+        "train",
+        _train_options,
+        help="train the GAN pre-renderer on a store's baked paths",
+        description="Train the GAN pre-renderer (icbtool.gan.train) on a store's baked train "
+        "path, evaluating on its test path. Every TrainConfig field is an option; unset ones "
+        "take the preset's value.",
+    )
+    add_command(
+        sub, "generate", _generate_options, help="generate GI maps with a trained generator"
+    )
+    add_command(sub, "export", _export_options, help="export a trained generator to ONNX")
+
+
+def _train_options(p: argparse.ArgumentParser) -> None:
+    import typing
+
+    from icbtool.gan.training import TrainConfig
+
+    presets = typing.get_args(typing.get_type_hints(TrainConfig.preset)["name"])
     p.add_argument("store", help="store directory (baked with `icbtool bake`)")
     p.add_argument("--scene", default=None, help="scene name or hash in the store (default: all)")
-    p.add_argument("--inputs", default="I", help="configuration A..J or comma-separated buffers")
-    p.add_argument("--preset", choices=("cpu", "paper-cpu", "paper"), default="cpu")
-    p.add_argument("--out", required=True, help="run directory (e.g. runs/sponza_I)")
+    p.add_argument("--preset", choices=presets, default=presets[0], help="the field defaults")
+    add_out_argument(p, what=": the run (e.g. runs/sponza_I)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
-    p.add_argument("--iterations", type=int, default=None, help="override the preset's")
-    p.add_argument("--vgg19-weights", default=None, help="local torchvision VGG19 .pth file")
-    p.add_argument("--train-path", default=None, help="camera-path tag of the train split")
-    p.add_argument("--test-path", default=None, help="camera-path tag of the test split")
-    p.add_argument("--device", choices=("cpu", "cuda"), default=None)
-    p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--eval-every", type=int, default=None)
-    p.add_argument("--crop", type=int, default=None, help="training crop side (multiple of 32)")
-    p.add_argument("--base", type=int, default=None, help="first-layer width of the networks")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=_train)
+    p.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="show a progress bar with the losses",
+    )
+    by_preset = {name: TrainConfig.preset(name) for name in presets}
+    spell = {}
+    for f in dataclasses.fields(TrainConfig):
+        values = {name: getattr(cfg, f.name) for name, cfg in by_preset.items()}
+        shown = {
+            k: ",".join(map(str, v)) if isinstance(v, tuple) else str(v) for k, v in values.items()
+        }
+        if len(set(shown.values())) == 1:
+            text = next(iter(shown.values()))
+        else:
+            text = "the preset's: " + ", ".join(f"{k} {v}" for k, v in shown.items())
+        spell[f.name] = Spelling(default_text=text)
+    train = add_config(p, TrainConfig, unset=True, spell=spell)
+    p.set_defaults(func=_train, train_options=train)
 
-    p = sub.add_parser("generate", help="generate GI maps with a trained generator")
+
+def _generate_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", help="training run directory (or its generator.pt)")
     add_scene_argument(p)
-    p.add_argument("--camera", default="default", help="'default' or 'path:NAME'")
-    p.add_argument("--every", type=int, default=1, help="every K-th camera of a path")
     p.add_argument(
-        "--size", type=int, nargs=2, default=None, metavar=("H", "W"), help="multiples of 32"
+        "--camera", default="default", help="'default' (the scene's camera) or 'path:NAME'"
     )
-    p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--exposure", type=float, default=1.0, help="exposure of the PNG previews")
+    p.add_argument(
+        "--every", type=positive_int, default=1, help="with path:NAME, every K-th camera"
+    )
+    add_size_arguments(p)
+    add_out_argument(p)
+    p.add_argument(
+        "--exposure",
+        type=float_in(0.0, lo_open=True),
+        default=1.0,
+        help="exposure of the PNG previews",
+    )
     p.set_defaults(func=_generate)
 
-    p = sub.add_parser("export", help="export a trained generator to ONNX")
+
+def _export_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", help="training run directory (or its generator.pt)")
-    p.add_argument("--onnx", required=True, help="output .onnx file (+ .onnx.json sidecar)")
-    p.add_argument("--size", type=int, nargs=2, default=(128, 128), metavar=("H", "W"))
+    p.add_argument(
+        "--onnx", required=True, metavar="FILE", help="output .onnx file (+ .onnx.json sidecar)"
+    )
+    add_size_arguments(p, default=(128, 128), what="input")
     p.set_defaults(func=_export)
 
 
@@ -59,29 +113,18 @@ def _train(args: argparse.Namespace) -> int:
     from icbtool import store as st
     from icbtool.gan.training import TrainConfig, TrainingDivergedError, train
 
-    over = {
-        k: v
-        for k, v in {
-            "inputs": args.inputs,
-            "iterations": args.iterations,
-            "vgg19_weights": args.vgg19_weights,
-            "train_path": args.train_path,
-            "test_path": args.test_path,
-            "device": args.device,
-            "seed": args.seed,
-            "eval_every": args.eval_every,
-            "crop": args.crop,
-            "base": args.base,
-        }.items()
-        if v is not None
-    }
-    cfg = TrainConfig.preset(args.preset, **over)
+    factory = lambda **kw: TrainConfig.preset(args.preset, **kw)  # noqa: E731
+    cfg = args.train_options.call(factory, args)  # a bad setting: one line, exit 2
     if not Path(args.store).is_dir():
-        raise FileNotFoundError(f"store {args.store!r} does not exist")
+        raise FileNotFoundError(f"store {args.store!r} does not exist (or is not a directory)")
+    out = Path(args.out)
+    if args.resume and not out.is_dir():
+        raise UsageError(f"--resume: --out {args.out!r} is not a run directory")
+    check_out_dir(out)  # before any work
     with st.open(args.store, st.StoreConfig(readonly=True)) as store:
         try:
-            res = train(store, cfg, args.out, scene=args.scene, resume=args.resume,
-                        progress=not args.no_progress)  # fmt: skip
+            res = train(store, cfg, out, scene=args.scene, resume=args.resume,
+                        progress=args.progress)  # fmt: skip
         except TrainingDivergedError as e:
             print(f"icbtool train: error: {e}", file=sys.stderr)
             return 1
@@ -101,13 +144,11 @@ def _generate(args: argparse.Namespace) -> int:
     from icbtool.gan.generate import Generator
     from icbtool.imageio import to_display, write_exr, write_png
 
+    out = check_out_dir(args.out)  # before any work
     gen = Generator.load(args.run)
     scene = load_scene(args.scene)
-    h, w = (None, None) if args.size is None else args.size
-    cams = select_cameras(scene, args.camera, args.every, h, w)
+    cams = select_cameras(scene, args.camera, args.every, args.height, args.width)
     names = tuple(n for n in gen.inputs if n != "mask")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     frames = []
     with raster.Rasterizer(scene, raster.RasterConfig()) as r:
         for name, cam in cams:
@@ -137,6 +178,6 @@ def _generate(args: argparse.Namespace) -> int:
 def _export(args: argparse.Namespace) -> int:
     from icbtool.gan.generate import Generator
 
-    path = Generator.load(args.run).export_onnx(args.onnx, *args.size)
+    path = Generator.load(args.run).export_onnx(args.onnx, args.height, args.width)
     print(f"wrote {path} and {path}.json")
     return 0

@@ -16,7 +16,7 @@ import importlib
 from pathlib import Path
 
 from icbtool._optional import require
-from icbtool.cli._common import UsageError
+from icbtool.cli._common import UsageError, add_scene_argument
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -24,14 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "gui",
         help="the desktop app: 3D view, image panels, trainer (extra gui)",
         description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument(
-        "scene",
-        nargs="?",
-        default="cornell_box",
-        help="procedural scene name, scene description (.toml) or mesh file (default: cornell_box)",
-    )
+    add_scene_argument(p, optional=True)
     p.add_argument("--store", default=None, help="the cloud's store (default: out/demo/cache)")
     p.add_argument("--run", default=None, help="a GAN run directory (icbtool train --out)")
     p.add_argument("--screenshot", default=None, metavar="FILE", help="save the window and exit")

@@ -5,12 +5,14 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from typing import Any
 
 import numpy as np
 
 from icbtool.cli._common import (
+    add_command,
+    add_out_argument,
     add_scene_argument,
+    add_size_arguments,
     add_up_axis_argument,
     check_out_dir,
     fov_deg,
@@ -21,17 +23,25 @@ from icbtool.cli._common import (
     select_cameras,
     write_json,
 )
+from icbtool.cli._options import Spelling, add_config
 
 
-def register(subparsers: Any) -> None:
-    p = subparsers.add_parser(
+def register(subparsers: argparse._SubParsersAction) -> None:
+    add_command(
+        subparsers,
         "render",
         help="rasterize float32 buffers (dl, albedo, normals, depth, position, mask) with OpenGL",
         description="Rasterize buffers of a scene with OpenGL (OSMesa/EGL) and write each as a "
         "float32 EXR plus a PNG preview, with a summary.json (timings, config, run info).",
+        options=_options,
     )
+
+
+def _options(p: argparse.ArgumentParser) -> None:
+    from icbtool.raster import RasterConfig
+
     add_scene_argument(p)
-    p.add_argument("--out", required=True, help="output directory")
+    add_out_argument(p)
     p.add_argument(
         "--camera",
         default="default",
@@ -40,40 +50,45 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--every", type=positive_int, default=1, help="with path:NAME, keep every K-th camera"
     )
+    add_size_arguments(p)
     p.add_argument(
-        "--height", type=positive_int, default=None, help="image height (default: the camera's)"
+        "--fov",
+        type=fov_deg,
+        default=None,
+        help="vertical field of view in degrees (default: the camera's)",
     )
-    p.add_argument(
-        "--width", type=positive_int, default=None, help="image width (default: the camera's)"
-    )
-    p.add_argument("--fov", type=fov_deg, default=None, help="vertical field of view in degrees")
     p.add_argument(
         "--buffers",
         default="dl,albedo,normal_world,normal_view,depth,position,mask",
         help="comma-separated buffers to render",
     )
-    p.add_argument("--backend", default="auto", choices=["auto", "osmesa", "egl"])
-    p.add_argument("--shadow-map-size", type=int_at_least(16), default=None)
-    p.add_argument("--area-samples", type=positive_int, default=None)
-    p.add_argument("--no-png", action="store_true", help="write EXR only")
+    p.add_argument(
+        "--png", action=argparse.BooleanOptionalAction, default=True,
+        help="also write a PNG preview of every buffer (--no-png: EXR only)",
+    )  # fmt: skip
     add_up_axis_argument(p)
-    p.set_defaults(func=run)
+    raster = add_config(
+        p,
+        RasterConfig,
+        spell={
+            "shadow_map_size": Spelling(type=int_at_least(16)),
+            "area_shadow_map_size": Spelling(type=int_at_least(16)),
+            "area_samples": Spelling(type=positive_int),
+            "texture_size": Spelling(type=int_at_least(1)),
+        },
+    )
+    p.set_defaults(func=run, raster_options=raster)
 
 
 def run(args: argparse.Namespace) -> int:
-    out = check_out_dir(args.out)  # before any work
+    config = args.raster_options.build(args)  # a bad setting: one line, exit 2, before any work
+    out = check_out_dir(args.out)
     from tqdm import tqdm
 
     from icbtool import raster
     from icbtool.imageio import preview, write_exr, write_png
 
     names = raster.check_buffers(args.buffers)
-    kw: dict[str, Any] = {"backend": args.backend}
-    if args.shadow_map_size is not None:
-        kw["shadow_map_size"] = args.shadow_map_size
-    if args.area_samples is not None:
-        kw["area_samples"] = args.area_samples
-    config = raster.RasterConfig(**kw)
     scene = load_scene(args.scene, args.up_axis, default_light=True)
     spec = args.camera
     cams = [
@@ -92,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
             stem = f"{i:04d}_" if len(cams) > 1 else ""
             for n, img in buf.as_dict().items():
                 write_exr(out / f"{stem}{n}.exr", img)
-                if not args.no_png:
+                if args.png:
                     png = preview(img, raster.PREVIEW_KIND[n], mask=buf.mask)
                     write_png(out / f"{stem}{n}.png", png)
             frames.append({"index": i, "camera": cam.to_dict(), "timings_ms": buf.timings})

@@ -16,26 +16,32 @@ from pathlib import Path
 from icbtool._optional import require
 from icbtool.cli._common import (
     UsageError,
-    add_denoise_quality_argument,
-    float_in,
-    int_at_least,
+    add_command,
+    add_scene_argument,
     load_scene,
     positive_int,
 )
+from icbtool.cli._options import add_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    add_command(
+        sub,
         "serve",
         help="run the ICB cloud as a WebSocket server",
         description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        options=_options,
     )
-    p.add_argument("scene", help="procedural scene name, scene description (.toml) or mesh file")
-    p.set_defaults(func=run)
-    p.add_argument("--store", required=True, help="the cloud's CRT-buffer store directory")
-    p.add_argument("--host", default="127.0.0.1", help="interface (default: loopback)")
-    p.add_argument("--port", type=int_at_least(0), default=8765, help="port (0: a free one)")
+
+
+def _options(p: argparse.ArgumentParser) -> None:
+    from icbtool.net import ServerConfig
+    from icbtool.system import CloudConfig
+
+    add_scene_argument(p)
+    p.add_argument(
+        "--store", required=True, metavar="DIR", help="the cloud's CRT-buffer store directory"
+    )
     p.add_argument(
         "--token",
         default=None,
@@ -49,20 +55,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="cloud render threads: 1 (the only supported value: one thread owns the store and "
         "GL context; the tracer already uses every core)",
     )
-    p.add_argument("--spp", type=positive_int, default=16, help="samples per pixel of the GI")
-    p.add_argument("--latency", type=float_in(0.0), default=0.1, help="T_IL for the prefetch (s)")
-    p.add_argument("--no-prefetch", action="store_true", help="render at the client's camera")
-    p.add_argument("--no-denoise", action="store_true", help="serve raw (noisy) GI maps")
-    add_denoise_quality_argument(p)
     p.add_argument(
-        "--max-pending", type=positive_int, default=4, help="GI requests per client at once"
+        "--log-level",
+        default="INFO",
+        choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+        type=str.upper,
+        help="logging level",
     )
-    p.add_argument("--no-lpm", action="store_true", help="stream the full mesh as one level")
-    p.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
+    server = add_config(p, ServerConfig, defaults={"port": 8765})
+    cloud = add_config(p, CloudConfig)
+    p.set_defaults(func=run, server_options=server, cloud_options=cloud)
 
 
 def run(args: argparse.Namespace) -> int:
-    from icbtool import net, system
+    from icbtool import net
 
     require("websockets", "icbtool serve")
     token = args.token or os.environ.get("ICBTOOL_TOKEN")
@@ -74,26 +80,13 @@ def run(args: argparse.Namespace) -> int:
         Path(args.generator).is_file() or (Path(args.generator) / "generator.pt").is_file()
     ):
         raise UsageError(f"--generator {args.generator!r}: no generator.pt there")
-    if not args.no_denoise:
+    server_cfg = args.server_options.build(args)
+    cloud_cfg = args.cloud_options.build(args)
+    if cloud_cfg.denoise:
         require("pyoidn", "denoising the served GI maps (--no-denoise skips it)")
-    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s: %(message)s")
     scene = load_scene(args.scene)
-    server = net.Server(
-        scene,
-        args.store,
-        token,
-        net.ServerConfig(
-            host=args.host, port=args.port, max_pending=args.max_pending, lpm=not args.no_lpm
-        ),
-        system.CloudConfig(
-            prefetch=not args.no_prefetch,
-            latency_s=args.latency,
-            spp=args.spp,
-            denoise=not args.no_denoise,
-            denoise_quality=args.denoise_quality,
-        ),
-        generator=args.generator,
-    )
+    server = net.Server(scene, args.store, token, server_cfg, cloud_cfg, generator=args.generator)
     server.on_listening = lambda url: print(f"listening on {url}", flush=True)
     server.serve_forever()
     s = server.stats

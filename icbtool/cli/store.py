@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from icbtool.cli._common import int_at_least
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("store", help="inspect, verify or trim a CRT-buffer store")
@@ -30,8 +32,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     e = ss.add_parser("evict", help="evict records down to a capacity")
     e.add_argument("dir", help="store directory")
-    e.add_argument("--max-records", type=int, default=None, help="keep at most this many")
-    e.add_argument("--max-bytes", type=int, default=None, help="keep at most this many bytes")
+    e.add_argument(
+        "--max-records", type=int_at_least(0), default=None, help="keep at most this many records"
+    )
+    e.add_argument(
+        "--max-bytes", type=int_at_least(0), default=None, help="keep at most this many bytes"
+    )
     e.add_argument(
         "--policy", choices=("lru", "least_hit", "farthest"), default="lru", help="who goes first"
     )
@@ -83,7 +89,13 @@ def _rebuild(args: argparse.Namespace) -> int:
     from icbtool import store
 
     r = store.rebuild(args.dir)
-    print(f"rebuilt the index of {r.path}: {len(r.recovered)} record(s) recovered")
+    if not r.rebuilt:
+        n = len(r.recovered)
+        print(
+            f"the index of {r.path} is healthy and complete: left alone ({n} record(s) recovered)"
+        )
+    else:
+        print(f"rebuilt the index of {r.path}: {len(r.recovered)} record(s) recovered")
     if r.old_index:
         print(f"  old index database kept as {r.old_index}")
     print(f"  hit counts restored from the old index for {r.hits_restored} record(s)")

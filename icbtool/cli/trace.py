@@ -5,22 +5,23 @@ from __future__ import annotations
 import argparse
 import logging
 from dataclasses import asdict
-from pathlib import Path
 
 from icbtool._optional import require
 from icbtool.cli._common import (
-    add_denoise_quality_argument,
+    add_command,
+    add_out_argument,
     add_scene_argument,
+    add_size_arguments,
     add_up_axis_argument,
     check_out_dir,
     int_at_least,
     load_scene,
-    positive_float,
     positive_int,
     run_info,
     select_cameras,
     write_json,
 )
+from icbtool.cli._options import Spelling, add_config
 
 
 def _max_depth(text: str) -> int:
@@ -32,14 +33,21 @@ def _max_depth(text: str) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    add_command(
+        sub,
         "trace",
         help="path trace GI / direct / full maps of a scene",
         description="Path trace a scene (Embree) and write gi, direct, full, variance and spp "
         "as EXR with PNG previews, plus summary.json (stats, config, run info).",
+        options=_options,
     )
+
+
+def _options(p: argparse.ArgumentParser) -> None:
+    from icbtool.trace import TraceConfig
+
     add_scene_argument(p)
-    p.add_argument("--out", required=True, type=Path, help="output directory")
+    add_out_argument(p)
     p.add_argument(
         "--camera",
         default="default",
@@ -48,71 +56,33 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--every", type=positive_int, default=1, help="with path:NAME, trace every K-th camera"
     )
-    p.add_argument("--spp", type=positive_int, default=64, help="samples per pixel (budget)")
-    p.add_argument("--time-budget", type=positive_float, default=None, help="seconds per view")
-    p.add_argument(
-        "--target-error",
-        type=positive_float,
-        default=None,
-        help="stop at this mean relative standard error of the GI",
-    )
-    p.add_argument(
-        "--adaptive", action="store_true", help="adaptive sampling (needs --target-error)"
-    )
-    p.add_argument("--denoise", action="store_true", help="denoise gi with Open Image Denoise")
-    add_denoise_quality_argument(p)
-    p.add_argument(
-        "--max-depth", type=_max_depth, default=8, help="max path depth (-1 = unbounded)"
-    )
-    p.add_argument(
-        "--sky-sampling",
-        choices=("auto", "mis", "bsdf"),
-        default="auto",
-        help="sky light samples with MIS ('auto': only for a peaked sky)",
-    )
-    p.add_argument("--sampler", choices=("sobol", "independent"), default="sobol")
-    p.add_argument(
-        "--fast-embree",
-        action="store_true",
-        help="Embree without robust mode (~15 %% faster; a ray may slip through a shared edge)",
-    )
-    p.add_argument("--seed", type=int_at_least(0), default=0)
-    p.add_argument("--threads", type=positive_int, default=2)
-    p.add_argument(
-        "--height", type=positive_int, default=None, help="image height (default: the camera's)"
-    )
-    p.add_argument(
-        "--width", type=positive_int, default=None, help="image width (default: the camera's)"
-    )
+    add_size_arguments(p)
     add_up_axis_argument(p)
-    p.set_defaults(func=run)
+    trace = add_config(
+        p,
+        TraceConfig,
+        spell={
+            "max_depth": Spelling(type=_max_depth, metavar="N"),
+            "spp_per_pass": Spelling(type=positive_int),
+            "rr_depth": Spelling(type=int_at_least(0)),
+            "adaptive_min_passes": Spelling(type=positive_int),
+        },
+    )
+    p.set_defaults(func=run, trace_options=trace)
 
 
 def run(args: argparse.Namespace) -> int:
-    out = check_out_dir(args.out)  # before any work
-    if args.denoise:
+    cfg = args.trace_options.build(args)  # a bad setting: one line, exit 2, before any work
+    out = check_out_dir(args.out)
+    if cfg.denoise:
         require("pyoidn", "--denoise (Open Image Denoise)")
     import numpy as np
     from tqdm import tqdm
 
     from icbtool.imageio import preview, write_exr, write_png
-    from icbtool.trace import TraceConfig, render
+    from icbtool.trace import render
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    cfg = TraceConfig(
-        spp=args.spp,
-        seed=args.seed,
-        max_depth=args.max_depth,
-        time_budget_s=args.time_budget,
-        target_error=args.target_error,
-        adaptive=args.adaptive,
-        denoise=args.denoise,
-        denoise_quality=args.denoise_quality,
-        threads=args.threads,
-        sky_sampling=args.sky_sampling,
-        sampler=args.sampler,
-        robust=not args.fast_embree,
-    )
     scene = load_scene(args.scene, args.up_axis, default_light=True)
     cams = select_cameras(scene, args.camera, args.every, args.height, args.width)
     views = []

@@ -30,10 +30,11 @@ import json
 import struct
 import zlib
 from collections.abc import Iterable
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
+from icbtool.lpm.textures import decode_texture_bytes
 from icbtool.scene.types import (
     LIGHT_TYPES,
     Material,
@@ -41,8 +42,17 @@ from icbtool.scene.types import (
     Sky,
 )
 
-if TYPE_CHECKING:  # pragma: no cover
-    from icbtool.lpm.build import Level
+
+class Level(Protocol):
+    """What :func:`level_chunks` reads of a level (an :class:`icbtool.lpm.build.Level`): a
+    structural type, so that this module does not import the builder (which imports it)."""
+
+    index: int
+    ratio: float
+    scene: Scene
+    texture_bytes: dict[int, bytes]
+    texture_format: str
+
 
 #: First 4 bytes of every chunk.
 CHUNK_MAGIC = b"ICBL"
@@ -403,8 +413,6 @@ def assemble(
                 raise ValueError(
                     f"LPM assemble: level {level}: texture {mi} has {got} of {t['total']} bytes"
                 )
-            from icbtool.lpm.build import decode_texture_bytes
-
             texture = decode_texture_bytes(bytes(buf), f"LPM level {level} texture {mi}")
             tj = mj["texture"]
             if [tj.get("height"), tj.get("width")] != list(texture.shape[:2]):

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:  # pragma: no cover
-    from icbtool.scene import Scene
+    from icbtool.scene.types import Scene
 
 #: Batches smaller than this are never split over threads (the split costs more than it saves).
 MIN_RAYS_PER_THREAD = 4096

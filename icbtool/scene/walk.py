@@ -22,7 +22,7 @@ from icbtool.camera.camera import Camera, CameraPlacementError, pose_from_forwar
 from icbtool.camera.path import CameraPath
 
 if TYPE_CHECKING:  # pragma: no cover
-    from icbtool.scene import Scene
+    from icbtool.scene.types import Scene
 
 
 def _embree(scene: Scene):
@@ -175,136 +175,216 @@ def random_walk(
     if not (-89 < pitch_range_deg[0] <= pitch_range_deg[1] < 89):
         raise ValueError(f"random_walk '{name}': bad pitch_range_deg {pitch_range_deg}")
     rng = np.random.default_rng(seed)
-    es = _embree(scene)
-    up = np.asarray(scene.up, np.float64)
-    ax, bx = _horizontal_basis(up)
-    lo, hi = scene.bounds
-    margin = clearance
-    n_dirs = 16
-    ring = 2 * math.pi * np.arange(n_dirs) / n_dirs
+    probe = _Probe(scene, _embree(scene), (lo_h, hi_h), clearance)
+    pos = probe.start_position(rng, start, name)
+    walker = _Walker(probe, rng, pos, speed, dt, turn_rate_deg, lookahead, max_floor_step)
+    target_h = float(np.clip(walker.eye_h, lo_h, hi_h))
+    view = _View(rng, walker.heading, dt, (lo_h, hi_h), pitch_range_deg, target_h)
+    positions, yaws, pitches = [pos.copy()], [view.yaw], [view.pitch]
+    for _ in range(n - 1):
+        walker.turn()
+        if not walker.step(view.eye_height):
+            raise ValueError(
+                f"random_walk '{name}': the walker got stuck at "
+                f"{np.round(walker.pos, 3).tolist()} in scene '{scene.name}' (try a smaller "
+                "clearance or another seed)"
+            )
+        view.follow(walker.heading)
+        positions.append(walker.pos.copy())
+        yaws.append(view.yaw)
+        pitches.append(view.pitch)
+    poses = []
+    for p, yw, pt in zip(positions, yaws, pitches):
+        fwd = math.cos(pt) * probe.hdir(yw) + math.sin(pt) * probe.up
+        poses.append(pose_from_forward(p, fwd, probe.up))
+    times = dt * np.arange(n, dtype=np.float64)
+    return CameraPath(times, np.stack(poses), intrinsics, name)
 
-    def hdir(theta: np.ndarray | float) -> np.ndarray:
+
+#: Horizontal directions of the clearance test and of the blocked walker's search.
+_N_DIRS = 16
+_RING = 2 * math.pi * np.arange(_N_DIRS) / _N_DIRS
+
+
+class _Probe:
+    """The ray casts of the walk: horizontal directions, the floor below a point, the clearance
+    around it, and whether it is a valid eye position."""
+
+    def __init__(
+        self, scene: Scene, es: Any, height_range: tuple[float, float], clearance: float
+    ) -> None:
+        self.scene, self.es = scene, es
+        self.up = np.asarray(scene.up, np.float64)
+        self.ax, self.bx = _horizontal_basis(self.up)
+        self.lo, self.hi = scene.bounds
+        self.lo_h, self.hi_h = height_range
+        self.clearance = clearance
+
+    def hdir(self, theta: np.ndarray | float) -> np.ndarray:
+        """Horizontal unit direction(s) at angle(s) ``theta`` (radians): (..., 3)."""
         th = np.asarray(theta, np.float64)[..., None]
-        return np.cos(th) * ax + np.sin(th) * bx
+        return np.cos(th) * self.ax + np.sin(th) * self.bx
 
-    def cast(origins: np.ndarray, dirs: np.ndarray):
-        o = np.broadcast_to(origins, dirs.shape)
-        return es.intersect(o, dirs)
+    def free(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """Distance to the first hit along each of ``dirs`` (k, 3) from ``origin`` (inf: none)."""
+        return self.cast(origin[None], dirs).t
 
-    def floor_below(p: np.ndarray) -> float | None:
+    def cast(self, origins: np.ndarray, dirs: np.ndarray):
+        return self.es.intersect(np.broadcast_to(origins, dirs.shape), dirs)
+
+    def floor_below(self, p: np.ndarray) -> float | None:
         """Height of p above the floor (facing up) below it, or None."""
-        h = cast(p[None], -up[None])
-        if h.prim[0] < 0 or float(h.ng[0] @ up) < 0.5 or h.t[0] > hi_h + 1.0:
+        up = self.up
+        h = self.cast(p[None], -up[None])
+        if h.prim[0] < 0 or float(h.ng[0] @ up) < 0.5 or h.t[0] > self.hi_h + 1.0:
             return None
         return float(h.t[0])
 
-    def clear(p: np.ndarray) -> bool:
-        if np.any(p < lo + margin) or np.any(p > hi - margin):
+    def clear(self, p: np.ndarray) -> bool:
+        """Inside the bounds (less the clearance) and no surface within the clearance in the
+        horizontal ring of directions or above."""
+        margin = self.clearance
+        if np.any(p < self.lo + margin) or np.any(p > self.hi - margin):
             return False
-        dirs = np.concatenate([hdir(ring), up[None]])
-        h = cast(p[None], dirs)
-        return bool(np.all(h.t > clearance))
+        dirs = np.concatenate([self.hdir(_RING), self.up[None]])
+        return bool(np.all(self.free(p, dirs) > self.clearance))
 
-    def valid(p: np.ndarray) -> float | None:
+    def valid(self, p: np.ndarray) -> float | None:
         """Eye height above the floor if p is a valid eye position, else None."""
-        hf = floor_below(p)
-        if hf is None or hf < 0.5 * lo_h or not clear(p):
+        hf = self.floor_below(p)
+        if hf is None or hf < 0.5 * self.lo_h or not self.clear(p):
             return None
         return hf
 
-    # ---- start
-    if start is not None:
-        pos = np.asarray(start, np.float64).reshape(3)
-        if valid(pos) is None:
-            raise ValueError(
-                f"random_walk '{name}': start {pos.tolist()} is not a valid eye position in "
-                f"scene '{scene.name}' (needs a floor below within {hi_h + 1:g}, and clearance "
-                f"{clearance:g} from every surface horizontally and above)"
-            )
-    else:
-        pos = None
+    def start_position(self, rng: np.random.Generator, start: Any, name: str) -> np.ndarray:
+        """``start`` checked, or a random valid eye position (2000 tries)."""
+        if start is not None:
+            pos = np.asarray(start, np.float64).reshape(3)
+            if self.valid(pos) is None:
+                raise ValueError(
+                    f"random_walk '{name}': start {pos.tolist()} is not a valid eye position in "
+                    f"scene '{self.scene.name}' (needs a floor below within {self.hi_h + 1:g}, "
+                    f"and clearance {self.clearance:g} from every surface horizontally and above)"
+                )
+            return pos
         for _ in range(2000):
-            p = lo + rng.random(3) * (hi - lo)
-            hf = floor_below(p)
+            p = self.lo + rng.random(3) * (self.hi - self.lo)
+            hf = self.floor_below(p)
             if hf is None:
                 continue
-            p = p - hf * up + rng.uniform(lo_h, hi_h) * up
-            if valid(p) is not None:
-                pos = p
-                break
-        if pos is None:
-            raise ValueError(
-                f"random_walk '{name}': found no valid start in scene '{scene.name}' after 2000 "
-                "tries (is there a floor facing scene.up with room above it?)"
-            )
-
-    # ---- walk
-    step = speed * dt
-    heading = rng.uniform(0, 2 * math.pi)
-    free0 = cast(pos[None], hdir(heading + ring)).t
-    heading = float(heading + ring[int(np.argmax(free0))])  # start towards the most open side
-    look_yaw = heading
-    omega = 0.0  # turn rate, rad/s
-    sigma = math.radians(turn_rate_deg)
-    eye_h = float(valid(pos) or lo_h)
-    floor_h = float(pos @ up) - eye_h
-    target_h = float(np.clip(eye_h, lo_h, hi_h))
-    pitch = 0.0
-    pitch_lo, pitch_hi = (math.radians(x) for x in pitch_range_deg)
-    positions, yaws, pitches = [pos.copy()], [look_yaw], [pitch]
-    for _ in range(n - 1):
-        # random turn rate (OU process), then steering away from walls ahead
-        omega = 0.8 * omega + sigma * math.sqrt(1 - 0.8**2) * rng.standard_normal()
-        probe = heading + np.radians([-60.0, -30.0, 0.0, 30.0, 60.0])
-        free = cast(pos[None], hdir(probe)).t
-        free = np.minimum(free, 10 * lookahead)
-        if free[2] < lookahead + clearance:
-            # turn towards the freer side, harder when closer
-            side = 1.0 if (free[3] + free[4]) > (free[0] + free[1]) else -1.0
-            urgency = 1.0 - max(free[2] - clearance, 0.0) / lookahead
-            omega = side * max(abs(omega), math.radians(45.0) * (0.5 + urgency))
-        new = None
-        for attempt in range(n_dirs + 1):
-            th = heading + omega * dt
-            cand = pos + step * hdir(th)
-            hf = floor_below(cand)
-            if hf is not None and abs(float(cand @ up) - hf - floor_h) <= max_floor_step:
-                # the eye height moves smoothly towards the target height above this floor
-                eye_h = float(np.clip(eye_h + 0.2 * (target_h - eye_h), lo_h, hi_h))
-                cand = cand + (eye_h - hf) * up
-                if valid(cand) is not None and not cast(pos[None], hdir(th)[None]).t[0] < step:
-                    new = cand
-                    heading = th
-                    floor_h = float(cand @ up) - eye_h
-                    break
-            if attempt == 0:  # blocked: face the freest horizontal direction
-                free_all = cast(pos[None], hdir(heading + ring)).t
-                order = np.argsort(-free_all)
-                heading = float(heading + ring[order[0]])
-                omega = 0.0
-            else:
-                heading = float(heading + ring[rng.integers(1, n_dirs)])
-        if new is None:
-            raise ValueError(
-                f"random_walk '{name}': the walker got stuck at {np.round(pos, 3).tolist()} in "
-                f"scene '{scene.name}' (try a smaller clearance or another seed)"
-            )
-        pos = new
-        if rng.random() < dt / 3.0:  # a new eye height every ~3 s
-            target_h = rng.uniform(lo_h, hi_h)
-        # the view follows the heading with a limited yaw rate (smooth camera)
-        dyaw = (heading - look_yaw + math.pi) % (2 * math.pi) - math.pi
-        max_yaw = math.radians(90.0) * dt
-        look_yaw += float(np.clip(dyaw, -max_yaw, max_yaw))
-        pitch = float(
-            np.clip(0.9 * pitch + math.radians(2.0) * rng.standard_normal(), pitch_lo, pitch_hi)
+            p = p - hf * self.up + rng.uniform(self.lo_h, self.hi_h) * self.up
+            if self.valid(p) is not None:
+                return p
+        raise ValueError(
+            f"random_walk '{name}': found no valid start in scene '{self.scene.name}' after 2000 "
+            "tries (is there a floor facing scene.up with room above it?)"
         )
-        positions.append(pos.copy())
-        yaws.append(look_yaw)
-        pitches.append(pitch)
-    poses = []
-    for p, yw, pt in zip(positions, yaws, pitches):
-        fwd = math.cos(pt) * hdir(yw) + math.sin(pt) * up
-        poses.append(pose_from_forward(p, fwd, up))
-    times = dt * np.arange(n, dtype=np.float64)
-    return CameraPath(times, np.stack(poses), intrinsics, name)
+
+
+class _Walker:
+    """The walker's body: position on the floor, heading and turn rate (an Ornstein-Uhlenbeck
+    process steered away from walls ahead)."""
+
+    def __init__(
+        self,
+        probe: _Probe,
+        rng: np.random.Generator,
+        pos: np.ndarray,
+        speed: float,
+        dt: float,
+        turn_rate_deg: float,
+        lookahead: float,
+        max_floor_step: float,
+    ) -> None:
+        self.probe, self.rng, self.pos, self.dt = probe, rng, pos, dt
+        self.step_length = speed * dt
+        self.lookahead, self.max_floor_step = lookahead, max_floor_step
+        heading = rng.uniform(0, 2 * math.pi)
+        free0 = probe.free(pos, probe.hdir(heading + _RING))
+        self.heading = float(heading + _RING[int(np.argmax(free0))])  # towards the most open side
+        self.omega = 0.0  # turn rate, rad/s
+        self.sigma = math.radians(turn_rate_deg)
+        self.eye_h = float(probe.valid(pos) or probe.lo_h)
+        self.floor_h = float(pos @ probe.up) - self.eye_h
+
+    def turn(self) -> None:
+        """A random turn rate (OU process), then steering away from a wall ahead (harder when
+        closer), towards the freer side."""
+        self.omega = 0.8 * self.omega + self.sigma * math.sqrt(1 - 0.8**2) * (
+            self.rng.standard_normal()
+        )
+        probe, clearance = self.probe, self.probe.clearance
+        ahead = self.heading + np.radians([-60.0, -30.0, 0.0, 30.0, 60.0])
+        free = np.minimum(probe.free(self.pos, probe.hdir(ahead)), 10 * self.lookahead)
+        if free[2] < self.lookahead + clearance:
+            side = 1.0 if (free[3] + free[4]) > (free[0] + free[1]) else -1.0
+            urgency = 1.0 - max(free[2] - clearance, 0.0) / self.lookahead
+            self.omega = side * max(abs(self.omega), math.radians(45.0) * (0.5 + urgency))
+
+    def step(self, target_h: float) -> bool:
+        """One step along the turned heading; when blocked, face the freest direction, then
+        random ones. The eye height moves smoothly towards ``target_h`` above the floor.
+
+        Returns:
+            False when every try was blocked (the walker is stuck).
+        """
+        probe, up, step = self.probe, self.probe.up, self.step_length
+        for attempt in range(_N_DIRS + 1):
+            th = self.heading + self.omega * self.dt
+            cand = self.pos + step * probe.hdir(th)
+            hf = probe.floor_below(cand)
+            if hf is not None and abs(float(cand @ up) - hf - self.floor_h) <= self.max_floor_step:
+                self.eye_h = float(
+                    np.clip(self.eye_h + 0.2 * (target_h - self.eye_h), probe.lo_h, probe.hi_h)
+                )
+                cand = cand + (self.eye_h - hf) * up
+                path_free = not (probe.free(self.pos, probe.hdir(th)[None])[0] < step)
+                if probe.valid(cand) is not None and path_free:
+                    self.pos, self.heading = cand, th
+                    self.floor_h = float(cand @ up) - self.eye_h
+                    return True
+            if attempt == 0:  # blocked: face the freest horizontal direction
+                free_all = probe.free(self.pos, probe.hdir(self.heading + _RING))
+                self.heading = float(self.heading + _RING[np.argsort(-free_all)[0]])
+                self.omega = 0.0
+            else:
+                self.heading = float(self.heading + _RING[self.rng.integers(1, _N_DIRS)])
+        return False
+
+
+class _View:
+    """Where the camera looks: the target eye height (new every ~3 s), the yaw following the
+    heading at a bounded rate, and a slowly varying pitch."""
+
+    def __init__(
+        self,
+        rng: np.random.Generator,
+        heading: float,
+        dt: float,
+        height_range: tuple[float, float],
+        pitch_range_deg: tuple[float, float],
+        eye_height: float,
+    ) -> None:
+        self.rng, self.dt = rng, dt
+        self.lo_h, self.hi_h = height_range
+        self.yaw = heading
+        self.pitch = 0.0
+        self.pitch_lo, self.pitch_hi = (math.radians(x) for x in pitch_range_deg)
+        self.eye_height = eye_height  # the target eye height above the floor
+
+    def follow(self, heading: float) -> None:
+        """After a step: maybe a new target eye height, the yaw towards ``heading`` and the
+        pitch's random drift."""
+        dt, rng = self.dt, self.rng
+        if rng.random() < dt / 3.0:  # a new eye height every ~3 s
+            self.eye_height = rng.uniform(self.lo_h, self.hi_h)
+        dyaw = (heading - self.yaw + math.pi) % (2 * math.pi) - math.pi
+        max_yaw = math.radians(90.0) * dt
+        self.yaw += float(np.clip(dyaw, -max_yaw, max_yaw))
+        self.pitch = float(
+            np.clip(
+                0.9 * self.pitch + math.radians(2.0) * rng.standard_normal(),
+                self.pitch_lo,
+                self.pitch_hi,
+            )
+        )

@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,6 +24,12 @@ from icbtool.buffers import WRT_BUFFERS
 from icbtool.camera import Camera
 from icbtool.system.messages import GIReply, GIRequest
 from icbtool.system.source import GISource
+
+if TYPE_CHECKING:  # pragma: no cover (types only: the layers stay lazy)
+    from icbtool.raster import RasterBuffers, Rasterizer
+    from icbtool.scene.types import Scene
+    from icbtool.store.record import CRTBuffer
+    from icbtool.warp.api import WarpResult
 
 
 @dataclass(frozen=True)
@@ -65,10 +71,10 @@ class ClientFrame:
     """
 
     camera: Camera
-    wrt: Any
+    wrt: RasterBuffers
     reply: GIReply
-    warped: Any
-    combined: Any
+    warped: WarpResult
+    combined: WarpResult
     hole_ratio_combined: float
     gi: np.ndarray
     final: np.ndarray
@@ -90,10 +96,10 @@ class Client:
 
     def __init__(
         self,
-        scene: Any,
+        scene: Scene,
         source: GISource,
         config: ClientConfig | None = None,
-        rasterizer: Any = None,
+        rasterizer: Rasterizer | None = None,
     ) -> None:
         if not isinstance(source, GISource):
             raise TypeError(f"Client source must be a GISource, got {type(source).__name__}")
@@ -106,9 +112,9 @@ class Client:
 
             rasterizer = raster.Rasterizer(scene)
         self.rasterizer = rasterizer
-        self._previous: Any = None
+        self._previous: CRTBuffer | None = None
 
-    def use_scene(self, scene: Any) -> None:
+    def use_scene(self, scene: Scene) -> None:
         """Rasterize ``scene`` from now on (a finer mesh level arrived): a new rasterizer of it
         (owned and closed by the client)."""
         from icbtool import raster
@@ -119,7 +125,7 @@ class Client:
         self.rasterizer = raster.Rasterizer(scene)
         self._own_rasterizer = True
 
-    def rasterize(self, camera: Camera) -> Any:
+    def rasterize(self, camera: Camera) -> RasterBuffers:
         """The WRT-buffer at ``camera``, plus any buffer the GI source needs."""
         extra = tuple(b for b in self.source.needs if b not in WRT_BUFFERS and b != "mask")
         return self.rasterizer.render(camera, buffers=(*WRT_BUFFERS, *extra))
@@ -183,7 +189,7 @@ class Client:
         self.close()
 
 
-def visible_depth_range(wrt: Any) -> tuple[float, float] | None:
+def visible_depth_range(wrt: RasterBuffers) -> tuple[float, float] | None:
     """(near, far) view depths of the geometry in a raster buffer set, or None if it sees none."""
     from icbtool import prefetch
 

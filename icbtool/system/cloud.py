@@ -20,13 +20,20 @@ import math
 import os
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 from icbtool.buffers import WRT_BUFFERS
 from icbtool.camera import Camera
 from icbtool.system.messages import GIReply, GIRequest
 from icbtool.system.source import GISource
 from icbtool.trace.tracer import DenoiseQuality, check_denoise_quality
+
+if TYPE_CHECKING:  # pragma: no cover (types only: the layers stay lazy)
+    from icbtool.raster import RasterBuffers, Rasterizer
+    from icbtool.scene.types import Scene
+    from icbtool.store import Store
+    from icbtool.store.record import CRTBuffer
+
 
 log = logging.getLogger(__name__)
 
@@ -95,10 +102,10 @@ class Cloud(GISource):
 
     def __init__(
         self,
-        scene: Any,
-        store: Any,
+        scene: Scene,
+        store: Store | str | os.PathLike,
         config: CloudConfig | None = None,
-        rasterizer: Any = None,
+        rasterizer: Rasterizer | None = None,
     ) -> None:
         from icbtool import prefetch
         from icbtool import store as store_mod
@@ -129,7 +136,7 @@ class Cloud(GISource):
         return round_fov(cam, self.config.fov_step_deg, self._prefetch_cfg.max_fov_deg)
 
     # ------------------------------------------------------------------ GISource
-    def request(self, req: GIRequest, wrt: Any = None) -> GIReply:
+    def request(self, req: GIRequest, wrt: RasterBuffers | None = None) -> GIReply:
         """Answer ``req`` from the cache, or render and store a new reference."""
         ref_cam = self.reference_camera(req)
         t0 = time.perf_counter()
@@ -149,7 +156,7 @@ class Cloud(GISource):
             self.damaged_replaced += 1
         return GIReply(ref, False, {"lookup": lookup_ms, "render": render_ms}, req.seq)
 
-    def render(self, camera: Camera, seq: int = 0) -> Any:
+    def render(self, camera: Camera, seq: int = 0) -> CRTBuffer:
         """Render a CRT-buffer (the client's WRT-buffers + path-traced GI) at ``camera``."""
         from icbtool import raster, trace
         from icbtool.bake import render_crt_buffer

@@ -17,13 +17,18 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from icbtool.camera import Camera
 from icbtool.system.messages import GIReply, GIRequest
 from icbtool.system.source import GISource
+
+if TYPE_CHECKING:  # pragma: no cover (types only: the layers stay lazy)
+    from icbtool.gan.generate import Generator
+    from icbtool.raster import RasterBuffers
+
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +68,7 @@ class GeneratorSource(GISource):
 
     kind = "generator"
 
-    def __init__(self, generator: Any, fallback: GISource | None = None, multiple: int = 32):
+    def __init__(self, generator: Generator, fallback: GISource | None = None, multiple: int = 32):
         if fallback is not None and not isinstance(fallback, GISource):
             raise TypeError(f"fallback must be a GISource, got {type(fallback).__name__}")
         enc = getattr(generator, "encoding", None)
@@ -94,7 +99,7 @@ class GeneratorSource(GISource):
             maps = {k: np.pad(v, ((0, ph), (0, pw), (0, 0)), mode="edge") for k, v in maps.items()}
         return maps, h, w
 
-    def _why_not(self, wrt: Any) -> str | None:
+    def _why_not(self, wrt: RasterBuffers | None) -> str | None:
         if wrt is None:
             return "no client buffers were given"
         missing = [n for n in self.needs if getattr(wrt, n, None) is None]
@@ -107,7 +112,7 @@ class GeneratorSource(GISource):
             return f"non-finite values in the client's {bad}"
         return None
 
-    def request(self, req: GIRequest, wrt: Any = None) -> GIReply:
+    def request(self, req: GIRequest, wrt: RasterBuffers | None = None) -> GIReply:
         """Generate the GI of the client's current view (``wrt``), or ask the fallback.
 
         Args:

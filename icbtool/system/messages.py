@@ -7,14 +7,19 @@ them field by field in a language-neutral format; nothing here refers to a proce
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from icbtool.camera import Camera
 
+if TYPE_CHECKING:  # pragma: no cover (types only: the layers stay lazy)
+    from numpy.typing import ArrayLike
 
-def _vec3(x: Any, name: str) -> np.ndarray:
+    from icbtool.store.record import CRTBuffer
+
+
+def _vec3(x: ArrayLike, name: str) -> np.ndarray:
     a = np.asarray(x, dtype=np.float64).reshape(-1)
     if a.shape != (3,) or not np.all(np.isfinite(a)):
         raise ValueError(f"GIRequest.{name} must be a finite 3-vector, got {x!r}")
@@ -79,7 +84,7 @@ class GIReply:
         seq: the request's sequence number.
     """
 
-    reference: Any
+    reference: CRTBuffer
     cache_hit: bool
     timings_ms: dict[str, float] = field(default_factory=dict)
     seq: int = 0

@@ -8,9 +8,12 @@ Today's implementation is the in-process :class:`~icbtool.system.cloud.Cloud`. A
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any
+from typing import TYPE_CHECKING
 
 from icbtool.system.messages import GIReply, GIRequest
+
+if TYPE_CHECKING:  # pragma: no cover (types only: the layers stay lazy)
+    from icbtool.raster import RasterBuffers
 
 
 class GISource(ABC):
@@ -23,7 +26,7 @@ class GISource(ABC):
     needs: tuple[str, ...] = ()
 
     @abstractmethod
-    def request(self, req: GIRequest, wrt: Any = None) -> GIReply:
+    def request(self, req: GIRequest, wrt: RasterBuffers | None = None) -> GIReply:
         """Answer ``req``.
 
         Args:
