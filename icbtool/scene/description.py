@@ -74,7 +74,7 @@ from icbtool.scene.types import (
 )
 from icbtool.scene.validate import SceneError, check_file
 
-#: [scene] keys passed on to :func:`icbtool.scene.load.load_mesh` (also build() overrides).
+#: [scene] keys passed on to :func:`icbtool.scene.mesh.load_mesh` (also build() overrides).
 _MESH_KEYS = ("scale", "up_axis", "translation", "flip_v", "textures")
 _SCENE_KEYS = {"name", "mesh", "file_lights", *_MESH_KEYS}
 _CAMERA_KEYS = {"fov_y_deg", "height", "width"}
@@ -191,7 +191,7 @@ class SceneDescription:
     mesh: Path
     """The mesh file (absolute, environment variables expanded)."""
     mesh_options: dict[str, Any]
-    """Keyword arguments for :func:`icbtool.scene.load.load_mesh` (scale, up_axis, ...)."""
+    """Keyword arguments for :func:`icbtool.scene.mesh.load_mesh` (scale, up_axis, ...)."""
     intrinsics: Intrinsics = field(default_factory=Intrinsics)
     """Intrinsics of the default camera and the paths."""
     lights: tuple[Light, ...] = ()
@@ -220,7 +220,7 @@ class SceneDescription:
             TypeError: an unknown override.
             SceneError, FileNotFoundError: as :func:`icbtool.scene.load`.
         """
-        from icbtool.scene.load import load_mesh
+        from icbtool.scene.mesh import load_mesh
 
         unknown = sorted(set(overrides) - set(BUILD_OVERRIDES))
         if unknown:
