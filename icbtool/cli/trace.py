@@ -62,7 +62,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--denoise", action="store_true", help="denoise gi with Open Image Denoise")
     add_denoise_quality_argument(p)
     p.add_argument(
-        "--max-depth", type=_max_depth, default=8, help="max path depth (-1 = unbounded)"
+        "--max-depth",
+        type=_max_depth,
+        default=None,
+        help="max path depth (-1 = unbounded); default: the scene file's (a Mitsuba "
+        "integrator's max_depth), else 8",
     )
     p.add_argument(
         "--sky-sampling",
@@ -99,10 +103,14 @@ def run(args: argparse.Namespace) -> int:
     from icbtool.trace import TraceConfig, render
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    scene = load_scene(args.scene, args.up_axis, default_light=True)
+    max_depth = args.max_depth
+    if max_depth is None:
+        max_depth = scene.max_depth if scene.max_depth is not None else 8
     cfg = TraceConfig(
         spp=args.spp,
         seed=args.seed,
-        max_depth=args.max_depth,
+        max_depth=max_depth,
         time_budget_s=args.time_budget,
         target_error=args.target_error,
         adaptive=args.adaptive,
@@ -113,7 +121,6 @@ def run(args: argparse.Namespace) -> int:
         sampler=args.sampler,
         robust=not args.fast_embree,
     )
-    scene = load_scene(args.scene, args.up_axis, default_light=True)
     cams = select_cameras(scene, args.camera, args.every, args.height, args.width)
     views = []
     for name, cam in tqdm(cams, desc="trace", disable=len(cams) < 2):
