@@ -116,8 +116,14 @@ def main() -> None:
         raise SystemExit(f"FAIL: Mitsuba variant {args.variant!r} unavailable: {mi.variants()}")
     mi.set_variant(args.variant)
     OUT.mkdir(parents=True, exist_ok=True)
-    results: dict = {"run": run_info(), "config": vars(args), "scenes": {}}
-    results["run"]["load_1min_start"] = os.getloadavg()[0]
+    results: dict = {
+        "run_info": run_info(),
+        "mitsuba_version": mi.__version__,
+        "mitsuba_variant": mi.variant(),
+        "config": {**vars(args), "scene": [list(x) for x in args.scene]},
+        "load_average_start": list(os.getloadavg()),
+        "scenes": {},
+    }
     for spec in args.scene:
         xml = Path(spec[0]).resolve()
         params = dict(p.split("=", 1) for p in spec[1:])
@@ -170,7 +176,7 @@ def main() -> None:
             f"bias {np.round(np.array(floor['bias_per_channel']) * 100, 2)} %, "
             f"RMSE {100 * floor['blurred_rel_rmse']:.2f} %)"
         )
-    results["run"]["load_1min_end"] = os.getloadavg()[0]
+    results["load_average_end"] = list(os.getloadavg())
     write_json(OUT / "compare.json", results)
     print(f"-> {OUT / 'compare.json'}")
 

@@ -160,6 +160,10 @@ def test_params_override_defaults():
     s, _, _ = _load(FIXTURE, params={"depth": 3, "res": 32})
     assert s.max_depth == 3 and s.default_camera.height == 32
     assert s.default_camera.fx == pytest.approx(32 / math.tan(math.radians(30)))
+    with pytest.raises(SceneError, match=r"up_axis applies to mesh files"):
+        load(FIXTURE, up_axis="z")
+    with pytest.raises(TypeError, match=r"unknown override\(s\) \['scale'\]"):
+        load(FIXTURE, scale=2.0)
 
 
 def test_unknown_property_and_missing_parameter(tmp_path):

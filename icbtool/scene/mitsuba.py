@@ -316,7 +316,10 @@ class MitsubaScene:
 
 
 # --------------------------------------------------------------------------- reader
-class _Reader:
+class _Values:
+    """The reader's state, the file structure (includes, defaults, ids, refs) and property
+    values (numbers, colours, transforms); every message names ``file:line``."""
+
     def __init__(self, path: Path, params: dict[str, Any], textures: bool) -> None:
         self.path = path
         self.params = {k: str(v) for k, v in params.items()}
@@ -585,7 +588,10 @@ class _Reader:
             raise SceneError(f"{node.where}: the transform is not finite")
         return m
 
-    # ---------------------------------------------------------------- textures and BSDFs
+
+class _Materials(_Values):
+    """Textures and BSDFs as icbtool renders them (the approximation rule), and materials."""
+
     def reflectance(
         self, node: _Node | None, default: float
     ) -> tuple[np.ndarray, Path | None, bool]:
@@ -778,7 +784,10 @@ class _Reader:
         self.mat_keys[key] = len(self.materials) - 1
         return self.mat_keys[key]
 
-    # ---------------------------------------------------------------- shapes
+
+class _Reader(_Materials):
+    """Shapes, emitters, the sensor and the integrator, assembled into one Scene."""
+
     def shape(self, node: _Node) -> None:
         kind = node.attrs.get("type", "")
         props = self.props(node)
@@ -1202,6 +1211,11 @@ def load_mitsuba(path: str | os.PathLike, **overrides: Any) -> Scene:
     """
     allowed = {"params", "textures", "name", "lights", "sky", "paths", "default_camera"}
     allowed.add("max_depth")
+    if "up_axis" in overrides:
+        raise SceneError(
+            f"{path}: up_axis applies to mesh files; a Mitsuba scene keeps its world axes (its "
+            "sensor says which way is up)"
+        )
     unknown = sorted(set(overrides) - allowed)
     if unknown:
         raise TypeError(
