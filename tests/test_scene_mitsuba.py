@@ -497,3 +497,67 @@ def test_approximations_never_reach_albedo_one(tmp_path):
     for m in s.materials:
         assert m.albedo.max() == pytest.approx(MAX_APPROXIMATED_ALBEDO)
     assert sum("scaled by" in x for x in msgs) == 2
+
+
+@pytest.mark.parametrize(
+    "to_world, fov_axis, size",
+    [
+        ('<lookat origin="0, 1, 6" target="0, 1, 0" up="0, 1, 0"/>', "x", (64, 48)),
+        ('<lookat origin="1, 2, 3" target="-2, 0, 1" up="0, 0, 1"/>', "smaller", (40, 60)),
+        ('<rotate y="1" angle="30"/><translate x="1" z="2"/>', "diagonal", (50, 30)),
+        ('<matrix value="-1 0 0 0 0 1 0 1 0 0 -1 6.8 0 0 0 1"/>', "y", (32, 32)),
+    ],
+)
+def test_camera_rays_equal_mitsubas_own_sensor(tmp_path, to_world, fov_axis, size):
+    """The file's camera read by icbtool casts the rays Mitsuba's own sensor casts."""
+    mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is the benchmark peer (make bench-deps)")
+    mi.set_variant("scalar_rgb")
+    w, h = size
+    xml = (
+        '<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="50"/>'
+        f'<string name="fov_axis" value="{fov_axis}"/><transform name="to_world">{to_world}'
+        f'</transform><film type="hdrfilm"><integer name="width" value="{w}"/>'
+        f'<integer name="height" value="{h}"/></film></sensor><shape type="cube"/></scene>'
+    )
+    (tmp_path / "c.xml").write_text(xml)
+    cam = load(tmp_path / "c.xml").default_camera
+    sensor = mi.load_file(str(tmp_path / "c.xml")).sensors()[0]
+    for fx, fy in [(0.5, 0.5), (0.1, 0.2), (0.9, 0.7), (0.3, 0.95)]:
+        ray, _ = sensor.sample_ray(0.0, 0.5, mi.ScalarPoint2f(fx, fy), mi.ScalarPoint2f(0.5, 0.5))
+        _, d, _ = cam.rays(np.array([[fx * w, fy * h]]))
+        np.testing.assert_allclose(d[0], np.array(ray.d), atol=1e-5)
+        # Mitsuba starts the ray at the near clip plane, on the same line
+        off = np.array(ray.o) - cam.position
+        np.testing.assert_allclose(np.cross(off, d[0]), 0, atol=1e-6)
+
+
+def test_fixture_shapes_equal_mitsubas_own_parse(tmp_path):
+    """Each shape's bounding box and area as Mitsuba itself reads the fixture."""
+    import re
+    import shutil
+
+    mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is the benchmark peer (make bench-deps)")
+    mi.set_variant("scalar_rgb")
+    shutil.copytree(DATA, tmp_path / "m")
+    xml = tmp_path / "m" / "fixture.xml"
+    text = xml.read_text()
+    text = re.sub(r'<shape type="serialized">.*?</shape>', "", text, flags=re.DOTALL)
+    xml.write_text(re.sub(r"<medium[^>]*/>", "", text))
+    ours = load(xml)
+    shapes = [x for x in mi.load_file(str(xml)).shapes()]
+    assert len(shapes) == 8
+    by_bbox = {}
+    for i, m in enumerate(ours.materials):
+        faces = ours.faces[ours.face_material == i]
+        v = ours.vertices[np.unique(faces)]
+        by_bbox[m.name] = (v.min(0), v.max(0), _area(ours, m.name))
+    for sh in shapes:
+        bb = sh.bbox()
+        lo, hi = np.array(bb.min), np.array(bb.max)
+        name, (olo, ohi, oarea) = min(
+            by_bbox.items(),
+            key=lambda kv: np.abs(kv[1][0] - lo).sum() + np.abs(kv[1][1] - hi).sum(),
+        )
+        np.testing.assert_allclose(olo, lo, atol=2e-3, err_msg=name)
+        np.testing.assert_allclose(ohi, hi, atol=2e-3, err_msg=name)
+        assert oarea == pytest.approx(sh.surface_area(), rel=1e-2), name
