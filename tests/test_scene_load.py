@@ -503,6 +503,26 @@ def test_gltf_metal_and_transmission_become_diffuse(tmp_path, material, words):
     assert s.materials[0].albedo.max() < 1
 
 
+def test_gltf_dropped_normal_and_occlusion_maps_are_named(tmp_path):
+    mat = {
+        "name": "brick",
+        "pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.4, 0.3, 1], "metallicFactor": 0.0},
+        "normalTexture": {"index": 0},
+        "occlusionTexture": {"index": 0},
+    }
+    with pytest.warns(MaterialApproximationWarning) as w:
+        s = load(_gltf(tmp_path, "n.gltf", mat))
+    msg = _messages(w)
+    assert "material 'brick'" in msg
+    assert "normalTexture, occlusionTexture dropped" in msg
+    np.testing.assert_allclose(s.materials[0].albedo, [0.5, 0.4, 0.3], atol=1 / 255)
+    # without those maps: no warning at all
+    mat = {"name": "plain", "pbrMetallicRoughness": {"metallicFactor": 0.0}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", MaterialApproximationWarning)
+        load(_gltf(tmp_path, "p.gltf", mat))
+
+
 @pytest.mark.parametrize("glb", [False, True])
 def test_gltf_punctual_lights_through_node_transforms(tmp_path, glb):
     s2 = math.sqrt(0.5)

@@ -561,3 +561,16 @@ def test_fixture_shapes_equal_mitsubas_own_parse(tmp_path):
         np.testing.assert_allclose(olo, lo, atol=2e-3, err_msg=name)
         np.testing.assert_allclose(ohi, hi, atol=2e-3, err_msg=name)
         assert oarea == pytest.approx(sh.surface_area(), rel=1e-2), name
+
+
+def test_trace_default_depth_is_the_files():
+    """``render(scene, cam)`` without a config traces to the file's max_depth (here 1: only
+    what the camera sees directly, the constant sky), the same image as asking for it."""
+    import icbtool as icb
+
+    s, _, _ = _load(FIXTURE, params={"depth": 1})
+    cam = s.default_camera.resized(12, 16)
+    full = icb.trace.render(s, cam).full
+    one = icb.trace.render(s, cam, icb.trace.TraceConfig(max_depth=1)).full
+    np.testing.assert_array_equal(full, one)
+    assert full.mean() < icb.trace.render(s, cam, icb.trace.TraceConfig(max_depth=3)).full.mean()
