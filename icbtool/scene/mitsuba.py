@@ -812,7 +812,8 @@ class _Reader(_Materials):
             f = f[:, ::-1].copy()
             n = -n
         if self.bool_(props, "face_normals", False):
-            v, f, uv = v[f].reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3), None
+            uv = None if uv is None else uv[f].reshape(-1, 2)
+            v, f = v[f].reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3)
             n = np.full_like(v, np.nan)  # computed flat below
         bsdf = self.bsdf(props.get("bsdf"))
         emission = np.zeros(3)
