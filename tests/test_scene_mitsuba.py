@@ -574,3 +574,20 @@ def test_trace_default_depth_is_the_files():
     one = icb.trace.render(s, cam, icb.trace.TraceConfig(max_depth=1)).full
     np.testing.assert_array_equal(full, one)
     assert full.mean() < icb.trace.render(s, cam, icb.trace.TraceConfig(max_depth=3)).full.mean()
+
+
+@pytest.mark.parametrize(
+    "integrator, depth",
+    [
+        ('<integrator type="path"/>', -1),  # Mitsuba's default: unbounded
+        ('<integrator type="direct"/>', 2),
+        ('<integrator type="moment"><integrator type="path"><integer name="max_depth" '
+         'value="4"/></integrator></integrator>', 4),
+        ("", None),  # no integrator: the tracer's own default
+    ],
+)  # fmt: skip
+def test_integrator_depth(tmp_path, integrator, depth):
+    (tmp_path / "i.xml").write_text(
+        f'<scene version="3.0.0">{integrator}<shape type="cube"/></scene>'
+    )
+    assert load(tmp_path / "i.xml").max_depth == depth

@@ -23,7 +23,9 @@ refused). What is read, element by element:
 * ``<sensor>``: ``perspective`` (``fov``, ``fov_axis``, ``focal_length``, ``to_world``, film
   ``width``/``height``): the scene's default camera.
 * ``<integrator>``: ``max_depth`` (Mitsuba's depth convention is the tracer's) becomes
-  ``Scene.max_depth``, the trace default; ``direct`` means depth 2.
+  ``Scene.max_depth``, the trace default; a path integrator without one means -1 (Mitsuba's
+  default, unbounded), ``direct`` means 2; a file without an integrator leaves the tracer's own
+  default.
 
 Anything else (an unknown element, plugin type or property) is skipped with a
 :class:`~icbtool.scene.validate.SceneRepairWarning` naming the element, the file and the line.
@@ -1016,7 +1018,9 @@ class _Reader(_Materials):
             if depth == 0 or depth < -1:
                 raise SceneError(f"{node.where}: max_depth must be >= 1 or -1, got {depth}")
             self.max_depth = depth
-        elif kind not in ("path", "volpath", "volpathmis", "prb", "ptracer"):
+        elif kind in ("path", "volpath", "volpathmis", "prb", "ptracer"):
+            self.max_depth = -1  # Mitsuba's default for these: unbounded (Russian roulette)
+        else:
             inner = [c for c in node.children if c.tag == "integrator"]
             if inner:
                 self.integrator(inner[0])
