@@ -10,11 +10,12 @@ the outer walls and nothing of what the scene is about. :func:`default_view` pic
 2. a view from inside the largest enclosed open volume: candidate points on a
    :data:`GRID` ^3 grid inside the bounds (5 % inset) each cast :data:`N_RAYS` rays over the sphere;
    a point is *enclosed* when at least :data:`ENCLOSED_HIT_FRACTION` of them hit geometry and at
-   most :data:`MAX_BACK_FRACTION` hit back faces (it is in a room, not inside a solid); the one
-   with the largest mean free distance lies in the largest room. The camera stands on the far
-   side of that point: along the horizontal direction with the longest free distance from it,
-   the camera is moved back by :data:`BACK_OFF` of the free distance behind, and looks across
-   the room, :data:`PITCH_DEG` down;
+   most :data:`MAX_BACK_FRACTION` hit back faces (it is in a room, not inside a solid); the scene
+   is an interior when at least :data:`MIN_ENCLOSED_SHARE` of the points are enclosed, and the
+   enclosed point with the largest mean free distance lies in its largest room. The camera
+   stands on the far side of that point: along the horizontal direction with the longest free
+   distance from it, the camera is moved back by :data:`BACK_OFF` of the free distance behind,
+   and looks across the room, :data:`PITCH_DEG` down;
 3. otherwise :meth:`Camera.frame` of the bounds from outside.
 
 The choice and its evidence are logged (logger ``icbtool.scene.view``, INFO): which rule, the
@@ -44,6 +45,9 @@ N_RAYS = 96
 ENCLOSED_HIT_FRACTION = 0.9
 #: ... and at most this share hit back faces (more: it is inside a solid).
 MAX_BACK_FRACTION = 0.1
+#: An interior needs at least this share of the candidate points enclosed (fewer: cavities in
+#: furniture or between objects, not a room).
+MIN_ENCLOSED_SHARE = 0.1
 #: The camera stands this share of the free distance behind the chosen point.
 BACK_OFF = 0.8
 #: Downward pitch of the interior view in degrees.
@@ -105,6 +109,15 @@ def interior_view(
     free = t.sum(1) / np.maximum(hit.sum(1), 1)
     enclosed = (hit_frac >= ENCLOSED_HIT_FRACTION) & (back_frac <= MAX_BACK_FRACTION)
     share = float(enclosed.mean())
+    if enclosed.any() and share < MIN_ENCLOSED_SHARE:
+        log.info(
+            "scene '%s': outside view (Camera.frame): only %.0f %% of the candidate points are "
+            "enclosed (need %.0f %%): small cavities, not a room",
+            scene.name,
+            100 * share,
+            100 * MIN_ENCLOSED_SHARE,
+        )
+        return None
     if not enclosed.any():
         log.info(
             "scene '%s': outside view (Camera.frame): no candidate point inside the bounds is "
