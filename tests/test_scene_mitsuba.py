@@ -591,3 +591,27 @@ def test_integrator_depth(tmp_path, integrator, depth):
         f'<scene version="3.0.0">{integrator}<shape type="cube"/></scene>'
     )
     assert load(tmp_path / "i.xml").max_depth == depth
+
+
+def test_default_view_small_cavities_are_not_a_room(caplog):
+    """A closed hut taking ~3 % of an open yard: the scene is framed from outside."""
+    b = sc.SceneBuilder("yard")
+    w = b.material("w")
+    b.add_quad((0, 0, 0), (0, 0, 10), (10, 0, 0), w)  # ground, +y
+    b.add_box((9.5, 1.5, 9.5), (0.2, 3.0, 0.2), w)  # a pole: the bounds are 3 high
+    for c, u, v in [  # a 2 x 2 x 2 hut, faces inward
+        ((0, 0.01, 0), (0, 0, 2), (2, 0, 0)),
+        ((0, 2, 0), (2, 0, 0), (0, 0, 2)),
+        ((0, 0, 0), (2, 0, 0), (0, 2, 0)),
+        ((0, 0, 2), (0, 2, 0), (2, 0, 0)),
+        ((0, 0, 0), (0, 2, 0), (0, 0, 2)),
+        ((2, 0, 0), (0, 0, 2), (0, 2, 0)),
+    ]:
+        b.add_quad(c, u, v, w)
+    yard = b.build()
+    with caplog.at_level(logging.INFO, logger="icbtool.scene.view"):
+        cam = sc.default_view(yard)
+    np.testing.assert_allclose(
+        cam.world_from_cam, Camera.frame(yard.bounds, up=yard.up).world_from_cam
+    )
+    assert "small cavities, not a room" in caplog.text
