@@ -147,13 +147,13 @@ def test_fixture_bsdfs_follow_the_one_rule_with_one_warning_per_material():
 def test_fixture_unsupported_elements_are_named_with_their_line():
     ms = read_mitsuba(FIXTURE)
     text = FIXTURE.read_text().splitlines()
-    line_serialized = next(i for i, t in enumerate(text, 1) if 'type="serialized"' in t)
+    line_curve = next(i for i, t in enumerate(text, 1) if 'type="bsplinecurve"' in t)
     line_medium = next(i for i, t in enumerate(text, 1) if "<medium" in t)
-    assert f"<shape serialized> ({FIXTURE}:{line_serialized})" in ms.skipped
+    assert f"<shape bsplinecurve> ({FIXTURE}:{line_curve})" in ms.skipped
     assert f"<medium homogeneous> ({FIXTURE}:{line_medium})" in ms.skipped
     assert ms.shapes == 8
     _, msgs, _ = _load(FIXTURE)
-    assert any(f"fixture.xml:{line_serialized}: <shape serialized>" in x for x in msgs)
+    assert any(f"fixture.xml:{line_curve}: <shape bsplinecurve>" in x for x in msgs)
 
 
 def test_params_override_defaults():
@@ -541,7 +541,7 @@ def test_fixture_shapes_equal_mitsubas_own_parse(tmp_path):
     shutil.copytree(DATA, tmp_path / "m")
     xml = tmp_path / "m" / "fixture.xml"
     text = xml.read_text()
-    text = re.sub(r'<shape type="serialized">.*?</shape>', "", text, flags=re.DOTALL)
+    text = re.sub(r'<shape type="bsplinecurve">.*?</shape>', "", text, flags=re.DOTALL)
     xml.write_text(re.sub(r"<medium[^>]*/>", "", text))
     ours = load(xml)
     shapes = [x for x in mi.load_file(str(xml)).shapes()]
@@ -615,3 +615,66 @@ def test_default_view_small_cavities_are_not_a_room(caplog):
         cam.world_from_cam, Camera.frame(yard.bounds, up=yard.up).world_from_cam
     )
     assert "small cavities, not a room" in caplog.text
+
+
+def _write_serialized(path: Path, shapes: list[tuple], version: int = 4) -> None:
+    """A Mitsuba .serialized file (see icbtool.scene.mitsuba.read_serialized for the format)."""
+    import struct
+    import zlib
+
+    out, offsets = b"", []
+    for v, f, n, uv in shapes:
+        flags = 0x1000 | (0x0001 if n is not None else 0) | (0x0002 if uv is not None else 0)
+        body = struct.pack("<I", flags) + (b"mesh\0" if version == 4 else b"")
+        body += struct.pack("<QQ", len(v), len(f)) + np.asarray(v, np.float32).tobytes()
+        for extra in (n, uv):
+            if extra is not None:
+                body += np.asarray(extra, np.float32).tobytes()
+        body += np.asarray(f, np.uint32).tobytes()
+        offsets.append(len(out))
+        out += struct.pack("<HH", 0x041C, version) + zlib.compress(body)
+    fmt = "<Q" if version == 4 else "<I"
+    out += b"".join(struct.pack(fmt, o) for o in offsets) + struct.pack("<I", len(shapes))
+    path.write_bytes(out)
+
+
+@pytest.mark.parametrize("version", [3, 4])
+def test_serialized_shapes(tmp_path, version):
+    quad_v = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
+    quad_f = [[0, 1, 2], [0, 2, 3]]
+    uv = [[0, 0], [1, 0], [1, 1], [0, 0.25]]
+    tri_v = [[0, 0, 0], [2, 0, 0], [0, 0, 2]]
+    _write_serialized(
+        tmp_path / "m.serialized",
+        [(quad_v, quad_f, np.tile([0, 0, 1], (4, 1)), uv), (tri_v, [[0, 2, 1]], None, None)],
+        version,
+    )
+    (tmp_path / "s.xml").write_text(
+        '<scene version="3.0.0">'
+        '<shape type="serialized"><string name="filename" value="m.serialized"/>'
+        '<integer name="shape_index" value="1"/><bsdf type="diffuse" id="tri"/></shape>'
+        '<shape type="serialized"><string name="filename" value="m.serialized"/>'
+        '<transform name="to_world"><translate z="5"/></transform>'
+        '<bsdf type="diffuse" id="quad"/></shape></scene>'
+    )
+    s, _, _ = _load(tmp_path / "s.xml")
+    assert _area(s, "tri") == pytest.approx(2.0) and _area(s, "quad") == pytest.approx(1.0)
+    i = [m.name for m in s.materials].index("tri")
+    np.testing.assert_allclose(s.face_normals[s.face_material == i], [[0, 1, 0]], atol=1e-7)
+    assert s.vertices[:, 2].max() == pytest.approx(5.0)
+    (tmp_path / "bad.xml").write_text(
+        '<scene version="3.0.0"><shape type="serialized"><string name="filename" '
+        'value="m.serialized"/><integer name="shape_index" value="2"/></shape></scene>'
+    )
+    with pytest.raises(
+        SceneError, match=r"bad.xml:1: .*shape_index 2 out of range: the file has 2"
+    ):
+        load(tmp_path / "bad.xml")
+    (tmp_path / "junk.serialized").write_bytes(b"\x00" * 32)
+    with pytest.raises(SceneError, match=r"not a Mitsuba serialized mesh"):
+        sc.mitsuba.read_serialized(tmp_path / "junk.serialized")
+    mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is the benchmark peer (make bench-deps)")
+    mi.set_variant("scalar_rgb")
+    theirs = mi.load_file(str(tmp_path / "s.xml"))
+    assert sum(sh.surface_area() for sh in theirs.shapes()) == pytest.approx(3.0)
+    np.testing.assert_allclose(np.array(theirs.bbox().max), s.bounds[1], atol=1e-6)

@@ -8,7 +8,8 @@ refused). What is read, element by element:
   them.
 * ``<include>``, ``<path>``: included files are spliced in place (relative to the including file
   or a ``<path>`` folder); at most :data:`MAX_INCLUDE_DEPTH` levels.
-* ``<shape>``: ``obj`` (icbtool's OBJ reader; ``flip_tex_coords``), ``ply``, ``rectangle``,
+* ``<shape>``: ``obj`` (icbtool's OBJ reader; ``flip_tex_coords``), ``ply``, ``serialized``
+  (``shape_index``; :func:`read_serialized`), ``rectangle``,
   ``cube``, ``sphere`` (``center``, ``radius``), ``disk``, ``cylinder`` (``p0``, ``p1``,
   ``radius``), each with ``to_world``, ``flip_normals``, ``face_normals``, a nested or referenced
   BSDF and an area emitter. Analytic shapes are tessellated (:data:`SPHERE_SEGMENTS`).
@@ -861,6 +862,15 @@ class _Reader(_Materials):
                 m.normals.astype(float),
                 uv,
             )
+        if kind == "serialized":
+            fname = self.str_(props, "filename", None)
+            if fname is None:
+                raise SceneError(f"{node.where}: {node.describe()} needs a filename")
+            p = self.resolve(node, fname)
+            if not p.is_file():
+                raise FileNotFoundError(f"{node.where}: mesh file not found: {p}")
+            index = self.int_(props, "shape_index", 0)
+            return read_serialized(p, index, node.where)
         if kind == "rectangle":
             v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
             uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], float)  # Mitsuba (0,0) at (-1,-1)
@@ -1099,6 +1109,78 @@ class _Reader(_Materials):
         )
 
 
+#: Mitsuba's serialized mesh format: file identifier and flags of the compressed header.
+_SERIALIZED_ID = 0x041C
+_SER_NORMALS, _SER_UVS, _SER_COLORS, _SER_DOUBLE = 0x0001, 0x0002, 0x0008, 0x2000
+
+
+def read_serialized(path: Path, index: int = 0, where: str | None = None) -> tuple:
+    """Shape ``index`` of a Mitsuba ``.serialized`` file (format versions 3 and 4).
+
+    Each shape is ``uint16 0x041C, uint16 version`` and a zlib stream holding ``uint32 flags``,
+    (version 4) a NUL-terminated name, ``uint64`` vertex and triangle counts, positions (float32,
+    or float64 with flag 0x2000), normals (0x0001), uvs (0x0002), colours (0x0008, skipped) and
+    the indices (uint32, uint64 above 2^32 vertices); the file ends with the shapes' offsets
+    (uint64 in version 4, uint32 in 3) and their count (uint32).
+
+    Returns:
+        (vertices (V, 3), faces (F, 3), normals (V, 3) with NaN rows when absent, uvs (V, 2) in
+        the Scene convention (``1 - v``) or None).
+
+    Raises:
+        SceneError: not a serialized file, a missing shape index, a corrupt stream (names the
+            file and, with ``where``, the scene element).
+    """
+    import struct
+    import zlib
+
+    who = f"{where}: {path}" if where else str(path)
+    data = path.read_bytes()
+    if len(data) < 8 or struct.unpack_from("<H", data, 0)[0] != _SERIALIZED_ID:
+        raise SceneError(f"{who}: not a Mitsuba serialized mesh (bad file identifier)")
+    version = struct.unpack_from("<H", data, 2)[0]
+    if version not in (3, 4):
+        raise SceneError(f"{who}: serialized format version {version} is not supported (3, 4)")
+    count = struct.unpack_from("<I", data, len(data) - 4)[0]
+    if not 0 <= index < count:
+        raise SceneError(f"{who}: shape_index {index} out of range: the file has {count} shapes")
+    width = 8 if version == 4 else 4
+    table = len(data) - 4 - width * count
+    (offset,) = struct.unpack_from("<Q" if width == 8 else "<I", data, table + width * index)
+    try:
+        raw = zlib.decompressobj().decompress(data[offset + 4 : table])
+        pos = 0
+        (flags,) = struct.unpack_from("<I", raw, pos)
+        pos += 4
+        if version == 4:
+            end = raw.index(b"\0", pos)
+            pos = end + 1
+        nv, nf = struct.unpack_from("<QQ", raw, pos)
+        pos += 16
+        real = np.float64 if flags & _SER_DOUBLE else np.float32
+        rsize = np.dtype(real).itemsize
+
+        def take(n: int, dtype: Any) -> np.ndarray:
+            nonlocal pos
+            a = np.frombuffer(raw, dtype=dtype, count=n, offset=pos)
+            pos += n * np.dtype(dtype).itemsize
+            return a
+
+        v = take(3 * nv, real).reshape(-1, 3).astype(np.float64)
+        n = take(3 * nv, real).reshape(-1, 3).astype(np.float64) if flags & _SER_NORMALS else None
+        uv = take(2 * nv, real).reshape(-1, 2).astype(np.float64) if flags & _SER_UVS else None
+        if flags & _SER_COLORS:
+            pos += 3 * nv * rsize
+        f = take(3 * nf, np.uint64 if nv > 0xFFFFFFFF else np.uint32).reshape(-1, 3)
+    except (zlib.error, struct.error, ValueError) as e:
+        raise SceneError(f"{who}: shape {index}: corrupt serialized stream ({e})") from None
+    if n is None:
+        n = np.full_like(v, np.nan)
+    if uv is not None:
+        uv = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])
+    return v, f.astype(np.int64), n, uv
+
+
 def _cube() -> tuple:
     """Mitsuba's cube: [-1, 1]^3, outward faces, flat normals, uvs per face."""
     verts, faces, normals, uvs = [], [], [], []
@@ -1239,5 +1321,6 @@ __all__ = [
     "load_mitsuba",
     "mitsuba_look_at",
     "read_mitsuba",
+    "read_serialized",
     "spectrum_to_rgb",
 ]
