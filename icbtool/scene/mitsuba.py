@@ -334,6 +334,8 @@ class _Values:
         self.materials: list[Material] = []
         self.mat_keys: dict[Any, int] = {}
         self.bsdfs: dict[int, _Bsdf] = {}
+        self.rendered: dict[str, _Bsdf] = {}  # "file:line" of a shape's BSDF -> what renders
+        self.files: list[Path] = [path]  # the scene file and the files it includes
         self.tex_cache: dict[str, np.ndarray | None] = {}
         self.parts: list[_Part] = []
         self.lights: list[Any] = []
@@ -416,6 +418,7 @@ class _Values:
                 if inc.suffix.lower() != ".xml":
                     self.skip(node, f"includes a non-XML file {inc.name}")
                     continue
+                self.files.append(inc)
                 out += self.flatten(_parse_xml(inc), depth + 1)
             else:
                 out.append(node)
@@ -668,6 +671,7 @@ class _Materials(_Values):
                     f"{np.round(albedo, 4).tolist()} ({rule})",
                 )
             self.bsdfs[key] = b
+            self.rendered[node.where] = b
         return self.bsdfs[key]
 
     def _bsdf(self, node: _Node, notes: list[str]) -> _Bsdf:
@@ -1248,6 +1252,83 @@ def _cylinder(p0: np.ndarray, p1: np.ndarray, r: float, seg: int) -> tuple:
     return v, np.array(faces), np.vstack([ring, ring]), uv
 
 
+def _to_xml(node: _Node, depth: int = 0) -> str:
+    from xml.sax.saxutils import quoteattr
+
+    pad = "    " * depth
+    attrs = "".join(f" {k}={quoteattr(v)}" for k, v in node.attrs.items())
+    if not node.children:
+        return f"{pad}<{node.tag}{attrs}/>\n"
+    inner = "".join(_to_xml(c, depth + 1) for c in node.children)
+    return f"{pad}<{node.tag}{attrs}>\n{inner}{pad}</{node.tag}>\n"
+
+
+def _diffuse_node(old: _Node, b: _Bsdf) -> _Node:
+    """``<bsdf type="twosided"><bsdf type="diffuse">`` of what icbtool renders for ``old``."""
+    keep = {k: v for k, v in old.attrs.items() if k in ("id", "name")}
+    if b.texture is not None:
+        refl = _Node("texture", {"type": "bitmap", "name": "reflectance"}, old.file, old.line)
+        refl.children = [
+            _Node("string", {"name": "filename", "value": str(b.texture)}, old.file, old.line),
+            _Node("boolean", {"name": "raw", "value": str(b.raw).lower()}, old.file, old.line),
+        ]
+    else:
+        value = ", ".join(f"{x:.9g}" for x in b.albedo)
+        refl = _Node("rgb", {"name": "reflectance", "value": value}, old.file, old.line)
+    diffuse = _Node("bsdf", {"type": "diffuse"}, old.file, old.line, [refl])
+    return _Node("bsdf", {"type": "twosided", **keep}, old.file, old.line, [diffuse])
+
+
+def diffuse_twin(
+    path: str | os.PathLike, out_dir: str | os.PathLike, *, params: dict[str, Any] | None = None
+) -> Path:
+    """Write a copy of a Mitsuba scene for Mitsuba itself that renders what icbtool renders.
+
+    The scene's folder is copied into ``out_dir``; in the copy of the scene file and of every file
+    it includes, each BSDF a shape uses becomes the two-sided diffuse BSDF icbtool renders for it
+    (the same albedo after the approximation rule, or the same bitmap), and every pixel filter
+    becomes ``box`` (icbtool's pixel footprint). Everything else (shapes, transforms, emitters,
+    the sensor, ``$`` parameters) is written as read. Used to verify icbtool against Mitsuba
+    (``benchmarks/mitsuba_xml_compare.py``).
+
+    Args:
+        path: the scene file.
+        out_dir: an existing folder; the copy is ``out_dir / <scene folder name>``.
+        params: ``$`` parameters, as for :func:`read_mitsuba`.
+
+    Returns:
+        The copied scene file.
+
+    Raises:
+        SceneError: as :func:`read_mitsuba`; an included file outside the scene's folder.
+    """
+    import shutil
+
+    p = check_file(path, MITSUBA_SUFFIXES).resolve()
+    reader = _Reader(p, dict(params or {}), True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the loader has said it all already
+        reader.read(_parse_xml(p))
+    dst = Path(out_dir) / p.parent.name
+    shutil.copytree(p.parent, dst, dirs_exist_ok=True)
+
+    def rewrite(node: _Node) -> _Node:
+        if node.tag == "bsdf" and node.where in reader.rendered:
+            return _diffuse_node(node, reader.rendered[node.where])
+        if node.tag == "rfilter":
+            return _Node("rfilter", {"type": "box"}, node.file, node.line)
+        node.children = [rewrite(c) for c in node.children]
+        return node
+
+    for f in dict.fromkeys(reader.files):
+        try:
+            rel = f.resolve().relative_to(p.parent)
+        except ValueError:
+            raise SceneError(f"{f}: included from outside the scene folder {p.parent}") from None
+        (dst / rel).write_text(_to_xml(rewrite(_parse_xml(f))))
+    return dst / p.name
+
+
 def read_mitsuba(
     path: str | os.PathLike, *, params: dict[str, Any] | None = None, textures: bool = True
 ) -> MitsubaScene:
@@ -1322,5 +1403,6 @@ __all__ = [
     "mitsuba_look_at",
     "read_mitsuba",
     "read_serialized",
+    "diffuse_twin",
     "spectrum_to_rgb",
 ]
