@@ -164,6 +164,7 @@ def test_glb_round_trip(tmp_path):
         baseColorFactor=[0.5, 0.25, 1.0, 1.0],
         emissiveFactor=[0.1, 0.2, 0.3],
         baseColorTexture=Image.fromarray(_texture_rgb()),
+        metallicFactor=0.0,  # a dielectric: its base colour is the albedo (metals: approximated)
     )
     m.visual = trimesh.visual.TextureVisuals(uv=uv, material=mat)
     m.export(tmp_path / "b.glb")
@@ -365,7 +366,7 @@ def test_description_full(tmp_path):
         ('[scene]\nmesh = "m.obj"\n[[lights]]\ntype = "laser"\n', "unknown type 'laser'"),
         ('[scene]\nmesh = "m.obj"\n[paths.x]\ntype = "orbit"\nradius = 1\n', "missing"),
         ('[scene]\nmesh = "m.obj"\n[paths.x]\ntype = "teleport"\n', "needs a 'type'"),
-        ("[scene]\nscale = 1.0\n", r"missing required key\(s\) \['mesh'\]"),
+        ("[scene]\nscale = 1.0\n", r"no mesh: give \[scene\] mesh"),
         ('[scene]\nmesh = "m.obj"\n[sky]\nzenith = [-1, 0, 0]\n', r"\[sky\]"),
         ("[scene\nmesh = 1\n", "not valid TOML"),
         ('[scene]\nmesh = "${ICBTOOL_TEST_UNSET_VAR}/m.obj"\n', "ICBTOOL_TEST_UNSET_VAR"),

@@ -255,8 +255,13 @@ def test_mtl_keys_emission_texture_options(tmp_path):
 @pytest.mark.parametrize(
     "block, albedo, words",
     [
-        # a mirror with Kd = 0: Ks becomes the diffuse albedo (never black)
-        ("Kd 0 0 0\nKs 0.9 0.8 0.7\nillum 3", [0.9, 0.8, 0.7], ["mirror (illum 3)", "Ks"]),
+        # a mirror with Kd = 0: Ks becomes the diffuse albedo (never black), scaled to a largest
+        # channel of 0.8 (an approximation never reflects all the light)
+        (
+            "Kd 0 0 0\nKs 0.9 0.8 0.7\nillum 3",
+            [0.8, 0.8 * 0.8 / 0.9, 0.7 * 0.8 / 0.9],
+            ["mirror (illum 3)", "Ks", "scaled by 0.889"],
+        ),
         # a mirror without any colour: 0.8 grey, said so
         ("Kd 0 0 0\nillum 5", [0.8, 0.8, 0.8], ["mirror (Fresnel) (illum 5)", "0.8 grey"]),
         # glass with a transmission filter: Kd + Ks + Tf
@@ -268,7 +273,7 @@ def test_mtl_keys_emission_texture_options(tmp_path):
         # glossy (Ks dominant) with illum 2
         ("Kd 0.2 0.1 0.1\nKs 0.5 0.5 0.5\nNs 200\nillum 2", [0.7, 0.6, 0.6], ["glossy", "Ns 200"]),
         # transparent: d < 1, and Tr > 0 without d
-        ("Kd 0.3 0.3 0.3\nd 0.25", [1.0, 1.0, 1.0], ["transparent (opacity 0.25)"]),
+        ("Kd 0.3 0.3 0.3\nd 0.25", [0.8, 0.8, 0.8], ["transparent (opacity 0.25)"]),
         ("Kd 0.3 0.3 0.3\nTr 0.5", [0.8, 0.8, 0.8], ["transparent (opacity 0.5)"]),
     ],
 )
@@ -493,7 +498,29 @@ def test_gltf_metal_and_transmission_become_diffuse(tmp_path, material, words):
     assert f"material '{material['name']}'" in msg
     for word in words:
         assert word in msg
-    np.testing.assert_allclose(s.materials[0].albedo, [1, 0.8, 0.3], atol=1 / 255)
+    # the base colour scaled to a largest channel of 0.8 (never an albedo >= 1)
+    np.testing.assert_allclose(s.materials[0].albedo, [0.8, 0.64, 0.24], atol=1 / 255)
+    assert s.materials[0].albedo.max() < 1
+
+
+def test_gltf_dropped_normal_and_occlusion_maps_are_named(tmp_path):
+    mat = {
+        "name": "brick",
+        "pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.4, 0.3, 1], "metallicFactor": 0.0},
+        "normalTexture": {"index": 0},
+        "occlusionTexture": {"index": 0},
+    }
+    with pytest.warns(MaterialApproximationWarning) as w:
+        s = load(_gltf(tmp_path, "n.gltf", mat))
+    msg = _messages(w)
+    assert "material 'brick'" in msg
+    assert "normalTexture, occlusionTexture dropped" in msg
+    np.testing.assert_allclose(s.materials[0].albedo, [0.5, 0.4, 0.3], atol=1 / 255)
+    # without those maps: no warning at all
+    mat = {"name": "plain", "pbrMetallicRoughness": {"metallicFactor": 0.0}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", MaterialApproximationWarning)
+        load(_gltf(tmp_path, "p.gltf", mat))
 
 
 @pytest.mark.parametrize("glb", [False, True])

@@ -157,7 +157,7 @@ scene_spec.__name__ = "scene"
 
 SCENE_HELP = (
     "a built-in scene (cornell_box, white_furnace, plane, boxes_on_floor), a scene description "
-    "(.toml) or a mesh file (.obj, .ply, .glb, .gltf)"
+    "(.toml), a Mitsuba 3 scene file (.xml) or a mesh file (.obj, .ply, .glb, .gltf)"
 )
 
 
@@ -251,9 +251,10 @@ def select_cameras(
 
     Args:
         scene: the scene.
-        spec: "default" (the scene's default camera; without one, :meth:`Camera.frame` of the
-            scene bounds with ``scene.up``, 45 degrees, 256 x 256) or "path:NAME" (every
-            ``every``-th camera of that path, named ``NAME_0000``...).
+        spec: "default" (the scene's default camera; without one,
+            :func:`icbtool.scene.view.default_view`: a view from inside the largest room of an
+            interior, else :meth:`Camera.frame` of the bounds; 45 degrees, 256 x 256) or
+            "path:NAME" (every ``every``-th camera of that path, named ``NAME_0000``...).
         every: keep every K-th camera of a path (>= 1).
         height, width: output size. Given alone, the other side follows the camera's aspect
             ratio; with both, the view is resized to exactly that (the FOV follows the image).
@@ -265,7 +266,6 @@ def select_cameras(
     Raises:
         ValueError: bad ``spec``/``every``/size, or a path the scene does not have.
     """
-    from icbtool.camera import Camera
 
     if every < 1:
         raise ValueError(f"--every must be >= 1, got {every}")
@@ -275,11 +275,11 @@ def select_cameras(
     if spec == "default":
         cam = scene.default_camera
         if cam is None:
+            from icbtool.scene.view import default_view
+
             h = height or width or 256
             w = width or height or 256
-            cam = Camera.frame(
-                scene.bounds, up=scene.up, fov_y_deg=fov_y_deg or 45.0, height=h, width=w
-            )
+            cam = default_view(scene, fov_y_deg=fov_y_deg or 45.0, height=h, width=w)
         cams = [("default", cam)]
     elif spec.startswith("path:"):
         name = spec[5:]

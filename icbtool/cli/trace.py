@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 from icbtool._optional import require
 from icbtool.cli._common import (
@@ -61,8 +61,13 @@ def _options(p: argparse.ArgumentParser) -> None:
     trace = add_config(
         p,
         TraceConfig,
+        defaults={"max_depth": None},
         spell={
-            "max_depth": Spelling(type=_max_depth, metavar="N"),
+            "max_depth": Spelling(
+                type=_max_depth,
+                metavar="N",
+                default_text="the scene file's (a Mitsuba integrator's max_depth), else 8",
+            ),
             "spp_per_pass": Spelling(type=positive_int),
             "rr_depth": Spelling(type=int_at_least(0)),
             "adaptive_min_passes": Spelling(type=positive_int),
@@ -72,7 +77,9 @@ def _options(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = args.trace_options.build(args)  # a bad setting: one line, exit 2, before any work
+    depth = getattr(args, "cfg:max_depth")  # None: the scene file's, known once it is loaded
+    # a bad setting: one line, exit 2, before any work
+    cfg = args.trace_options.build(args, max_depth=8 if depth is None else depth)
     out = check_out_dir(args.out)
     if cfg.denoise:
         require("pyoidn", "--denoise (Open Image Denoise)")
@@ -84,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     scene = load_scene(args.scene, args.up_axis, default_light=True)
+    if depth is None and scene.max_depth is not None:
+        cfg = replace(cfg, max_depth=scene.max_depth)
     cams = select_cameras(scene, args.camera, args.every, args.height, args.width)
     views = []
     for name, cam in tqdm(cams, desc="trace", disable=len(cams) < 2):

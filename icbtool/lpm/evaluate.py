@@ -93,14 +93,15 @@ def _path_indices(scene: Scene, cfg: EvalConfig) -> list[int]:
 
 def client_cameras(scene: Scene, cfg: EvalConfig) -> list[Camera]:
     """The client cameras (see the module docstring)."""
-    from icbtool.camera import Camera
 
     if "test" in scene.paths:
         cams = [scene.paths["test"][i] for i in _path_indices(scene, cfg)]
     elif scene.default_camera is not None:
         cams = [scene.default_camera]
     else:
-        cams = [Camera.frame(scene.bounds, up=scene.up, fov_y_deg=45.0)]
+        from icbtool.scene.view import default_view
+
+        cams = [default_view(scene, fov_y_deg=45.0)]
     return [c.resized(cfg.height, cfg.width) for c in cams]
 
 

@@ -1,7 +1,8 @@
 """Scenes: the data model, procedural scenes with known answers, and loaders for files.
 
-``icb.scene.cornell_box()``, ``icb.scene.load("room.toml")`` (a scene description) or
-``icb.scene.load("mesh.obj")`` (a bare mesh).
+``icb.scene.cornell_box()``, ``icb.scene.load("room.toml")`` (a scene description),
+``icb.scene.load("scene.xml")`` (a Mitsuba 3 scene file) or ``icb.scene.load("mesh.obj")`` (a
+bare mesh).
 """
 
 from icbtool.scene.description import SceneDescription, read_description
@@ -31,6 +32,7 @@ from icbtool.scene.types import (
     vertex_normals,
 )
 from icbtool.scene.validate import SceneError, SceneRepairWarning
+from icbtool.scene.view import default_view
 from icbtool.scene.walk import check_camera, random_walk, surroundings
 
 __all__ = [
@@ -49,6 +51,7 @@ __all__ = [
     "SpotLight",
     "boxes_on_floor",
     "check_camera",
+    "default_view",
     "cornell_box",
     "cornell_camera",
     "plane",

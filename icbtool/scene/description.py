@@ -9,6 +9,7 @@ description file; ``${VAR}`` and ``${VAR:-default}`` expand environment variable
     [scene]
     name = "sponza"                     # default: the file stem
     mesh = "${ICBTOOL_SPONZA:-../../../shared/scenes/sponza}/sponza_textured.obj"
+                                        # optional when [[meshes]] are given
     scale = 1.0                         # file units -> metres
     up_axis = "y"                       # the file's up axis: "y", "z" or "x" (rotated to +y)
     translation = [0.0, 0.0, 0.0]       # after scaling
@@ -16,6 +17,17 @@ description file; ``${VAR}`` and ``${VAR:-default}`` expand environment variable
     textures = true                     # decode texture images
     file_lights = true                  # keep the mesh file's own lights (glTF
                                         #   KHR_lights_punctual) besides [[lights]]
+
+    [[meshes]]                          # any number of further meshes, merged with [scene] mesh
+    path = "props/chair.obj"            # required; relative to this file, ${VAR} expanded
+    scale = 1.0                         # also up_axis, translation, flip_v, textures (as above)
+    transform = [[1, 0, 0, 2], [0, 1, 0, 0], [0, 0, 1, -1], [0, 0, 0, 1]]
+                                        # 4x4 world_from_file (row-major, rows or 16 numbers),
+                                        #   applied after scale, up axis and translation
+    name = "chair"                      # prefix of its material names on a clash (default: stem)
+    material = { albedo = [0.5, 0.5, 0.5] }        # overrides every material of this mesh
+    materials = { seat = { albedo = [0.6, 0.1, 0.1], emission = [0, 0, 0] } }
+                                        # overrides by material name (an unknown name: error)
 
     [camera]                            # intrinsics of the default camera and of every path
     fov_y_deg = 60.0
@@ -74,11 +86,13 @@ from icbtool.scene.types import (
 )
 from icbtool.scene.validate import SceneError, check_file
 
-#: [scene] keys passed on to :func:`icbtool.scene.load.load_mesh` (also build() overrides).
+#: [scene] keys passed on to :func:`icbtool.scene.mesh.load_mesh` (also build() overrides).
 _MESH_KEYS = ("scale", "up_axis", "translation", "flip_v", "textures")
 _SCENE_KEYS = {"name", "mesh", "file_lights", *_MESH_KEYS}
+_MESHES_KEYS = {"path", "name", "transform", "material", "materials", *_MESH_KEYS}
+_MATERIAL_KEYS = {"albedo", "emission"}
 _CAMERA_KEYS = {"fov_y_deg", "height", "width"}
-_TOP_KEYS = {"scene", "camera", "lights", "sky", "default_camera", "paths"}
+_TOP_KEYS = {"scene", "meshes", "camera", "lights", "sky", "default_camera", "paths"}
 _LIGHT_KEYS = {kind: light_parameters(kind) for kind in LIGHT_TYPES}
 _SKY_KEYS = {"type", "zenith", "horizon", "ground", "up"}
 _DEFAULT_CAMERA_KEYS = {"eye", "target", "up"} | _CAMERA_KEYS
@@ -181,6 +195,24 @@ class Intrinsics:
 
 
 @dataclass(frozen=True)
+class MeshSpec:
+    """One ``[[meshes]]`` entry of a description (see the module docstring)."""
+
+    path: Path
+    """The mesh file (absolute, environment variables expanded)."""
+    name: str
+    """Name used to tell its materials apart on a clash (default: the file stem)."""
+    options: dict[str, Any] = field(default_factory=dict)
+    """Keyword arguments for :func:`icbtool.scene.mesh.load_mesh` (scale, up_axis, ...)."""
+    world_from_file: np.ndarray | None = None
+    """(4, 4) transform applied after ``options`` (None: identity)."""
+    material: dict[str, Any] | None = None
+    """Overrides (albedo, emission) of every material of the mesh."""
+    materials: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Overrides (albedo, emission) by material name."""
+
+
+@dataclass(frozen=True)
 class SceneDescription:
     """A parsed scene description (see the module docstring for the file format)."""
 
@@ -188,10 +220,11 @@ class SceneDescription:
     """The description file."""
     name: str
     """Scene name."""
-    mesh: Path
-    """The mesh file (absolute, environment variables expanded)."""
+    mesh: Path | None
+    """The [scene] mesh file (absolute, environment variables expanded), or None when the
+    description lists only [[meshes]]."""
     mesh_options: dict[str, Any]
-    """Keyword arguments for :func:`icbtool.scene.load.load_mesh` (scale, up_axis, ...)."""
+    """Keyword arguments for :func:`icbtool.scene.mesh.load_mesh` (scale, up_axis, ...)."""
     intrinsics: Intrinsics = field(default_factory=Intrinsics)
     """Intrinsics of the default camera and the paths."""
     lights: tuple[Light, ...] = ()
@@ -205,6 +238,8 @@ class SceneDescription:
     file_lights: bool = True
     """Keep the lights the mesh file itself declares (glTF KHR_lights_punctual) besides
     :attr:`lights`; False drops them."""
+    meshes: tuple[MeshSpec, ...] = ()
+    """The [[meshes]] entries, merged after the [scene] mesh."""
 
     def build(self, **overrides: Any) -> Scene:
         """Load the mesh and assemble the Scene.
@@ -220,7 +255,7 @@ class SceneDescription:
             TypeError: an unknown override.
             SceneError, FileNotFoundError: as :func:`icbtool.scene.load`.
         """
-        from icbtool.scene.load import load_mesh
+        from icbtool.scene.mesh import load_mesh
 
         unknown = sorted(set(overrides) - set(BUILD_OVERRIDES))
         if unknown:
@@ -232,17 +267,22 @@ class SceneDescription:
         for k in _MESH_KEYS:
             if k in overrides:
                 mesh_kw[k] = overrides[k]
-        mesh = Path(overrides.get("mesh", self.mesh))
-        if not mesh.exists():
-            raise FileNotFoundError(f"{where}: mesh file not found: {mesh}")
         name = overrides.get("name", self.name)
-        scene = load_mesh(mesh, name=name, **mesh_kw)
+        mesh = overrides.get("mesh", self.mesh)
+        parts = []
+        if mesh is not None:
+            if not Path(mesh).exists():
+                raise FileNotFoundError(f"{where}: mesh file not found: {mesh}")
+            parts.append(load_mesh(Path(mesh), name=name, **mesh_kw))
+        for spec in self.meshes:
+            parts.append(_load_spec(spec, where))
+        scene = parts[0] if len(parts) == 1 else merge_meshes(parts, name)
         own = list(overrides.get("lights", self.lights))  # their area quads join the mesh
         kept = list(scene.lights) if self.file_lights and "lights" not in overrides else []
         scene = add_area_lights(scene, [lt for lt in own if isinstance(lt, AreaLight)])
         lights = kept + own
         scene = dataclasses.replace(
-            scene, lights=lights, sky=overrides.get("sky", self.sky), source=where
+            scene, name=name, lights=lights, sky=overrides.get("sky", self.sky), source=where
         )
         try:
             intr = Intrinsics(
@@ -265,6 +305,103 @@ class SceneDescription:
             }
             scene = dataclasses.replace(scene, paths=paths)
         return scene
+
+
+def _load_spec(spec: MeshSpec, where: str) -> Scene:
+    """One [[meshes]] entry loaded, transformed and with its material overrides."""
+    from icbtool.scene.mesh import load_mesh
+
+    if not spec.path.exists():
+        raise FileNotFoundError(
+            f"{where}: [[meshes]] {spec.name}: mesh file not found: {spec.path}"
+        )
+    s = load_mesh(spec.path, name=spec.name, **spec.options)
+    if spec.world_from_file is not None:
+        s = transform_scene(s, spec.world_from_file)
+    if spec.material is None and not spec.materials:
+        return s
+    names = [m.name for m in s.materials]
+    unknown = sorted(set(spec.materials) - set(names))
+    if unknown:
+        raise SceneError(
+            f"{where}: [[meshes]] {spec.name}: no material(s) {unknown} in {spec.path.name}; "
+            f"it has {names}"
+        )
+    mats = []
+    for m in s.materials:
+        change = {**(spec.material or {}), **spec.materials.get(m.name, {})}
+        try:
+            mats.append(dataclasses.replace(m, **change) if change else m)
+        except (ValueError, TypeError) as e:
+            raise SceneError(f"{where}: [[meshes]] {spec.name}: material '{m.name}': {e}") from None
+    return dataclasses.replace(s, materials=mats)
+
+
+def transform_scene(scene: Scene, world_from_file: np.ndarray) -> Scene:
+    """The scene with its geometry and file lights mapped by a (4, 4) affine transform.
+
+    Normals go through the inverse transpose; a mirroring transform (det < 0) reverses the face
+    winding so that the geometric normals keep facing the same side.
+
+    Raises:
+        ValueError: a singular or non-finite transform.
+    """
+    m = np.asarray(world_from_file, np.float64)
+    lin, t = m[:3, :3], m[:3, 3]
+    det = float(np.linalg.det(lin)) if np.all(np.isfinite(m)) else 0.0
+    if abs(det) < 1e-12:
+        raise ValueError(f"transform must be finite and invertible, got {m.tolist()}")
+    v = scene.vertices.astype(np.float64) @ lin.T + t
+    n = scene.normals.astype(np.float64) @ np.linalg.inv(lin)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    f = scene.faces if det > 0 else scene.faces[:, ::-1]
+    lights = []
+    for lt in scene.lights:
+        ch: dict[str, Any] = {}
+        if hasattr(lt, "position"):
+            ch["position"] = lin @ lt.position + t
+        if hasattr(lt, "direction"):
+            ch["direction"] = lin @ lt.direction
+        lights.append(dataclasses.replace(lt, **ch) if ch else lt)
+    return dataclasses.replace(scene, vertices=v, normals=n, faces=f, lights=lights)
+
+
+def merge_meshes(scenes: list[Scene], name: str) -> Scene:
+    """One Scene of several (geometry, materials and file lights concatenated).
+
+    A material whose name another mesh already uses is renamed ``<mesh name>:<material>``.
+    """
+    v, f, n, fm, uv, mats, lights = [], [], [], [], [], [], []
+    any_uv = any(s.uvs is not None for s in scenes)
+    offset = 0
+    names: set[str] = set()
+    for s in scenes:
+        base = len(mats)
+        for m in s.materials:
+            new = m.name if m.name not in names else f"{s.name}:{m.name}"
+            while new in names:
+                new += "_"
+            names.add(new)
+            mats.append(m if new == m.name else dataclasses.replace(m, name=new))
+        v.append(s.vertices)
+        f.append(s.faces.astype(np.int64) + offset)
+        n.append(s.normals)
+        fm.append(s.face_material + base)
+        if any_uv:
+            uv.append(s.uvs if s.uvs is not None else np.zeros((len(s.vertices), 2), np.float32))
+        lights += list(s.lights)
+        offset += len(s.vertices)
+    return Scene(
+        name=name,
+        vertices=np.concatenate(v),
+        faces=np.concatenate(f),
+        normals=np.concatenate(n),
+        face_material=np.concatenate(fm),
+        materials=mats,
+        uvs=np.concatenate(uv) if any_uv else None,
+        lights=lights,
+        source=scenes[0].source,
+    )
 
 
 def add_area_lights(scene: Scene, lights: list[AreaLight]) -> Scene:
@@ -378,12 +515,18 @@ def read_description(path: str | os.PathLike) -> SceneDescription:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise SceneError(f"{where}: not valid TOML: {e}") from None
     _check_keys(doc, _TOP_KEYS, where, "top level", {"scene"})
-    sc = _check_keys(doc["scene"], _SCENE_KEYS, where, "scene", {"mesh"})
-    if not isinstance(sc["mesh"], str):
-        raise SceneError(f"{where}: [scene] mesh must be a string path")
-    mesh = Path(expand_env(sc["mesh"], where)).expanduser()
-    if not mesh.is_absolute():
-        mesh = (p.parent / mesh).resolve()
+    sc = _check_keys(doc["scene"], _SCENE_KEYS, where, "scene")
+    meshes = _read_meshes(doc.get("meshes", []), p, where)
+    if "mesh" not in sc and not meshes:
+        raise SceneError(f'{where}: no mesh: give [scene] mesh = "..." or [[meshes]] tables')
+    mesh = None
+    if "mesh" in sc:
+        if not isinstance(sc["mesh"], str):
+            raise SceneError(
+                f"{where}: [scene] mesh must be a string path (several meshes: [[meshes]] tables "
+                "with a path each)"
+            )
+        mesh = _mesh_path(sc["mesh"], p, where)
     mesh_options = {k: sc[k] for k in _MESH_KEYS if k in sc}
     file_lights = sc.get("file_lights", True)
     if not isinstance(file_lights, bool):
@@ -442,4 +585,54 @@ def read_description(path: str | os.PathLike) -> SceneDescription:
         default_camera=default_camera,
         paths=paths,
         file_lights=file_lights,
+        meshes=meshes,
     )
+
+
+def _mesh_path(text: str, p: Path, where: str) -> Path:
+    mesh = Path(expand_env(text, where)).expanduser()
+    return mesh if mesh.is_absolute() else (p.parent / mesh).resolve()
+
+
+def _read_meshes(raw: Any, p: Path, where: str) -> tuple[MeshSpec, ...]:
+    """The [[meshes]] tables (see the module docstring)."""
+    if not isinstance(raw, list):
+        raise SceneError(f"{where}: 'meshes' must be an array of tables ([[meshes]])")
+    out = []
+    for i, spec in enumerate(raw):
+        section = f"meshes {i}"
+        t = _check_keys(spec, _MESHES_KEYS, where, section, {"path"})
+        if not isinstance(t["path"], str):
+            raise SceneError(f"{where}: [[meshes]] entry {i}: path must be a string")
+        path = _mesh_path(t["path"], p, where)
+        name = t.get("name", path.stem)
+        world = None
+        if "transform" in t:
+            try:
+                world = np.asarray(t["transform"], np.float64).reshape(4, 4)
+            except (ValueError, TypeError):
+                raise SceneError(
+                    f"{where}: [[meshes]] entry {i} ({name}): transform must be 4x4 numbers "
+                    f"(4 rows of 4 or 16), got {t['transform']!r}"
+                ) from None
+            if not np.all(np.isfinite(world)) or abs(np.linalg.det(world[:3, :3])) < 1e-12:
+                raise SceneError(
+                    f"{where}: [[meshes]] entry {i} ({name}): transform must be finite and "
+                    "invertible"
+                )
+            if not np.allclose(world[3], [0, 0, 0, 1]):
+                raise SceneError(
+                    f"{where}: [[meshes]] entry {i} ({name}): transform's last row must be "
+                    f"[0, 0, 0, 1], got {world[3].tolist()}"
+                )
+        material = None
+        if "material" in t:
+            material = _check_keys(t["material"], _MATERIAL_KEYS, where, f"{section} material")
+        materials = {}
+        for mname, m in _check_keys(
+            t.get("materials", {}), set(t.get("materials", {})), where, f"{section} materials"
+        ).items():
+            materials[mname] = _check_keys(m, _MATERIAL_KEYS, where, f"{section} materials.{mname}")
+        options = {k: t[k] for k in _MESH_KEYS if k in t}
+        out.append(MeshSpec(path, str(name), options, world, material, materials))
+    return tuple(out)

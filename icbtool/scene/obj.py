@@ -41,9 +41,15 @@ material that is not (illum 3-7: mirror/glass/refraction; ``Ks`` larger than ``K
 opacity < 1: transparent) is replaced by the *nearest diffuse* material, with a
 :class:`MaterialApproximationWarning` naming it and what was approximated. The rule: the diffuse
 surface reflects all the energy the original reflects or transmits,
-``albedo = clip(Kd + Ks + T, 0, 1)`` with ``T = Tf`` for illum 4/6/7 when ``Tf`` is given, else
-``T = 1 - opacity``; if that is still darker than 0.04 (e.g. a mirror with ``Kd = Ks = 0``) it is
-0.8 grey, so a mirror never turns black. Emission (``Ke``) is kept as it is.
+``c = Kd + Ks + T`` with ``T = Tf`` for illum 4/6/7 when ``Tf`` is given, else ``T = 1 - opacity``,
+then :func:`approximated_albedo` (the one rule of every loader): ``c`` scaled down, hue kept, so
+that its largest channel is at most :data:`MAX_APPROXIMATED_ALBEDO` (0.8): an approximated
+material never gets an albedo >= 1 (a glass or mirror that absorbed nothing would light a scene
+up without end); a colour darker than 0.04 (e.g. a mirror with ``Kd = Ks = 0``) becomes 0.8 grey,
+so a mirror never turns black. Emission (``Ke``) is kept as it is.
+
+Vertices: a NaN or Inf position used by a face is an error naming ``file:line``, the OBJ index
+and the statement as written (``v 1 nan 0``); unused ones are reported in one warning.
 """
 
 from __future__ import annotations
@@ -70,6 +76,37 @@ _HARMLESS = {
 }  # fmt: skip
 #: Albedo below which an approximated (non-diffuse) material is made 0.8 grey instead of black.
 DARK_APPROXIMATION = 0.04
+#: Largest channel of an approximated (non-diffuse) material's albedo (see
+#: :func:`approximated_albedo`); < 1, so an approximation never reflects all the light.
+MAX_APPROXIMATED_ALBEDO = 0.8
+
+
+def approximated_albedo(colour: np.ndarray) -> tuple[np.ndarray, str]:
+    """The diffuse albedo standing in for a material icbtool cannot render (the one rule).
+
+    ``colour`` is what the material reflects or transmits in all (each loader says how it is
+    summed: MTL ``Kd + Ks + T``, glTF the base colour, Mitsuba its normal-incidence reflectance
+    plus transmittance). Negative channels are 0. A colour whose largest channel exceeds
+    :data:`MAX_APPROXIMATED_ALBEDO` is scaled down to it (hue kept); one darker than
+    :data:`DARK_APPROXIMATION` becomes 0.8 grey (a mirror never turns black). The result's
+    channels are therefore always < 1.
+
+    Args:
+        colour: (3,) linear RGB.
+
+    Returns:
+        ((3,) float64 albedo in [0, 0.8], the rule applied, for the warning).
+    """
+    c = np.maximum(np.nan_to_num(np.asarray(colour, np.float64), nan=0.0, posinf=1e3), 0.0)
+    top = float(c.max())
+    if top < DARK_APPROXIMATION:
+        return np.full(3, 0.8), "0.8 grey: the colour would be black"
+    if top > MAX_APPROXIMATED_ALBEDO:
+        return c * (MAX_APPROXIMATED_ALBEDO / top), (
+            f"scaled by {MAX_APPROXIMATED_ALBEDO / top:.3g} to a largest channel of "
+            f"{MAX_APPROXIMATED_ALBEDO:g} (an approximation never reflects all the light)"
+        )
+    return c, "as is"
 
 
 class MaterialApproximationWarning(SceneRepairWarning):
@@ -215,6 +252,7 @@ class _Scan:
     counts: np.ndarray  # (P,) corners per polygon
     f_line: np.ndarray  # (P,) 1-based line
     state: np.ndarray  # (P, 5) nv, nvt, nvn before the face, material, smoothing group
+    pos_line: np.ndarray  # (Nv,) 1-based line of each ``v``
 
 
 _COMMENT = re.compile(rb"#[^\r\n]*")
@@ -246,7 +284,44 @@ def parse_obj(path: str | Path, data: bytes | None = None, *, fast: bool = True)
         st = _Statements(p)
         scan = _scan_lines(p, data, st)
     st.warn()
-    return _build(p, scan, st)
+    mesh = _build(p, scan, st)
+    _check_positions(p, data, scan)
+    return mesh
+
+
+def _check_positions(p: Path, data: bytes, scan: _Scan) -> None:
+    """NaN/Inf vertex positions: an error naming file:line and the statement as written when a
+    face uses one; a warning listing the lines of unused ones."""
+    bad = ~np.isfinite(scan.pos).all(axis=1)
+    if not bad.any():
+        return
+    used = np.zeros(len(scan.pos), bool)
+    corner_face = np.repeat(np.arange(len(scan.counts)), scan.counts)
+    col = scan.idx[:, 0]
+    r = np.where(col > 0, col - 1, scan.state[corner_face, 0] + col)
+    used[r[(r >= 0) & (r < len(used))]] = True
+    lines = data.splitlines()
+
+    def written(k: int) -> str:
+        ln = int(scan.pos_line[k])
+        text = lines[ln - 1].split(b"#", 1)[0].strip() if ln - 1 < len(lines) else b""
+        return f"{p}:{ln}: vertex {k + 1} {text.decode('utf-8', 'replace')!r}"
+
+    bad_used = np.flatnonzero(bad & used)
+    bad_unused = np.flatnonzero(bad & ~used)
+    if len(bad_unused):
+        shown = ", ".join(str(int(scan.pos_line[k])) for k in bad_unused[:10])
+        more = f" and {len(bad_unused) - 10} more" if len(bad_unused) > 10 else ""
+        repair_warning(
+            str(p),
+            f"{len(bad_unused)} vertex position(s) no face uses are NaN or Inf (line(s) "
+            f"{shown}{more}; first: {written(int(bad_unused[0]))}): ignored",
+        )
+    if len(bad_used):
+        raise SceneError(
+            f"{written(int(bad_used[0]))} has a NaN or Inf coordinate and is used by a face "
+            f"({len(bad_used)} such vertex position(s) in the file)"
+        )
 
 
 def _scan_fast(p: Path, data: bytes, st: _Statements) -> _Scan | None:
@@ -300,7 +375,7 @@ def _scan_fast(p: Path, data: bytes, st: _Statements) -> _Scan | None:
             np.asarray(ev_s)[ev],
         ]
     ).astype(np.int64)
-    return _Scan(pos, tex, nrm, idx, counts, f_idx + 1, state)
+    return _Scan(pos, tex, nrm, idx, counts, f_idx + 1, state, np.flatnonzero(is_v) + 1)
 
 
 def _block(lines: list[bytes], mask: np.ndarray, key: bytes, widths: tuple[int, ...]):
@@ -418,7 +493,9 @@ def _scan_lines(p: Path, data: bytes, st: _Statements) -> _Scan:
     corner_face = np.repeat(np.arange(len(counts)), counts)
     idx = _corner_indices(p, f_tok, f_line, corner_face)
     state = np.asarray(f_state, np.int64).reshape(-1, 5)
-    return _Scan(pos, tex, nrm, idx, counts, np.asarray(f_line, np.int64), state)
+    return _Scan(
+        pos, tex, nrm, idx, counts, np.asarray(f_line, np.int64), state, np.asarray(v_line)
+    )
 
 
 def _build(p: Path, scan: _Scan, st: _Statements) -> ObjMesh:
@@ -725,14 +802,10 @@ class MtlMaterial:
             t = np.asarray(self.Tf, np.float64)
         else:
             t = np.full(3, max(0.0, 1.0 - op))
-        albedo = np.clip(self.Kd + self.Ks + t, 0.0, 1.0)
-        rule = "clip(Kd + Ks + T)"
-        if albedo.max() < DARK_APPROXIMATION:
-            albedo = np.full(3, 0.8)
-            rule = "0.8 grey (Kd + Ks + T would be black)"
+        albedo, rule = approximated_albedo(self.Kd + self.Ks + t)
         return albedo, (
             f"{'; '.join(reasons)}: rendered as diffuse albedo "
-            f"{np.round(albedo, 4).tolist()} ({rule})"
+            f"{np.round(albedo, 4).tolist()} (Kd + Ks + T, {rule})"
         )
 
 
@@ -816,7 +889,9 @@ def material_warning(where: str, name: str, what: str) -> None:
 
 
 __all__ = [
+    "MAX_APPROXIMATED_ALBEDO",
     "MaterialApproximationWarning",
+    "approximated_albedo",
     "MtlMaterial",
     "ObjMesh",
     "material_warning",

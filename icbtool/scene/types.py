@@ -369,6 +369,10 @@ class Scene:
         default_camera: a good first view, or None.
         up: (3,) world up axis.
         source: where the scene came from (file path or "procedural:<name>").
+        max_depth: the scene file's path depth (a Mitsuba ``<integrator>``'s ``max_depth``,
+            whose convention the tracer shares: >= 1, or -1 unbounded), the trace default for
+            this scene; None: the tracer's own default. Not part of :attr:`content_hash` (it
+            is a render setting, not content).
     """
 
     name: str
@@ -384,9 +388,15 @@ class Scene:
     default_camera: Camera | None = None
     up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
     source: str = ""
+    max_depth: int | None = None
 
     def __post_init__(self) -> None:
         where = f"scene '{self.name}'" + (f" ({self.source})" if self.source else "")
+        md = self.max_depth
+        if md is not None and (
+            isinstance(md, bool) or not isinstance(md, (int, np.integer)) or (md < 1 and md != -1)
+        ):
+            raise ValueError(f"{where}: max_depth must be an integer >= 1, -1 or None, got {md!r}")
         v = np.ascontiguousarray(self.vertices, dtype=np.float32)
         f = np.ascontiguousarray(self.faces)
         if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:

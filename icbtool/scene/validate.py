@@ -13,7 +13,10 @@ truncated / corrupt file               SceneError (OBJ: ``file:line`` of a face 
                                        corners, a bad number, an index of 0 or out of range
                                        (:mod:`icbtool.scene.obj`); PLY: fewer elements than the
                                        header declares; binary formats: the parser's complaint)
-NaN / Inf vertex positions             SceneError (count and first index)
+NaN / Inf vertex positions used by a   SceneError (OBJ: ``file:line``, the index and the
+face                                   statement as written; PLY/glTF: the file's vertex and its
+                                       coordinates as read, before any transform)
+NaN / Inf positions no face uses       repaired: ignored (SceneRepairWarning with the lines)
 face index out of range                SceneError (the offending index and the vertex count)
 degenerate faces (repeated index or    repaired: dropped (SceneRepairWarning with the count)
 zero area)
@@ -44,6 +47,8 @@ import numpy as np
 #: Mesh file suffixes :func:`icbtool.scene.load` understands (lower case), and the description.
 MESH_SUFFIXES = (".obj", ".gltf", ".glb", ".ply")
 DESCRIPTION_SUFFIXES = (".toml",)
+#: Mitsuba 3 scene files (:mod:`icbtool.scene.mitsuba`).
+MITSUBA_SUFFIXES = (".xml",)
 #: Bounds diagonal limits (scene units) outside which a scene is considered mis-scaled.
 MIN_DIAGONAL = 1e-6
 MAX_DIAGONAL = 1e7
@@ -79,7 +84,7 @@ def check_file(path: str | os.PathLike, allowed: tuple[str, ...] | None = None) 
         SceneError: if the suffix is unknown or the file is empty.
     """
     p = Path(path)
-    allowed = allowed or (MESH_SUFFIXES + DESCRIPTION_SUFFIXES)
+    allowed = allowed or (MESH_SUFFIXES + DESCRIPTION_SUFFIXES + MITSUBA_SUFFIXES)
     if not p.exists():
         raise FileNotFoundError(f"scene file not found: {p}")
     if not p.is_file():

@@ -709,7 +709,8 @@ def render(
     Args:
         scene: the scene.
         cam: the camera (its height/width set the image size).
-        config: :class:`TraceConfig` (default: ``TraceConfig()``).
+        config: :class:`TraceConfig` (default: ``TraceConfig()``, with the scene's
+            ``max_depth`` when its file gives one, e.g. a Mitsuba integrator's).
         ray_log: for benchmarks: {"o", "d": (C, 3) float32, "tfar": (C,) float32, "kind": (C,)
             int8, "n": (1,) int64} receives the first C rays traced, in order (kind 0: camera
             ray, 1: shadow ray, 2: bounce ray), with ``n`` counting them; it makes the render
@@ -727,7 +728,11 @@ def render(
     from icbtool.camera import Camera as _Camera
     from icbtool.scene import Scene as _Scene
 
-    cfg = TraceConfig() if config is None else config
+    if config is None:
+        depth = getattr(scene, "max_depth", None)
+        cfg = TraceConfig() if depth is None else TraceConfig(max_depth=depth)
+    else:
+        cfg = config
     if not isinstance(cfg, TraceConfig):
         raise ValueError(f"config must be a TraceConfig, got {type(cfg).__name__}")
     if not isinstance(scene, _Scene):

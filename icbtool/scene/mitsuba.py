@@ -1,0 +1,1408 @@
+"""Mitsuba 3 scene files (.xml): the subset public research scenes use, read into one Scene.
+
+``icb.scene.load("scene.xml")`` (and every CLI command taking a scene) reads a Mitsuba 3 scene
+file with the standard library's expat parser (no DTD, no entities: a file declaring either is
+refused). What is read, element by element:
+
+* ``<default>`` and ``$name``: parameters with defaults; ``load(path, params={...})`` overrides
+  them.
+* ``<include>``, ``<path>``: included files are spliced in place (relative to the including file
+  or a ``<path>`` folder); at most :data:`MAX_INCLUDE_DEPTH` levels.
+* ``<shape>``: ``obj`` (icbtool's OBJ reader; ``flip_tex_coords``), ``ply``, ``serialized``
+  (``shape_index``; :func:`read_serialized`), ``rectangle``,
+  ``cube``, ``sphere`` (``center``, ``radius``), ``disk``, ``cylinder`` (``p0``, ``p1``,
+  ``radius``), each with ``to_world``, ``flip_normals``, ``face_normals``, a nested or referenced
+  BSDF and an area emitter. Analytic shapes are tessellated (:data:`SPHERE_SEGMENTS`).
+* ``<transform>``: ``translate``, ``rotate`` (axis, degrees), ``scale``, ``matrix`` (16 or 9
+  numbers, row-major), ``lookat``; each applies after the previous ones.
+* ``<bsdf>``: ``diffuse`` and ``twosided`` exactly; every other type by the rule below.
+* ``<texture type="bitmap">``: an sRGB 8-bit image as the diffuse texture (``raw``: linear).
+* ``<emitter>``: ``area`` (in a shape: its faces' emission, promoted to area lights on load),
+  ``point``, ``spot``, ``directional``, ``constant`` (a uniform
+  :class:`~icbtool.scene.types.Sky`), ``envmap`` (``Sky.from_envmap`` with ``scale`` and the
+  rotation of ``to_world``).
+* ``<sensor>``: ``perspective`` (``fov``, ``fov_axis``, ``focal_length``, ``to_world``, film
+  ``width``/``height``): the scene's default camera.
+* ``<integrator>``: ``max_depth`` (Mitsuba's depth convention is the tracer's) becomes
+  ``Scene.max_depth``, the trace default; a path integrator without one means -1 (Mitsuba's
+  default, unbounded), ``direct`` means 2; a file without an integrator leaves the tracer's own
+  default.
+
+Anything else (an unknown element, plugin type or property) is skipped with a
+:class:`~icbtool.scene.validate.SceneRepairWarning` naming the element, the file and the line.
+Parameters read but not needed to render (``sampler``, ``rfilter``, clip planes, film formats) are
+ignored silently.
+
+Approximated BSDFs (one :class:`~icbtool.scene.obj.MaterialApproximationWarning` per material)
+become diffuse with the albedo of the one rule (:func:`icbtool.scene.obj.approximated_albedo`,
+never >= 1) applied to what the material reflects or transmits at normal incidence:
+
+* ``plastic``/``roughplastic``: ``F * specular_reflectance + (1 - F) * diffuse_reflectance``
+  with ``F = ((n - 1) / (n + 1))^2`` of ``n = int_ior / ext_ior`` (a textured diffuse part
+  keeps its texture);
+* ``conductor``/``roughconductor``: ``specular_reflectance`` times the metal's normal-incidence
+  reflectance (``eta``/``k`` if given, else :data:`METAL_F0` by ``material``; ``none``: 1);
+* ``dielectric``/``thindielectric``/``roughdielectric``: ``F * specular_reflectance +
+  (1 - F) * specular_transmittance``;
+* ``principled``: ``base_color``; ``blendbsdf``: the ``weight`` blend of its two BSDFs;
+* ``mask`` (opacity dropped), ``bumpmap``/``normalmap`` (map dropped): their nested BSDF;
+* ``null``: black (Mitsuba's is invisible); an unknown type: 0.5 grey.
+
+Conventions: Mitsuba's world coordinates are kept as they are (no up-axis change; ``Scene.up`` is
+the world axis nearest the sensor's up). Mitsuba's camera looks along its local +z with +x to the
+left; icbtool's (OpenCV) has +x right and +y down: ``world_from_cam = to_world @ diag(-1, -1, 1,
+1)`` (scale removed). uv: Mitsuba's uv (0, 0) is the image's top-left, the Scene's is the
+bottom-left, so ``v_scene = 1 - v_mitsuba`` (for OBJ, whose loader flips by default, the file's
+``vt`` are kept). icbtool's BSDFs are two-sided: a one-sided Mitsuba BSDF seen from behind (black
+in Mitsuba) is lit here. Spectra given as ``wavelength:value`` lists are converted to linear
+sRGB with the CIE 1931 curves (the analytic fit of Wyman et al. 2013), normalised so that a flat
+spectrum stays grey, with a warning.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+import re
+import warnings
+import xml.parsers.expat
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from icbtool.scene.obj import approximated_albedo, material_warning, parse_obj
+from icbtool.scene.types import (
+    DirectionalLight,
+    Material,
+    PointLight,
+    Scene,
+    Sky,
+    SpotLight,
+    vertex_normals,
+)
+from icbtool.scene.validate import (
+    MITSUBA_SUFFIXES,
+    SceneError,
+    check_arrays,
+    check_file,
+    repair_warning,
+)
+
+log = logging.getLogger(__name__)
+
+#: Longitudinal segments of a tessellated sphere (latitudinal: half), disk and cylinder.
+SPHERE_SEGMENTS = 64
+#: Deepest ``<include>`` nesting (a cycle stops here with an error).
+MAX_INCLUDE_DEPTH = 16
+#: Normal-incidence reflectance (linear RGB) of the metals Mitsuba's ``conductor`` names
+#: (``material``), from their complex IORs at 650/550/450 nm; unknown names: 0.9 grey.
+METAL_F0: dict[str, tuple[float, float, float]] = {
+    "none": (1.0, 1.0, 1.0),
+    "Ag": (0.97, 0.96, 0.92),
+    "Al": (0.92, 0.92, 0.93),
+    "Au": (0.96, 0.78, 0.38),
+    "Cu": (0.96, 0.65, 0.54),
+    "Cr": (0.65, 0.55, 0.56),
+    "Fe": (0.56, 0.57, 0.58),
+    "Ni": (0.66, 0.61, 0.53),
+    "Pt": (0.67, 0.64, 0.59),
+    "Ti": (0.54, 0.50, 0.45),
+    "W": (0.50, 0.50, 0.47),
+    "Hg": (0.78, 0.78, 0.78),
+}
+#: Index of refraction of named dielectrics (``int_ior="bk7"``...), at 589 nm.
+NAMED_IOR = {
+    "vacuum": 1.0,
+    "air": 1.000277,
+    "water": 1.333,
+    "acrylic glass": 1.49,
+    "polypropylene": 1.49,
+    "bk7": 1.5046,
+    "sodium chloride": 1.544,
+    "diamond": 2.419,
+    "glass": 1.5046,
+}
+#: Properties and elements read without effect on icbtool's images (no warning).
+_IGNORED_PROPERTIES = {
+    "near_clip", "far_clip", "focus_distance", "sample_count", "pixel_format", "file_format",
+    "component_format", "rfilter", "sampler", "banner", "high_quality_edges", "id", "seed",
+    "srgb_gamma", "shutter_open", "shutter_close", "mis_compensation", "hide_emitters",
+    "rr_depth", "sample_emitters", "filter_type", "wrap_mode", "samples_per_pass",
+}  # fmt: skip
+_PROPERTY_TAGS = {
+    "float", "integer", "boolean", "string", "rgb", "spectrum", "point", "vector", "transform",
+    "color", "srgb",
+}  # fmt: skip
+_OBJECT_TAGS = {
+    "bsdf", "texture", "emitter", "shape", "sensor", "film", "sampler", "rfilter", "integrator",
+    "medium", "phase", "volume", "ref",
+}  # fmt: skip
+
+
+# --------------------------------------------------------------------------- XML
+@dataclass
+class _Node:
+    """One XML element with its source position."""
+
+    tag: str
+    attrs: dict[str, str]
+    file: Path
+    line: int
+    children: list[_Node] = field(default_factory=list)
+
+    @property
+    def where(self) -> str:
+        return f"{self.file}:{self.line}"
+
+    def describe(self) -> str:
+        kind = self.attrs.get("type") or self.attrs.get("name") or ""
+        return f"<{self.tag}{' ' + kind if kind else ''}>"
+
+
+def _parse_xml(path: Path) -> _Node:
+    """The element tree of an XML file (expat; DTDs and entities refused)."""
+    parser = xml.parsers.expat.ParserCreate()
+    root: list[_Node] = []
+    stack: list[_Node] = []
+
+    def start(tag: str, attrs: dict[str, str]) -> None:
+        node = _Node(tag, dict(attrs), path, parser.CurrentLineNumber)
+        (stack[-1].children if stack else root).append(node)
+        stack.append(node)
+
+    def end(tag: str) -> None:
+        stack.pop()
+
+    def refuse(*_: Any) -> None:
+        raise SceneError(
+            f"{path}:{parser.CurrentLineNumber}: DTD or entity declarations are not allowed "
+            "in a Mitsuba scene file"
+        )
+
+    parser.StartElementHandler = start
+    parser.EndElementHandler = end
+    parser.StartDoctypeDeclHandler = refuse
+    parser.EntityDeclHandler = refuse
+    try:
+        parser.Parse(path.read_bytes(), True)
+    except xml.parsers.expat.ExpatError as e:
+        raise SceneError(f"{path}:{e.lineno}: not valid XML: {e}") from None
+    if not root:
+        raise SceneError(f"{path}: no XML element")
+    return root[0]
+
+
+_CAMEL = re.compile(r"(?<=[a-z0-9])([A-Z])")
+
+
+def _snake(name: str) -> str:
+    """Mitsuba 0.6/1 camelCase names (``toWorld``, ``fovAxis``) as Mitsuba 3 spells them."""
+    return _CAMEL.sub(lambda m: "_" + m.group(1).lower(), name)
+
+
+# --------------------------------------------------------------------------- colours
+def _gauss(lam: np.ndarray, mu: float, s1: float, s2: float) -> np.ndarray:
+    s = np.where(lam < mu, s1, s2)
+    return np.exp(-0.5 * ((lam - mu) / s) ** 2)
+
+
+_LAM = np.arange(360.0, 831.0, 1.0)
+_XYZ_BAR = np.stack(
+    [
+        1.056 * _gauss(_LAM, 599.8, 37.9, 31.0)
+        + 0.362 * _gauss(_LAM, 442.0, 16.0, 26.7)
+        - 0.065 * _gauss(_LAM, 501.1, 20.4, 26.2),
+        0.821 * _gauss(_LAM, 568.8, 46.9, 40.5) + 0.286 * _gauss(_LAM, 530.9, 16.3, 31.1),
+        1.217 * _gauss(_LAM, 437.0, 11.8, 36.0) + 0.681 * _gauss(_LAM, 459.0, 26.0, 13.8),
+    ],
+    axis=1,
+)
+_SRGB_FROM_XYZ = np.array(
+    [[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.2040, 1.0570]]
+)
+_FLAT_RGB = _SRGB_FROM_XYZ @ _XYZ_BAR.sum(0)
+
+
+def spectrum_to_rgb(wavelengths: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(3,) linear sRGB of a piecewise-linear spectrum (CIE 1931, Wyman et al. 2013's fit),
+    normalised per channel so that a flat spectrum of value ``c`` gives ``(c, c, c)``."""
+    s = np.interp(_LAM, np.asarray(wavelengths, float), np.asarray(values, float))
+    return (_SRGB_FROM_XYZ @ (s @ _XYZ_BAR)) / _FLAT_RGB
+
+
+# --------------------------------------------------------------------------- transforms
+def _rotation(axis: np.ndarray, angle_deg: float) -> np.ndarray:
+    a = axis / np.linalg.norm(axis)
+    t = math.radians(angle_deg)
+    c, s = math.cos(t), math.sin(t)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) * c + s * k + (1 - c) * np.outer(a, a)
+
+
+def mitsuba_look_at(origin: Any, target: Any, up: Any | None = None) -> np.ndarray:
+    """(4, 4) Mitsuba's ``lookat`` matrix: columns (left, up, forward, origin)."""
+    o, t = np.asarray(origin, float), np.asarray(target, float)
+    d = t - o
+    if np.linalg.norm(d) < 1e-12:
+        raise ValueError(f"lookat: origin and target coincide at {o.tolist()}")
+    d /= np.linalg.norm(d)
+    if up is None or np.linalg.norm(np.cross(np.asarray(up, float), d)) < 1e-9:
+        helper = np.array([0.0, 1.0, 0.0]) if abs(d[1]) < 0.9 else np.array([0.0, 0.0, 1.0])
+        up = helper
+    left = np.cross(np.asarray(up, float), d)
+    left /= np.linalg.norm(left)
+    new_up = np.cross(d, left)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, o
+    return m
+
+
+# --------------------------------------------------------------------------- results
+class _Props(dict):
+    """Named children of an element; remembers which were read (the rest get a warning)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.used: set[str] = set()
+
+    def get(self, key: str, default: Any = None) -> Any:
+        self.used.add(key)
+        return super().get(key, default)
+
+    def __getitem__(self, key: str) -> Any:
+        self.used.add(key)
+        return super().__getitem__(key)
+
+    def __contains__(self, key: object) -> bool:
+        self.used.add(str(key))
+        return super().__contains__(key)
+
+
+@dataclass
+class _Bsdf:
+    """A BSDF as icbtool renders it."""
+
+    name: str
+    albedo: np.ndarray
+    texture: Path | None = None
+    raw: bool = False
+
+
+@dataclass
+class _Part:
+    vertices: np.ndarray  # (V, 3) world
+    faces: np.ndarray  # (F, 3)
+    normals: np.ndarray  # (V, 3), NaN rows: computed
+    uvs: np.ndarray | None  # (V, 2) Scene convention
+    material: int
+
+
+@dataclass
+class MitsubaScene:
+    """What a Mitsuba scene file holds, before it becomes a :class:`Scene` (for tests/tools).
+
+    Attributes:
+        scene: the merged Scene (emissive faces not yet promoted to area lights).
+        shapes: number of shapes read (skipped ones not counted).
+        skipped: ``"<element> (file:line)"`` of everything skipped with a warning.
+        params: the resolved ``$`` parameters.
+    """
+
+    scene: Scene
+    shapes: int
+    skipped: list[str]
+    params: dict[str, str]
+
+
+# --------------------------------------------------------------------------- reader
+class _Values:
+    """The reader's state, the file structure (includes, defaults, ids, refs) and property
+    values (numbers, colours, transforms); every message names ``file:line``."""
+
+    def __init__(self, path: Path, params: dict[str, Any], textures: bool) -> None:
+        self.path = path
+        self.params = {k: str(v) for k, v in params.items()}
+        self.given = set(self.params)
+        self.textures = textures
+        self.search = [path.parent]
+        self.ids: dict[str, _Node] = {}
+        self.skipped: list[str] = []
+        self.materials: list[Material] = []
+        self.mat_keys: dict[Any, int] = {}
+        self.bsdfs: dict[int, _Bsdf] = {}
+        self.rendered: dict[str, _Bsdf] = {}  # "file:line" of a shape's BSDF -> what renders
+        self.files: list[Path] = [path]  # the scene file and the files it includes
+        self.tex_cache: dict[str, np.ndarray | None] = {}
+        self.parts: list[_Part] = []
+        self.lights: list[Any] = []
+        self.sky: Sky | None = None
+        self.camera = None
+        self.cam_up: np.ndarray | None = None
+        self.max_depth: int | None = None
+        self.n_shapes = 0
+        self.version = (3, 0, 0)
+
+    # ---------------------------------------------------------------- helpers
+    def skip(self, node: _Node, why: str) -> None:
+        self.skipped.append(f"{node.describe()} ({node.where})")
+        repair_warning(node.where, f"{node.describe()} {why}: skipped")
+
+    def attr(self, node: _Node, key: str, default: str | None = None) -> str | None:
+        v = node.attrs.get(key)
+        if v is None:
+            return default
+        if "$" not in v:
+            return v
+
+        def sub(m: re.Match) -> str:
+            name = m.group(1)
+            if name not in self.params:
+                raise SceneError(
+                    f"{node.where}: {node.describe()} uses parameter ${name}, which has no "
+                    "<default> and was not given (load(..., params={...}))"
+                )
+            return self.params[name]
+
+        return re.sub(r"\$([A-Za-z_][A-Za-z0-9_]*)", sub, v)
+
+    def numbers(self, node: _Node, text: str, what: str) -> np.ndarray:
+        try:
+            return np.array([float(x) for x in re.split(r"[,\s]+", text.strip()) if x], float)
+        except ValueError:
+            raise SceneError(f"{node.where}: {what} {text!r} is not a list of numbers") from None
+
+    def resolve(self, node: _Node, name: str) -> Path:
+        p = Path(name.replace("\\", "/")).expanduser()
+        if p.is_absolute():
+            return p
+        for d in [node.file.parent, *self.search]:
+            if (d / p).exists():
+                return d / p
+        return node.file.parent / p
+
+    # ---------------------------------------------------------------- structure
+    def flatten(self, root: _Node, depth: int = 0) -> list[_Node]:
+        """Top-level children with includes spliced in and defaults/paths applied."""
+        if root.tag != "scene":
+            raise SceneError(f"{root.where}: the root element must be <scene>, got <{root.tag}>")
+        ver = root.attrs.get("version", "3.0.0")
+        try:
+            self.version = tuple(int(x) for x in ver.split(".")[:3])  # type: ignore[assignment]
+        except ValueError:
+            raise SceneError(f"{root.where}: bad scene version {ver!r}") from None
+        out: list[_Node] = []
+        for node in root.children:
+            if node.tag == "default":
+                name, value = node.attrs.get("name"), node.attrs.get("value")
+                if name is None or value is None:
+                    raise SceneError(f"{node.where}: <default> needs name and value")
+                if name not in self.given:
+                    self.params[name] = value
+            elif node.tag == "path":
+                self.search.append(self.resolve(node, self.attr(node, "value", ".")))
+            elif node.tag == "include":
+                if depth >= MAX_INCLUDE_DEPTH:
+                    raise SceneError(
+                        f"{node.where}: includes nested deeper than {MAX_INCLUDE_DEPTH} (a cycle?)"
+                    )
+                fname = self.attr(node, "filename")
+                if not fname:
+                    raise SceneError(f"{node.where}: <include> needs a filename")
+                inc = self.resolve(node, fname)
+                if not inc.is_file():
+                    raise FileNotFoundError(f"{node.where}: included file not found: {inc}")
+                if inc.suffix.lower() != ".xml":
+                    self.skip(node, f"includes a non-XML file {inc.name}")
+                    continue
+                self.files.append(inc)
+                out += self.flatten(_parse_xml(inc), depth + 1)
+            else:
+                out.append(node)
+        return out
+
+    def collect_ids(self, nodes: list[_Node]) -> None:
+        for node in nodes:
+            if node.tag != "ref" and "id" in node.attrs:
+                self.ids[node.attrs["id"]] = node
+            self.collect_ids(node.children)
+
+    def deref(self, node: _Node) -> _Node:
+        if node.tag != "ref":
+            return node
+        rid = self.attr(node, "id")
+        if rid not in self.ids:
+            raise SceneError(f"{node.where}: <ref id={rid!r}> names no element with that id")
+        return self.ids[rid]
+
+    def finish(self, node: _Node, props: _Props) -> None:
+        """Warn about the properties of ``node`` nothing read (named, with file:line)."""
+        for key in sorted(set(props) - props.used - _IGNORED_PROPERTIES):
+            c = props[key]
+            self.skipped.append(f"{node.describe()} property '{key}' ({c.where})")
+            repair_warning(c.where, f"{node.describe()} property '{key}' is not supported: ignored")
+
+    def props(self, node: _Node) -> _Props:
+        """Named children (properties, and objects by ``name`` or tag) of an element."""
+        out = _Props()
+        for c in node.children:
+            name = c.attrs.get("name")
+            if name is not None and self.version < (2, 0, 0):
+                name = _snake(name)
+            if c.tag in _PROPERTY_TAGS:
+                if name is None:
+                    raise SceneError(f"{c.where}: <{c.tag}> property without a name")
+                out[name] = c
+            elif c.tag in _OBJECT_TAGS:
+                target = self.deref(c) if c.tag == "ref" else c
+                out.setdefault(name or target.tag, target)
+            else:
+                self.skip(c, "is not a Mitsuba element icbtool knows")
+        out.used.clear()
+        return out
+
+    # ---------------------------------------------------------------- values
+    def value(self, node: _Node) -> str:
+        v = self.attr(node, "value")
+        if v is None:
+            raise SceneError(f"{node.where}: <{node.tag}> needs a value")
+        return v
+
+    def float_(self, props: dict, name: str, default: float | None) -> float | None:
+        node = props.get(name)
+        if node is None:
+            return default
+        if node.tag not in ("float", "integer"):
+            if node.tag in ("rgb", "spectrum"):
+                return float(np.mean(self.colour(node)))
+            raise SceneError(f"{node.where}: '{name}' must be a float, got <{node.tag}>")
+        x = self.numbers(node, self.value(node), name)
+        if len(x) != 1:
+            raise SceneError(f"{node.where}: '{name}' must be one number")
+        return float(x[0])
+
+    def int_(self, props: dict, name: str, default: int | None) -> int | None:
+        x = self.float_(props, name, None)
+        return default if x is None else int(x)
+
+    def bool_(self, props: dict, name: str, default: bool) -> bool:
+        node = props.get(name)
+        if node is None:
+            return default
+        v = self.value(node).strip().lower()
+        if v not in ("true", "false"):
+            raise SceneError(f"{node.where}: '{name}' must be true or false, got {v!r}")
+        return v == "true"
+
+    def str_(self, props: dict, name: str, default: str | None) -> str | None:
+        node = props.get(name)
+        return default if node is None else self.value(node)
+
+    def vec(self, node: _Node, what: str, default: float = 0.0) -> np.ndarray:
+        if "value" in node.attrs:
+            x = self.numbers(node, self.value(node), what)
+            if len(x) == 1:
+                x = np.repeat(x, 3)
+        else:
+            x = np.array([float(self.attr(node, k, str(default))) for k in "xyz"])
+        if x.shape != (3,) or not np.all(np.isfinite(x)):
+            raise SceneError(f"{node.where}: {what} must be 3 finite numbers")
+        return x
+
+    def point(self, props: dict, name: str, default: Any) -> np.ndarray:
+        node = props.get(name)
+        return np.asarray(default, float) if node is None else self.vec(node, name)
+
+    def colour(self, node: _Node) -> np.ndarray:
+        """(3,) linear RGB of an rgb/spectrum/float/srgb/color property."""
+        if node.tag == "spectrum" and "filename" in node.attrs:
+            self.skip(node, "(a spectrum file) is not supported: 0.5 used instead")
+            return np.full(3, 0.5)
+        text = self.value(node)
+        if node.tag == "spectrum" and ":" in text:
+            pairs = [x.split(":") for x in re.split(r"[,\s]+", text.strip()) if x]
+            try:
+                lam, val = np.array(pairs, float).T
+            except ValueError:
+                raise SceneError(f"{node.where}: bad spectrum {text[:60]!r}") from None
+            rgb = spectrum_to_rgb(lam, val)
+            repair_warning(
+                node.where,
+                f"spectrum converted to linear sRGB {np.round(rgb, 4).tolist()} (CIE 1931 fit)",
+            )
+            return rgb
+        if node.tag in ("srgb", "color") or text.startswith("#"):
+            from icbtool.imageio import srgb_decode
+
+            if text.startswith("#"):
+                h = text.lstrip("#")
+                x = np.array([int(h[i : i + 2], 16) / 255 for i in (0, 2, 4)])
+            else:
+                x = self.numbers(node, text, node.tag)
+            return np.asarray(srgb_decode(np.resize(x, 3).astype(np.float32)), float)
+        x = self.numbers(node, text, node.tag)
+        if len(x) == 1:
+            x = np.repeat(x, 3)
+        if x.shape != (3,) or not np.all(np.isfinite(x)):
+            raise SceneError(f"{node.where}: <{node.tag}> must have 1 or 3 finite numbers")
+        return x
+
+    def transform(self, node: _Node | None) -> np.ndarray:
+        m = np.eye(4)
+        if node is None:
+            return m
+        if node.tag != "transform":
+            raise SceneError(f"{node.where}: expected a <transform>, got <{node.tag}>")
+        for c in node.children:
+            t = np.eye(4)
+            if c.tag == "translate":
+                t[:3, 3] = self.vec(c, "translate")
+            elif c.tag == "scale":
+                t[:3, :3] = np.diag(self.vec(c, "scale", 1.0))
+            elif c.tag == "rotate":
+                axis = self.vec(c, "rotate axis")
+                if np.linalg.norm(axis) < 1e-12:
+                    raise SceneError(f"{c.where}: <rotate> needs a non-zero axis")
+                t[:3, :3] = _rotation(axis, float(self.attr(c, "angle", "0")))
+            elif c.tag == "matrix":
+                x = self.numbers(c, self.value(c), "matrix")
+                if len(x) == 16:
+                    t = x.reshape(4, 4)
+                elif len(x) == 9:
+                    t[:3, :3] = x.reshape(3, 3)
+                else:
+                    raise SceneError(f"{c.where}: <matrix> needs 16 or 9 numbers, got {len(x)}")
+            elif c.tag == "lookat":
+                parse = [
+                    None if self.attr(c, k) is None else self.numbers(c, self.attr(c, k), k)
+                    for k in ("origin", "target", "up")
+                ]
+                if parse[0] is None or parse[1] is None:
+                    raise SceneError(f"{c.where}: <lookat> needs origin and target")
+                try:
+                    t = mitsuba_look_at(*parse)
+                except ValueError as e:
+                    raise SceneError(f"{c.where}: {e}") from None
+            else:
+                self.skip(c, "is not a transform operation")
+                continue
+            m = t @ m
+        if not np.all(np.isfinite(m)):
+            raise SceneError(f"{node.where}: the transform is not finite")
+        return m
+
+
+class _Materials(_Values):
+    """Textures and BSDFs as icbtool renders them (the approximation rule), and materials."""
+
+    def reflectance(
+        self, node: _Node | None, default: float
+    ) -> tuple[np.ndarray, Path | None, bool]:
+        """(mean colour (3,), bitmap path or None, raw) of a colour or texture property."""
+        if node is None:
+            return np.full(3, default), None, False
+        if node.tag != "texture":
+            return self.colour(node), None, False
+        kind = node.attrs.get("type")
+        props = self.props(node)
+        if kind == "bitmap":
+            fname = self.str_(props, "filename", None)
+            if fname is None:
+                raise SceneError(f"{node.where}: bitmap texture without a filename")
+            path = self.resolve(node, fname)
+            raw = self.bool_(props, "raw", False)
+            for k in ("to_uv",):
+                if k in props:
+                    repair_warning(node.where, f"bitmap '{k}' is not supported: ignored")
+            tex = self.texture(node, path, raw)
+            self.finish(node, props)
+            mean = np.full(3, 0.5) if tex is None else tex.reshape(-1, 3).mean(0)
+            return mean, (path if tex is not None else None), raw
+        if kind == "checkerboard":
+            a = self.reflectance(props.get("color0"), 0.4)[0]
+            b = self.reflectance(props.get("color1"), 0.2)[0]
+            repair_warning(node.where, "checkerboard texture rendered as its mean colour")
+            return 0.5 * (a + b), None, False
+        self.skip(node, "texture type is not supported (0.5 grey instead)")
+        return np.full(3, 0.5), None, False
+
+    def texture(self, node: _Node, path: Path, raw: bool) -> np.ndarray | None:
+        key = f"{path}|{raw}"
+        if key not in self.tex_cache:
+            tex = None
+            if not self.textures:
+                pass
+            elif not path.is_file():
+                repair_warning(node.where, f"texture file {path} not found: mean grey 0.5 used")
+            else:
+                try:
+                    from PIL import Image
+
+                    with Image.open(path) as im:
+                        if raw:
+                            tex = np.asarray(im.convert("RGB"), np.float32) / 255.0
+                        else:
+                            from icbtool.scene.mesh import decode_texture
+
+                            tex = decode_texture(im)
+                except Exception as e:  # noqa: BLE001 - any decoder failure = unreadable image
+                    repair_warning(node.where, f"texture {path} unreadable ({e}): 0.5 grey used")
+            self.tex_cache[key] = tex
+        return self.tex_cache[key]
+
+    def bsdf(self, node: _Node | None) -> _Bsdf:
+        """The rendered form of a BSDF element (one warning per approximated material)."""
+        if node is None:
+            return _Bsdf("default", np.full(3, 0.5))
+        key = id(node)
+        if key not in self.bsdfs:
+            notes: list[str] = []
+            b = self._bsdf(node, notes)
+            if notes:
+                albedo, rule = approximated_albedo(b.albedo)
+                b = _Bsdf(b.name, albedo, b.texture, b.raw)
+                material_warning(
+                    node.where,
+                    b.name,
+                    f"{'; '.join(notes)}: rendered as diffuse albedo "
+                    f"{np.round(albedo, 4).tolist()} ({rule})",
+                )
+            self.bsdfs[key] = b
+            self.rendered[node.where] = b
+        return self.bsdfs[key]
+
+    def _bsdf(self, node: _Node, notes: list[str]) -> _Bsdf:
+        props = self.props(node)
+        props.used.update(("bsdf", "texture"))  # nested BSDFs, a bump map's texture
+        n_notes = len(notes)
+        try:
+            return self._bsdf_body(node, props, notes)
+        finally:
+            if len(notes) > n_notes:  # approximated: its other parameters do not matter
+                props.used.update(props)
+            self.finish(node, props)
+
+    def _bsdf_body(self, node: _Node, props: _Props, notes: list[str]) -> _Bsdf:
+        kind = node.attrs.get("type", "")
+        name = node.attrs.get("id") or f"{kind}@{node.line}"
+        nested = [self.deref(c) for c in node.children if c.tag in ("bsdf", "ref")]
+        nested = [c for c in nested if c.tag == "bsdf"]
+
+        def ior(key: str, default: float) -> float:
+            n = props.get(key)
+            if n is None:
+                return default
+            if n.tag == "string":
+                v = self.value(n).lower()
+                if v not in NAMED_IOR:
+                    repair_warning(n.where, f"unknown IOR name {v!r}: 1.5 used")
+                return NAMED_IOR.get(v, 1.5)
+            return float(self.float_(props, key, default))
+
+        def fresnel() -> float:
+            eta = ior("int_ior", 1.5046) / ior("ext_ior", 1.000277)
+            return ((eta - 1) / (eta + 1)) ** 2
+
+        if kind == "diffuse":
+            c, tex, raw = self.reflectance(props.get("reflectance"), 0.5)
+            if tex is not None:
+                return _Bsdf(name, np.ones(3), tex, raw)
+            return _Bsdf(name, np.clip(c, 0, 1))
+        if kind == "twosided":
+            if not nested:
+                return _Bsdf(name, np.full(3, 0.5))
+            if len(nested) > 1:
+                notes.append("twosided with a different back BSDF: the front one on both sides")
+            inner = self._bsdf(nested[0], notes)
+            return _Bsdf(node.attrs.get("id") or inner.name, inner.albedo, inner.texture, inner.raw)
+        if kind in ("plastic", "roughplastic"):
+            d, tex, raw = self.reflectance(props.get("diffuse_reflectance"), 0.5)
+            s = self.reflectance(props.get("specular_reflectance"), 1.0)[0]
+            f = fresnel()
+            notes.append(f"{kind} (coating F = {f:.3f}; F*specular + (1-F)*diffuse)")
+            if tex is not None:
+                notes.append("its diffuse texture kept, the coating dropped")
+                return _Bsdf(name, np.ones(3), tex, raw)
+            return _Bsdf(name, f * s + (1 - f) * d)
+        if kind in ("conductor", "roughconductor"):
+            s = self.reflectance(props.get("specular_reflectance"), 1.0)[0]
+            if "eta" in props:
+                eta = self.colour(props["eta"])
+                k = self.colour(props["k"]) if "k" in props else np.zeros(3)
+                f0 = ((eta - 1) ** 2 + k**2) / ((eta + 1) ** 2 + k**2)
+                what = "eta/k"
+            else:
+                metal = self.str_(props, "material", "none")
+                f0 = np.array(METAL_F0.get(metal, (0.9, 0.9, 0.9)))
+                what = f"material {metal!r}" + ("" if metal in METAL_F0 else " (unknown: 0.9)")
+            notes.append(f"{kind} ({what}; specular_reflectance * F0)")
+            return _Bsdf(name, s * f0)
+        if kind in ("dielectric", "thindielectric", "roughdielectric"):
+            r = self.reflectance(props.get("specular_reflectance"), 1.0)[0]
+            t = self.reflectance(props.get("specular_transmittance"), 1.0)[0]
+            f = fresnel()
+            notes.append(f"{kind} (F = {f:.3f}; F*reflectance + (1-F)*transmittance, opaque)")
+            return _Bsdf(name, f * r + (1 - f) * t)
+        if kind in ("principled", "principledthin"):
+            c, tex, raw = self.reflectance(props.get("base_color"), 0.5)
+            notes.append(f"{kind} (base_color)")
+            return _Bsdf(name, np.ones(3) if tex is not None else c, tex, raw)
+        if kind in ("mask", "bumpmap", "normalmap"):
+            what = {"mask": "opacity mask", "bumpmap": "bump map", "normalmap": "normal map"}
+            notes.append(f"{kind}: {what[kind]} dropped")
+            if not nested:
+                return _Bsdf(name, np.full(3, 0.5))
+            inner = self._bsdf(nested[0], notes)
+            return _Bsdf(node.attrs.get("id") or inner.name, inner.albedo, inner.texture, inner.raw)
+        if kind == "blendbsdf":
+            w = float(np.mean(self.reflectance(props.get("weight"), 0.5)[0]))
+            if len(nested) != 2:
+                raise SceneError(f"{node.where}: blendbsdf needs two nested BSDFs")
+            a, b = self._bsdf(nested[0], notes), self._bsdf(nested[1], notes)
+            notes.append(f"blendbsdf (weight {w:.3g}: blended albedo, textures dropped)")
+            return _Bsdf(name, (1 - w) * a.albedo + w * b.albedo)
+        if kind == "null":
+            notes.append("null (invisible in Mitsuba): black")
+            return _Bsdf(name, np.zeros(3))
+        self.skipped.append(f"{node.describe()} ({node.where})")
+        notes.append(f"unsupported BSDF type {kind!r} at {node.where}: 0.5 grey")
+        return _Bsdf(name, np.full(3, 0.5))
+
+    def material(self, bsdf: _Bsdf, emission: np.ndarray) -> int:
+        key = (id(bsdf), tuple(np.round(emission, 9)))
+        if key in self.mat_keys:
+            return self.mat_keys[key]
+        name = bsdf.name
+        if np.any(emission > 0):
+            name = f"{name}+emitter"
+        names = {m.name for m in self.materials}
+        while name in names:
+            name += "_"
+        tex = None
+        if bsdf.texture is not None:
+            tex = self.tex_cache.get(f"{bsdf.texture}|{bsdf.raw}")
+        mat = Material(
+            name, bsdf.albedo, emission, tex, str(bsdf.texture) if tex is not None else None
+        )
+        self.materials.append(mat)
+        self.mat_keys[key] = len(self.materials) - 1
+        return self.mat_keys[key]
+
+
+class _Reader(_Materials):
+    """Shapes, emitters, the sensor and the integrator, assembled into one Scene."""
+
+    def shape(self, node: _Node) -> None:
+        kind = node.attrs.get("type", "")
+        props = self.props(node)
+        to_world = self.transform(props.get("to_world"))
+        geo = self.geometry(node, kind, props)
+        if geo is None:
+            return
+        v, f, n, uv = geo
+        if kind == "sphere":
+            c = self.point(props, "center", (0, 0, 0))
+            r = self.float_(props, "radius", 1.0)
+            local = np.eye(4)
+            local[:3, :3] *= r
+            local[:3, 3] = c
+            to_world = to_world @ local
+        lin = to_world[:3, :3]
+        if abs(np.linalg.det(lin)) < 1e-300:
+            raise SceneError(f"{node.where}: {node.describe()} to_world is singular")
+        v = v @ lin.T + to_world[:3, 3]
+        n = n @ np.linalg.inv(lin)  # inverse transpose, row vectors
+        if self.bool_(props, "flip_normals", False):
+            f = f[:, ::-1].copy()
+            n = -n
+        if self.bool_(props, "face_normals", False):
+            uv = None if uv is None else uv[f].reshape(-1, 2)
+            v, f = v[f].reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3)
+            n = np.full_like(v, np.nan)  # computed flat below
+        bsdf = self.bsdf(props.get("bsdf"))
+        emission = np.zeros(3)
+        em = props.get("emitter")
+        if em is not None:
+            if em.attrs.get("type") != "area":
+                self.skip(em, "inside a shape must be an area emitter")
+            else:
+                ep = self.props(em)
+                emission, tex, _ = self.reflectance(ep.get("radiance"), 1.0)
+                if tex is not None:
+                    repair_warning(em.where, "textured radiance: its mean colour is emitted")
+                emission = np.maximum(emission, 0.0)
+        mat = self.material(bsdf, emission)
+        self.finish(node, props)
+        self.parts.append(_Part(v, f, n, uv, mat))
+        self.n_shapes += 1
+
+    def geometry(self, node: _Node, kind: str, props: dict) -> tuple | None:
+        """(vertices, faces, normals (NaN rows: compute), uvs | None) in the shape's space."""
+        seg = SPHERE_SEGMENTS
+        if kind in ("obj", "ply"):
+            fname = self.str_(props, "filename", None)
+            if fname is None:
+                raise SceneError(f"{node.where}: {node.describe()} needs a filename")
+            p = self.resolve(node, fname)
+            if not p.is_file():
+                raise FileNotFoundError(f"{node.where}: mesh file not found: {p}")
+            if kind == "obj":
+                mesh = parse_obj(p)
+                n = np.where(mesh.normal_given[:, None], mesh.normals, np.nan)
+                uv = mesh.uvs
+                if uv is not None and not self.bool_(props, "flip_tex_coords", True):
+                    uv = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])
+                return mesh.vertices, mesh.faces, n, uv
+            from icbtool.scene.mesh import load_mesh
+
+            m = load_mesh(p, up_axis="y", textures=False)
+            uv = None if m.uvs is None else np.column_stack([m.uvs[:, 0], 1.0 - m.uvs[:, 1]])
+            return (
+                m.vertices.astype(float),
+                m.faces.astype(np.int64),
+                m.normals.astype(float),
+                uv,
+            )
+        if kind == "serialized":
+            fname = self.str_(props, "filename", None)
+            if fname is None:
+                raise SceneError(f"{node.where}: {node.describe()} needs a filename")
+            p = self.resolve(node, fname)
+            if not p.is_file():
+                raise FileNotFoundError(f"{node.where}: mesh file not found: {p}")
+            index = self.int_(props, "shape_index", 0)
+            return read_serialized(p, index, node.where)
+        if kind == "rectangle":
+            v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
+            uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], float)  # Mitsuba (0,0) at (-1,-1)
+            n = np.tile([0.0, 0.0, 1.0], (4, 1))
+            return v, np.array([[0, 1, 2], [0, 2, 3]]), n, uv
+        if kind == "cube":
+            return _cube()
+        if kind == "disk":
+            t = np.linspace(0, 2 * np.pi, seg, endpoint=False)
+            v = np.vstack([[0, 0, 0], np.column_stack([np.cos(t), np.sin(t), np.zeros(seg)])])
+            f = np.array([[0, 1 + i, 1 + (i + 1) % seg] for i in range(seg)])
+            uv = np.column_stack([np.r_[0, np.ones(seg)], 1 - np.r_[0, t / (2 * np.pi)]])
+            return v, f, np.tile([0.0, 0.0, 1.0], (seg + 1, 1)), uv
+        if kind == "sphere":
+            return _sphere(seg)
+        if kind == "cylinder":
+            p0 = self.point(props, "p0", (0, 0, 0))
+            p1 = self.point(props, "p1", (0, 0, 1))
+            r = self.float_(props, "radius", 1.0)
+            return _cylinder(p0, p1, r, seg)
+        self.skip(node, "shape type is not supported")
+        return None
+
+    # ---------------------------------------------------------------- emitters, sensor
+    def emitter(self, node: _Node) -> None:
+        kind = node.attrs.get("type", "")
+        props = self.props(node)
+        name = node.attrs.get("id") or f"{kind}@{node.line}"
+        m = self.transform(props.get("to_world"))
+        if kind not in ("area", "point", "spot", "directional", "constant", "envmap"):
+            self.skip(node, "emitter type is not supported")
+            return
+        try:
+            if kind == "area":
+                if "id" not in node.attrs:
+                    self.skip(node, "outside a shape emits nothing")
+                props.used.add("radiance")
+            if kind == "point":
+                pos = self.point(props, "position", m[:3, 3])
+                inten = self.reflectance(props.get("intensity"), 1.0)[0]
+                self.lights.append(PointLight(pos, inten, name=name))
+            elif kind == "spot":
+                cutoff = float(self.float_(props, "cutoff_angle", 20.0))
+                beam = float(self.float_(props, "beam_width", cutoff * 0.75))
+                inten = self.reflectance(props.get("intensity"), 1.0)[0]
+                self.lights.append(
+                    SpotLight(m[:3, 3], m[:3, 2], inten, min(beam, cutoff * 0.999), cutoff, name)
+                )
+                log.info("%s: spot falloff is smoothstep in cos (Mitsuba: linear in angle)", name)
+            elif kind == "directional":
+                d = props.get("direction")
+                direction = self.vec(d, "direction") if d is not None else m[:3, 2]
+                irr = self.reflectance(props.get("irradiance"), 1.0)[0]
+                self.lights.append(DirectionalLight(direction, irr, name=name))
+            elif kind in ("constant", "envmap"):
+                if self.sky is not None:
+                    self.skip(node, "is a second environment emitter (only one sky is kept)")
+                    props.used.update(props)
+                elif kind == "constant":
+                    rad = self.reflectance(props.get("radiance"), 1.0)[0]
+                    self.sky = Sky(zenith=np.maximum(rad, 0), kind="uniform")
+                else:
+                    self.sky = self.envmap(node, props, m)
+        except ValueError as e:
+            if isinstance(e, SceneError):
+                raise
+            raise SceneError(f"{node.where}: {node.describe()}: {e}") from None
+        self.finish(node, props)
+
+    def envmap(self, node: _Node, props: dict, m: np.ndarray) -> Sky:
+        fname = self.str_(props, "filename", None)
+        if fname is None:
+            raise SceneError(f"{node.where}: envmap needs a filename")
+        path = self.resolve(node, fname)
+        scale = float(self.float_(props, "scale", 1.0))
+        lin = m[:3, :3]
+        u, _, vt = np.linalg.svd(lin)
+        rot = u @ vt  # the rotation of to_world (scale dropped)
+        if not hasattr(Sky, "from_envmap"):
+            raise SceneError(
+                f"{node.where}: environment maps need Sky.from_envmap, which this icbtool "
+                "does not have yet"
+            )
+        if not path.is_file():
+            raise FileNotFoundError(f"{node.where}: environment map not found: {path}")
+        return Sky.from_envmap(path, scale=scale, world_from_map=rot)
+
+    def sensor(self, node: _Node) -> None:
+        from icbtool.camera import Camera
+
+        kind = node.attrs.get("type", "")
+        if self.camera is not None:
+            self.skip(node, "is a second sensor (the first is the default camera)")
+            return
+        if kind not in ("perspective", "thinlens"):
+            self.skip(node, "sensor type is not supported")
+            return
+        props = self.props(node)
+        if kind == "thinlens":
+            repair_warning(node.where, "thinlens sensor rendered as a pinhole (no defocus)")
+        film = props.get("film")
+        fp = self.props(film) if film is not None else {}
+        w = self.int_(fp, "width", 768)
+        h = self.int_(fp, "height", 576)
+        for k in ("crop_width", "crop_height", "crop_offset_x", "crop_offset_y"):
+            if k in fp:
+                repair_warning(fp[k].where, f"film {k} is not supported: the full film is used")
+        for k in ("principal_point_offset_x", "principal_point_offset_y"):
+            if k in props:
+                repair_warning(props[k].where, f"sensor {k} is not supported: centred")
+        axis = self.str_(props, "fov_axis", "x")
+        if "fov" in props:
+            fov = float(self.float_(props, "fov", 45.0))
+        else:
+            fl = self.str_(props, "focal_length", "50mm")
+            mm = float(fl.lower().rstrip("m") or 50)
+            fov, axis = math.degrees(2 * math.atan(36.0 / (2 * mm))), "x"
+        if not (0 < fov < 180):
+            raise SceneError(f"{node.where}: sensor fov must be in (0, 180), got {fov}")
+        sizes = {"x": w, "y": h, "diagonal": math.hypot(w, h)}
+        if axis == "smaller":
+            axis = "x" if w <= h else "y"
+        elif axis == "larger":
+            axis = "x" if w >= h else "y"
+        if axis not in sizes:
+            raise SceneError(f"{node.where}: unknown fov_axis {axis!r}")
+        focal = 0.5 * sizes[axis] / math.tan(math.radians(fov) / 2)
+        m = self.transform(props.get("to_world"))
+        r = m[:3, :3].copy()
+        norms = np.linalg.norm(r, axis=0)
+        if np.any(norms < 1e-12):
+            raise SceneError(f"{node.where}: sensor to_world is singular")
+        r /= norms
+        u, _, vt = np.linalg.svd(r)
+        r = u @ vt
+        if np.linalg.det(r) < 0:
+            repair_warning(node.where, "sensor to_world mirrors the image: rendered unmirrored")
+            r[:, 0] = -r[:, 0]
+        pose = np.eye(4)
+        pose[:3, 0], pose[:3, 1], pose[:3, 2] = -r[:, 0], -r[:, 1], r[:, 2]
+        pose[:3, 3] = m[:3, 3]
+        self.camera = Camera(h, w, focal, focal, w / 2, h / 2, pose)
+        self.cam_up = r[:, 1]
+        self.finish(node, props)
+        if film is not None:
+            self.finish(film, fp)
+
+    def integrator(self, node: _Node) -> None:
+        kind = node.attrs.get("type", "")
+        props = self.props(node)
+        depth = self.int_(props, "max_depth", None)
+        if kind == "direct":
+            self.max_depth = 2
+        elif depth is not None:
+            if depth == 0 or depth < -1:
+                raise SceneError(f"{node.where}: max_depth must be >= 1 or -1, got {depth}")
+            self.max_depth = depth
+        elif kind in ("path", "volpath", "volpathmis", "prb", "ptracer"):
+            self.max_depth = -1  # Mitsuba's default for these: unbounded (Russian roulette)
+        else:
+            inner = [c for c in node.children if c.tag == "integrator"]
+            if inner:
+                self.integrator(inner[0])
+            else:
+                self.skip(node, "integrator type is not supported (max depth: the tracer's)")
+        props.used.add("integrator")
+        self.finish(node, props)
+
+    # ---------------------------------------------------------------- assembly
+    def read(self, root: _Node) -> None:
+        nodes = self.flatten(root)
+        self.collect_ids(nodes)
+        for node in nodes:
+            tag = node.tag
+            if tag == "shape":
+                self.shape(node)
+            elif tag == "emitter":
+                self.emitter(node)
+            elif tag == "sensor":
+                self.sensor(node)
+            elif tag == "integrator":
+                self.integrator(node)
+            elif tag in ("bsdf", "texture"):
+                if "id" not in node.attrs:
+                    self.skip(node, "at the top level without an id is unused")
+            elif tag in _PROPERTY_TAGS or tag in ("ref",):
+                self.skip(node, "at the top level of the scene has no meaning")
+            else:
+                self.skip(node, "is not supported")
+
+    def build(self, name: str) -> Scene:
+        where = str(self.path)
+        if not self.parts:
+            raise SceneError(f"{where}: the scene has no shape icbtool can read")
+        offs = np.cumsum([0] + [len(p.vertices) for p in self.parts])
+        v = np.concatenate([p.vertices for p in self.parts])
+        f = np.concatenate([p.faces + o for p, o in zip(self.parts, offs[:-1])])
+        n = np.concatenate([p.normals for p in self.parts])
+        fm = np.concatenate([np.full(len(p.faces), p.material, np.int32) for p in self.parts])
+        uv = None
+        if any(p.uvs is not None for p in self.parts):
+            uv = np.concatenate(
+                [p.uvs if p.uvs is not None else np.zeros((len(p.vertices), 2)) for p in self.parts]
+            )
+        with warnings.catch_warnings():
+            # NaN rows are the normals to compute (no normal in the file), not a repair
+            warnings.filterwarnings("ignore", r".*vertex normal\(s\) are NaN", UserWarning)
+            v, f, n, uv, fm = check_arrays(where, v, f, n, uv, fm)
+        computed = vertex_normals(v, f)
+        bad = ~np.isfinite(n).all(axis=1)
+        n[bad] = computed[bad]
+        mats = self.materials
+        if not any(m.is_textured for m in mats):
+            uv = None
+        elif uv is None:
+            mats = [Material(m.name, m.albedo, m.emission) for m in mats]
+        up = np.array([0.0, 1.0, 0.0])
+        if self.cam_up is not None:
+            k = int(np.argmax(np.abs(self.cam_up)))
+            up = np.zeros(3)
+            up[k] = math.copysign(1.0, self.cam_up[k])
+        return Scene(
+            name=name,
+            vertices=v,
+            faces=f,
+            normals=n,
+            face_material=fm,
+            materials=mats,
+            uvs=uv,
+            lights=self.lights,
+            sky=self.sky,
+            default_camera=self.camera,
+            up=up,
+            max_depth=self.max_depth,
+            source=where,
+        )
+
+
+#: Mitsuba's serialized mesh format: file identifier and flags of the compressed header.
+_SERIALIZED_ID = 0x041C
+_SER_NORMALS, _SER_UVS, _SER_COLORS, _SER_DOUBLE = 0x0001, 0x0002, 0x0008, 0x2000
+
+
+def read_serialized(path: Path, index: int = 0, where: str | None = None) -> tuple:
+    """Shape ``index`` of a Mitsuba ``.serialized`` file (format versions 3 and 4).
+
+    Each shape is ``uint16 0x041C, uint16 version`` and a zlib stream holding ``uint32 flags``,
+    (version 4) a NUL-terminated name, ``uint64`` vertex and triangle counts, positions (float32,
+    or float64 with flag 0x2000), normals (0x0001), uvs (0x0002), colours (0x0008, skipped) and
+    the indices (uint32, uint64 above 2^32 vertices); the file ends with the shapes' offsets
+    (uint64 in version 4, uint32 in 3) and their count (uint32).
+
+    Returns:
+        (vertices (V, 3), faces (F, 3), normals (V, 3) with NaN rows when absent, uvs (V, 2) in
+        the Scene convention (``1 - v``) or None).
+
+    Raises:
+        SceneError: not a serialized file, a missing shape index, a corrupt stream (names the
+            file and, with ``where``, the scene element).
+    """
+    import struct
+    import zlib
+
+    who = f"{where}: {path}" if where else str(path)
+    data = path.read_bytes()
+    if len(data) < 8 or struct.unpack_from("<H", data, 0)[0] != _SERIALIZED_ID:
+        raise SceneError(f"{who}: not a Mitsuba serialized mesh (bad file identifier)")
+    version = struct.unpack_from("<H", data, 2)[0]
+    if version not in (3, 4):
+        raise SceneError(f"{who}: serialized format version {version} is not supported (3, 4)")
+    count = struct.unpack_from("<I", data, len(data) - 4)[0]
+    if not 0 <= index < count:
+        raise SceneError(f"{who}: shape_index {index} out of range: the file has {count} shapes")
+    width = 8 if version == 4 else 4
+    table = len(data) - 4 - width * count
+    (offset,) = struct.unpack_from("<Q" if width == 8 else "<I", data, table + width * index)
+    try:
+        raw = zlib.decompressobj().decompress(data[offset + 4 : table])
+        pos = 0
+        (flags,) = struct.unpack_from("<I", raw, pos)
+        pos += 4
+        if version == 4:
+            end = raw.index(b"\0", pos)
+            pos = end + 1
+        nv, nf = struct.unpack_from("<QQ", raw, pos)
+        pos += 16
+        real = np.float64 if flags & _SER_DOUBLE else np.float32
+        rsize = np.dtype(real).itemsize
+
+        def take(n: int, dtype: Any) -> np.ndarray:
+            nonlocal pos
+            a = np.frombuffer(raw, dtype=dtype, count=n, offset=pos)
+            pos += n * np.dtype(dtype).itemsize
+            return a
+
+        v = take(3 * nv, real).reshape(-1, 3).astype(np.float64)
+        n = take(3 * nv, real).reshape(-1, 3).astype(np.float64) if flags & _SER_NORMALS else None
+        uv = take(2 * nv, real).reshape(-1, 2).astype(np.float64) if flags & _SER_UVS else None
+        if flags & _SER_COLORS:
+            pos += 3 * nv * rsize
+        f = take(3 * nf, np.uint64 if nv > 0xFFFFFFFF else np.uint32).reshape(-1, 3)
+    except (zlib.error, struct.error, ValueError) as e:
+        raise SceneError(f"{who}: shape {index}: corrupt serialized stream ({e})") from None
+    if n is None:
+        n = np.full_like(v, np.nan)
+    if uv is not None:
+        uv = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])
+    return v, f.astype(np.int64), n, uv
+
+
+def _cube() -> tuple:
+    """Mitsuba's cube: [-1, 1]^3, outward faces, flat normals, uvs per face."""
+    verts, faces, normals, uvs = [], [], [], []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            nrm = np.zeros(3)
+            nrm[axis] = sign
+            a, b = [k for k in range(3) if k != axis]
+            quad = []
+            for s, t in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+                p = np.zeros(3)
+                p[axis], p[a], p[b] = sign, s, t
+                quad.append(p)
+            quad = np.array(quad)
+            if np.dot(np.cross(quad[1] - quad[0], quad[2] - quad[0]), nrm) < 0:
+                quad = quad[::-1]
+            base = len(verts)
+            verts += list(quad)
+            normals += [nrm] * 4
+            uvs += [[0, 1], [1, 1], [1, 0], [0, 0]]
+            faces += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
+    return np.array(verts), np.array(faces), np.array(normals), np.array(uvs, float)
+
+
+def _sphere(seg: int) -> tuple:
+    """A unit UV sphere (outward), ``seg`` x ``seg // 2`` cells, poles shared."""
+    n_lat = max(seg // 2, 2)
+    theta = np.linspace(0, np.pi, n_lat + 1)[1:-1]
+    phi = np.linspace(0, 2 * np.pi, seg, endpoint=False)
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    ring = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1).reshape(-1, 3)
+    v = np.vstack([[0, 0, 1], ring, [0, 0, -1]])
+    uv = np.vstack([[0.5, 1], np.column_stack([p.ravel() / (2 * np.pi), 1 - t.ravel() / np.pi]),
+                    [0.5, 0]])  # fmt: skip
+    faces = []
+    idx = lambda i, j: 1 + i * seg + (j % seg)  # noqa: E731
+    for j in range(seg):
+        faces.append([0, idx(0, j), idx(0, j + 1)])
+        last = len(v) - 1
+        faces.append([last, idx(n_lat - 2, j + 1), idx(n_lat - 2, j)])
+        for i in range(n_lat - 2):
+            a, b, c, d = idx(i, j), idx(i + 1, j), idx(i + 1, j + 1), idx(i, j + 1)
+            faces += [[a, b, c], [a, c, d]]
+    return v, np.array(faces), v.copy(), uv
+
+
+def _cylinder(p0: np.ndarray, p1: np.ndarray, r: float, seg: int) -> tuple:
+    """An open tube of radius ``r`` from ``p0`` to ``p1`` (outward normals)."""
+    axis = p1 - p0
+    length = np.linalg.norm(axis)
+    if length < 1e-12 or not r > 0:
+        raise SceneError(f"cylinder needs p0 != p1 and radius > 0, got {p0}, {p1}, {r}")
+    w = axis / length
+    a = np.cross(w, [1.0, 0, 0] if abs(w[0]) < 0.9 else [0, 1.0, 0])
+    a /= np.linalg.norm(a)
+    b = np.cross(w, a)
+    t = np.linspace(0, 2 * np.pi, seg, endpoint=False)
+    ring = np.outer(np.cos(t), a) + np.outer(np.sin(t), b)
+    v = np.vstack([p0 + r * ring, p1 + r * ring])
+    faces = []
+    for i in range(seg):
+        j = (i + 1) % seg
+        faces += [[i, j, seg + j], [i, seg + j, seg + i]]
+    uv = np.column_stack([np.r_[t, t] / (2 * np.pi), np.r_[np.ones(seg), np.zeros(seg)]])
+    return v, np.array(faces), np.vstack([ring, ring]), uv
+
+
+def _to_xml(node: _Node, depth: int = 0) -> str:
+    from xml.sax.saxutils import quoteattr
+
+    pad = "    " * depth
+    attrs = "".join(f" {k}={quoteattr(v)}" for k, v in node.attrs.items())
+    if not node.children:
+        return f"{pad}<{node.tag}{attrs}/>\n"
+    inner = "".join(_to_xml(c, depth + 1) for c in node.children)
+    return f"{pad}<{node.tag}{attrs}>\n{inner}{pad}</{node.tag}>\n"
+
+
+def _diffuse_node(old: _Node, b: _Bsdf) -> _Node:
+    """``<bsdf type="twosided"><bsdf type="diffuse">`` of what icbtool renders for ``old``."""
+    keep = {k: v for k, v in old.attrs.items() if k in ("id", "name")}
+    if b.texture is not None:
+        refl = _Node("texture", {"type": "bitmap", "name": "reflectance"}, old.file, old.line)
+        refl.children = [
+            _Node("string", {"name": "filename", "value": str(b.texture)}, old.file, old.line),
+            _Node("boolean", {"name": "raw", "value": str(b.raw).lower()}, old.file, old.line),
+        ]
+    else:
+        value = ", ".join(f"{x:.9g}" for x in b.albedo)
+        refl = _Node("rgb", {"name": "reflectance", "value": value}, old.file, old.line)
+    diffuse = _Node("bsdf", {"type": "diffuse"}, old.file, old.line, [refl])
+    return _Node("bsdf", {"type": "twosided", **keep}, old.file, old.line, [diffuse])
+
+
+def diffuse_twin(
+    path: str | os.PathLike, out_dir: str | os.PathLike, *, params: dict[str, Any] | None = None
+) -> Path:
+    """Write a copy of a Mitsuba scene for Mitsuba itself that renders what icbtool renders.
+
+    The scene's folder is copied into ``out_dir``; in the copy of the scene file and of every file
+    it includes, each BSDF a shape uses becomes the two-sided diffuse BSDF icbtool renders for it
+    (the same albedo after the approximation rule, or the same bitmap), and every pixel filter
+    becomes ``box`` (icbtool's pixel footprint). Everything else (shapes, transforms, emitters,
+    the sensor, ``$`` parameters) is written as read. Used to verify icbtool against Mitsuba
+    (``benchmarks/mitsuba_xml_compare.py``).
+
+    Args:
+        path: the scene file.
+        out_dir: an existing folder; the copy is ``out_dir / <scene folder name>``.
+        params: ``$`` parameters, as for :func:`read_mitsuba`.
+
+    Returns:
+        The copied scene file.
+
+    Raises:
+        SceneError: as :func:`read_mitsuba`; an included file outside the scene's folder.
+    """
+    import shutil
+
+    p = check_file(path, MITSUBA_SUFFIXES).resolve()
+    reader = _Reader(p, dict(params or {}), True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the loader has said it all already
+        reader.read(_parse_xml(p))
+    dst = Path(out_dir) / p.parent.name
+    shutil.copytree(p.parent, dst, dirs_exist_ok=True)
+
+    def rewrite(node: _Node) -> _Node:
+        if node.tag == "bsdf" and node.where in reader.rendered:
+            return _diffuse_node(node, reader.rendered[node.where])
+        if node.tag == "rfilter":
+            return _Node("rfilter", {"type": "box"}, node.file, node.line)
+        node.children = [rewrite(c) for c in node.children]
+        return node
+
+    for f in dict.fromkeys(reader.files):
+        try:
+            rel = f.resolve().relative_to(p.parent)
+        except ValueError:
+            raise SceneError(f"{f}: included from outside the scene folder {p.parent}") from None
+        (dst / rel).write_text(_to_xml(rewrite(_parse_xml(f))))
+    return dst / p.name
+
+
+def read_mitsuba(
+    path: str | os.PathLike, *, params: dict[str, Any] | None = None, textures: bool = True
+) -> MitsubaScene:
+    """Read a Mitsuba 3 scene file (see the module docstring for what is read and how).
+
+    Args:
+        path: the .xml file.
+        params: values of the file's ``$`` parameters (override its ``<default>`` s).
+        textures: decode bitmap textures (False: base colours only, faster).
+
+    Returns:
+        The :class:`MitsubaScene` (the Scene, with the shape count and what was skipped).
+
+    Raises:
+        FileNotFoundError: the file, an included file or a mesh file is missing.
+        SceneError: invalid XML, a bad value (message ``file:line: ...``), no shape.
+    """
+    p = check_file(path, MITSUBA_SUFFIXES)
+    reader = _Reader(p, dict(params or {}), textures)
+    reader.read(_parse_xml(p))
+    scene = reader.build(p.stem)
+    log.info(
+        "%s: %d shapes, %d triangles, %d materials, %d lights, sky %s, camera %s, max_depth %s",
+        p,
+        reader.n_shapes,
+        scene.n_triangles,
+        len(scene.materials),
+        len(scene.lights),
+        "yes" if scene.sky is not None else "no",
+        "yes" if scene.default_camera is not None else "no",
+        scene.max_depth,
+    )
+    return MitsubaScene(scene, reader.n_shapes, reader.skipped, dict(reader.params))
+
+
+def load_mitsuba(path: str | os.PathLike, **overrides: Any) -> Scene:
+    """A Mitsuba scene file as a Scene (emissive faces not yet promoted; see
+    :func:`icbtool.scene.load`, which does that).
+
+    Args:
+        path: the .xml file.
+        **overrides: ``params`` (dict of ``$`` parameters), ``textures`` (bool), ``name`` and the
+            Scene fields ``lights``, ``sky``, ``paths``, ``default_camera``, ``max_depth``.
+
+    Raises:
+        TypeError: an unknown override.
+        FileNotFoundError, SceneError: as :func:`read_mitsuba`.
+    """
+    allowed = {"params", "textures", "name", "lights", "sky", "paths", "default_camera"}
+    allowed.add("max_depth")
+    if "up_axis" in overrides:
+        raise SceneError(
+            f"{path}: up_axis applies to mesh files; a Mitsuba scene keeps its world axes (its "
+            "sensor says which way is up)"
+        )
+    unknown = sorted(set(overrides) - allowed)
+    if unknown:
+        raise TypeError(
+            f"load({Path(path).name}): unknown override(s) {unknown}; allowed: {sorted(allowed)}"
+        )
+    ms = read_mitsuba(
+        path, params=overrides.pop("params", None), textures=overrides.pop("textures", True)
+    )
+    return dataclasses.replace(ms.scene, **overrides) if overrides else ms.scene
+
+
+__all__ = [
+    "METAL_F0",
+    "MITSUBA_SUFFIXES",
+    "MitsubaScene",
+    "load_mitsuba",
+    "mitsuba_look_at",
+    "read_mitsuba",
+    "read_serialized",
+    "diffuse_twin",
+    "spectrum_to_rgb",
+]

@@ -1,0 +1,701 @@
+"""Mitsuba 3 scene files, multi-mesh descriptions, first views of interiors, loader messages.
+
+The hand-written fixture tests/data/scenes/mitsuba/fixture.xml states its known answers next to
+each element (areas, transforms, camera, lights).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import icbtool.scene as sc
+from icbtool.camera import Camera
+from icbtool.scene import SceneError, SceneRepairWarning, load
+from icbtool.scene.mitsuba import read_mitsuba, spectrum_to_rgb
+from icbtool.scene.obj import MAX_APPROXIMATED_ALBEDO, MaterialApproximationWarning
+from icbtool.scene.types import Sky
+
+DATA = Path(__file__).parent / "data" / "scenes" / "mitsuba"
+FIXTURE = DATA / "fixture.xml"
+SEG = sc.mitsuba.SPHERE_SEGMENTS
+
+
+def _load(path, **kw):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene = load(path, **kw)
+    return scene, [str(w.message) for w in caught], [w.category for w in caught]
+
+
+def _area(scene, name: str) -> float:
+    i = [m.name for m in scene.materials].index(name)
+    return float(scene.face_areas[scene.face_material == i].sum())
+
+
+def _polygon_area(n: int) -> float:
+    """Area of the regular n-gon inscribed in the unit circle."""
+    return 0.5 * n * math.sin(2 * math.pi / n)
+
+
+# --------------------------------------------------------------------------- the fixture
+def test_fixture_shapes_areas_and_transforms():
+    s, _, _ = _load(FIXTURE)
+    assert _area(s, "white") == pytest.approx(80.0, rel=1e-6)
+    assert _area(s, "plastic") == pytest.approx(6.0, rel=1e-6)
+    assert _area(s, "checker") == pytest.approx(4.0, rel=1e-6)
+    assert _area(s, "bumpy") == pytest.approx(0.5, rel=1e-6)
+    assert _area(s, "gold") == pytest.approx(0.25 * _polygon_area(SEG), rel=1e-6)
+    tube = SEG * 2 * 0.25 * math.sin(math.pi / SEG) * 2  # the 64-gon's perimeter x height
+    assert _area(s, "masked") == pytest.approx(tube, rel=1e-6)
+    assert _area(s, "glass") == pytest.approx(math.pi, rel=1e-2)  # tessellated sphere
+    # counts: 2 + 2 (rectangles) + 12 (cube) + sphere + disk + tube + quad + triangle
+    n_sphere = SEG * (2 + 2 * (SEG // 2 - 2))
+    assert s.n_triangles == 2 + 2 + 12 + n_sphere + SEG + 2 * SEG + 2 + 1
+
+    def bounds(name):
+        i = [m.name for m in s.materials].index(name)
+        v = s.vertices[np.unique(s.faces[s.face_material == i])]
+        return v.min(0), v.max(0)
+
+    lo, hi = bounds("white")  # scale (5, 4) then -90 degrees about x: the xz plane
+    np.testing.assert_allclose(lo, [-5, 0, -4], atol=1e-5)
+    np.testing.assert_allclose(hi, [5, 0, 4], atol=1e-5)
+    lo, hi = bounds("plastic")  # the matrix: a unit cube centred at (2, 0.5, 0)
+    np.testing.assert_allclose(lo, [1.5, 0, -0.5], atol=1e-6)
+    np.testing.assert_allclose(hi, [2.5, 1, 0.5], atol=1e-6)
+    lo, hi = bounds("glass")
+    np.testing.assert_allclose((lo + hi) / 2, [-2, 1, 0], atol=1e-6)
+    np.testing.assert_allclose(hi - lo, [1, 1, 1], atol=2e-3)
+    lo, hi = bounds("checker")  # the OBJ quad, moved to z = -3
+    np.testing.assert_allclose(lo, [-1, 0, -3], atol=1e-6)
+    np.testing.assert_allclose(hi, [1, 2, -3], atol=1e-6)
+    lo, hi = bounds("masked")  # the tube from p0 to p1
+    np.testing.assert_allclose(lo, [2.75, 0, -2.25], atol=1e-6)
+    np.testing.assert_allclose(hi, [3.25, 2, -1.75], atol=1e-6)
+    # the floor faces +y, the disk too; the PLY triangle is flat shaded (+y)
+    fn = s.face_normals
+    for name in ("white", "gold", "bumpy"):
+        i = [m.name for m in s.materials].index(name)
+        n = fn[s.face_material == i]
+        np.testing.assert_allclose(n, np.tile([0, 1, 0], (len(n), 1)), atol=1e-6)
+
+
+def test_fixture_camera_lights_sky_depth():
+    s, _, _ = _load(FIXTURE)
+    cam = s.default_camera
+    assert (cam.height, cam.width) == (48, 64)
+    assert cam.fx == pytest.approx(32 / math.tan(math.radians(30)))
+    assert cam.fov_x_deg == pytest.approx(60.0)
+    np.testing.assert_allclose(cam.position, [0, 1, 6])
+    np.testing.assert_allclose(cam.forward, [0, 0, -1], atol=1e-12)
+    np.testing.assert_allclose(cam.right, [1, 0, 0], atol=1e-12)  # Mitsuba's +x is left
+    np.testing.assert_allclose(cam.up, [0, 1, 0], atol=1e-12)
+    # the point the camera looks at lands on the image centre
+    uv, depth = cam.project(np.array([[0.0, 1.0, 0.0]]))
+    np.testing.assert_allclose(uv[0], [32.0, 24.0], atol=1e-9)
+    assert depth[0] == pytest.approx(6.0)
+    assert s.max_depth == 5
+    np.testing.assert_allclose(s.up, [0, 1, 0])
+    kinds = sorted(lt.kind for lt in s.lights)
+    assert kinds == ["area", "directional", "point", "spot"]
+    (area,) = s.lights_of("area")
+    assert area.area == pytest.approx(0.25)
+    np.testing.assert_allclose(area.normal, [0, -1, 0], atol=1e-9)
+    np.testing.assert_allclose(area.radiance, [10, 8, 6])
+    (pt,) = s.lights_of("point")
+    np.testing.assert_allclose(pt.position, [1, 2, 3])
+    np.testing.assert_allclose(pt.intensity, [5, 5, 5])
+    (spot,) = s.lights_of("spot")
+    np.testing.assert_allclose(spot.position, [0, 4, 0])
+    np.testing.assert_allclose(spot.direction, [0, -1, 0], atol=1e-12)
+    assert (spot.inner_deg, spot.outer_deg) == (22.5, 30.0)
+    (sun,) = s.lights_of("directional")
+    np.testing.assert_allclose(sun.direction, [0, -math.sqrt(0.5), -math.sqrt(0.5)])
+    assert s.sky.kind == "uniform"
+    np.testing.assert_allclose(s.sky.zenith, [0.1, 0.2, 0.3])
+
+
+def test_fixture_bsdfs_follow_the_one_rule_with_one_warning_per_material():
+    s, msgs, cats = _load(FIXTURE)
+    m = {x.name: x for x in s.materials}
+    np.testing.assert_allclose(m["white"].albedo, [0.7, 0.6, 0.5])
+    f = ((1.5 - 1) / (1.5 + 1)) ** 2  # plastic: int_ior 1.5, ext_ior 1.0
+    np.testing.assert_allclose(m["plastic"].albedo, f + (1 - f) * np.array([0.5, 0.1, 0.1]))
+    np.testing.assert_allclose(m["glass"].albedo, [0.8, 0.8, 0.8])  # 1.0 capped
+    au = np.array(sc.mitsuba.METAL_F0["Au"])
+    np.testing.assert_allclose(m["gold"].albedo, au * MAX_APPROXIMATED_ALBEDO / au.max())
+    np.testing.assert_allclose(m["masked"].albedo, [0.2, 0.4, 0.6])
+    assert m["checker"].is_textured
+    np.testing.assert_allclose(m["checker"].texture[0, 0], [1, 1, 1])
+    for mat in s.materials:
+        assert mat.albedo.max() < 1 or mat.name in ("checker",)
+    approx = [x for x, c in zip(msgs, cats) if c is MaterialApproximationWarning]
+    for name in ("plastic", "glass", "gold", "masked", "bumpy"):
+        assert sum(f"material '{name}'" in x for x in approx) == 1, name
+    assert any("bump map dropped" in x for x in approx)
+    assert any("opacity mask dropped" in x for x in approx)
+    assert all("fragments/bsdfs.xml" in x for x in approx if "'gold'" in x)
+
+
+def test_fixture_unsupported_elements_are_named_with_their_line():
+    ms = read_mitsuba(FIXTURE)
+    text = FIXTURE.read_text().splitlines()
+    line_curve = next(i for i, t in enumerate(text, 1) if 'type="bsplinecurve"' in t)
+    line_medium = next(i for i, t in enumerate(text, 1) if "<medium" in t)
+    assert f"<shape bsplinecurve> ({FIXTURE}:{line_curve})" in ms.skipped
+    assert f"<medium homogeneous> ({FIXTURE}:{line_medium})" in ms.skipped
+    assert ms.shapes == 8
+    _, msgs, _ = _load(FIXTURE)
+    assert any(f"fixture.xml:{line_curve}: <shape bsplinecurve>" in x for x in msgs)
+
+
+def test_params_override_defaults():
+    s, _, _ = _load(FIXTURE, params={"depth": 3, "res": 32})
+    assert s.max_depth == 3 and s.default_camera.height == 32
+    assert s.default_camera.fx == pytest.approx(32 / math.tan(math.radians(30)))
+    with pytest.raises(SceneError, match=r"up_axis applies to mesh files"):
+        load(FIXTURE, up_axis="z")
+    with pytest.raises(TypeError, match=r"unknown override\(s\) \['scale'\]"):
+        load(FIXTURE, scale=2.0)
+
+
+def test_unknown_property_and_missing_parameter(tmp_path):
+    p = tmp_path / "s.xml"
+    p.write_text(
+        '<scene version="3.0.0">\n'
+        '  <shape type="rectangle">\n'
+        '    <float name="wobble" value="2"/>\n'
+        '    <bsdf type="diffuse"><rgb name="reflectance" value="$albedo"/></bsdf>\n'
+        "  </shape>\n"
+        "</scene>\n"
+    )
+    with pytest.raises(SceneError, match=r"s.xml:4: <rgb reflectance> uses parameter \$albedo"):
+        load(p)
+    s, msgs, _ = _load(p, params={"albedo": "0.25"})
+    np.testing.assert_allclose(s.materials[0].albedo, 0.25)
+    assert any("s.xml:3: <shape rectangle> property 'wobble' is not supported" in x for x in msgs)
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("<scene><shape type='rectangle'>", r"x.xml:1: not valid XML"),
+        ('<!DOCTYPE s [<!ENTITY a "b">]><scene/>', r"x.xml:1: DTD or entity"),
+        ("<scene><shape type='cube'><ref id='nope'/></shape></scene>", r"names no element"),
+        ("<scene><emitter type='point'/></scene>", r"no shape icbtool can read"),
+        ("<shape type='cube'/>", r"root element must be <scene>"),
+        (
+            "<scene><shape type='cube'><transform name='to_world'><matrix value='1 2 3'/>"
+            "</transform></shape></scene>",
+            r"<matrix> needs 16 or 9 numbers",
+        ),
+        ("<scene><include filename='x.xml'/></scene>", r"includes nested deeper than 16"),
+        (
+            "<scene><integrator type='path'><integer name='max_depth' value='0'/></integrator>"
+            "<shape type='cube'/></scene>",
+            r"max_depth must be >= 1 or -1",
+        ),
+    ],
+)
+def test_bad_files_name_file_and_line(tmp_path, text, match):
+    p = tmp_path / "x.xml"
+    p.write_text(text)
+    with pytest.raises(SceneError, match=match):
+        load(p)
+
+
+def test_envmap_goes_through_sky_from_envmap(tmp_path, monkeypatch):
+    import icbtool.imageio as iio
+
+    img = np.full((8, 16, 3), 0.5, np.float32)
+    iio.write_exr(tmp_path / "sky.exr", img)
+    (tmp_path / "s.xml").write_text(
+        '<scene version="3.0.0"><shape type="cube"/>'
+        '<emitter type="envmap"><string name="filename" value="sky.exr"/>'
+        '<float name="scale" value="2"/><transform name="to_world">'
+        '<rotate y="1" angle="90"/></transform></emitter></scene>'
+    )
+    if not hasattr(Sky, "from_envmap"):
+        with pytest.raises(SceneError, match=r"s.xml:1: environment maps need Sky.from_envmap"):
+            load(tmp_path / "s.xml")
+        pytest.skip("Sky.from_envmap is not in this icbtool yet (the envmap branch adds it)")
+    calls = []
+    original = Sky.from_envmap
+
+    def spy(path, **kw):
+        calls.append((Path(path), kw))
+        return original(path, **kw)
+
+    monkeypatch.setattr(Sky, "from_envmap", staticmethod(spy))
+    s = load(tmp_path / "s.xml")
+    ((path, kw),) = calls
+    assert path == tmp_path / "sky.exr" and kw["scale"] == 2.0
+    c, si = math.cos(math.radians(90)), math.sin(math.radians(90))
+    np.testing.assert_allclose(
+        kw["world_from_map"], [[c, 0, si], [0, 1, 0], [-si, 0, c]], atol=1e-12
+    )
+    assert s.sky is not None
+
+
+def test_envmap_without_sky_from_envmap_is_a_clear_error(tmp_path, monkeypatch):
+    monkeypatch.delattr(Sky, "from_envmap", raising=False)
+    (tmp_path / "sky.hdr").write_bytes(b"#?RADIANCE\n")
+    (tmp_path / "s.xml").write_text(
+        '<scene version="3.0.0"><shape type="cube"/><emitter type="envmap">'
+        '<string name="filename" value="sky.hdr"/></emitter></scene>'
+    )
+    with pytest.raises(SceneError, match=r"s.xml:1: environment maps need Sky.from_envmap"):
+        load(tmp_path / "s.xml")
+
+
+def test_spectrum_to_rgb_keeps_flat_spectra_grey_and_orders_hues():
+    np.testing.assert_allclose(spectrum_to_rgb([400, 700], [0.6, 0.6]), [0.6, 0.6, 0.6])
+    red = spectrum_to_rgb([400, 580, 600, 700], [0, 0, 1, 1])
+    assert red[0] > red[1] > red[2]
+
+
+def test_camelcase_names_of_old_scene_versions(tmp_path):
+    (tmp_path / "old.xml").write_text(
+        '<scene version="0.6.0"><sensor type="perspective"><float name="fov" value="90"/>'
+        '<string name="fovAxis" value="y"/><transform name="toWorld">'
+        '<lookat origin="0,0,0" target="1,0,0" up="0,1,0"/></transform>'
+        '<film type="hdrfilm"><integer name="width" value="20"/>'
+        '<integer name="height" value="10"/></film></sensor>'
+        '<shape type="cube"><transform name="toWorld"><translate x="5"/></transform></shape>'
+        "</scene>"
+    )
+    s, msgs, _ = _load(tmp_path / "old.xml")
+    assert s.default_camera.fov_y_deg == pytest.approx(90)
+    np.testing.assert_allclose(s.default_camera.forward, [1, 0, 0], atol=1e-12)
+    assert s.bounds[0][0] == pytest.approx(4.0)
+    assert not any("not supported" in x for x in msgs)
+
+
+def test_xml_on_the_cli(tmp_path):
+    from icbtool.cli import main
+
+    rc = main(["trace", str(FIXTURE), "--out", str(tmp_path), "--spp", "1", "--height", "12"])
+    assert rc == 0
+    import json
+
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["config"]["max_depth"] == 5  # the file's integrator
+
+
+@pytest.mark.skipif(
+    not os.environ.get("ICBTOOL_MITSUBA_SCENES"),
+    reason="third-party Mitsuba scenes: set ICBTOOL_MITSUBA_SCENES to a folder of .xml files",
+)
+def test_third_party_mitsuba_files_load():
+    root = Path(os.environ["ICBTOOL_MITSUBA_SCENES"])
+    files = sorted(root.rglob("*.xml"))
+    assert files
+    loaded = 0
+    for f in files:
+        if "fragments" in f.parts or "include" in f.parts:
+            continue
+        if 'type="envmap"' in f.read_text() and not hasattr(Sky, "from_envmap"):
+            continue  # until the envmap work is merged (see test_envmap_goes_through_...)
+        s, _, _ = _load(f)
+        assert s.n_triangles > 0 and s.default_camera is not None
+        loaded += 1
+    assert loaded >= 2
+
+
+# --------------------------------------------------------------------------- descriptions
+def _obj_quad(path: Path, material: str, z: float = 0.0) -> Path:
+    path.write_text(
+        f"mtllib {path.stem}.mtl\nv 0 0 {z}\nv 1 0 {z}\nv 1 1 {z}\nv 0 1 {z}\n"
+        f"usemtl {material}\nf 1 2 3 4\n"
+    )
+    path.with_suffix(".mtl").write_text(f"newmtl {material}\nKd 0.5 0.5 0.5\n")
+    return path
+
+
+def test_description_with_several_meshes(tmp_path):
+    _obj_quad(tmp_path / "a.obj", "wood")
+    _obj_quad(tmp_path / "b.obj", "wood")
+    (tmp_path / "d.toml").write_text(
+        '[scene]\nname = "two"\nmesh = "a.obj"\n\n'
+        '[[meshes]]\npath = "b.obj"\nname = "copy"\nscale = 2.0\n'
+        "transform = [[1, 0, 0, 10], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n"
+        "materials = { wood = { albedo = [0.1, 0.2, 0.3] } }\n\n"
+        '[[meshes]]\npath = "b.obj"\nname = "lamp"\n'
+        "transform = [1, 0, 0, 0, 0, 1, 0, 5, 0, 0, 1, 0, 0, 0, 0, 1]\n"
+        "material = { emission = [1, 1, 1] }\n"
+    )
+    s, _, _ = _load(tmp_path / "d.toml")
+    assert s.name == "two" and s.n_triangles == 6
+    names = [m.name for m in s.materials]
+    assert names == ["wood", "copy:wood", "lamp:wood"]
+    np.testing.assert_allclose(s.materials[1].albedo, [0.1, 0.2, 0.3])
+    np.testing.assert_allclose(s.materials[0].albedo, [0.5, 0.5, 0.5])
+    assert s.materials[2].is_emissive and len(s.lights) == 1  # promoted area light
+    second = s.vertices[np.unique(s.faces[s.face_material == 1])]
+    np.testing.assert_allclose(second.min(0), [10, 0, 0])  # scaled by 2 then moved by 10
+    np.testing.assert_allclose(second.max(0), [12, 2, 0])
+    third = s.vertices[np.unique(s.faces[s.face_material == 2])]
+    np.testing.assert_allclose(third.min(0), [0, 5, 0])
+
+
+def test_description_of_meshes_only_and_its_errors(tmp_path):
+    _obj_quad(tmp_path / "a.obj", "wood")
+    (tmp_path / "d.toml").write_text('[scene]\nname = "m"\n[[meshes]]\npath = "a.obj"\n')
+    s, _, _ = _load(tmp_path / "d.toml")
+    assert s.name == "m" and s.n_triangles == 2
+    bad = {
+        "materials = { stone = { albedo = [0.1, 0.1, 0.1] } }": r"no material\(s\) \['stone'\]",
+        "transform = [[1, 0, 0], [0, 1, 0]]": r"transform must be 4x4 numbers",
+        "transform = [[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1]]": r"invertible",
+        "colour = 1": r"unknown key\(s\) \['colour'\] in \[meshes 0\]",
+        "material = { albedo = [2, 0, 0] }": r"material 'wood'.*albedo must be in \[0, 1\]",
+    }
+    for line, match in bad.items():
+        (tmp_path / "e.toml").write_text(f'[scene]\n[[meshes]]\npath = "a.obj"\n{line}\n')
+        with pytest.raises(SceneError, match=match):
+            load(tmp_path / "e.toml")
+    (tmp_path / "e.toml").write_text('[scene]\nmesh = ["a.obj", "b.obj"]\n')
+    with pytest.raises(SceneError, match=r"several meshes: \[\[meshes\]\] tables"):
+        load(tmp_path / "e.toml")
+
+
+def test_description_no_longer_imports_load():
+    import ast
+
+    src = (Path(sc.__file__).parent / "description.py").read_text()
+    mods = {
+        n.module
+        for n in ast.walk(ast.parse(src))
+        if isinstance(n, ast.ImportFrom) and n.module is not None
+    }
+    assert "icbtool.scene.load" not in mods and "icbtool.scene.mesh" in mods
+
+
+# --------------------------------------------------------------------------- first views
+def _room(with_pillar: bool = True):
+    """A closed 10 x 3 x 8 room (faces inward) with a pillar: an interior."""
+    b = sc.SceneBuilder("room")
+    w = b.material("w", albedo=(0.7, 0.7, 0.7))
+    X, Y, Z = 10.0, 3.0, 8.0
+    quads = [  # (corner, u, v) with cross(u, v) pointing into the room
+        ((0, 0, 0), (0, 0, Z), (X, 0, 0)),  # floor, +y
+        ((0, Y, 0), (X, 0, 0), (0, 0, Z)),  # ceiling, -y
+        ((0, 0, 0), (X, 0, 0), (0, Y, 0)),  # z = 0 wall, +z
+        ((0, 0, Z), (0, Y, 0), (X, 0, 0)),  # z = Z wall, -z
+        ((0, 0, 0), (0, Y, 0), (0, 0, Z)),  # x = 0 wall, +x
+        ((X, 0, 0), (0, 0, Z), (0, Y, 0)),  # x = X wall, -x
+    ]
+    for c, u, v in quads:
+        b.add_quad(c, u, v, w)
+    if with_pillar:
+        b.add_box((7.0, 1.5, 2.0), (0.5, 3.0, 0.5), w)
+    return b.build(), (X, Y, Z)
+
+
+def test_default_view_inside_an_interior(caplog):
+    room, (X, Y, Z) = _room()
+    outside = Camera.frame(room.bounds, up=room.up)
+    assert not np.all((outside.position > 0) & (outside.position < [X, Y, Z]))  # the old view
+    with caplog.at_level(logging.INFO, logger="icbtool.scene.view"):
+        cam = sc.default_view(room, height=32, width=48)
+    p = cam.position
+    assert np.all(p > 0) and np.all(p < [X, Y, Z]), p
+    sc.check_camera(room, cam)  # not in a wall
+    assert abs(cam.forward[1]) < 0.3  # looks across the room, not at the floor
+    assert "interior view" in caplog.text and "enclosed" in caplog.text
+    assert (cam.height, cam.width) == (32, 48)
+
+
+def test_default_view_prefers_the_scene_camera_and_frames_exteriors(caplog):
+    s = sc.cornell_box()
+    cam = sc.default_view(s, height=s.default_camera.height, width=s.default_camera.width)
+    np.testing.assert_allclose(cam.world_from_cam, s.default_camera.world_from_cam)
+    b = sc.SceneBuilder("block")
+    b.add_box((0, 0, 0), (1, 1, 1), b.material("w"))
+    block = b.build()
+    with caplog.at_level(logging.INFO, logger="icbtool.scene.view"):
+        cam = sc.default_view(block)
+    ref = Camera.frame(block.bounds, up=block.up)
+    np.testing.assert_allclose(cam.world_from_cam, ref.world_from_cam)
+    assert "outside view" in caplog.text and "exterior" in caplog.text
+
+
+# --------------------------------------------------------------------------- messages
+def test_nan_vertex_names_file_line_and_text(tmp_path):
+    p = tmp_path / "n.obj"
+    p.write_text("v 0 0 0\nv 1 0 0\nv 1 nan 0\nv 0 1 0\nf 1 2 3\nf 1 3 4\n")
+    with pytest.raises(SceneError, match=r"n.obj:3: vertex 3 'v 1 nan 0' has a NaN or Inf"):
+        load(p)
+    p.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv inf 2 0\nv 0 1 0\nf 1 2 3\nf 1 3 5\n")
+    with pytest.warns(
+        SceneRepairWarning, match=r"1 vertex position\(s\) no face uses .*line\(s\) 4"
+    ):
+        s = load(p)
+    assert s.n_triangles == 2 and np.isfinite(s.vertices).all()
+
+
+def test_nan_vertex_in_a_ply_names_the_vertex_as_read(tmp_path):
+    p = tmp_path / "n.ply"
+    p.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+        "0 0 0\n1 nan 0\n0 1 0\n3 0 1 2\n"
+    )
+    with pytest.raises(SceneError, match=r"n.ply: vertex 1 .* \[1.0, nan, 0.0\]"):
+        load(p, up_axis="z")  # the coordinates as read, before the up-axis rotation
+
+
+def _z_up_room(path: Path, walls: bool) -> Path:
+    """A z-up OBJ: a 6 x 4 floor, and optionally tall walls that outweigh it (weak evidence)."""
+    lines = ["v 0 0 0", "v 6 0 0", "v 6 4 0", "v 0 4 0", "f 1 2 3 4"]
+    k = 4
+    if walls:
+        for x0, y0, x1, y1 in ((0, 0, 6, 0), (0, 4, 6, 4), (0, 0, 0, 4), (6, 0, 6, 4)):
+            lines += [f"v {x0} {y0} 0", f"v {x1} {y1} 0", f"v {x1} {y1} 5", f"v {x0} {y0} 5"]
+            lines.append(f"f {k + 1} {k + 2} {k + 3} {k + 4}")
+            k += 4
+    # a few small boxes so that the mesh has enough triangles
+    for i in range(8):
+        x = 0.5 + 0.6 * i
+        base = k
+        for dx, dy, dz in [(0, 0, 0), (0.5, 0, 0), (0.5, 0.5, 0), (0, 0.5, 0)]:
+            lines.append(f"v {x + dx} {1 + dy} {0.8 + dz}")
+        lines.append(f"f {base + 1} {base + 2} {base + 3} {base + 4}")
+        k += 4
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_up_axis_auto_logs_its_evidence_and_warns_when_weak(tmp_path, caplog):
+    with caplog.at_level(logging.INFO, logger="icbtool.scene.mesh"):
+        s, _, _ = _load(_z_up_room(tmp_path / "floor.obj", walls=False))
+    assert "up axis 'z' (auto): area facing x/y/z" in caplog.text and "z dominates" in caplog.text
+    np.testing.assert_allclose(s.bounds[1][1], 0.8, atol=1e-6)  # z became y
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="icbtool.scene.mesh"):
+        _load(_z_up_room(tmp_path / "room.obj", walls=True))
+    warned = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1 and "weak evidence" in warned[0].getMessage()
+    assert "up_axis='z'" in warned[0].getMessage()
+
+
+def test_approximations_never_reach_albedo_one(tmp_path):
+    (tmp_path / "m.mtl").write_text(
+        "newmtl glass\nKd 0.5 0.5 0.5\nKs 1 1 1\nTf 1 1 1\nillum 7\n"
+        "newmtl chrome\nKd 0 0 0\nKs 1 1 1\nillum 3\n"
+    )
+    (tmp_path / "m.obj").write_text(
+        "mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+        "usemtl glass\nf 1 2 3\nusemtl chrome\nf 1 3 4\n"
+    )
+    s, msgs, _ = _load(tmp_path / "m.obj")
+    for m in s.materials:
+        assert m.albedo.max() == pytest.approx(MAX_APPROXIMATED_ALBEDO)
+    assert sum("scaled by" in x for x in msgs) == 2
+
+
+@pytest.mark.parametrize(
+    "to_world, fov_axis, size",
+    [
+        ('<lookat origin="0, 1, 6" target="0, 1, 0" up="0, 1, 0"/>', "x", (64, 48)),
+        ('<lookat origin="1, 2, 3" target="-2, 0, 1" up="0, 0, 1"/>', "smaller", (40, 60)),
+        ('<rotate y="1" angle="30"/><translate x="1" z="2"/>', "diagonal", (50, 30)),
+        ('<matrix value="-1 0 0 0 0 1 0 1 0 0 -1 6.8 0 0 0 1"/>', "y", (32, 32)),
+    ],
+)
+def test_camera_rays_equal_mitsubas_own_sensor(tmp_path, to_world, fov_axis, size):
+    """The file's camera read by icbtool casts the rays Mitsuba's own sensor casts."""
+    mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is the benchmark peer (make bench-deps)")
+    mi.set_variant("scalar_rgb")
+    w, h = size
+    xml = (
+        '<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="50"/>'
+        f'<string name="fov_axis" value="{fov_axis}"/><transform name="to_world">{to_world}'
+        f'</transform><film type="hdrfilm"><integer name="width" value="{w}"/>'
+        f'<integer name="height" value="{h}"/></film></sensor><shape type="cube"/></scene>'
+    )
+    (tmp_path / "c.xml").write_text(xml)
+    cam = load(tmp_path / "c.xml").default_camera
+    sensor = mi.load_file(str(tmp_path / "c.xml")).sensors()[0]
+    for fx, fy in [(0.5, 0.5), (0.1, 0.2), (0.9, 0.7), (0.3, 0.95)]:
+        ray, _ = sensor.sample_ray(0.0, 0.5, mi.ScalarPoint2f(fx, fy), mi.ScalarPoint2f(0.5, 0.5))
+        _, d, _ = cam.rays(np.array([[fx * w, fy * h]]))
+        np.testing.assert_allclose(d[0], np.array(ray.d), atol=1e-5)
+        # Mitsuba starts the ray at the near clip plane, on the same line
+        off = np.array(ray.o) - cam.position
+        np.testing.assert_allclose(np.cross(off, d[0]), 0, atol=1e-6)
+
+
+def test_fixture_shapes_equal_mitsubas_own_parse(tmp_path):
+    """Each shape's bounding box and area as Mitsuba itself reads the fixture."""
+    import re
+    import shutil
+
+    mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is the benchmark peer (make bench-deps)")
+    mi.set_variant("scalar_rgb")
+    shutil.copytree(DATA, tmp_path / "m")
+    xml = tmp_path / "m" / "fixture.xml"
+    text = xml.read_text()
+    text = re.sub(r'<shape type="bsplinecurve">.*?</shape>', "", text, flags=re.DOTALL)
+    xml.write_text(re.sub(r"<medium[^>]*/>", "", text))
+    ours = load(xml)
+    shapes = [x for x in mi.load_file(str(xml)).shapes()]
+    assert len(shapes) == 8
+    by_bbox = {}
+    for i, m in enumerate(ours.materials):
+        faces = ours.faces[ours.face_material == i]
+        v = ours.vertices[np.unique(faces)]
+        by_bbox[m.name] = (v.min(0), v.max(0), _area(ours, m.name))
+    for sh in shapes:
+        bb = sh.bbox()
+        lo, hi = np.array(bb.min), np.array(bb.max)
+        name, (olo, ohi, oarea) = min(
+            by_bbox.items(),
+            key=lambda kv: np.abs(kv[1][0] - lo).sum() + np.abs(kv[1][1] - hi).sum(),
+        )
+        np.testing.assert_allclose(olo, lo, atol=2e-3, err_msg=name)
+        np.testing.assert_allclose(ohi, hi, atol=2e-3, err_msg=name)
+        assert oarea == pytest.approx(sh.surface_area(), rel=1e-2), name
+
+
+def test_trace_default_depth_is_the_files():
+    """``render(scene, cam)`` without a config traces to the file's max_depth (here 1: only
+    what the camera sees directly, the constant sky), the same image as asking for it."""
+    import icbtool as icb
+
+    s, _, _ = _load(FIXTURE, params={"depth": 1})
+    cam = s.default_camera.resized(12, 16)
+    full = icb.trace.render(s, cam).full
+    one = icb.trace.render(s, cam, icb.trace.TraceConfig(max_depth=1)).full
+    np.testing.assert_array_equal(full, one)
+    assert full.mean() < icb.trace.render(s, cam, icb.trace.TraceConfig(max_depth=3)).full.mean()
+
+
+@pytest.mark.parametrize(
+    "integrator, depth",
+    [
+        ('<integrator type="path"/>', -1),  # Mitsuba's default: unbounded
+        ('<integrator type="direct"/>', 2),
+        ('<integrator type="moment"><integrator type="path"><integer name="max_depth" '
+         'value="4"/></integrator></integrator>', 4),
+        ("", None),  # no integrator: the tracer's own default
+    ],
+)  # fmt: skip
+def test_integrator_depth(tmp_path, integrator, depth):
+    (tmp_path / "i.xml").write_text(
+        f'<scene version="3.0.0">{integrator}<shape type="cube"/></scene>'
+    )
+    assert load(tmp_path / "i.xml").max_depth == depth
+
+
+def test_default_view_small_cavities_are_not_a_room(caplog):
+    """A closed hut taking ~3 % of an open yard: the scene is framed from outside."""
+    b = sc.SceneBuilder("yard")
+    w = b.material("w")
+    b.add_quad((0, 0, 0), (0, 0, 10), (10, 0, 0), w)  # ground, +y
+    b.add_box((9.5, 1.5, 9.5), (0.2, 3.0, 0.2), w)  # a pole: the bounds are 3 high
+    for c, u, v in [  # a 2 x 2 x 2 hut, faces inward
+        ((0, 0.01, 0), (0, 0, 2), (2, 0, 0)),
+        ((0, 2, 0), (2, 0, 0), (0, 0, 2)),
+        ((0, 0, 0), (2, 0, 0), (0, 2, 0)),
+        ((0, 0, 2), (0, 2, 0), (2, 0, 0)),
+        ((0, 0, 0), (0, 2, 0), (0, 0, 2)),
+        ((2, 0, 0), (0, 0, 2), (0, 2, 0)),
+    ]:
+        b.add_quad(c, u, v, w)
+    yard = b.build()
+    with caplog.at_level(logging.INFO, logger="icbtool.scene.view"):
+        cam = sc.default_view(yard)
+    np.testing.assert_allclose(
+        cam.world_from_cam, Camera.frame(yard.bounds, up=yard.up).world_from_cam
+    )
+    assert "small cavities, not a room" in caplog.text
+
+
+def _write_serialized(path: Path, shapes: list[tuple], version: int = 4) -> None:
+    """A Mitsuba .serialized file (see icbtool.scene.mitsuba.read_serialized for the format)."""
+    import struct
+    import zlib
+
+    out, offsets = b"", []
+    for v, f, n, uv in shapes:
+        flags = 0x1000 | (0x0001 if n is not None else 0) | (0x0002 if uv is not None else 0)
+        body = struct.pack("<I", flags) + (b"mesh\0" if version == 4 else b"")
+        body += struct.pack("<QQ", len(v), len(f)) + np.asarray(v, np.float32).tobytes()
+        for extra in (n, uv):
+            if extra is not None:
+                body += np.asarray(extra, np.float32).tobytes()
+        body += np.asarray(f, np.uint32).tobytes()
+        offsets.append(len(out))
+        out += struct.pack("<HH", 0x041C, version) + zlib.compress(body)
+    fmt = "<Q" if version == 4 else "<I"
+    out += b"".join(struct.pack(fmt, o) for o in offsets) + struct.pack("<I", len(shapes))
+    path.write_bytes(out)
+
+
+@pytest.mark.parametrize("version", [3, 4])
+def test_serialized_shapes(tmp_path, version):
+    quad_v = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
+    quad_f = [[0, 1, 2], [0, 2, 3]]
+    uv = [[0, 0], [1, 0], [1, 1], [0, 0.25]]
+    tri_v = [[0, 0, 0], [2, 0, 0], [0, 0, 2]]
+    _write_serialized(
+        tmp_path / "m.serialized",
+        [(quad_v, quad_f, np.tile([0, 0, 1], (4, 1)), uv), (tri_v, [[0, 2, 1]], None, None)],
+        version,
+    )
+    (tmp_path / "s.xml").write_text(
+        '<scene version="3.0.0">'
+        '<shape type="serialized"><string name="filename" value="m.serialized"/>'
+        '<integer name="shape_index" value="1"/><bsdf type="diffuse" id="tri"/></shape>'
+        '<shape type="serialized"><string name="filename" value="m.serialized"/>'
+        '<transform name="to_world"><translate z="5"/></transform>'
+        '<bsdf type="diffuse" id="quad"/></shape></scene>'
+    )
+    s, _, _ = _load(tmp_path / "s.xml")
+    assert _area(s, "tri") == pytest.approx(2.0) and _area(s, "quad") == pytest.approx(1.0)
+    i = [m.name for m in s.materials].index("tri")
+    np.testing.assert_allclose(s.face_normals[s.face_material == i], [[0, 1, 0]], atol=1e-7)
+    assert s.vertices[:, 2].max() == pytest.approx(5.0)
+    (tmp_path / "bad.xml").write_text(
+        '<scene version="3.0.0"><shape type="serialized"><string name="filename" '
+        'value="m.serialized"/><integer name="shape_index" value="2"/></shape></scene>'
+    )
+    with pytest.raises(
+        SceneError, match=r"bad.xml:1: .*shape_index 2 out of range: the file has 2"
+    ):
+        load(tmp_path / "bad.xml")
+    (tmp_path / "junk.serialized").write_bytes(b"\x00" * 32)
+    with pytest.raises(SceneError, match=r"not a Mitsuba serialized mesh"):
+        sc.mitsuba.read_serialized(tmp_path / "junk.serialized")
+    mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is the benchmark peer (make bench-deps)")
+    mi.set_variant("scalar_rgb")
+    theirs = mi.load_file(str(tmp_path / "s.xml"))
+    assert sum(sh.surface_area() for sh in theirs.shapes()) == pytest.approx(3.0)
+    np.testing.assert_allclose(np.array(theirs.bbox().max), s.bounds[1], atol=1e-6)
+
+
+def test_diffuse_twin_renders_what_icbtool_renders(tmp_path):
+    """The twin of the fixture has only two-sided diffuse BSDFs with icbtool's albedos: loading
+    it gives the same materials without a single approximation warning."""
+    ours, _, _ = _load(FIXTURE)
+    (tmp_path / "out").mkdir()
+    twin = sc.mitsuba.diffuse_twin(FIXTURE, tmp_path / "out")
+    assert twin == tmp_path / "out" / "mitsuba" / "fixture.xml"
+    s, msgs, cats = _load(twin)
+    assert MaterialApproximationWarning not in cats
+    assert s.n_triangles == ours.n_triangles
+    assert len(s.materials) == len(ours.materials)  # in the same order (shape order)
+    for theirs, m in zip(s.materials, ours.materials):
+        np.testing.assert_allclose(theirs.albedo, m.albedo, atol=1e-8)
+        np.testing.assert_allclose(theirs.emission, m.emission)
+        assert theirs.is_textured == m.is_textured
+    assert 'type="box"' in twin.read_text()
+    assert 'type="plastic"' not in (twin.parent / "fragments" / "bsdfs.xml").read_text()
