@@ -33,7 +33,7 @@ _missing = [
 ]
 if _missing:
     pytest.skip(
-        f"the gui tests need {_missing}: pip install 'icbtool[gui,dev]' (make install)",
+        f"the gui tests need {_missing}: pip install '.[gui,dev]' in the checkout (make install)",
         allow_module_level=True,
     )
 if not os.environ.get("DISPLAY"):
@@ -339,7 +339,7 @@ def test_cli_names_the_extra_when_qt_is_missing(tmp_path, store_dir):
     r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True,
                        text=True, timeout=60)  # fmt: skip
     assert r.returncode == 1, r.stderr
-    assert "icbtool gui: error:" in r.stderr and 'pip install "icbtool[gui]"' in r.stderr
+    assert "icbtool gui: error:" in r.stderr and 'pip install ".[gui]" in the icbtool checkout' in r.stderr
     assert "Traceback" not in r.stderr
 
 

@@ -126,7 +126,7 @@ class Generator:
         Raises:
             ValueError: size not a multiple of 32.
             MissingOptionalDependency: the ``onnx`` package is missing (the message says
-                ``pip install "icbtool[gan]"``).
+                ``pip install ".[gan]"`` in the checkout).
         """
         if height % MULTIPLE or width % MULTIPLE:
             raise ValueError(f"export size must be multiples of {MULTIPLE}, got {height}x{width}")
