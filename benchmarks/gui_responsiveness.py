@@ -1,7 +1,7 @@
 """How long the desktop app's event loop waits: timer-tick gaps while idle, playing, training.
 
-Opens the window (gui.app.open_window) on the Cornell box and a small store baked here (4 train +
-4 test cameras, 32x32), starts a 20 ms QTimer and records its ticks for ``--seconds`` in three
+Opens the window (icbtool_gui.app.open_window) on the Cornell box and a small store baked here
+(4 train + 4 test cameras, 32x32), starts a 20 ms QTimer and records its ticks for ``--seconds`` in three
 phases: idle; playing along the path with frames of 64x64 (cloud renders at 8 spp on misses,
 16-spp truth, SSIM/FLIP); training a tiny GAN from the trainer panel (its background process).
 A gap between ticks is time the window could not react. Writes
@@ -45,8 +45,8 @@ def main() -> None:
     from PySide6 import QtCore, QtWidgets
 
     import icbtool as icb
-    from gui.app import open_window
-    from gui.model import ViewerConfig
+    from icbtool_gui.app import open_window
+    from icbtool_gui.model import ViewerConfig
     from icbtool.provenance import run_info, write_json
 
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication([])

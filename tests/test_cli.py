@@ -218,7 +218,8 @@ def test_require_names_the_extra(monkeypatch):
         _optional.require("pyoidn", "denoising")
     msg = str(e.value)
     assert msg.startswith("denoising needs the optional package 'pyoidn'")
-    assert 'pip install ".[denoise]" in the icbtool checkout' in msg and isinstance(e.value, ImportError)
+    assert 'pip install ".[denoise]" in the icbtool checkout' in msg
+    assert isinstance(e.value, ImportError)
     assert isinstance(e.value.__cause__, ImportError)
 
 

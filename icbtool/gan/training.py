@@ -348,7 +348,7 @@ def train(
         on_step: called after every generator update with the iteration (1-based) and that
             iteration's losses (``g``, ``l1``, and with a critic ``d``, ``gp``, ``w``, ``g_adv``;
             ``g_p`` with the perceptual term), e.g. to log live loss curves
-            (``gui.train_job`` writes them to ``losses.csv``).
+            (``icbtool_gui.train_job`` writes them to ``losses.csv``).
 
     Returns:
         The :class:`TrainResult`.
