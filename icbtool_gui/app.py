@@ -145,7 +145,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
         split = QtWidgets.QSplitter(QtCore.Qt.Horizontal)
         split.setChildrenCollapsible(False)
-        for w, stretch in ((left, 4), (self.panels_area, 3), (self.side, 3)):
+        for w, stretch in ((left, 4), (self.panels_area, 4), (self.side, 3)):
             split.addWidget(w)
             split.setStretchFactor(split.count() - 1, stretch)
         self.split = split
@@ -155,7 +155,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.busy = QtWidgets.QProgressBar()
         self.busy.setMaximumWidth(180)
         self.busy.setTextVisible(False)
-        self.busy.setRange(0, 1)
+        self.busy.setRange(0, 0)
+        self.busy.setVisible(False)  # shown while a frame is computed
         self.statusBar().addPermanentWidget(self.busy)
         self.statusBar().showMessage("ready")
         self.menu_actions: dict[str, QtGui.QAction] = {}
@@ -375,14 +376,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self._pending = None
         self._t_ask = time.perf_counter()
         self.statusBar().showMessage(f"computing frame {k} ...")
-        self.busy.setRange(0, 0)  # busy: a frame is being computed
+        self.busy.setVisible(True)  # busy: a frame is being computed
         s = self.session
         self.frames.compute(k, s.viewer, s.cloud, s.client)
 
     def _on_frame(self, f: FrameResult) -> None:
         self._busy = False
-        self.busy.setRange(0, 1)
-        self.busy.setValue(1)
+        self.busy.setVisible(False)
         if self._pending is not None:
             self._ask(self._pending)
         if f.index != self.k:  # a newer frame was asked for meanwhile
@@ -415,8 +415,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _on_failed(self, k: int, message: str) -> None:
         self._busy = False
-        self.busy.setRange(0, 1)
-        self.busy.setValue(0)
+        self.busy.setVisible(False)
         self.pause()
         self.statusBar().showMessage(f"frame {k} failed: {message}")
         self.frame_failed.emit(k, message)

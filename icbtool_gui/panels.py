@@ -202,8 +202,12 @@ class ImagePanel(QtWidgets.QFrame):
         if img is None:
             self.image = None
             self._view.setPixmap(QtGui.QPixmap())
-            self._view.setText(note or "-")
+            full = note or "-"
+            short = full if len(full) <= 90 else full[:87] + "..."
+            self._view.setText(f"<span style='font-size: 10px'>{short}</span>")
+            self._view.setToolTip(full)
             return
+        self._view.setToolTip("")
         self.image = np.ascontiguousarray(img, np.uint8)
         self._show_pixmap()
 

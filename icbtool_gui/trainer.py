@@ -119,6 +119,7 @@ class TrainerPanel(QtWidgets.QWidget):
         self.evals: dict[Path, list[dict[str, float]]] = {}
         self.output: list[str] = []
         self.form = DataclassForm(config or default_config(image_size))
+        self.form.changed.connect(lambda: self._status())  # the progress bar's total
         self.run_edit = QtWidgets.QLineEdit(str(run_dir or Path("out/gui/runs/run")))
         self.threads = QtWidgets.QSpinBox()
         self.threads.setRange(1, max(1, os.cpu_count() or 1))
@@ -193,6 +194,7 @@ class TrainerPanel(QtWidgets.QWidget):
         self.timer.start()
         self._draw()
         self._buttons()
+        self._status()
 
     # -------------------------------------------------------------- the process
     @property
@@ -395,6 +397,7 @@ class TrainerPanel(QtWidgets.QWidget):
             pass  # not a finished run's directory yet: the form keeps its values
         self._stamps.clear()
         self.poll()
+        self._status()
 
     def _changed(self, path: Path) -> bool:
         try:
