@@ -1,4 +1,4 @@
-"""Dependencies run one way, from geometry up to the applications (STYLE.md).
+"""Dependencies run one way, from geometry up to the applications (docs/conventions.md section 1).
 
 Every ``import icbtool.X`` in the library (module level or inside a function) is read from the
 source with ``ast`` and checked against the layer table below: a package may import only

@@ -1,4 +1,4 @@
-"""GAN pre-renderer commands (ICB.md section 5):
+"""GAN pre-renderer commands (docs/design.md section 5):
 
 - ``icbtool train STORE --scene S --inputs I --preset cpu --out runs/NAME [--resume]``
 - ``icbtool generate RUN SCENE --camera default|path:NAME --out DIR``

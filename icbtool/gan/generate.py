@@ -1,4 +1,4 @@
-"""Inference: a trained generator makes linear HDR GI from a raster buffer set (ICB.md section 6).
+"""Inference: a trained generator makes HDR GI from raster buffers (docs/design.md section 6).
 
 ``Generator.load(run_dir)`` reads ``run_dir/generator.pt`` (written by :func:`icbtool.gan.train`
 at every checkpoint); ``generate(buffers)`` encodes the input maps exactly as in training, runs

@@ -1,4 +1,4 @@
-"""The resumable GAN training loop (ICB.md section 5) and its presets.
+"""The resumable GAN training loop (docs/design.md section 5) and its presets.
 
 A run directory holds:
 
