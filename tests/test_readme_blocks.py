@@ -357,3 +357,23 @@ def test_quick_block_runs(block, tmp_path):
 @pytest.mark.parametrize("block", SLOW, ids=[b.id for b in SLOW])
 def test_slow_block_runs(block, tmp_path):
     _run_or_skip(block, tmp_path)
+
+
+def test_code_and_docs_cite_only_documents_in_the_repository():
+    """Docstrings cite docs/design.md and docs/conventions.md (in the repository), never the
+    design notes they were written from (ICB.md, STYLE.md), which a clone does not have."""
+    cited = []
+    for path in [*REPO.glob("*.md"), *REPO.glob("docs/*.md")] + [
+        p
+        for d in ("icbtool", "icbtool_gui", "tests", "benchmarks")
+        for p in (REPO / d).rglob("*.py")
+    ]:
+        if path == Path(__file__):
+            continue
+        for n, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            if "ICB.md" in line or "STYLE.md" in line:
+                cited.append(f"{path.relative_to(REPO)}:{n}")
+    assert not cited, f"cite docs/design.md or docs/conventions.md instead: {cited}"
+    design = (REPO / "docs" / "design.md").read_text()
+    for n in range(1, 8):  # the sections the code cites by number
+        assert f"\n## {n}. " in design, n
