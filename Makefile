@@ -16,7 +16,7 @@ DEB_PKGS := libosmesa6 libusb-1.0-0 $(DEB_GUI)
 DEB_BENCH := libllvm19
 
 # Lint only the folders that exist.
-LINT_DIRS := $(wildcard icbtool tests benchmarks gui)
+LINT_DIRS := $(wildcard icbtool tests benchmarks icbtool_gui)
 
 .PHONY: gui demo test test-all lint format bench sysdeps install clean wheel-smoke pytest
 

@@ -3,7 +3,7 @@
 # files is complete, without the network and in seconds.
 #  1. build the wheel from a copy of the git-tracked (and untracked, not ignored) files only, so
 #     nothing stray in the work tree (build/, *.egg-info, an editable install) can hide a gap;
-#  2. check that it holds every module (icbtool/ and the app's gui/), every shader and the
+#  2. check that it holds every module (icbtool/ and the app's icbtool_gui/), every shader and the
 #     console script;
 #  3. install it (--no-deps) into a throwaway venv that sees .venv's site-packages as a plain path
 #     (its editable icbtool finder is NOT activated), check that `icbtool` is imported from the
@@ -34,16 +34,19 @@ from pathlib import Path
 
 wheel, src = sys.argv[1], Path(sys.argv[2])
 names = set(zipfile.ZipFile(wheel).namelist())
-# icbtool and the desktop app's package gui/ (imported only by `icbtool gui`)
+# icbtool and the desktop app's package icbtool_gui/ (imported only by `icbtool gui`)
 want = {
     p.relative_to(src).as_posix()
-    for pkg in ("icbtool", "gui")
+    for pkg in ("icbtool", "icbtool_gui")
     for p in (src / pkg).rglob("*")
     if p.is_file()
 }
 want = {n for n in want if "__pycache__" not in n}
 missing = sorted(want - names)
 assert not missing, f"the wheel lacks {missing}"
+# no top-level package with a generic name (a `gui` in site-packages collides with others')
+tops = {n.split("/", 1)[0] for n in names if not n.split("/", 1)[0].endswith((".dist-info", ".data"))}
+assert tops == {"icbtool", "icbtool_gui"}, f"the wheel installs top-level {sorted(tops)}"
 shaders = [n for n in names if n.startswith("icbtool/raster/shaders/")]
 assert len(shaders) >= 6, f"shaders not packaged: {shaders}"
 ep = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
@@ -76,7 +79,7 @@ print(f"  icbtool {icbtool.__version__} from {icbtool.__file__}")
 EOF
 "$TMP/venv/bin/icbtool" --help >/dev/null
 "$TMP/venv/bin/icbtool" gui --help >/dev/null
-"$TMP/venv/bin/python" -c "import gui, sys; assert gui.__file__.startswith(sys.argv[1]), gui.__file__" "$SITE"
+"$TMP/venv/bin/python" -c "import icbtool_gui as g, sys; assert g.__file__.startswith(sys.argv[1]), g.__file__" "$SITE"
 ICBTOOL_GL_BACKEND=${ICBTOOL_GL_BACKEND:-osmesa} "$TMP/venv/bin/icbtool" render cornell_box \
   --out "$TMP/render" --height 32 --buffers dl,depth --no-png
 for f in dl.exr depth.exr mask.exr summary.json; do

@@ -1,5 +1,5 @@
 """ICB's Figure 7 on Sponza: test SSIM / MSE of the GAN pre-renderer against iterations, one curve
-per input configuration A-J (ICB.md section 5), with the test truth's own noise ceiling.
+per input configuration A-J (docs/design.md section 5), with the test truth's own noise ceiling.
 
 Data: a store baked with ``icbtool bake`` holding the scene's "train" path and its "test" path
 (records tagged by path), and a second store holding some of the same test cameras traced with
@@ -38,7 +38,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
-#: (view-normal configuration, world-normal configuration) pairs of ICB.md's comparison.
+#: (view-normal, world-normal) configuration pairs compared in docs/design.md section 5.
 NORMAL_PAIRS = (("E", "H"), ("F", "I"), ("G", "J"))
 
 

@@ -1,4 +1,4 @@
-"""Time against error: the GAN generator against the path tracer at equal SSIM (ICB.md section 5).
+"""Time vs error: the generator against the path tracer at equal SSIM (docs/design.md section 5).
 
 On test frames of a baked store (truth: the store's GI, traced with many samples and denoised), it
 times and scores

@@ -1,9 +1,10 @@
 """How long the desktop app's event loop waits: timer-tick gaps while idle, playing, training.
 
-Opens the window (gui.app.open_window) on the Cornell box and a small store baked here (4 train +
-4 test cameras, 32x32), starts a 20 ms QTimer and records its ticks for ``--seconds`` in three
-phases: idle; playing along the path with frames of 64x64 (cloud renders at 8 spp on misses,
-16-spp truth, SSIM/FLIP); training a tiny GAN from the trainer panel (its background process).
+Opens the window (icbtool_gui.app.open_window) on the Cornell box and a small store baked in a
+subprocess (4 train + 4 test cameras, 32x32: the window's process keeps the only OpenGL), starts a
+20 ms QTimer and records its ticks for ``--seconds`` in three phases: idle; playing along the path
+with frames of 64x64 (cloud renders at 8 spp on misses, 16-spp truth, SSIM/FLIP); training a tiny
+GAN from the trainer panel (its background process).
 A gap between ticks is time the window could not react. Writes
 benchmarks/results/gui/responsiveness.json (largest gap, 99th percentile, ticks per phase, the
 load average, versions, machine). Needs an X display (``xvfb-run``).
@@ -45,20 +46,16 @@ def main() -> None:
     from PySide6 import QtCore, QtWidgets
 
     import icbtool as icb
-    from gui.app import open_window
-    from gui.model import ViewerConfig
     from icbtool.provenance import run_info, write_json
+    from icbtool_gui.app import open_window
+    from icbtool_gui.bakejob import bake_in_process
+    from icbtool_gui.model import ViewerConfig
 
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication([])
     results: dict = {}
     with tempfile.TemporaryDirectory(prefix="icb_gui_bench_") as tmp:
         store = Path(tmp) / "store"
-        scene = icb.scene.cornell_box()
-        with icb.store.open(store, icb.store.StoreConfig(fsync=False)) as st:
-            for path in ("train", "test"):
-                cfg = icb.bake.BakeConfig(spp=2, resolution=(32, 32), stride=10, limit=4,
-                                          progress=False)  # fmt: skip
-                icb.bake.bake(scene, path, st, cfg)
+        bake_in_process("cornell_box", store, size=32, spp=2, stride=12)  # 4 views per path
         viewer = ViewerConfig(frames=12, height=64, width=64, truth_spp=16)
         cloud = icb.system.CloudConfig(spp=8, denoise=False)
         win = open_window("cornell_box", store, viewer=viewer, cloud=cloud)

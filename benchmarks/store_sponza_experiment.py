@@ -1,4 +1,4 @@
-"""Cache hit rate and reuse quality along Sponza's test path (ICB.md section 3).
+"""Cache hit rate and reuse quality along Sponza's test path (docs/design.md section 3).
 
 1. Bake CRT-buffers (raster G-buffers + DL, traced GI, OIDN-denoised) for the "train" path into one
    store and for the "test" path into another (resumable: rerunning skips what is stored).

@@ -29,6 +29,7 @@ _SUBMODULES = (
     "pipeline",
     "gan",
     "lpm",
+    "net",
 )
 
 if TYPE_CHECKING:  # pragma: no cover

@@ -3,7 +3,9 @@
 The extras are declared in setup.cfg (``[options.extras_require]``); :data:`EXTRAS` maps each
 optional top-level module to the extra that installs it. A missing module raises
 :class:`MissingOptionalDependency` (an ImportError) whose message says what needs it and what to
-install, e.g. ``pip install "icbtool[denoise]"``.
+install, e.g. ``pip install ".[denoise]"`` run in the icbtool checkout (icbtool is not on a package
+registry, so ``pip install "icbtool[denoise]"`` would fail), or the distribution alone
+(``pip install pyoidn``).
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ def install_hint(module: str) -> str:
             f"{module!r} is not an optional dependency of icbtool; known: {sorted(EXTRAS)}"
         )
     extra, dist = EXTRAS[top]
-    return f'pip install "icbtool[{extra}]" (or pip install {dist})'
+    return f'pip install ".[{extra}]" in the icbtool checkout (or pip install {dist})'
 
 
 def require(module: str, purpose: str) -> ModuleType:

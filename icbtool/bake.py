@@ -48,7 +48,7 @@ class BakeConfig:
     cloud_camera: Literal["same", "wider", "prefetch"] = "same"
     """The camera baked for a client camera: the same one; "wider": a fixed rule (FOV times
     ``fov_multiplier``, pulled back by ``pullback``); "prefetch":
-    ``icbtool.prefetch.prefetch_camera`` with the path's velocities at that camera (ICB.md
+    ``icbtool.prefetch.prefetch_camera`` with the path's velocities at that camera (docs/design.md
     section 4) and ``prefetch_config``."""
     fov_multiplier: float = 1.5
     """"wider": the vertical FOV is multiplied by this (capped at ``max_fov_deg``)."""
@@ -197,7 +197,7 @@ def _trace_gbuffers(scene: Any, cam: Camera) -> dict[str, np.ndarray]:
     }
 
 
-#: The raster buffers a CRT-buffer holds (ICB.md section 2); the mask is always included.
+#: The raster buffers a CRT-buffer holds (docs/design.md section 2); the mask is always included.
 CRT_RASTER_BUFFERS: tuple[str, ...] = (
     "dl",
     "albedo",

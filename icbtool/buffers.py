@@ -1,4 +1,4 @@
-"""The one registry of ICB's image buffers (ICB.md section 2): names, channels, dtypes, roles.
+"""The one registry of image buffers (docs/design.md section 2): names, channels, dtypes, roles.
 
 Every package that names a buffer takes it from here: the rasterizer (which buffers it can make),
 the store (the CRT-buffer record and the order of its payload), the dataset (the GAN's input
@@ -92,7 +92,7 @@ CHANNELS: dict[str, int] = {n: b.channels for n, b in BUFFERS.items()}
 #: The buffers the rasterizer produces, in canonical order.
 RASTER_BUFFERS: tuple[str, ...] = tuple(n for n, b in BUFFERS.items() if b.raster)
 
-#: The client's WRT-buffer (ICB.md section 2, with the albedo the best generator input needs);
+#: The client's WRT-buffer (docs/design.md section 2, with the albedo the best GAN input needs);
 #: the mask always comes with it.
 WRT_BUFFERS: tuple[str, ...] = ("dl", "albedo", "normal_world", "depth")
 

@@ -1,6 +1,6 @@
 """Image files: float32 EXR (exact), PNG previews, and the one display transform of icbtool.
 
-Display transform (used for every PNG and for every image comparison in 0-255 RGB, as ICB.md
+Display transform (used for every PNG and for every image comparison in 0-255 RGB, as docs/design.md
 decides): ``display = round(255 * srgb_oetf(clip(exposure * linear, 0, 1)))``: a linear exposure,
 a hard clip, the sRGB transfer curve (IEC 61966-2-1), 8 bits.
 """

@@ -2,7 +2,7 @@
 
 :func:`run_loop` is a thin driver over the system's objects (:mod:`icbtool.system`): a
 :class:`~icbtool.system.Client` asks an in-process :class:`~icbtool.system.Cloud` (its
-:class:`~icbtool.system.GISource`) for GI. For every client frame at time ``t`` (ICB.md
+:class:`~icbtool.system.GISource`) for GI. For every client frame at time ``t`` (docs/design.md
 section 6, without the network yet):
 
 1. The client rasterizes its WRT-buffer (DL, albedo, normals, depth) at its camera ``c(t)``.

@@ -27,3 +27,14 @@ def sponza_path() -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
+
+
+def pytest_collection_modifyitems(config, items):
+    """The desktop app's tests (marker ``gui``) run first, in their own order.
+
+    OpenGL has one owner per process: the window's process draws with Qt's and VTK's OpenGL
+    (GLX), and once PyOpenGL is bound to OSMesa / EGL in a process (any test that rasterizes in
+    this one), a window's 3D view may stay blank. Running the gui tests before every other test
+    makes the order, not the luck of the load, decide (icbtool_gui.app.check_gl_owner refuses
+    a window in a process that already holds headless OpenGL)."""
+    items.sort(key=lambda item: item.get_closest_marker("gui") is None)  # stable: gui first

@@ -127,16 +127,34 @@ def test_unwritable_out_reports_the_os_reason(tmp_path, capsys, monkeypatch, no_
 
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
-def test_unwritable_out_permission_bits():
-    """A real 0o500 folder: as an unprivileged user (a forked child drops root to nobody, since
-    root may write anyway) --out fails with 'not writable (Permission denied)', exit code 2."""
-    from icbtool.cli import build_parser
-    from icbtool.cli._common import commands
+def _drop_write_override() -> None:
+    """Make this (forked, root) process obey write permission bits: drop CAP_DAC_OVERRIDE and
+    CAP_FOWNER from its effective capabilities (capset(2)). CAP_DAC_READ_SEARCH stays, so it can
+    still read the checkout wherever the clone lives (a 0700 folder, another user's home)."""
+    import ctypes
 
-    commands(build_parser())  # import every command and its options before dropping privileges
-    top = Path(tempfile.mkdtemp(prefix="icbtool-test-"))  # /tmp: searchable by nobody
+    class Header(ctypes.Structure):
+        _fields_ = [("version", ctypes.c_uint32), ("pid", ctypes.c_int)]
+
+    class Data(ctypes.Structure):
+        _fields_ = [(n, ctypes.c_uint32) for n in ("effective", "permitted", "inheritable")]
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    hdr, data = Header(0x20080522, 0), (Data * 2)()  # _LINUX_CAPABILITY_VERSION_3
+    if libc.capget(ctypes.byref(hdr), data) != 0:
+        raise OSError(ctypes.get_errno(), "capget")
+    cap_dac_override, cap_fowner = 1, 3
+    data[0].effective &= ~((1 << cap_dac_override) | (1 << cap_fowner))
+    if libc.capset(ctypes.byref(hdr), data) != 0:
+        raise OSError(ctypes.get_errno(), "capset")
+
+
+def test_unwritable_out_permission_bits():
+    """A real 0o500 folder: --out fails with 'not writable (Permission denied)', exit code 2.
+    Root ignores permission bits, so a forked child of root drops its write override first
+    (capabilities, not the user: it must still read the checkout, wherever the clone lives)."""
+    top = Path(tempfile.mkdtemp(prefix="icbtool-test-"))
     try:
-        top.chmod(0o755)
         out = top / "locked"
         out.mkdir()
         out.chmod(0o500)
@@ -147,12 +165,15 @@ def test_unwritable_out_permission_bits():
             try:
                 os.close(r)
                 sys.stderr = os.fdopen(w, "w")
-                if os.getuid() == 0:
-                    os.setgid(65534)
-                    os.setuid(65534)
+                if os.geteuid() == 0:
+                    _drop_write_override()
                 code = main(["render", "cornell_box", "--out", str(out)])
-                sys.stderr.flush()
+            except BaseException:  # noqa: BLE001 - shown by the parent's assertion
+                import traceback
+
+                traceback.print_exc()
             finally:
+                sys.stderr.flush()
                 os._exit(code)
         os.close(w)
         with os.fdopen(r) as f:
@@ -200,7 +221,8 @@ def test_require_names_the_extra(monkeypatch):
         _optional.require("pyoidn", "denoising")
     msg = str(e.value)
     assert msg.startswith("denoising needs the optional package 'pyoidn'")
-    assert 'pip install "icbtool[denoise]"' in msg and isinstance(e.value, ImportError)
+    assert 'pip install ".[denoise]" in the icbtool checkout' in msg
+    assert isinstance(e.value, ImportError)
     assert isinstance(e.value.__cause__, ImportError)
 
 
@@ -232,7 +254,7 @@ def test_denoise_without_pyoidn_names_the_extra(monkeypatch):
     from icbtool.trace import denoise
 
     monkeypatch.setitem(sys.modules, "pyoidn", None)
-    with pytest.raises(ImportError, match=r'pip install "icbtool\[denoise\]"'):
+    with pytest.raises(ImportError, match=r'pip install "\.\[denoise\]" in the icbtool checkout'):
         denoise(np.ones((4, 4, 3), np.float32))
 
 
@@ -251,7 +273,7 @@ def test_cli_missing_optional_is_one_line_before_work(argv, tmp_path, capsys, mo
     assert rc == 1 and len(err) == 1, err
     assert err[0].startswith(f"icbtool {argv[0]}: error: ")
     assert "needs the optional package 'pyoidn'" in err[0]
-    assert 'pip install "icbtool[denoise]"' in err[0]
+    assert 'pip install ".[denoise]" in the icbtool checkout' in err[0]
 
 
 # ----------------------------------------------------------------------------- one convention
@@ -500,3 +522,34 @@ def test_an_old_spelling_is_an_error_of_the_command_that_names_the_new_one(tmp_p
         "(--size is now --height H --width W)"
     ]
     assert not (tmp_path / "s").exists()
+
+
+def test_store_evict_without_a_capacity_drops_only_damaged_records(tmp_path, capsys):
+    """``icbtool store evict DIR`` as the README writes it: the damaged records go, the healthy
+    ones stay (no capacity given)."""
+    from icbtool import store as S
+    from icbtool.camera import Camera
+
+    d = tmp_path / "s"
+    rng = np.random.default_rng(0)
+    with S.open(d, S.StoreConfig(fsync=False)) as st:
+        ids = []
+        for i in range(4):
+            m = np.eye(4)
+            m[:3, 3] = (i, 0, 0)
+            cam = Camera.from_fov(60.0, 8, 8, m)
+            img = rng.random((8, 8, 3), np.float32)
+            rec = S.CRTBuffer(camera=cam, meta=S.RecordMeta("s", "scene", "light", spp=4),
+                              gi=img, dl=img, albedo=img, normal_world=img,
+                              depth=img[..., :1], mask=np.ones((8, 8, 1), np.float32))  # fmt: skip
+            ids.append(st.put(rec))
+        payload = st.info(ids[1]).payload
+    payload.write_bytes(payload.read_bytes()[:-10])  # a truncated payload: damaged
+    assert main(["store", "evict", str(d)]) == 0
+    out = capsys.readouterr().out
+    assert f"evicted 1 damaged record(s) first: [{ids[1]}]" in out and "4 -> 3 records" in out
+    with S.open(d, S.StoreConfig(readonly=True)) as st:
+        assert sorted(r.record_id for r in st) == [ids[0], ids[2], ids[3]]
+        assert st.check().ok
+    assert main(["store", "evict", str(d)]) == 0  # a healthy store is left as it is
+    assert "3 -> 3 records" in capsys.readouterr().out

@@ -1,4 +1,4 @@
-"""Dependencies run one way, from geometry up to the applications (README.md, "What is here").
+"""Dependencies run one way, from geometry up to the applications (docs/conventions.md section 1).
 
 Every import of the library by the library (module level, inside a function or under
 ``TYPE_CHECKING``) is read from the source with ``ast`` and checked against the layer table

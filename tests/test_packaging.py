@@ -48,7 +48,7 @@ def _third_party_imports(root: Path = PKG) -> dict[str, set[str]]:
                 continue
             for n in names:
                 top = n.split(".")[0]
-                first_party = top in ("icbtool", "gui", "__future__")
+                first_party = top in ("icbtool", "icbtool_gui", "__future__")
                 if not first_party and top not in sys.stdlib_module_names:
                     found.setdefault(top, set()).add(str(path.relative_to(REPO)))
     return found
@@ -86,19 +86,20 @@ def test_every_runtime_import_is_declared():
 
 
 def test_the_desktop_app_imports_only_what_install_requires_and_its_extra_declare():
-    """gui/ (installed with icbtool, imported by `icbtool gui`) may use the ``gui`` extra."""
+    """icbtool_gui/ (installed with icbtool, imported by `icbtool gui`) may use the ``gui``
+    extra."""
     cfg = _cfg()
     declared = _requirements(cfg["options"]["install_requires"])
     declared |= _requirements(cfg["options.extras_require"]["gui"])
     dists = _module_owners()
-    imports = _third_party_imports(REPO / "gui")
+    imports = _third_party_imports(REPO / "icbtool_gui")
     assert {"PySide6", "pyvista", "pyvistaqt", "matplotlib"} <= set(imports)
     undeclared = {
         m: (sorted(dists.get(m, set())), sorted(f))
         for m, f in imports.items()
         if not dists.get(m, set()) & declared
     }
-    assert not undeclared, f"gui/ imports these, declared nowhere: {undeclared}"
+    assert not undeclared, f"icbtool_gui/ imports these, declared nowhere: {undeclared}"
 
 
 def test_the_known_imports_are_found():
@@ -134,3 +135,31 @@ def test_shaders_are_package_data():
     for s in shaders:
         rel = s.relative_to(PKG)
         assert any(rel.match(g) for g in globs), f"{rel} is not matched by package_data {globs}"
+
+
+def test_the_distribution_installs_no_generic_top_level_name():
+    """setup.cfg's packages are icbtool and icbtool_gui only: the desktop app is not a top-level
+    ``gui`` (a name other distributions install too), and `icbtool gui` imports it by that name."""
+    from setuptools import find_packages
+
+    include = [p.strip() for p in _cfg()["options.packages.find"]["include"].split(",")]
+    tops = {p.split(".")[0] for p in find_packages(str(REPO), include=include)}
+    assert tops == {"icbtool", "icbtool_gui"}, tops
+    assert not (REPO / "gui" / "__init__.py").exists()
+    cli = (PKG / "cli" / "gui.py").read_text()
+    assert 'import_module("icbtool_gui.app")' in cli
+
+
+def test_every_subpackage_is_a_lazy_attribute():
+    """``icb.NAME`` works for every public subpackage and module (icb.net once raised
+    AttributeError: it was missing from the lazy list)."""
+    import icbtool
+
+    public = {
+        p.stem if p.suffix == ".py" else p.name
+        for p in PKG.iterdir()
+        if not p.name.startswith("_")
+        and (p.suffix == ".py" or (p.is_dir() and (p / "__init__.py").exists()))
+    }
+    assert public <= set(icbtool._SUBMODULES), public - set(icbtool._SUBMODULES)
+    assert set(icbtool._SUBMODULES) <= set(dir(icbtool))

@@ -1,12 +1,11 @@
 """``icbtool gui [SCENE] [--store DIR] [--run DIR] [--screenshot FILE]``: the desktop app.
 
-Opens the Qt + PyVista window (package ``gui``, extra ``gui``): the scene with the store's octree
-leaves and reference frusta (click one to see its GI), the client moving along the path with its
-prefetch frustum, the frame's images with SSIM / FLIP heatmaps against the truth, and a GAN
-trainer running in a background process. Without --store it opens the demo's store
-(out/demo/cache, after `make demo`) with the demo's settings, else bakes a small one in
-out/gui/store. --screenshot saves the window as a PNG and exits (under a private Xvfb when there
-is no display).
+Opens the Qt + PyVista window (package ``icbtool_gui``, extra ``gui``): the scene with the store's
+octree leaves and reference frusta (click one to see its GI), the client moving along the path with
+its prefetch frustum, the frame's images with SSIM / FLIP heatmaps against the truth, and a GAN
+trainer running in a background process. Without --store it opens the demo's store (out/demo/cache,
+after `make demo`) with the demo's settings, else bakes a small one in out/gui/store. --screenshot
+saves the window as a PNG and exits (under a private Xvfb when there is no display).
 """
 
 from __future__ import annotations
@@ -41,6 +40,6 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--screenshot {args.screenshot!r} is a directory, not a file")
     for module in ("PySide6", "pyvista", "pyvistaqt"):
         require(module, "the desktop app (icbtool gui)")
-    # the app is the top-level package gui/ of this distribution (not a third-party import)
-    app = importlib.import_module("gui.app")
+    # the app is the top-level package icbtool_gui/ of this distribution
+    app = importlib.import_module("icbtool_gui.app")
     return app.main(args.scene, args.store, args.run, args.screenshot)

@@ -30,7 +30,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     c.set_defaults(func=_check)
 
-    e = ss.add_parser("evict", help="evict records down to a capacity")
+    e = ss.add_parser(
+        "evict",
+        help="evict damaged records, then records down to a capacity (--max-records, "
+        "--max-bytes; without either only damaged records go)",
+    )
     e.add_argument("dir", help="store directory")
     e.add_argument(
         "--max-records", type=int_at_least(0), default=None, help="keep at most this many records"
@@ -135,14 +139,14 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def _evict(args: argparse.Namespace) -> int:
-    if args.max_records is None and args.max_bytes is None:
-        raise ValueError("evict needs --max-records and/or --max-bytes")
     with _open(args.dir, readonly=False) as st:
         if args.focus is not None:
             st.set_focus(args.focus)
         before = (len(st), st.total_bytes)
         damaged = st.evict_damaged(deep=True)  # damaged records go first, whatever the capacity
-        gone = st.evict(args.max_records, args.max_bytes, args.policy)
+        gone = []  # without a capacity only the damaged records go
+        if args.max_records is not None or args.max_bytes is not None:
+            gone = st.evict(args.max_records, args.max_bytes, args.policy)
         if damaged:
             print(f"evicted {len(damaged)} damaged record(s) first: {damaged}")
         print(

@@ -1,4 +1,4 @@
-"""GAN pre-renderer (ICB.md section 5): the cloud trains a conditional GAN on its CRT-buffers, the
+"""GAN pre-renderer (docs/design.md section 5): the cloud trains a cGAN on its CRT-buffers, the
 client generates its GI maps from its WRT-buffer.
 
 ``import icbtool.gan`` does not import torch: the names below are loaded from their modules on

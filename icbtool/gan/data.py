@@ -1,4 +1,4 @@
-"""Training pairs for the GAN from a store (ICB.md section 5), encoded into the network's range.
+"""GAN training pairs from a store (docs/design.md section 5), encoded into the network's range.
 
 Input encoding (one rule per buffer, fitted on the train split and saved with the run):
 

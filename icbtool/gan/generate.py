@@ -1,4 +1,4 @@
-"""Inference: a trained generator makes linear HDR GI from a raster buffer set (ICB.md section 6).
+"""Inference: a trained generator makes HDR GI from raster buffers (docs/design.md section 6).
 
 ``Generator.load(run_dir)`` reads ``run_dir/generator.pt`` (written by :func:`icbtool.gan.train`
 at every checkpoint); ``generate(buffers)`` encodes the input maps exactly as in training, runs
@@ -126,7 +126,7 @@ class Generator:
         Raises:
             ValueError: size not a multiple of 32.
             MissingOptionalDependency: the ``onnx`` package is missing (the message says
-                ``pip install "icbtool[gan]"``).
+                ``pip install ".[gan]"`` in the checkout).
         """
         if height % MULTIPLE or width % MULTIPLE:
             raise ValueError(f"export size must be multiples of {MULTIPLE}, got {height}x{width}")

@@ -1,4 +1,4 @@
-"""Losses of ICB.md section 5: L = w_a L_a + w_c L_c + w_p L_p. Torch tensors are BCHW.
+"""Losses of docs/design.md section 5: L = w_a L_a + w_c L_c + w_p L_p. Torch tensors are BCHW.
 
 - L_a: conditional WGAN-GP. The critic's score of a sample is the mean of its patch scores;
   critic loss = E[D(c, fake)] - E[D(c, real)] + lambda_gp * E[(||grad_x D(c, x_hat)||_2 - k)^2]

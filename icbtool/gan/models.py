@@ -1,4 +1,4 @@
-"""The generator (U-Net) and the critic (PatchGAN) of ICB.md section 5. Torch tensors are BCHW.
+"""The generator (U-Net) and the critic (PatchGAN) of docs/design.md section 5. Torch tensors: BCHW.
 
 Generator: 5 stride-2 4x4 convolutions down (LeakyReLU 0.2), 5 stride-2 4x4 transposed
 convolutions up (ReLU), each up level concatenated with the encoder level of the same size (skip),

@@ -1,4 +1,4 @@
-"""The resumable GAN training loop (ICB.md section 5) and its presets.
+"""The resumable GAN training loop (docs/design.md section 5) and its presets.
 
 A run directory holds:
 
@@ -702,7 +702,7 @@ def train(
         on_step: called after every generator update with the iteration (1-based) and that
             iteration's losses (``g``, ``l1``, and with a critic ``d``, ``gp``, ``w``, ``g_adv``;
             ``g_p`` with the perceptual term, ``g_ssim`` with the SSIM term), e.g. to log live
-            loss curves (``gui.train_job`` writes them to ``losses.csv``).
+            loss curves (``icbtool_gui.train_job`` writes them to ``losses.csv``).
 
     Returns:
         The :class:`TrainResult`.

@@ -1,5 +1,5 @@
 """The lightweight progressive mesh (LPM): levels of detail of a scene, coarse to fine, in wire
-chunks a client can assemble into a Scene and rasterize (ICB.md section 1).
+chunks a client can assemble into a Scene and rasterize (docs/design.md section 1).
 
 >>> lpm = icb.lpm.build(scene, icb.lpm.LPMConfig(ratios=(0.05, 0.25, 1.0),
 ...                                               texture_max=(128, 512, 0)))   # doctest: +SKIP

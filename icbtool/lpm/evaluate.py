@@ -4,7 +4,7 @@ benchmarks/lpm_levels.py.
 
 Cameras: ``n_cameras`` spread evenly over the scene's ``test`` path (else its default camera),
 at ``height`` x ``width``. The reference of each (where the cloud renders the GI map) is what the
-system warps: the prefetch camera (:func:`icbtool.prefetch.prefetch_camera`, ICB.md section 4) of
+system warps: the prefetch camera (icbtool.prefetch.prefetch_camera, docs/design.md section 4) of
 the request the client sent ``latency_s`` earlier on the path, with the path's velocities then
 (a scene without a ``test`` path: the client camera pulled back along its view by
 ``reference_back`` of the scene diagonal). The reference GI is path traced on the FULL mesh

@@ -1,7 +1,7 @@
 """Image metrics on the display scale (0-255 RGB, after :func:`icbtool.imageio.to_display`).
 
 SSIM: Gaussian window 11, sigma 1.5, ``padding='valid'`` (equal to pytorch-msssim; kornia's default
-'same' padding reads about 1.4 % higher). MSE on 0-255 values. Both as in ICB.md section 5.
+'same' padding reads about 1.4 % higher). MSE on 0-255 values. Both as in docs/design.md section 5.
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ Timings of a reply (``GIReply.timings_ms``), the request -> reply time split:
   mask on the client;
 * ``request``: the whole request -> reply time seen by the client.
 
-Once the client holds the generator (the paper's rule, ICB.md section 6), a request whose client
+Once the client holds the generator (docs/design.md section 6), a request whose client
 buffers hold the generator's inputs is answered by the generator locally
 (:class:`~icbtool.system.GeneratorSource`, with this source as its fallback) and never sent.
 """

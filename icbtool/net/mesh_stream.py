@@ -98,7 +98,7 @@ class MeshStream:
             (in the LPM's layout).
         lpm_config: :class:`icbtool.lpm.LPMConfig` (default: its defaults).
         send_full: also stream the LPM's finest level, which is the full-detail mesh itself.
-            Off by default: the full-detail mesh never leaves the server (ICB.md section 1),
+            Off by default: the full-detail mesh never leaves the server (docs/design.md section 1),
             unless it is the only level there is.
         max_chunk_bytes: the LPM's chunk size bound.
     """

@@ -1,4 +1,4 @@
-"""Prefetch cameras for 3D warping (ICB.md section 4): wider, pulled back, dense enough.
+"""Prefetch cameras for 3D warping (docs/design.md section 4): wider, pulled back, dense enough.
 
 The cloud renders the reference (GI map) for a camera that still covers the client's view after
 the interaction latency ``T_IL`` (cloud render + encode + transfer, :class:`LatencyModel`).

@@ -1,4 +1,4 @@
-"""The octree CRT-buffer manager (ICB.md section 3): persistence, lookup, GAN datasets.
+"""The octree CRT-buffer manager (docs/design.md section 3): persistence, lookup, GAN datasets.
 
 Example:
     >>> import icbtool as icb

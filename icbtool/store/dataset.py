@@ -1,4 +1,4 @@
-"""A dataset view of a store for the GAN pre-renderer (ICB.md section 5).
+"""A dataset view of a store for the GAN pre-renderer (docs/design.md section 5).
 
 Records are selected by scene (and light setup), split into train and test by the camera path they
 were baked from (``meta.tags["path"]``, set by :func:`icbtool.bake.bake`; the paper tests on a
@@ -14,7 +14,7 @@ import numpy as np
 
 from icbtool.buffers import CHANNELS as BUFFER_CHANNELS
 
-#: The input configurations A-J of ICB.md section 5 (albedo and DL always first).
+#: The input configurations A-J of docs/design.md section 5 (albedo and DL always first).
 INPUT_CONFIGS: dict[str, tuple[str, ...]] = {
     "A": ("albedo", "dl"),
     "B": ("albedo", "dl", "position"),

@@ -1,4 +1,4 @@
-"""The in-memory octree of the CRT-buffer manager (ICB.md section 3).
+"""The in-memory octree of the CRT-buffer manager (docs/design.md section 3).
 
 A linear octree: the root cube encloses the scene bounds; every leaf sits at one depth ``D`` (chosen
 from the scene's scale so that a leaf is about the lookup position threshold wide) and is addressed

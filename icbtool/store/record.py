@@ -1,4 +1,4 @@
-"""The CRT-buffer record (ICB.md section 2) and its lossless binary payload.
+"""The CRT-buffer record (docs/design.md section 2) and its lossless binary payload.
 
 Payload format (version 2), one file per record::
 
@@ -127,7 +127,7 @@ class RecordMeta:
 
 @dataclass(eq=False)
 class CRTBuffer:
-    """A cloud render texture buffer: the maps of one cloud camera (ICB.md section 2).
+    """A cloud render texture buffer: the maps of one cloud camera (docs/design.md section 2).
 
     All present maps are (H, W, C) float32 with the camera's size; any map may be None (absent),
     and only present maps are stored.

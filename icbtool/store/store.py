@@ -1,4 +1,4 @@
-"""The persistent octree CRT-buffer manager (ICB.md section 3).
+"""The persistent octree CRT-buffer manager (docs/design.md section 3).
 
 The :class:`Store` is split by concern: opening and the schema (:mod:`icbtool.store.schema`),
 the writer lock (:mod:`icbtool.store.locking`), the scenes' octrees (:mod:`icbtool.store.scenes`),
@@ -42,7 +42,7 @@ Concurrency: one writer (an exclusive ``flock`` on ``.writer.lock``; a second wr
 (``StoreConfig(readonly=True)``). A reader's in-memory octree follows the writer's commits: every
 lookup checks SQLite's ``PRAGMA data_version`` and loads new rows (or reloads after deletions).
 
-Lookup (pre-rendering by lookup, ICB.md section 3): a stored camera is *similar* to the query when
+Lookup (pre-rendering by lookup, docs/design.md section 3): a stored camera is *similar* when
 ``|p1 - p2| < alpha_pos`` and ``1 - dot(d1, d2) < alpha_dir`` (d = unit viewing directions),
 both for the same scene content hash and light-setup hash, and its intrinsics pass the
 ``intrinsics`` policy:

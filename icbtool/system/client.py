@@ -1,6 +1,6 @@
 """The client: rasterizes its own WRT-buffer, gets GI from a source, warps, combines, blends.
 
-One :meth:`Client.frame` (ICB.md section 6):
+One :meth:`Client.frame` (docs/design.md section 6):
 
 1. rasterize the WRT-buffer (DL, albedo, world normal, depth; the mask comes with it) at the
    client's camera;

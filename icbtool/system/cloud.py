@@ -1,6 +1,6 @@
 """The cloud: the full-detail scene, the octree CRT-buffer cache and the path tracer.
 
-For a :class:`~icbtool.system.messages.GIRequest` (ICB.md sections 3, 4 and 6):
+For a :class:`~icbtool.system.messages.GIRequest` (docs/design.md sections 3, 4 and 6):
 
 1. predict where the client can be after the latency: the prefetch camera (wider FOV, pulled
    back; :func:`icbtool.prefetch.prefetch_camera`), its FOV rounded up to a step so that a stored

@@ -1,6 +1,6 @@
 """GI made on the client by the GAN pre-renderer: a :class:`GISource` over a trained generator.
 
-The paper's rule (ICB.md section 5): once the client holds a generator, it makes its GI maps
+The paper's rule (docs/design.md section 5): once the client holds a generator, it makes its GI maps
 itself from its own WRT-buffer; until then it asks the cloud. :class:`GeneratorSource` is that
 rule's local side. It generates at the client's *current* camera (no latency, so nothing to
 warp: the reply's reference is the client's own view and the warp is the identity).

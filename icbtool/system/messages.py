@@ -29,7 +29,7 @@ def _vec3(x: ArrayLike, name: str) -> np.ndarray:
 
 @dataclass(frozen=True)
 class GIRequest:
-    """A client's request for a GI map (ICB.md section 6, step 2).
+    """A client's request for a GI map (docs/design.md section 6, step 2).
 
     The client sends where it is and how it moves; the cloud picks the camera it renders for
     (the prefetch camera) so that the reply still covers the client after the latency.

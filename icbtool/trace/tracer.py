@@ -906,7 +906,7 @@ def denoise(
 
     Raises:
         icbtool._optional.MissingOptionalDependency: pyoidn is not installed (the message says
-            ``pip install "icbtool[denoise]"``).
+            ``pip install ".[denoise]"`` in the checkout).
     """
     from icbtool._optional import require
 

@@ -1,9 +1,10 @@
 """The trainer panel: a GAN training in a background process, with live curves.
 
-Start runs :mod:`gui.train_job` (:func:`icbtool.gan.train` with the form's
+Start runs :mod:`icbtool_gui.train_job` (:func:`icbtool.gan.train` with the form's
 :class:`~icbtool.gan.TrainConfig`) in a :class:`QProcess`, so the window never waits for it.
 Pause and Resume stop and continue that process (SIGSTOP / SIGCONT); Stop ends it (the last
-checkpoint stays) and Start continues the run from its checkpoint. A timer reads the run's
+checkpoint stays, and the status says which iteration that is) and Start continues the run from
+its checkpoint (the curves and the progress bar go back to it). A timer reads the run's
 ``losses.csv`` and ``evals.csv`` (only when they changed) and redraws the loss curves, the
 test SSIM and MSE against iterations of every run beside it (one curve per configuration), and
 the latest generated | real | difference sample.
@@ -12,6 +13,7 @@ the latest generated | real | difference sample.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import signal
@@ -24,11 +26,11 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from gui.calls import CallLog
-from gui.forms import DataclassForm, call_repr
-from gui.panels import to_qimage
+from icbtool_gui.calls import CallLog
+from icbtool_gui.forms import DataclassForm, call_repr
+from icbtool_gui.panels import to_qimage
 
-_REPO = Path(__file__).resolve().parents[1]  # holds gui/ (and icbtool/ in a checkout)
+_REPO = Path(__file__).resolve().parents[1]  # holds icbtool_gui/ (and icbtool/ in a checkout)
 
 
 def read_csv(path: Path) -> list[dict[str, float]]:
@@ -60,6 +62,17 @@ def run_label(run: Path) -> str:
         return run.name
 
 
+def default_config(image_size: int | None = None) -> Any:
+    """The trainer's first configuration: the ``cpu`` preset, its crop the largest multiple of
+    32 that fits ``image_size`` (a store of 64 x 64 images cannot give 128 x 128 crops)."""
+    import icbtool as icb
+
+    cfg = icb.gan.TrainConfig.preset("cpu")
+    if image_size is not None and image_size < cfg.crop:
+        cfg = dataclasses.replace(cfg, crop=max(32, image_size // 32 * 32))
+    return cfg
+
+
 class TrainerPanel(QtWidgets.QWidget):
     """Start / pause / resume / stop a GAN training on the session's store, with live curves.
 
@@ -68,7 +81,10 @@ class TrainerPanel(QtWidgets.QWidget):
         scene: the scene name (records of that scene).
         calls: the window's Python log.
         run_dir: the run directory (default ``out/gui/runs/run``).
-        config: the initial TrainConfig (default: the ``cpu`` preset).
+        config: the initial TrainConfig (default: the ``cpu`` preset, its crop reduced to fit
+            ``image_size``).
+        image_size: the smaller side of the store's images of the scene (None: unknown); the
+            default crop is the largest multiple of 32 that fits it.
 
     Signals:
         updated: the curves were redrawn from new data.
@@ -87,21 +103,23 @@ class TrainerPanel(QtWidgets.QWidget):
         calls: CallLog,
         run_dir: str | Path | None = None,
         config: Any = None,
+        image_size: int | None = None,
         parent: QtWidgets.QWidget | None = None,
     ) -> None:
         super().__init__(parent)
-        import icbtool as icb
 
         self.store_dir = Path(store_dir)
         self.scene = scene
         self.calls = calls
         self.proc: QtCore.QProcess | None = None
         self.paused = False
+        self._stopping = False
         self._stamps: dict[Path, float] = {}
         self.losses: list[dict[str, float]] = []
         self.evals: dict[Path, list[dict[str, float]]] = {}
         self.output: list[str] = []
-        self.form = DataclassForm(config or icb.gan.TrainConfig.preset("cpu"))
+        self.form = DataclassForm(config or default_config(image_size))
+        self.form.changed.connect(lambda: self._status())  # the progress bar's total
         self.run_edit = QtWidgets.QLineEdit(str(run_dir or Path("out/gui/runs/run")))
         self.threads = QtWidgets.QSpinBox()
         self.threads.setRange(1, max(1, os.cpu_count() or 1))
@@ -121,11 +139,19 @@ class TrainerPanel(QtWidgets.QWidget):
             row.addWidget(b)
         self.status = QtWidgets.QLabel("idle")
         self.status.setWordWrap(True)
+        self.progress = QtWidgets.QProgressBar()
+        self.progress.setFormat("iteration %v / %m")
+        self.progress.setRange(0, 1)
+        self.progress.setValue(0)
         # the curves are drawn by matplotlib (Agg) in a thread of their own (CurvePainter): the
         # GUI thread only shows the finished image, so a slow redraw never blocks the window
         self.canvas = QtWidgets.QLabel()
         self.canvas.setAlignment(QtCore.Qt.AlignCenter)
-        self.canvas.setMinimumHeight(300)
+        # the figure is drawn at the label's size (redrawn on resize): the label never asks for
+        # the size of its last picture, so the layout, not the picture, decides
+        self.canvas.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Ignored)
+        self.canvas.setMinimumSize(200, 220)
+        self.canvas.installEventFilter(self)
         self.painter = CurvePainter()
         self._paint_thread = QtCore.QThread(self)
         self.painter.moveToThread(self._paint_thread)
@@ -137,7 +163,8 @@ class TrainerPanel(QtWidgets.QWidget):
         self.curve_image: QtGui.QImage | None = None
         self.sample = QtWidgets.QLabel("samples: generated | real | difference")
         self.sample.setAlignment(QtCore.Qt.AlignCenter)
-        self.sample.setMinimumHeight(80)
+        self.sample.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Fixed)
+        self.sample.setFixedHeight(90)
         self.sample_image: np.ndarray | None = None
         settings = QtWidgets.QScrollArea()
         settings.setWidget(self.form)
@@ -148,6 +175,7 @@ class TrainerPanel(QtWidgets.QWidget):
         lay = QtWidgets.QVBoxLayout(self)
         lay.addLayout(top)
         lay.addLayout(row)
+        lay.addWidget(self.progress)
         lay.addWidget(self.status)
         split = QtWidgets.QSplitter(QtCore.Qt.Vertical)
         curves = QtWidgets.QWidget()
@@ -157,7 +185,8 @@ class TrainerPanel(QtWidgets.QWidget):
         cl.addWidget(self.sample)
         split.addWidget(curves)
         split.addWidget(settings)
-        split.setSizes([520, 200])
+        split.setStretchFactor(0, 3)
+        split.setStretchFactor(1, 1)
         lay.addWidget(split, 1)
         self.timer = QtCore.QTimer(self)
         self.timer.setInterval(300)
@@ -165,6 +194,7 @@ class TrainerPanel(QtWidgets.QWidget):
         self.timer.start()
         self._draw()
         self._buttons()
+        self._status()
 
     # -------------------------------------------------------------- the process
     @property
@@ -176,7 +206,7 @@ class TrainerPanel(QtWidgets.QWidget):
 
     def start(self) -> bool:
         """Start (or continue from its checkpoint) the run in a background process."""
-        from gui import train_job
+        from icbtool_gui import train_job
 
         if self.running():
             return False
@@ -186,6 +216,8 @@ class TrainerPanel(QtWidgets.QWidget):
             self.status.setText(f"<font color='red'>settings: {e}</font>")
             return False
         run = self.run_dir
+        ckpt = self.checkpoint_iteration()
+        self.losses = [r for r in self.losses if ckpt is not None and r["iteration"] <= ckpt]
         job = train_job.write_job(run / "job.json", str(self.store_dir), str(run), self.scene,
                                   cfg.to_dict())  # fmt: skip
         self.calls.call(
@@ -194,7 +226,7 @@ class TrainerPanel(QtWidgets.QWidget):
             "icb.store.StoreConfig(readonly=True)) as store:\n"
             f"    icb.gan.train(store, cfg, out_dir={str(run)!r}, scene={self.scene!r}, "
             "resume=True)",
-            "trainer: start (in a background process: python -m gui.train_job)",
+            "trainer: start (in a background process: python -m icbtool_gui.train_job)",
         )
         proc = QtCore.QProcess(self)
         env = QtCore.QProcessEnvironment.systemEnvironment()
@@ -209,9 +241,12 @@ class TrainerPanel(QtWidgets.QWidget):
         self.output.clear()
         self.proc = proc
         self.paused = False
-        proc.start(sys.executable, ["-m", "gui.train_job", str(job)])
-        self.status.setText(f"starting: {run}")
+        proc.start(sys.executable, ["-m", "icbtool_gui.train_job", str(job)])
+        where = "from scratch" if ckpt is None else f"from the checkpoint at iteration {ckpt}"
+        self.status.setText(f"starting {where}: {run}")
+        self._progress(ckpt or 0, cfg.iterations)
         self._buttons()
+        self._draw()
         return True
 
     def pause(self) -> None:
@@ -234,20 +269,49 @@ class TrainerPanel(QtWidgets.QWidget):
         elif not self.running():
             self.start()
 
-    def stop(self) -> None:
-        """End the training process (its last checkpoint stays; Start continues from it)."""
+    def stop(self, wait: bool = False) -> None:
+        """End the training process (its last checkpoint stays; Start continues from it).
+
+        Args:
+            wait: block until it has ended (closing the window); otherwise :attr:`finished`
+                says when (SIGTERM, then SIGKILL after 3 s), and the window keeps drawing.
+        """
         if not self.running():
             return
-        pid = int(self.proc.processId())
+        proc = self.proc
+        pid = int(proc.processId())
         if self.paused:
             os.kill(pid, signal.SIGCONT)
-        self.proc.terminate()
+        self._stopping = True
+        proc.terminate()
         self.calls.call(f"os.kill({pid}, signal.SIGTERM)", "stop (the last checkpoint stays)")
-        if not self.proc.waitForFinished(3000):
-            self.proc.kill()
-            self.proc.waitForFinished(1000)
-        self.paused = False
-        self._buttons()
+        self.status.setText("stopping ...")
+        if wait:
+            if not proc.waitForFinished(3000):
+                proc.kill()
+                proc.waitForFinished(1000)
+        else:
+            QtCore.QTimer.singleShot(
+                3000, lambda: proc.state() != QtCore.QProcess.NotRunning and proc.kill()
+            )
+
+    def checkpoint_iteration(self) -> int | None:
+        """The iteration of the run's last complete checkpoint, where Start continues (None:
+        no checkpoint, Start begins from scratch). Read from the job's note
+        (:func:`icbtool_gui.train_job.read_checkpoint_note`): no torch in the window."""
+        from icbtool_gui import train_job
+
+        return train_job.read_checkpoint_note(self.run_dir)
+
+    def _stopped_status(self) -> None:
+        it = int(self.losses[-1]["iteration"]) if self.losses else 0
+        ckpt = self.checkpoint_iteration()
+        resume = (
+            "Start begins from scratch (no checkpoint yet)"
+            if ckpt is None
+            else f"Start continues from the last checkpoint, iteration {ckpt}"
+        )
+        self.status.setText(f"stopped at iteration {it}; {resume}")
 
     def _read_output(self) -> None:
         if self.proc is None:
@@ -261,7 +325,12 @@ class TrainerPanel(QtWidgets.QWidget):
         self.poll()
         last = self.output[-1] if self.output else ""
         colour = "green" if code == 0 else "red"
-        self.status.setText(f"<font color='{colour}'>finished (exit {code})</font>: {last}")
+        self.paused = False
+        if self._stopping:  # Stop: say where Start will continue
+            self._stopping = False
+            self._stopped_status()
+        else:
+            self.status.setText(f"<font color='{colour}'>finished (exit {code})</font>: {last}")
         self._buttons()
         self.finished.emit(int(code))
 
@@ -273,12 +342,24 @@ class TrainerPanel(QtWidgets.QWidget):
         self.buttons["Stop"].setEnabled(run)
 
     def _status(self) -> None:
+        it = int(self.losses[-1]["iteration"]) if self.losses else 0
+        total = self.form.value().iterations if self._form_ok() else 0
+        self._progress(it, total)
         if not self.running():
             return
-        it = int(self.losses[-1]["iteration"]) if self.losses else 0
         state = "paused" if self.paused else "running"
-        total = self.form.value().iterations if self._form_ok() else "?"
-        self.status.setText(f"{state} (pid {int(self.proc.processId())}): iteration {it} / {total}")
+        self.status.setText(
+            f"{state} (pid {int(self.proc.processId())}): iteration {it} / {total or '?'}"
+        )
+
+    def _progress(self, iteration: int, total: int) -> None:
+        self.progress.setRange(0, max(1, int(total)))
+        self.progress.setValue(min(int(iteration), max(1, int(total))))
+
+    def eventFilter(self, obj: Any, event: Any) -> bool:  # noqa: N802 - Qt's name
+        if obj is self.canvas and event.type() == QtCore.QEvent.Resize:
+            self._draw()  # the figure follows the label's size
+        return False
 
     def _form_ok(self) -> bool:
         try:
@@ -290,7 +371,7 @@ class TrainerPanel(QtWidgets.QWidget):
     def close_process(self) -> None:
         """Stop the process (window closing)."""
         self.timer.stop()
-        self.stop()
+        self.stop(wait=True)
         self.close_painter()
 
     # -------------------------------------------------------------- curves
@@ -316,6 +397,7 @@ class TrainerPanel(QtWidgets.QWidget):
             pass  # not a finished run's directory yet: the form keeps its values
         self._stamps.clear()
         self.poll()
+        self._status()
 
     def _changed(self, path: Path) -> bool:
         try:
@@ -362,8 +444,11 @@ class TrainerPanel(QtWidgets.QWidget):
         self.sample_image = img
         pix = QtGui.QPixmap.fromImage(to_qimage(img))
         self.sample.setPixmap(
-            pix.scaledToWidth(min(420, 3 * img.shape[0] * 2), QtCore.Qt.SmoothTransformation)
-        )
+            pix.scaled(
+                max(60, self.sample.width() - 4), self.sample.height() - 4,
+                QtCore.Qt.KeepAspectRatio, QtCore.Qt.SmoothTransformation,
+            )
+        )  # fmt: skip
         self.sample.setToolTip(f"{path}: generated | real | difference")
 
     def _draw(self) -> None:
@@ -411,7 +496,7 @@ class CurvePainter(QtCore.QObject):
         # a fixed layout (tight_layout costs more than the drawing) and persistent lines whose
         # data are replaced
         self.figure = Figure(figsize=(width / 100, height / 100), dpi=100)
-        self.figure.subplots_adjust(left=0.16, right=0.97, top=0.95, bottom=0.09, hspace=0.42)
+        self._margins(width, height)
         self.agg = FigureCanvasAgg(self.figure)
         self.ax_loss, self.ax_ssim, self.ax_mse = self.figure.subplots(3, 1, sharex=True)
         for a, title in ((self.ax_loss, "losses"), (self.ax_ssim, "test SSIM"),
@@ -420,6 +505,14 @@ class CurvePainter(QtCore.QObject):
             a.tick_params(labelsize=6)
         self.ax_mse.set_xlabel("iteration", fontsize=8)
         self._lines: dict[tuple[str, str], Any] = {}
+
+    def _margins(self, width: int, height: int) -> None:
+        """Fixed pixel margins (tick labels, titles, the x label) whatever the figure's size:
+        tight_layout would cost more than the drawing."""
+        self.figure.subplots_adjust(
+            left=min(0.4, 46 / width), right=1 - min(0.2, 10 / width),
+            top=1 - min(0.2, 16 / height), bottom=min(0.3, 34 / height), hspace=0.55,
+        )  # fmt: skip
 
     def _line(self, ax: Any, key: tuple[str, str], label: str, **style: Any) -> Any:
         line = self._lines.get(key)
@@ -436,6 +529,7 @@ class CurvePainter(QtCore.QObject):
         losses, evals, (width, height) = data
         if (width, height) != tuple(self.agg.get_width_height()):
             self.figure.set_size_inches(width / 100, height / 100)
+            self._margins(width, height)
         if losses:
             it = [r["iteration"] for r in losses]
             for key in ("g", "l1", "d", "w"):
@@ -458,4 +552,4 @@ class CurvePainter(QtCore.QObject):
         self.painted.emit(img)
 
 
-__all__ = ["CurvePainter", "TrainerPanel", "dedup", "read_csv", "run_label"]
+__all__ = ["CurvePainter", "TrainerPanel", "dedup", "default_config", "read_csv", "run_label"]

@@ -3,9 +3,9 @@
 A frame is CPU work in Python, numba and torch (raster, cloud lookup or a path-traced render on a
 miss, warp, truth, SSIM / FLIP): in a thread it would hold the GIL for seconds and the window
 would stall. The frame process owns the OpenGL rasterizer, the cloud (which writes new
-references into the store) and the client (:class:`gui.model.FrameComputer`); the window sends
-it ``(frame index, viewer, cloud, client settings)`` and receives a picklable
-:class:`gui.model.FrameResult`. It is started with ``spawn`` (a fork would copy Qt, VTK and
+references into the store) and the client (:class:`icbtool_gui.model.FrameComputer`); the window
+sends it ``(frame index, viewer, cloud, client settings)`` and receives a picklable
+:class:`icbtool_gui.model.FrameResult`. It is started with ``spawn`` (a fork would copy Qt, VTK and
 their OpenGL state) and stops with the window.
 """
 
@@ -20,7 +20,7 @@ from PySide6 import QtCore
 
 def serve(conn: Any, scene_spec: str, store_dir: str, run_dir: str | None, settings: tuple) -> None:
     """The frame process: answer ``(k, viewer, cloud, client)`` messages until ``None``."""
-    from gui.model import FrameComputer, Session, load_scene
+    from icbtool_gui.model import FrameComputer, Session, load_scene
 
     session = Session(load_scene(scene_spec), store_dir, run_dir, *settings)
     computer = FrameComputer(session)
@@ -50,7 +50,7 @@ class FrameProcess(QtCore.QObject):
         settings: (viewer, cloud, client) to start with.
 
     Signals:
-        done(object): a :class:`gui.model.FrameResult`.
+        done(object): a :class:`icbtool_gui.model.FrameResult`.
         failed(int, str): computing frame k failed (the message says why).
     """
 

@@ -2,7 +2,7 @@
 
 Every action of the window calls :meth:`CallLog.call` with the icbtool call it made, e.g.
 ``f = client.frame(path.camera_at(1.25), req)``; the lines go to the window's "Python" panel,
-to the ``gui`` logger (INFO) and stay in :attr:`CallLog.lines`.
+to the ``icbtool_gui`` logger (INFO) and stay in :attr:`CallLog.lines`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import logging
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
-log = logging.getLogger("gui")
+log = logging.getLogger("icbtool_gui")
 
 
 class CallLog(QtCore.QObject):

@@ -1,15 +1,19 @@
 """The main window and ``icbtool gui``'s entry point.
 
-Layout: the 3D view (:mod:`gui.scene_view`) with the playback controls on the left, the frame's
-image panels (:mod:`gui.panels`) in the middle, the trainer (:mod:`gui.trainer`) on the right,
-and below them the settings forms (:mod:`gui.forms`) and the equivalent Python
-(:mod:`gui.calls`).
+Layout, left to right (a splitter; from 1280 x 720 up): the 3D view
+(:mod:`icbtool_gui.scene_view`) with the playback controls; the frame's image panels
+(:mod:`icbtool_gui.panels`), sized to their column's width; and a column of tabs: the trainer
+(:mod:`icbtool_gui.trainer`), the settings forms (:mod:`icbtool_gui.forms`) and the equivalent
+Python (:mod:`icbtool_gui.calls`). A menu bar holds every action with its keyboard shortcut
+(Space plays / pauses, Left / Right step, Ctrl+S saves a screenshot, F1 lists them); the
+status bar shows what is being computed with a progress bar.
 
 Client frames are computed in a process of their own that owns the OpenGL rasterizer, the cloud
-and the client (:mod:`gui.frames`): the window keeps drawing while a frame renders. The
+and the client (:mod:`icbtool_gui.frames`): the window keeps drawing while a frame renders. The
 client's frustum moves at once when stepping; its prefetch frustum is recomputed at once from
 the speed and latency settings (with the depth range of the last frame) and replaced by the one
-the cloud used when the frame arrives.
+the cloud used when the frame arrives. The window's process never uses icbtool's headless
+OpenGL (:func:`check_gl_owner`): the quick store is baked in a process of its own too.
 """
 
 from __future__ import annotations
@@ -20,20 +24,20 @@ import time
 from pathlib import Path
 from typing import Any
 
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
 import icbtool as icb
-from gui.calls import CallLog, CallLogView
-from gui.forms import DataclassForm, call_repr
-from gui.frames import FrameProcess
-from gui.model import FrameResult, Session, ViewerConfig, frustum_depth, load_scene
-from gui.panels import FramePanels
-from gui.scene_view import SceneView
-from gui.trainer import TrainerPanel
+from icbtool_gui.calls import CallLog, CallLogView
+from icbtool_gui.forms import DataclassForm, call_repr
+from icbtool_gui.frames import FrameProcess
+from icbtool_gui.model import FrameResult, Session, ViewerConfig, frustum_depth, load_scene
+from icbtool_gui.panels import FramePanels, PanelsArea
+from icbtool_gui.scene_view import SceneView
+from icbtool_gui.trainer import TrainerPanel
 
 
 class MainWindow(QtWidgets.QMainWindow):
-    """The icbtool desktop window on a :class:`gui.model.Session`.
+    """The icbtool desktop window on a :class:`icbtool_gui.model.Session`.
 
     Args:
         session: scene, store, settings.
@@ -67,24 +71,32 @@ class MainWindow(QtWidgets.QMainWindow):
         self.view = SceneView(self)
         self.view.set_scene(session.scene, frustum_depth(session.scene))
         self.view.record_picked.connect(self.show_record)
+        self.view.widget.setMinimumSize(320, 240)
         controls = QtWidgets.QHBoxLayout()
         self.buttons: dict[str, QtWidgets.QPushButton] = {}
-        for name, slot in (
-            ("|<", lambda: self.go_to(0)),
-            ("<", lambda: self.step(-1)),
-            ("Play", self.play),
-            ("Pause", self.pause),
-            (">", lambda: self.step(1)),
+        for name, slot, tip in (
+            ("|<", lambda: self.go_to(0), "first frame (Home)"),
+            ("<", lambda: self.step(-1), "previous frame (Left)"),
+            ("Play", self.play, "play along the path (Space plays / pauses)"),
+            ("Pause", self.pause, "pause (Space)"),
+            (">", lambda: self.step(1), "next frame (Right)"),
         ):
             b = QtWidgets.QPushButton(name)
             b.clicked.connect(slot)
+            b.setToolTip(tip)
+            b.setFocusPolicy(QtCore.Qt.NoFocus)  # Space and the arrows stay the window's keys
+            b.setMinimumWidth(34)
             self.buttons[name] = b
             controls.addWidget(b)
         self.slider = QtWidgets.QSlider(QtCore.Qt.Horizontal)
         self.slider.valueChanged.connect(self._slider_moved)
+        self.slider.setFocusPolicy(QtCore.Qt.NoFocus)
         controls.addWidget(self.slider, 1)
         self.frame_label = QtWidgets.QLabel("")
-        self.frame_label.setMinimumWidth(260)
+        self.frame_label.setWordWrap(True)
+        self.frame_label.setSizePolicy(
+            QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred
+        )
         left = QtWidgets.QWidget()
         ll = QtWidgets.QVBoxLayout(left)
         ll.setContentsMargins(2, 2, 2, 2)
@@ -92,21 +104,18 @@ class MainWindow(QtWidgets.QMainWindow):
         ll.addLayout(controls)
         ll.addWidget(self.frame_label)
 
-        # -- panels, trainer
+        # -- panels (their images follow the column's width: no horizontal scroll bar)
         self.panels = FramePanels(columns=3, size=132)
-        scene_name = session.scene.name
-        self.trainer = TrainerPanel(session.store_dir, scene_name, self.calls, run_dir=run_dir)
-        split = QtWidgets.QSplitter(QtCore.Qt.Horizontal)
-        split.addWidget(left)
-        panels = QtWidgets.QScrollArea()
-        panels.setWidget(self.panels)
-        panels.setWidgetResizable(True)
-        split.addWidget(panels)
-        split.addWidget(self.trainer)
-        split.setSizes([560, 440, 420])
-        self.setCentralWidget(split)
+        self.panels_area = PanelsArea(self.panels)
+        for panel in self.panels.panels.values():
+            panel.saved.connect(self._image_saved)
 
-        # -- settings and the Python log
+        # -- trainer, settings and the Python log share the right-hand column
+        scene_name = session.scene.name
+        self.trainer = TrainerPanel(
+            session.store_dir, scene_name, self.calls, run_dir=run_dir,
+            image_size=_smallest_side(self.session.records()),
+        )  # fmt: skip
         self.forms = {
             "viewer": DataclassForm(session.viewer),
             "cloud": DataclassForm(session.cloud),
@@ -114,31 +123,44 @@ class MainWindow(QtWidgets.QMainWindow):
         }
         tabs = QtWidgets.QTabWidget()
         for name, form in self.forms.items():
-            page = QtWidgets.QWidget()
-            pl = QtWidgets.QVBoxLayout(page)
             scroll = QtWidgets.QScrollArea()
             scroll.setWidget(form)
             scroll.setWidgetResizable(True)
-            pl.addWidget(scroll, 1)
-            tabs.addTab(page, f"{name}: {type(form.value()).__name__}")
+            tabs.addTab(scroll, name)
+            tabs.setTabToolTip(tabs.count() - 1, type(form.value()).__name__)
             form.changed.connect(self.apply_settings)
         self.settings_status = QtWidgets.QLabel("")
+        self.settings_status.setWordWrap(True)
         settings = QtWidgets.QWidget()
         sl = QtWidgets.QVBoxLayout(settings)
         sl.setContentsMargins(2, 2, 2, 2)
         sl.addWidget(tabs, 1)
         sl.addWidget(self.settings_status)
         self.log_view = CallLogView(self.calls)
-        bottom = QtWidgets.QTabWidget()
-        bottom.addTab(settings, "Settings")
-        bottom.addTab(self.log_view, "Python")
-        dock = QtWidgets.QDockWidget("Settings and Python", self)
-        dock.setObjectName("settings")
-        dock.setWidget(bottom)
-        dock.setFeatures(QtWidgets.QDockWidget.NoDockWidgetFeatures)
-        self.addDockWidget(QtCore.Qt.BottomDockWidgetArea, dock)
-        self.resizeDocks([dock], [210], QtCore.Qt.Vertical)
+        self.side = QtWidgets.QTabWidget()
+        self.side.addTab(self.trainer, "Trainer")
+        self.side.addTab(settings, "Settings")
+        self.side.addTab(self.log_view, "Python")
+        self.side.setMinimumWidth(300)
+
+        split = QtWidgets.QSplitter(QtCore.Qt.Horizontal)
+        split.setChildrenCollapsible(False)
+        for w, stretch in ((left, 4), (self.panels_area, 4), (self.side, 3)):
+            split.addWidget(w)
+            split.setStretchFactor(split.count() - 1, stretch)
+        self.split = split
+        self.setCentralWidget(split)
+
+        # -- status bar: what runs now, with a progress bar
+        self.busy = QtWidgets.QProgressBar()
+        self.busy.setMaximumWidth(180)
+        self.busy.setTextVisible(False)
+        self.busy.setRange(0, 0)
+        self.busy.setVisible(False)  # shown while a frame is computed
+        self.statusBar().addPermanentWidget(self.busy)
         self.statusBar().showMessage("ready")
+        self.menu_actions: dict[str, QtGui.QAction] = {}
+        self._menus()
 
         # -- the frame process (frames are CPU work that would hold the GIL in a thread)
         self.frames = FrameProcess(
@@ -165,6 +187,103 @@ class MainWindow(QtWidgets.QMainWindow):
         if run_dir is not None:
             self.trainer.add_run(run_dir)
         self.go_to(0)
+
+    # -------------------------------------------------------------- menus and keys
+    def _menus(self) -> None:
+        """The menu bar; every action has its keyboard shortcut (Help > Keyboard shortcuts)."""
+        bar = self.menuBar()
+        tr = self.trainer
+        menus = {
+            "&File": [
+                ("Save screenshot...", "Ctrl+S", self.save_screenshot_dialog),
+                ("Save frame images...", "Ctrl+Shift+S", self.save_images_dialog),
+                None,
+                ("Quit", "Ctrl+Q", self.close),
+            ],
+            "&Playback": [
+                ("Play / pause", "Space", self.toggle_play),
+                ("Previous frame", "Left", lambda: self.step(-1)),
+                ("Next frame", "Right", lambda: self.step(1)),
+                ("First frame", "Home", lambda: self.go_to(0)),
+                ("Last frame", "End", lambda: self.go_to(self.session.viewer.frames - 1)),
+            ],
+            "&View": [
+                ("Frame all", "F", self.view.frame_all_and_render),
+                ("Reload the store", "F5", self.refresh_records),
+                ("Trainer", "Ctrl+1", lambda: self.side.setCurrentIndex(0)),
+                ("Settings", "Ctrl+2", lambda: self.side.setCurrentIndex(1)),
+                ("Python", "Ctrl+3", lambda: self.side.setCurrentIndex(2)),
+            ],
+            "&Training": [
+                ("Start training", "Ctrl+T", tr.start),
+                ("Pause training", "Ctrl+P", tr.pause),
+                ("Resume training", "Ctrl+R", tr.resume),
+                ("Stop training", "Ctrl+.", tr.stop),
+            ],
+            "&Help": [("Keyboard shortcuts", "F1", self.show_shortcuts)],
+        }
+        for title, items in menus.items():
+            menu = bar.addMenu(title)
+            for item in items:
+                if item is None:
+                    menu.addSeparator()
+                    continue
+                name, keys, slot = item
+                act = QtGui.QAction(name, self)
+                act.setShortcut(QtGui.QKeySequence(keys))
+                act.setShortcutContext(QtCore.Qt.WindowShortcut)
+                act.triggered.connect(lambda _checked=False, f=slot: f())
+                menu.addAction(act)
+                self.addAction(act)  # the shortcut works with the menu closed
+                self.menu_actions[name] = act
+
+    def shortcuts(self) -> list[tuple[str, str]]:
+        """(action, key) of every menu action, in menu order."""
+        return [
+            (name, act.shortcut().toString(QtGui.QKeySequence.NativeText))
+            for name, act in self.menu_actions.items()
+        ]
+
+    def show_shortcuts(self) -> None:
+        rows = "".join(f"<tr><td>{k}</td><td>{n}</td></tr>" for n, k in self.shortcuts())
+        box = QtWidgets.QMessageBox(self)
+        box.setWindowTitle("Keyboard shortcuts")
+        box.setText(f"<table>{rows}</table><p>Click a blue frustum in the 3D view to show its "
+                    "GI; right-click an image to save it.</p>")  # fmt: skip
+        box.open()
+
+    def toggle_play(self) -> None:
+        """Play, or pause while playing (Space)."""
+        if self.playing():
+            self.pause()
+        else:
+            self.play()
+
+    # -------------------------------------------------------------- saving
+    def save_images(self, folder: str | Path) -> list[Path]:
+        """Save every image panel's exact image as ``folder/NAME.png``."""
+        paths = self.panels.save_all(folder)
+        self.calls.call(
+            f"# {len(paths)} images of frame {self.k} saved in {str(folder)!r}: "
+            + ", ".join(p.name for p in paths),
+            "save images",
+        )
+        self.statusBar().showMessage(f"saved {len(paths)} images in {folder}")
+        return paths
+
+    def save_images_dialog(self) -> list[Path]:
+        folder = QtWidgets.QFileDialog.getExistingDirectory(self, "Save the frame's images in")
+        return self.save_images(folder) if folder else []
+
+    def save_screenshot_dialog(self) -> Path | None:
+        path, _ = QtWidgets.QFileDialog.getSaveFileName(
+            self, "Save a screenshot of the window", "icbtool-gui.png", "PNG images (*.png)"
+        )
+        return self.screenshot(path) if path else None
+
+    def _image_saved(self, path: str) -> None:
+        self.statusBar().showMessage(f"saved {path}")
+        self.calls.call(f"# saved {path!r}", "save image")
 
     # -------------------------------------------------------------- store
     def refresh_records(self, render: bool = True) -> None:
@@ -257,11 +376,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self._pending = None
         self._t_ask = time.perf_counter()
         self.statusBar().showMessage(f"computing frame {k} ...")
+        self.busy.setVisible(True)  # busy: a frame is being computed
         s = self.session
         self.frames.compute(k, s.viewer, s.cloud, s.client)
 
     def _on_frame(self, f: FrameResult) -> None:
         self._busy = False
+        self.busy.setVisible(False)
         if self._pending is not None:
             self._ask(self._pending)
         if f.index != self.k:  # a newer frame was asked for meanwhile
@@ -294,6 +415,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _on_failed(self, k: int, message: str) -> None:
         self._busy = False
+        self.busy.setVisible(False)
         self.pause()
         self.statusBar().showMessage(f"frame {k} failed: {message}")
         self.frame_failed.emit(k, message)
@@ -331,7 +453,7 @@ class MainWindow(QtWidgets.QMainWindow):
         )
         s.set_viewer(viewer)
         s.cloud, s.client = cloud, client
-        mod = {"viewer": "gui.model.", "cloud": "icb.system.", "client": "icb.system."}
+        mod = {"viewer": "icbtool_gui.model.", "cloud": "icb.system.", "client": "icb.system."}
         self.calls.call(
             "\n".join(f"{n}_cfg = {call_repr(v, mod[n])}" for n, v in changed), "settings"
         )
@@ -380,6 +502,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self.view.close()
 
 
+def _smallest_side(records: list[Any]) -> int | None:
+    """The smallest image side of the records the trainer can use (tagged with a ``train`` or
+    ``test`` path; else all), None without records."""
+    usable = [r for r in records if r.meta.tags.get("path") in ("train", "test")] or records
+    return min((min(r.camera.height, r.camera.width) for r in usable), default=None)
+
+
 def _scene_call(spec: str) -> str:
     if spec in icb.scene.PROCEDURAL:
         return f"icb.scene.{spec}()"
@@ -387,21 +516,79 @@ def _scene_call(spec: str) -> str:
 
 
 # ------------------------------------------------------------------------------ entry point
-def quick_store(scene: Any, store_dir: str | Path) -> Path:
-    """A small store baked on the fly: every 4th camera of the scene's ``train`` and ``test``
-    paths (or of its paths, whatever their names) at 64x64 and 4 spp, at the path's cameras
-    (one image size, so that the trainer can use them; the client's prefetch cameras are
-    rendered by the cloud as it goes): a few seconds on the Cornell box. An existing store of
-    the scene is reused."""
+class GLOwnerError(RuntimeError):
+    """This process already bound PyOpenGL to a headless platform (OSMesa / EGL): Qt and VTK
+    cannot share it reliably; the window must be opened in a process of its own."""
+
+
+def check_gl_owner() -> None:
+    """Refuse to open the window in a process whose PyOpenGL is bound to OSMesa or EGL.
+
+    Qt and VTK draw the 3D view with the X server's OpenGL (GLX); icbtool's rasterizer uses
+    PyOpenGL on OSMesa or EGL. With both in one process the 3D view may stay blank
+    ("QOpenGLWidget: Failed to make context current"), depending on the load. The window's
+    process owns only Qt's OpenGL: baking and client frames run in processes of their own.
+
+    Raises:
+        GLOwnerError: PyOpenGL is imported here with ``PYOPENGL_PLATFORM`` osmesa or egl.
+    """
+    import sys
+
+    plat = os.environ.get("PYOPENGL_PLATFORM", "")
+    if "OpenGL" in sys.modules and plat in ("osmesa", "egl"):
+        raise GLOwnerError(
+            f"this process already uses icbtool's headless OpenGL (PYOPENGL_PLATFORM={plat}); "
+            "open the window in a fresh process (bake or render in another one)"
+        )
+
+
+def quick_store(
+    scene_spec: str,
+    store_dir: str | Path,
+    on_view: Any = None,
+    poll: Any = None,
+) -> Path:
+    """A small store baked on the fly in a process of its own (:mod:`icbtool_gui.bakejob`):
+    every 4th camera of the scene's ``train`` and ``test`` paths (or of its paths, whatever
+    their names) at 64x64 and 4 spp, at the path's cameras (one image size, so that the
+    trainer can use them; the client's prefetch cameras are rendered by the cloud as it goes):
+    a few seconds on the Cornell box. An existing store of the scene is reused.
+
+    Args:
+        scene_spec: the scene as given on the command line.
+        store_dir: the store's folder.
+        on_view: progress, ``on_view(done, total)`` (views baked).
+        poll: called every ~50 ms while waiting (keeps a progress dialog drawn).
+    """
+    from icbtool_gui.bakejob import bake_in_process
+
     d = Path(store_dir)
-    with icb.store.open(d, icb.store.StoreConfig(fsync=False)) as st:
-        if not any(r.meta.scene_hash == scene.content_hash for r in st):
-            cfg = icb.bake.BakeConfig(
-                spp=4, resolution=(64, 64), stride=4, cloud_camera="same", progress=False
-            )
-            for path in [p for p in ("train", "test") if p in scene.paths] or list(scene.paths):
-                icb.bake.bake(scene, path, st, cfg)
+    bake_in_process(scene_spec, d, on_view=on_view, poll=poll, size=64, spp=4, stride=4)
     return d
+
+
+def _bake_with_progress(scene_spec: str, store_dir: Path) -> Path:
+    """:func:`quick_store` with a progress dialog (a QApplication exists)."""
+    dialog = QtWidgets.QProgressDialog(
+        f"Baking a small store of {scene_spec} into {store_dir} ...", "", 0, 0
+    )
+    dialog.setWindowTitle("icbtool gui")
+    dialog.setCancelButton(None)
+    dialog.setMinimumDuration(0)
+    dialog.setAutoClose(False)
+    dialog.show()
+
+    def on_view(done: int, total: int) -> None:
+        dialog.setMaximum(total)
+        dialog.setValue(done)
+        dialog.setLabelText(f"Baking a small store of {scene_spec}: view {done} of {total}")
+
+    try:
+        return quick_store(
+            scene_spec, store_dir, on_view=on_view, poll=QtWidgets.QApplication.processEvents
+        )
+    finally:
+        dialog.close()
 
 
 def open_window(
@@ -414,10 +601,16 @@ def open_window(
     client: Any = None,
 ) -> MainWindow:
     """Build the window (a QApplication must exist): the scene, the store (``store``; else the
-    demo's ``demo_dir/cache`` with the demo's settings; else a quick store in ``out/gui/store``)
-    and an optional GAN run."""
-    from gui.model import demo_settings
+    demo's ``demo_dir/cache`` with the demo's settings; else a quick store in ``out/gui/store``,
+    baked in a process of its own with a progress dialog) and an optional GAN run.
 
+    Raises:
+        GLOwnerError: this process already uses icbtool's headless OpenGL
+            (:func:`check_gl_owner`).
+    """
+    from icbtool_gui.model import demo_settings
+
+    check_gl_owner()
     scene = load_scene(scene_spec)
     s_viewer, s_cloud, s_client = ViewerConfig(), None, None
     if store is None and (Path(demo_dir) / "cache").is_dir():
@@ -429,7 +622,7 @@ def open_window(
         path = "test" if "test" in scene.paths else next(iter(scene.paths), None)
         if path is None:
             raise ValueError(f"scene {scene_spec!r} has no camera path to follow")
-        store = quick_store(scene, Path("out/gui/store"))
+        store = _bake_with_progress(scene_spec, Path("out/gui/store"))
         s_viewer = ViewerConfig(path=path, height=64, width=64)
         s_cloud = icb.system.CloudConfig(spp=4, denoise=False)
     elif not Path(store).is_dir():
@@ -459,7 +652,7 @@ def main(
     """``icbtool gui``: open the window (or save a screenshot of it and exit)."""
     import contextlib
 
-    from gui.display import virtual_display
+    from icbtool_gui.display import virtual_display
 
     ctx: Any = contextlib.nullcontext()
     if screenshot is not None and not os.environ.get("DISPLAY"):
@@ -504,4 +697,12 @@ def main(
     return 0
 
 
-__all__ = ["MainWindow", "load_scene", "main", "open_window", "quick_store"]
+__all__ = [
+    "GLOwnerError",
+    "MainWindow",
+    "check_gl_owner",
+    "load_scene",
+    "main",
+    "open_window",
+    "quick_store",
+]

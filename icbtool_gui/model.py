@@ -2,7 +2,8 @@
 
 Everything here goes through icbtool's public API (``icbtool.scene``, ``icbtool.store``,
 ``icbtool.system``, ``icbtool.prefetch``, ``icbtool.metrics``, ``icbtool.gan``) and can be used
-from a script: the window logs each of its actions as the equivalent call (:mod:`gui.calls`).
+from a script: the window logs each of its actions as the equivalent call
+(:mod:`icbtool_gui.calls`).
 
 The client moves along a camera path of the scene. With ``speed`` s (ViewerConfig) it traverses
 the path s times faster than the path's own timing: at frame k it is at path time ``t_k``, its
@@ -284,7 +285,7 @@ class FrameComputer:
     :class:`icbtool.system.Cloud` on the session's store, sharing one rasterizer.
 
     Create, use and close it in one thread (its OpenGL context belongs to that thread); the
-    window runs it in a process of its own (:mod:`gui.frames`).
+    window runs it in a process of its own (:mod:`icbtool_gui.frames`).
     """
 
     def __init__(self, session: Session) -> None:

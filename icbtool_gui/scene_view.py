@@ -3,6 +3,9 @@ pickable frusta, the client's path, camera and prefetch frustum.
 
 A left click (press and release at one spot) picks the nearest reference frustum under the
 cursor (a VTK cell picker restricted to the frusta) and emits :attr:`SceneView.record_picked`.
+The click's position is the render window interactor's event position (VTK display
+coordinates, origin bottom-left, device pixels): the observers sit on the interactor, but VTK
+hands them the interactor style as the caller, which has no event position.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import pyvista as pv
 from PySide6 import QtCore, QtWidgets
 from pyvistaqt import QtInteractor
 
-from gui.model import Leaf, frustum_points
+from icbtool_gui.model import Leaf, frustum_points
 
 #: Colours (RGB 0-1).
 COLOURS = {
@@ -32,7 +35,7 @@ _BOX_EDGES += [(0, 4), (1, 5), (2, 6), (3, 7)]
 
 
 def pyramid(points: np.ndarray) -> pv.PolyData:
-    """A closed pyramid from :func:`gui.model.frustum_points` (apex + 4 base corners)."""
+    """A closed pyramid from :func:`icbtool_gui.model.frustum_points` (apex + 4 base corners)."""
     faces = np.array([3, 0, 1, 2, 3, 0, 2, 3, 3, 0, 3, 4, 3, 0, 4, 1, 4, 1, 2, 3, 4])
     return pv.PolyData(np.asarray(points, np.float64), faces)
 
@@ -229,17 +232,28 @@ class SceneView(QtCore.QObject):
         """Fit everything shown (scene, path, frusta) in the view, keeping its direction."""
         self.plotter.reset_camera()
 
+    def frame_all_and_render(self) -> None:
+        self.frame_all()
+        self.render()
+
     def render(self) -> None:
         self.plotter.render()
 
     # -------------------------------------------------------------- picking
     def display_xy(self, point: np.ndarray) -> tuple[int, int]:
-        """VTK display coordinates (origin bottom-left) of world ``point`` (3,)."""
+        """VTK display coordinates (origin bottom-left, device pixels) of world ``point`` (3,)."""
         ren = self.plotter.renderer
         ren.SetWorldPoint(*np.asarray(point, np.float64), 1.0)
         ren.WorldToDisplay()
         x, y, _ = ren.GetDisplayPoint()
         return int(round(x)), int(round(y))
+
+    def widget_xy(self, point: np.ndarray) -> tuple[int, int]:
+        """Qt widget coordinates (origin top-left, logical pixels) of world ``point`` (3,):
+        where a mouse click on :attr:`widget` lands on it."""
+        x, y = self.display_xy(point)
+        ratio = self.widget.devicePixelRatioF()  # QVTKRenderWindowInteractor's inverse mapping
+        return int(round(x / ratio)), int(round(self.widget.height() - 1 - y / ratio))
 
     def pick_at(self, x: int, y: int) -> int | None:
         """The record whose frustum is nearest under display point (x, y), or None; emits
@@ -257,11 +271,15 @@ class SceneView(QtCore.QObject):
             self.record_picked.emit(rid)
         return rid
 
-    def _on_press(self, obj: Any, _event: str) -> None:
-        self._press = tuple(obj.GetEventPosition())
+    def _event_position(self) -> tuple[int, int]:
+        x, y = self.plotter.iren.interactor.GetEventPosition()
+        return int(x), int(y)
 
-    def _on_release(self, obj: Any, _event: str) -> None:
-        pos = tuple(obj.GetEventPosition())
+    def _on_press(self, _obj: Any, _event: str) -> None:
+        self._press = self._event_position()
+
+    def _on_release(self, _obj: Any, _event: str) -> None:
+        pos = self._event_position()
         press, self._press = self._press, None
         if press is not None and max(abs(pos[0] - press[0]), abs(pos[1] - press[1])) <= 3:
             self.pick_at(*pos)
