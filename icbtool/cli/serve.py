@@ -4,6 +4,11 @@ Clients authenticate with --token, receive the scene's mesh levels (never the fu
 mesh's source), ask for GI maps (answered from the store or path traced, coalesced, encoded) and
 the generator (--generator, sent once). SIGINT/SIGTERM stop it cleanly: every committed store
 record is kept. Prints ``listening on ws://HOST:PORT`` once it accepts connections.
+
+With --web the same host and port also serve the browser client (icbtool/web, built by
+``make web``), and one more line is printed: ``web client: http://HOST:PORT/#token=...``, the URL
+that opens the client already authenticated (the token stays in the URL fragment, which the
+browser never sends, so no server log holds it).
 """
 
 from __future__ import annotations
@@ -58,6 +63,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--max-pending", type=positive_int, default=4, help="GI requests per client at once"
     )
     p.add_argument("--no-lpm", action="store_true", help="stream the full mesh as one level")
+    p.add_argument(
+        "--web",
+        action="store_true",
+        help="also serve the browser client over HTTP on the same host/port and print its URL",
+    )
     p.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
 
 
@@ -76,6 +86,13 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--generator {args.generator!r}: no generator.pt there")
     if not args.no_denoise:
         require("pyoidn", "denoising the served GI maps (--no-denoise skips it)")
+    if args.web:
+        from icbtool.net import web
+
+        try:
+            web.check_bundle()
+        except web.WebBundleMissing as e:
+            raise UsageError(f"--web: {e}") from None
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
     scene = load_scene(args.scene)
     server = net.Server(
@@ -83,7 +100,11 @@ def run(args: argparse.Namespace) -> int:
         args.store,
         token,
         net.ServerConfig(
-            host=args.host, port=args.port, max_pending=args.max_pending, lpm=not args.no_lpm
+            host=args.host,
+            port=args.port,
+            max_pending=args.max_pending,
+            lpm=not args.no_lpm,
+            web=args.web,
         ),
         system.CloudConfig(
             prefetch=not args.no_prefetch,
@@ -94,7 +115,15 @@ def run(args: argparse.Namespace) -> int:
         ),
         generator=args.generator,
     )
-    server.on_listening = lambda url: print(f"listening on {url}", flush=True)
+
+    def listening(url: str) -> None:
+        print(f"listening on {url}", flush=True)
+        if args.web:
+            from icbtool.net.web import page_url
+
+            print(f"web client: {page_url(url, token)}", flush=True)
+
+    server.on_listening = listening
     server.serve_forever()
     s = server.stats
     print(
