@@ -36,7 +36,10 @@ FILES: dict[str, tuple[str, str]] = {
         "bundle/ort-wasm-simd-threaded.mjs",
         "text/javascript; charset=utf-8",
     ),
-    "/bundle/ort-wasm-simd-threaded.wasm": ("bundle/ort-wasm-simd-threaded.wasm", "application/wasm"),
+    "/bundle/ort-wasm-simd-threaded.wasm": (
+        "bundle/ort-wasm-simd-threaded.wasm",
+        "application/wasm",
+    ),
 }
 
 #: Headers of every answer.
@@ -53,6 +56,23 @@ SECURITY_HEADERS: dict[str, str] = {
         "base-uri 'none'; form-action 'none'; frame-ancestors 'none'"
     ),
 }
+
+
+#: Debian's chromium, headless with software WebGL2 (SwiftShader): how the tests and
+#: benchmarks/web_client.py open the page on a machine without a GPU (docs/protocol.md is
+#: spoken over loopback only; a fresh --user-data-dir is added by the caller).
+CHROMIUM = "/usr/bin/chromium"
+HEADLESS_CHROMIUM_ARGS: tuple[str, ...] = (
+    "--headless",
+    "--no-sandbox",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--disable-quic",
+)
 
 
 class WebBundleMissing(FileNotFoundError):
@@ -130,7 +150,9 @@ def http_handler(root: Path = WEB_ROOT) -> Callable[[Any, Any], Any]:
 
 
 __all__ = [
+    "CHROMIUM",
     "FILES",
+    "HEADLESS_CHROMIUM_ARGS",
     "SECURITY_HEADERS",
     "WEB_ROOT",
     "WebBundleMissing",

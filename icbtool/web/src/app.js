@@ -185,9 +185,9 @@ class WebClient {
 
   /** Send a gi_request for `cam` with motion (v_t, v_r) at client time tS; resolves with the
    * decoded reply and the client-side latency split. */
-  async requestGI(cam, vT, vR, tS, depthRange) {
+  async requestGI(cam, vT, vR, tS, depthRange, seq = null) {
     const id = state.nextId++;
-    const seq = id;
+    if (seq === null) seq = id;
     const t0 = performance.now();
     const reply = new Promise((resolve) => state.replies.set(id, {resolve}));
     state.pending++;
@@ -225,8 +225,7 @@ class WebClient {
     r.finish();
     const rasterMs = performance.now() - t0;
     const dr = r.depthRange();
-    if (seq !== null) state.nextId = Math.max(state.nextId, seq);
-    const reply = await this.requestGI(camReq, vT, vR, tReq, dr);
+    const reply = await this.requestGI(camReq, vT, vR, tReq, dr, seq);
     r.setReference(reply.camera, reply.parts);
     t0 = performance.now();
     r.composite();

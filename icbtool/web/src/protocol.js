@@ -439,7 +439,7 @@ export class Session {
       : `the connection to ${this.url} was lost (code ${ev.code}${ev.reason ? ": " + ev.reason : ""}; server gone?)`;
     if (!this._closed) this._closed = why;
     for (const w of this._waiters.splice(0)) w.reject(new Error(why));
-    this.onClose(this._closed);
+    if (this._sealedMode) this.onClose(this._closed);  // during the handshake: connect() throws
   }
 
   close(reason = "closed by the client") {
