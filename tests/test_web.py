@@ -242,7 +242,8 @@ def test_codecs_and_lpm_chunks_decode_like_python(page, scene):
         """(cases) => cases.map(([name, shape, data]) => {
           const a = window.icbModules.codec.decodePart(window.icbModules.protocol.unb64(data),
                                                        name, shape);
-          return window.icbModules.protocol.b64(new Uint8Array(a.buffer, a.byteOffset, a.byteLength));
+          const u8 = new Uint8Array(a.buffer, a.byteOffset, a.byteLength);
+          return window.icbModules.protocol.b64(u8);
         })""",
         [[n, list(a.shape), d] for n, a, d in cases],
     )
@@ -414,8 +415,9 @@ def test_onnx_generator_in_the_browser_equals_onnxruntime(page, tmp_path):
           const g = await M.OnnxGenerator.load(M.protocol.unb64(a.model));
           const x = new Float32Array(M.protocol.unb64(a.x).buffer);
           const y = await g.run(x, a.c, 64, 64);
-          return {y: M.protocol.b64(new Uint8Array(y.data.buffer, y.data.byteOffset, y.data.byteLength)),
-                  dims: y.dims, threads: g.threads, isolated: crossOriginIsolated};
+          const u8 = new Uint8Array(y.data.buffer, y.data.byteOffset, y.data.byteLength);
+          return {y: M.protocol.b64(u8), dims: y.dims, threads: g.threads,
+                  isolated: crossOriginIsolated};
         }""",
         {
             "model": base64.b64encode(path.read_bytes()).decode(),
