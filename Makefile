@@ -64,6 +64,11 @@ gui: install
 docs/images/gui.png: install
 	$(PY) -m icbtool gui --screenshot $@
 
+# the web client's screenshot in the README (headless chromium, taken by tests/test_web.py)
+docs/images/web.png: install
+	ICBTOOL_WEB_SCREENSHOT=$(abspath $@) ICBTOOL_GL_BACKEND=osmesa $(PY) -m pytest -q \
+	  tests/test_web.py -k walks_the_test_path
+
 # CI (.ci/run) runs exactly this: lint, the wheel-install smoke test, then the quick tests.
 test: lint wheel-smoke pytest
 

@@ -809,6 +809,63 @@ def block_net(results: Path) -> str:
     )
 
 
+def block_web(results: Path) -> str:
+    d = load("web/web_client.json", results)
+    c = d["config"]
+    st = {e["size"]: e for e in d["stages"]}
+    gl = next(iter(st.values()))["gl_renderer"]
+    backend = "SwiftShader" if "SwiftShader" in gl else gl
+    sizes = sorted(st)
+
+    def row(label: str, get: Callable[[dict[str, Any]], float]) -> str:
+        return f"| {label} | " + " | ".join(f"{get(st[s]):.1f} ms" for s in sizes) + " |"
+
+    med = lambda k: lambda e: e["median"][k]  # noqa: E731
+    rows = "\n".join(
+        [
+            row("raster: G-buffers + DL (one MRT pass, 4x4 area-light shadows)", med("raster_ms")),
+            row("GI request -> reply (cache hit)", med("request_ms")),
+            row("of which server", med("server_ms")),
+            row("of which transfer", med("transfer_ms")),
+            row("decode (f16m7-diff-zstd GI, f16-diff-zstd depth + mask)", med("decode_ms")),
+            row("warp + combine + fill + blend", med("warp_ms")),
+            row("generate (onnxruntime-web, U-Net base 32)", lambda e: e["generate"]["median_ms"]),
+        ]
+    )
+    threads = next(iter(st.values()))["generate"]["threads"]
+    kb = " / ".join(f"{st[s]['gi_reply_bytes_per_frame'] / 1e3:.1f} kB" for s in sizes)
+    ff: dict[str, dict[float, dict[str, Any]]] = {}
+    for f in d["first_frame"]:
+        ff.setdefault(f["mesh"], {})[f["rtt_ms"]] = f
+    rtts = sorted(next(iter(ff.values())))
+    ff_rows = "\n".join(
+        f"| {name} | "
+        + " | ".join(f"{ff[m][r]['first_frame_ms'] / 1e3:.2f} s" for r in rtts)
+        + " |"
+        for m, name in (("lpm_level0", "LPM level 0"), ("full_mesh", "full mesh"))
+        if m in ff
+    )
+    loads = list(walk_load_averages(d))
+    hdr = " | ".join(f"{s}x{s} ({backend})" for s in sizes)
+    return (
+        f"**Web client** (`benchmarks/web_client.py`: {c['scene']}, chromium {d['chromium']} "
+        f"headless, WebGL2 on **{backend}** (CPU; no GPU here), {c['frames']} frames of the test "
+        f"path walked twice, medians of the second walk; server {c['spp']} spp GI, denoised; "
+        f"load average {span(loads, f2)}):\n\n"
+        f"| stage ({backend}) | {hdr} |\n|---|" + "---|" * len(sizes) + "\n"
+        f"{rows}\n\n"
+        f"onnxruntime-web ran with {threads} WebAssembly thread(s) (the page is cross-origin "
+        f"isolated). Bytes received per frame (gi_reply): {kb}. First frame (opening the page to "
+        f"the first finished frame, 128x128, {backend}, warm store) by emulated round trip:\n\n"
+        "| mesh | "
+        + " | ".join(f"{r:g} ms" for r in rtts)
+        + " |\n|---|"
+        + "---|" * len(rtts)
+        + "\n"
+        f"{ff_rows}\n"
+    )
+
+
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "intro": block_intro,
     "raster": block_raster,
@@ -827,6 +884,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "gan-spp": block_gan_spp,
     "lpm": block_lpm,
     "net": block_net,
+    "web": block_web,
 }
 
 

@@ -102,7 +102,9 @@ class Page:
     """A page of the client with its console messages and page errors collected."""
 
     def __init__(self, browser, url: str) -> None:
-        self.page = browser.new_page(viewport={"width": 560, "height": 720})
+        # bypass_csp: Playwright's polling predicates are evaluated strings, which the page's
+        # Content-Security-Policy (no 'unsafe-eval') would refuse
+        self.page = browser.new_page(viewport={"width": 560, "height": 720}, bypass_csp=True)
         self.page.set_default_timeout(T_MS)
         self.console: list[tuple[str, str]] = []
         self.page.on("console", lambda m: self.console.append((m.type, m.text)))
@@ -128,7 +130,8 @@ class Page:
 
 
 def _open(browser, server, token: str = TOKEN, extra: str = "&test=1") -> Page:
-    return Page(browser, web.page_url(server.url, token) + f"{extra}&size={SIZE}")
+    size = "" if "size=" in extra else f"&size={SIZE}"
+    return Page(browser, web.page_url(server.url, token) + f"{size}{extra}")
 
 
 @pytest.fixture
@@ -318,10 +321,74 @@ def test_handshake_every_level_and_frames_without_console_errors(page, server, s
     assert "LPM level" in page.js("document.getElementById('overlay').textContent")
     assert page.js("document.getElementById('error').hidden")
     assert not page.errors(), page.errors()
-    shot = os.environ.get("ICBTOOL_WEB_SCREENSHOT")
-    if shot:  # `make docs/images/web.png`
-        page.js("window.icb.state.mode = 0; window.icb.client.renderer.display()")
-        page.page.locator("main").screenshot(path=shot)
+
+
+def test_opened_page_walks_the_test_path_by_itself(browser, server):
+    """The URL as `icbtool serve --web` prints it (no test hooks): the page plays the path."""
+    shot = os.environ.get("ICBTOOL_WEB_SCREENSHOT")  # `make docs/images/web.png`
+    p = _open(browser, server, extra="&size=256" if shot else "")
+    try:
+        p.page.wait_for_function(
+            "window.icb && window.icb.state.frames >= 6 && window.icb.client.renderer.refs.length"
+        )
+        st = p.js(
+            "({t: window.icb.state.pathT, hits: window.icb.state.hits,"
+            " misses: window.icb.state.misses, playing: window.icb.state.playing})"
+        )
+        assert st["playing"] and st["t"] > 0 and st["hits"] + st["misses"] >= 1
+        assert "#token" not in p.page.url  # the token is taken out of the address bar
+        assert not p.errors(), p.errors()
+        if shot:  # a fixed view of the path, its GI settled
+            p.js("""() => { const c = window.icb.client, s = window.icb.state;
+                      s.playing = false;
+                      c.controls.pose = c.path.poseAt(0.2 * c.path.duration); }""")
+            p.page.wait_for_function("window.icb.state.frames >= 40")
+            p.page.locator("main").screenshot(path=shot)
+    finally:
+        p.close()
+
+
+def test_serve_web_prints_one_url_and_never_logs_the_token(tmp_path):
+    import subprocess
+    import sys
+
+    token = "cli-secret-7f3a"
+    cmd = [
+        sys.executable,
+        "-m",
+        "icbtool",
+        "serve",
+        "cornell_box",
+        "--store",
+        str(tmp_path),
+        "--port",
+        "0",
+        "--token",
+        token,
+        "--no-denoise",
+        "--web",
+        "--log-level",
+        "DEBUG",
+    ]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        lines = []
+        for _ in range(50):
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line.strip())
+            if line.startswith("web client:"):
+                break
+        url = lines[-1].removeprefix("web client: ")
+        assert re.fullmatch(r"http://127\.0\.0\.1:\d+/#token=" + token, url), lines
+        with urllib.request.urlopen(url.split("#")[0], timeout=30) as r:
+            assert r.status == 200
+    finally:
+        proc.terminate()
+        out, err = proc.communicate(timeout=60)
+    assert token not in err and token not in out  # only the URL line holds it
 
 
 def test_wrong_token_is_a_readable_error_and_no_scene_data(browser, server):

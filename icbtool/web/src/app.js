@@ -222,7 +222,7 @@ class WebClient {
     const r = this.renderer;
     let t0 = performance.now();
     r.renderWRT(cam);
-    r.finish();
+    r.finish(r.gbuf);
     const rasterMs = performance.now() - t0;
     const dr = r.depthRange();
     const reply = await this.requestGI(camReq, vT, vR, tReq, dr, seq);
@@ -279,7 +279,7 @@ class WebClient {
     }
     const t0 = performance.now();
     r.renderWRT(cam);
-    r.finish();
+    r.finish(r.gbuf);
     const rasterMs = performance.now() - t0;
     const maxPending = this.info.max_pending || 4;
     if (state.pending < Math.min(2, maxPending)) {  // keep a request in flight
@@ -333,7 +333,10 @@ async function main() {
   const targets = (r) => ({albedo: [r.gbuf, 0], normal: [r.gbuf, 1], position: [r.gbuf, 2],
                            dl: [r.gbuf, 3], final: [r.final, 0]});
   window.icb.read = (name) => protocol.b64(new Uint8Array(client.renderer.read(...targets(client.renderer)[name]).buffer));
-  window.icb.renderWRT = (cam) => { client.renderer.renderWRT(cam); client.renderer.finish(); };
+  window.icb.renderWRT = (cam) => {
+    client.renderer.renderWRT(cam);
+    client.renderer.finish(client.renderer.gbuf);
+  };
   window.icb.ready = (async () => {
     await client.start();
     await client.waitLevel(0);

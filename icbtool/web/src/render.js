@@ -500,7 +500,7 @@ export class WebRenderer {
       combined = this.combined;
     }
     this.holesTarget = combined;
-    const steps = Math.min(64, Math.max(16, Math.ceil(Math.max(...this.size) / 4)));
+    const steps = Math.min(32, Math.max(8, Math.ceil(Math.max(...this.size) / 8)));
     let src = combined;
     for (let i = 0; i < steps; i++) {
       const dst = i % 2 ? this.fillB : this.fillA;
@@ -552,5 +552,9 @@ export class WebRenderer {
     return {holes: n ? (out + dis) / n : 0, outside: n ? out / n : 0, disoccluded: n ? dis / n : 0};
   }
 
-  finish() { this.gl.finish(); }
+  /** Wait for the GPU: a 1-pixel read-back of the last target (gl.finish alone does not
+   * block under ANGLE), so stage times are real. */
+  finish(target = this.final) {
+    if (target) this.three.readRenderTargetPixels(target, 0, 0, 1, 1, new Float32Array(4));
+  }
 }
