@@ -404,6 +404,20 @@ def test_wrong_token_is_a_readable_error_and_no_scene_data(browser, server):
         p.close()
 
 
+def test_server_gone_is_a_readable_error(browser, scene, tmp_path):
+    srv = Server(scene, tmp_path, TOKEN, ServerConfig(web=True), CLOUD).start()
+    p = _open(browser, srv)
+    try:
+        p.ready()
+        srv.stop()
+        p.page.wait_for_function("!document.getElementById('error').hidden")
+        msg = p.js("document.getElementById('error').textContent")
+        assert "server" in msg and ("lost" in msg or "closed" in msg), msg
+    finally:
+        p.close()
+        srv.stop()
+
+
 def _wrt(scene, cam):
     with raster.Rasterizer(scene) as rz:
         return rz.render(cam)
@@ -497,3 +511,52 @@ def test_onnx_generator_in_the_browser_equals_onnxruntime(page, tmp_path):
     assert np.abs(y - want).max() <= TOL["onnx_max_abs"]
     assert got["isolated"] is True  # COOP/COEP: WebAssembly threads allowed
     assert not page.errors()
+
+
+@pytest.mark.sponza
+@pytest.mark.slow
+def test_sponza_textures_sun_and_sky_in_the_browser(browser, sponza_path, tmp_path):
+    """The real scene: 16.7k-triangle LPM level, 17 textures, sun shadows, gradient sky."""
+    from icbtool.net.client import NetClientConfig, NetworkSource
+    from icbtool.scene.load import load
+
+    scene = load(REPO / "data" / "scenes" / "sponza.toml")
+    cloud = system.CloudConfig(spp=1, denoise=False, max_depth=2)
+    with Server(scene, tmp_path, TOKEN, ServerConfig(web=True), cloud) as srv:
+        with NetworkSource(srv.url, TOKEN, NetClientConfig(timeout_s=T_MS / 1e3)) as src:
+            src.request_lpm()
+            src.wait_level(max(lv["level"] for lv in src.levels))
+            level, lscene = src.best_scene()
+        p = _open(browser, srv)
+        try:
+            p.ready()
+            p.page.wait_for_function(
+                "window.icb.state.level === Math.max(...window.icb.client.levelsOffered)"
+            )
+            assert p.js("window.icb.state.level") == level
+            path = scene.paths["test"]
+            for t in (0.0, 0.5 * path.times[-1]):
+                cam = path.with_intrinsics(path.intrinsics.resized(SIZE, SIZE)).camera_at(t)
+                p.js("(c) => window.icb.renderWRT(c)", protocol.camera_to_json(cam))
+                al, nr, po, dl = (p.read(n) for n in ("albedo", "normal", "position", "dl"))
+                ref = _wrt(lscene, cam)
+                m = ref.mask[..., 0] > 0.5
+                assert np.mean((po[..., 3] > 0) == m) >= TOL["mask_agree"]
+                both = m & (po[..., 3] > 0)
+                z = ref.depth[..., 0][both]
+                assert np.percentile(np.abs(po[..., 3][both] - z) / z, 99) <= 3e-3
+                cos = np.clip((nr[..., :3] * ref.normal_world).sum(-1), -1, 1)
+                assert np.percentile(np.degrees(np.arccos(cos))[both], 99) <= 3.0
+                # textures are resized in the browser (sRGB, the image decoder's filter) and by
+                # icbtool (linear light, area filter): texel detail differs a little
+                assert np.abs(al[..., :3] - ref.albedo)[both].mean() <= 0.02
+                d = np.abs(dl[..., :3] - ref.dl)[both]
+                assert d.mean() / ref.dl[both].mean() <= 0.05
+                sky = ~m & (po[..., 3] == 0)
+                if sky.any():  # the gradient sky on the background, as icbtool.raster's
+                    np.testing.assert_allclose(dl[..., :3][sky], ref.dl[sky], atol=2e-3)
+            s = p.js("window.icb.client.step({t: 1.0, latency: 0.1}).then(s => s.hole_ratio)")
+            assert 0 <= s < 0.5
+            assert not p.errors(), p.errors()
+        finally:
+            p.close()

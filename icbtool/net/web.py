@@ -118,8 +118,10 @@ def http_handler(root: Path = WEB_ROOT) -> Callable[[Any, Any], Any]:
     Raises:
         WebBundleMissing: see :func:`check_bundle` (checked once, here).
     """
-    from websockets.datastructures import Headers
-    from websockets.http11 import Response
+    from icbtool._optional import require
+
+    Headers = require("websockets.datastructures", "icbtool serve --web").Headers
+    Response = require("websockets.http11", "icbtool serve --web").Response
 
     check_bundle(root)
     cache: dict[str, bytes] = {}
