@@ -65,6 +65,8 @@ def _walk(page: Any, times: list[float], seq0: int) -> list[dict[str, Any]]:
 def _generator_ms(page: Any, size: int, repeats: int) -> dict[str, Any]:
     import base64
 
+    import numpy as np
+    import onnxruntime
     import torch
 
     from icbtool.gan import Generator
@@ -76,24 +78,103 @@ def _generator_ms(page: Any, size: int, repeats: int) -> dict[str, Any]:
     gen = Generator(UNetGenerator(GeneratorConfig(in_channels=enc.n_channels, base=32)), enc)
     with tempfile.TemporaryDirectory() as d:
         model = gen.export_onnx(Path(d) / "g.onnx", size, size).read_bytes()
+    x = np.random.default_rng(0).uniform(-1, 1, (1, enc.n_channels, size, size)).astype(np.float32)
+    want = onnxruntime.InferenceSession(model).run(None, {"maps": x})[0]
     res = page.evaluate(
         """async (a) => {
           const M = window.icbModules;
           const g = await M.OnnxGenerator.load(M.protocol.unb64(a.model));
-          const x = new Float32Array(a.c * a.s * a.s).fill(0.1);
+          const x = new Float32Array(M.protocol.unb64(a.x).buffer);
           const ms = [];
-          for (let i = 0; i < a.n; i++) ms.push((await g.run(x, a.c, a.s, a.s)).ms);
-          return {ms, threads: g.threads, isolated: crossOriginIsolated};
+          let y = null;
+          for (let i = 0; i < a.n; i++) { y = await g.run(x, a.c, a.s, a.s); ms.push(y.ms); }
+          const u8 = new Uint8Array(y.data.buffer, y.data.byteOffset, y.data.byteLength);
+          return {ms, threads: g.threads, isolated: crossOriginIsolated, y: M.protocol.b64(u8)};
         }""",
-        {"model": base64.b64encode(model).decode(), "c": enc.n_channels, "s": size, "n": repeats},
+        {
+            "model": base64.b64encode(model).decode(),
+            "x": base64.b64encode(x.tobytes()).decode(),
+            "c": enc.n_channels,
+            "s": size,
+            "n": repeats,
+        },
     )
+    got = np.frombuffer(base64.b64decode(res["y"]), np.float32).reshape(want.shape)
     return {
         "median_ms": statistics.median(res["ms"][1:] or res["ms"]),
         "first_ms": res["ms"][0],
         "threads": res["threads"],
         "cross_origin_isolated": res["isolated"],
         "model_bytes": len(model),
+        "max_abs_diff_vs_onnxruntime": float(np.abs(got - want).max()),
     }
+
+
+def _read(page: Any, name: str, size: int) -> Any:
+    import base64
+
+    import numpy as np
+
+    b = base64.b64decode(page.evaluate("(n) => window.icb.read(n)", name))
+    return np.frombuffer(b, np.float32).reshape(size, size, 4)
+
+
+def _accuracy(page: Any, srv: Any, scene: Any, times: list[float], size: int) -> dict[str, Any]:
+    """The browser against icbtool: WRT-buffer vs icbtool.raster on the level held, final frames
+    vs the Python client's (same path, server and seqs; SSIM on the display scale)."""
+    import numpy as np
+
+    from icbtool import metrics, raster, system
+    from icbtool.net import protocol
+    from icbtool.net.client import NetClientConfig, NetworkSource
+
+    path = scene.paths["test"]
+    p = path.with_intrinsics(path.intrinsics.resized(size, size))
+    with NetworkSource(srv.url, TOKEN, NetClientConfig(timeout_s=600)) as src:
+        src.request_lpm()
+        src.wait_level(max(lv["level"] for lv in src.levels))
+        _, lscene = src.best_scene()
+        wrt = []
+        with raster.Rasterizer(lscene) as rz:
+            for t in times[:: max(1, len(times) // 3)]:
+                cam = p.camera_at(t)
+                page.evaluate("(c) => window.icb.renderWRT(c)", protocol.camera_to_json(cam))
+                al, nr, po, dl = (
+                    _read(page, n, size) for n in ("albedo", "normal", "position", "dl")
+                )
+                ref = rz.render(cam)
+                m = ref.mask[..., 0] > 0.5
+                both = m & (po[..., 3] > 0)
+                z = ref.depth[..., 0][both]
+                cos = np.clip((nr[..., :3] * ref.normal_world).sum(-1), -1, 1)[both]
+                d = np.abs(dl[..., :3] - ref.dl)[both]
+                wrt.append(
+                    {
+                        "t": t,
+                        "mask_agree": float(np.mean((po[..., 3] > 0) == m)),
+                        "depth_rel_p99": float(np.percentile(np.abs(po[..., 3][both] - z) / z, 99)),
+                        "normal_deg_p99": float(np.percentile(np.degrees(np.arccos(cos)), 99)),
+                        "albedo_abs_mean": float(np.abs(al[..., :3] - ref.albedo)[both].mean()),
+                        "dl_rel_mean": float(d.mean() / ref.dl[both].mean()),
+                        "dl_p99": float(np.percentile(d, 99)),
+                    }
+                )
+        page.evaluate("() => { window.icb.client.renderer.refs.length = 0; }")
+        web_final = []
+        for k, t in enumerate(times):
+            page.evaluate(
+                "(a) => window.icb.client.step({t: a[0], latency: 0.1, seq: a[1]})", [t, k]
+            )
+            web_final.append(_read(page, "final", size)[..., :3].copy())
+        ssim = []
+        with system.Client(lscene, src) as client:
+            for k, t in enumerate(times):
+                t_req = max(t - 0.1, float(path.times[0]))
+                v_t, v_r = p.velocity_cam(t_req)
+                req = system.GIRequest(p.camera_at(t_req), v_t, v_r, t_req, seq=k)
+                fr = client.frame(p.camera_at(t), req)
+                ssim.append(metrics.ssim(web_final[k], fr.final))
+    return {"size": size, "wrt": wrt, "ssim_final": ssim}
 
 
 def _first_frame(browser: Any, url: str, rtt: float, wait_all: bool) -> dict[str, Any]:
@@ -178,6 +259,10 @@ def main() -> None:
                         cold = _walk(page, times, 0)
                         warm = _walk(page, times, 0)
                         gen = _generator_ms(page, size, 4)
+                        if size == min(int(x) for x in args.sizes.split(",")):
+                            acc = _accuracy(page, srv, scene, times, size)
+                            result["accuracy"] = acc
+                            print(f"accuracy {acc}", flush=True)
                         gl = page.evaluate("window.icb.client.renderer.glRenderer")
                         entry = {
                             "size": size,
