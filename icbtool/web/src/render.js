@@ -269,7 +269,7 @@ export class WebRenderer {
     const mats = level.manifest.materials;
     const texIdx = [];
     const layers = [];
-    const tsize = Math.min(RASTER.textureSize, Math.max(1, ...mats.map((m) => (m.texture ? Math.max(m.texture.height, m.texture.width) : 1))));
+    const tsize = RASTER.textureSize;  // every texture resized to one square size, as icbtool.raster
     for (let i = 0; i < mats.length; i++) {
       if (level.textures[i]) {
         texIdx.push(layers.length);
