@@ -155,7 +155,12 @@ def _accuracy(page: Any, srv: Any, scene: Any, times: list[float], size: int) ->
                         "depth_rel_p99": float(np.percentile(np.abs(po[..., 3][both] - z) / z, 99)),
                         "normal_deg_p99": float(np.percentile(np.degrees(np.arccos(cos)), 99)),
                         "albedo_abs_mean": float(np.abs(al[..., :3] - ref.albedo)[both].mean()),
-                        "dl_rel_mean": float(d.mean() / ref.dl[both].mean()),
+                        # None where the DL seen is 0 (no light reaches the view)
+                        "dl_rel_mean": (
+                            float(d.mean() / ref.dl[both].mean())
+                            if ref.dl[both].mean() > 0
+                            else None
+                        ),
                         "dl_p99": float(np.percentile(d, 99)),
                     }
                 )

@@ -145,7 +145,9 @@ class WebClient {
     this.session.onMessage = (m) => this.onMessage(m);
     const levels = this.info.lpm.levels.map((l) => l.level);
     this.levelTimes = {};
-    await this.session.send("lpm_request", {max_level: Math.max(...levels)});
+    // the coarsest level alone first: the first frame need not share the link and the main
+    // thread with the finer levels; they follow after it (or a second after level 0 at most)
+    await this.session.send("lpm_request", {max_level: Math.min(...levels)});
     this.levelsOffered = levels;
     this.levelChain = Promise.resolve();
   }
@@ -157,6 +159,7 @@ class WebClient {
     } else if (m.kind === "lpm_done") {
       const k = m.fields.level;
       this.levelTimes[k] = performance.now() - state.t0;
+      if (k === Math.min(...this.levelsOffered)) setTimeout(() => this.requestFinerLevels(), 1000);
       this.levelChain = this.levelChain.then(async () => {
         if (k > state.level) {
           await this.renderer.setLevel(this.collector.level(k));
@@ -175,6 +178,15 @@ class WebClient {
   }
 
   get replies() { return state.replies; }
+
+  /** Ask for the levels above the coarsest (once). */
+  requestFinerLevels() {
+    const lo = Math.min(...this.levelsOffered), hi = Math.max(...this.levelsOffered);
+    if (this.finerRequested || hi === lo) return;
+    this.finerRequested = true;
+    this.session.send("lpm_request", {min_level: lo + 1, max_level: hi})
+      .catch((e) => showError(`LPM request: ${e.message}`));
+  }
 
   waitLevel(k = 0) {
     return new Promise((resolve) => {
@@ -234,6 +246,7 @@ class WebClient {
     r.mode = state.mode;
     r.display();
     state.frames++;
+    this.requestFinerLevels();
     const holes = r.holeStats();
     const stats = {t, level: state.level, raster_ms: rasterMs, warp_ms: warpMs,
                    ...Object.fromEntries(Object.entries(reply.timings).map(([k, v]) => [`${k}_ms`, v])),
@@ -301,7 +314,10 @@ class WebClient {
     state.last.warp_ms = performance.now() - t1;
     if (r.refs.length) state.last.hole_ratio = r.holeStats().holes;
     state.last.level = state.level;
-    if (state.firstFrameMs === null && r.refs.length) state.firstFrameMs = performance.now() - state.t0;
+    if (state.firstFrameMs === null && r.refs.length) {
+      state.firstFrameMs = performance.now() - state.t0;
+      this.requestFinerLevels();
+    }
     state.frames++;
     if (state.frames % 4 === 0) overlay();
   }
