@@ -190,7 +190,8 @@ def _first_frame(browser: Any, url: str, rtt: float, wait_all: bool) -> dict[str
     page.evaluate("window.icb.ready")
     if wait_all:
         page.wait_for_function(
-            "window.icb.state.level === Math.max(...window.icb.client.levelsOffered)"
+            "(window.icb.client.requestFinerLevels(), "
+            "window.icb.state.level === Math.max(...window.icb.client.levelsOffered))"
         )
     mesh_ms = page.evaluate("performance.now()")
     t0 = page.evaluate("window.icb.client.path.times[0]")
@@ -258,8 +259,8 @@ def main() -> None:
                     for size in [int(s) for s in args.sizes.split(",")]:
                         page = _page(browser, url + f"&test=1&size={size}")
                         page.wait_for_function(
-                            "window.icb.state.level === "
-                            "Math.max(...window.icb.client.levelsOffered)"
+                            "(window.icb.client.requestFinerLevels(), window.icb.state.level === "
+                            "Math.max(...window.icb.client.levelsOffered))"
                         )
                         cold = _walk(page, times, 0)
                         warm = _walk(page, times, 0)

@@ -296,6 +296,7 @@ def test_codecs_and_lpm_chunks_decode_like_python(page, scene):
 # ---------------------------------------------------------------- the client at work
 def test_handshake_every_level_and_frames_without_console_errors(page, server, scene):
     levels = [lv["level"] for lv in server.scene_info()["lpm"]["levels"]]
+    page.js("window.icb.client.requestFinerLevels()")  # (else: after the first frame)
     page.page.wait_for_function(
         "(n) => window.icb.state.levels.size === n", arg=len(levels), timeout=T_MS
     )
@@ -455,7 +456,8 @@ def test_final_frames_match_the_python_client(page, server, scene):
     p = path.with_intrinsics(intr)
     times = np.linspace(path.times[0], path.times[-1], 4)
     page.page.wait_for_function(
-        "window.icb.state.level === Math.max(...window.icb.client.levelsOffered)"
+        "(window.icb.client.requestFinerLevels(), "
+        "window.icb.state.level === Math.max(...window.icb.client.levelsOffered))"
     )
     browser_final = []
     for k, t in enumerate(times):
@@ -531,7 +533,8 @@ def test_sponza_textures_sun_and_sky_in_the_browser(browser, sponza_path, tmp_pa
         try:
             p.ready()
             p.page.wait_for_function(
-                "window.icb.state.level === Math.max(...window.icb.client.levelsOffered)"
+                "(window.icb.client.requestFinerLevels(), "
+                "window.icb.state.level === Math.max(...window.icb.client.levelsOffered))"
             )
             assert p.js("window.icb.state.level") == level
             path = scene.paths["test"]
