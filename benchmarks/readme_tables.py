@@ -870,7 +870,8 @@ def block_web(results: Path) -> str:
         f"onnxruntime-web ran with {gen['threads']} WebAssembly thread(s) (the page is "
         "cross-origin isolated). First frame (opening the page to the first finished frame: "
         "page, handshake, mesh, raster, GI (a store hit), warp; 128x128, "
-        f"{backend}) by emulated round trip:\n\n"
+        f"{backend}; median of {runs[0][1]['config'].get('repeats', 1)} runs: differences under "
+        "about a second are within this loaded machine's noise) by emulated round trip:\n\n"
         "| scene, mesh sent | "
         + " | ".join(f"{r:g} ms" for r in rtts)
         + " |\n|---|"
