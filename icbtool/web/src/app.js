@@ -315,7 +315,8 @@ class WebClient {
     r.finish();
     state.last.raster_ms = rasterMs;
     state.last.warp_ms = performance.now() - t1;
-    if (r.refs.length) state.last.hole_ratio = r.holeStats().holes;
+    // a whole-target read-back: every 8th frame only (it stalls the main thread)
+    if (r.refs.length && state.frames % 8 === 0) state.last.hole_ratio = r.holeStats().holes;
     state.last.level = state.level;
     if (state.firstFrameMs === null && r.refs.length) {
       state.firstFrameMs = performance.now() - state.t0;
