@@ -10,15 +10,21 @@ DEB_GUI := xvfb xauth libgl1 libegl1 libgl1-mesa-dri libglib2.0-0 libfontconfig1
   libxkbcommon0 libxkbcommon-x11-0 libx11-xcb1 libxcb-cursor0 libxcb-icccm4 libxcb-image0 \
   libxcb-keysyms1 libxcb-randr0 libxcb-render-util0 libxcb-shape0 libxcb-xinerama0 libxcb-xkb1 \
   libxcb-xfixes0 libxcb-sync1 libxcb-shm0
+# The browser client (icbtool/web, `icbtool serve --web`, tests marked web): Debian's chromium,
+# driven headless by Playwright (pip; it never downloads a browser of its own).
+DEB_WEB := chromium
 # OSMesa for headless OpenGL; libusb is needed to import open3d.
-DEB_PKGS := libosmesa6 libusb-1.0-0 $(DEB_GUI)
+DEB_PKGS := libosmesa6 libusb-1.0-0 $(DEB_GUI) $(DEB_WEB)
+# The web client's JavaScript sources; `make web` bundles them (and three.js, fzstd,
+# onnxruntime-web at the versions of package-lock.json) with esbuild into icbtool/web/bundle/.
+WEB_SRC := $(wildcard icbtool/web/src/*.js icbtool/web/shaders/*) icbtool/web/build.mjs
 # Mitsuba's llvm variant (benchmark peer only).
 DEB_BENCH := libllvm19
 
 # Lint only the folders that exist.
 LINT_DIRS := $(wildcard icbtool tests benchmarks icbtool_gui)
 
-.PHONY: gui demo test test-all lint format bench sysdeps install clean wheel-smoke pytest
+.PHONY: gui demo test test-all lint format bench sysdeps install clean wheel-smoke pytest web
 
 sysdeps:
 	@dpkg -s $(DEB_PKGS) >/dev/null 2>&1 || { \
@@ -31,7 +37,20 @@ sysdeps:
 	$(PIP) install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
 	touch $@
 
-install: sysdeps .venv/.installed
+# npm packages exactly as package-lock.json pins them (node/npm from Debian if missing)
+node_modules/.package-lock.json: package.json package-lock.json
+	@command -v npm >/dev/null 2>&1 || { $(SUDO) apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq nodejs npm; }
+	npm ci --no-audit --no-fund --ignore-scripts
+	touch $@
+
+icbtool/web/bundle/app.js: node_modules/.package-lock.json $(WEB_SRC)
+	node icbtool/web/build.mjs
+
+# the browser client's bundle (shipped inside the Python package: setup.cfg package_data)
+web: icbtool/web/bundle/app.js
+
+install: sysdeps .venv/.installed web
 
 # The in-process loop, then the same across processes (server subprocess + client on loopback).
 demo: install
@@ -44,6 +63,11 @@ gui: install
 # the README's screenshot (offscreen: Xvfb is started when there is no display)
 docs/images/gui.png: install
 	$(PY) -m icbtool gui --screenshot $@
+
+# the web client's screenshot in the README (headless chromium, taken by tests/test_web.py)
+docs/images/web.png: install
+	ICBTOOL_WEB_SCREENSHOT=$(abspath $@) ICBTOOL_GL_BACKEND=osmesa $(PY) -m pytest -q \
+	  tests/test_web.py -k walks_the_test_path
 
 # CI (.ci/run) runs exactly this: lint, the wheel-install smoke test, then the quick tests.
 test: lint wheel-smoke pytest
@@ -70,4 +94,4 @@ bench-deps: install
 	$(PIP) install -q --disable-pip-version-check mitsuba==3.9.1
 
 clean:
-	rm -rf .venv $(OUT) .pytest_cache
+	rm -rf .venv $(OUT) .pytest_cache node_modules icbtool/web/bundle

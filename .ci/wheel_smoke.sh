@@ -22,6 +22,9 @@ mkdir "$TMP/src"
 git ls-files -z --cached --others --exclude-standard | while IFS= read -r -d '' f; do
   [ -e "$f" ] && printf '%s\0' "$f"  # skip files deleted but not yet committed
 done | tar -c --null -T - -f - | tar -x -C "$TMP/src"
+# the web client's bundle is built (`make web`), not tracked: it must be in the wheel all the same
+test -s icbtool/web/bundle/app.js || { echo "wheel smoke: no icbtool/web/bundle: run make web" >&2; exit 1; }
+cp -r icbtool/web/bundle "$TMP/src/icbtool/web/bundle"
 (cd "$TMP/src" && "$PY" -m pip wheel -q --disable-pip-version-check --no-deps \
   --no-build-isolation --no-index -w "$TMP/dist" . >/dev/null)
 WHEEL=$(ls "$TMP"/dist/icbtool-*.whl)
@@ -49,6 +52,8 @@ tops = {n.split("/", 1)[0] for n in names if not n.split("/", 1)[0].endswith((".
 assert tops == {"icbtool", "icbtool_gui"}, f"the wheel installs top-level {sorted(tops)}"
 shaders = [n for n in names if n.startswith("icbtool/raster/shaders/")]
 assert len(shaders) >= 6, f"shaders not packaged: {shaders}"
+web = {"icbtool/web/index.html", "icbtool/web/bundle/app.js", "icbtool/web/bundle/ort-wasm-simd-threaded.wasm"}
+assert web <= names, f"the web client is not packaged: {sorted(web - names)}"
 ep = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
 assert "icbtool = icbtool.cli:main" in zipfile.ZipFile(wheel).read(ep).decode(), "no console script"
 meta = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith(".dist-info/METADATA")))
@@ -79,6 +84,7 @@ print(f"  icbtool {icbtool.__version__} from {icbtool.__file__}")
 EOF
 "$TMP/venv/bin/icbtool" --help >/dev/null
 "$TMP/venv/bin/icbtool" gui --help >/dev/null
+"$TMP/venv/bin/python" -c "from icbtool.net import web; web.check_bundle(); import sys; assert str(web.WEB_ROOT).startswith(sys.argv[1])" "$SITE"
 "$TMP/venv/bin/python" -c "import icbtool_gui as g, sys; assert g.__file__.startswith(sys.argv[1]), g.__file__" "$SITE"
 ICBTOOL_GL_BACKEND=${ICBTOOL_GL_BACKEND:-osmesa} "$TMP/venv/bin/icbtool" render cornell_box \
   --out "$TMP/render" --height 32 --buffers dl,depth --no-png

@@ -863,6 +863,104 @@ def block_net(results: Path) -> str:
     )
 
 
+def block_web(results: Path) -> str:
+    files = [("Cornell box", "web/web_client.json"), ("Sponza", "web/sponza/web_client.json")]
+    runs = [(name, load(rel, results)) for name, rel in files if (results / rel).is_file()]
+    if not runs:
+        load(files[0][1], results)  # raises, naming the missing file
+    gl = runs[0][1]["stages"][0]["gl_renderer"]
+    backend = "SwiftShader" if "SwiftShader" in gl else gl
+    cols = [(name, e) for name, d in runs for e in d["stages"]]
+    hdr = " | ".join(f"{n} {e['size']}x{e['size']}" for n, e in cols)
+
+    def row(label: str, get: Callable[[dict[str, Any]], float], unit: str = "ms") -> str:
+        return f"| {label} | " + " | ".join(f"{get(e):.1f} {unit}" for _, e in cols) + " |"
+
+    def med(k: str) -> Callable[[dict[str, Any]], float]:
+        return lambda e: e["median"][k]
+
+    rows = "\n".join(
+        [
+            row("raster: G-buffers + DL (one MRT pass, shadows)", med("raster_ms")),
+            row("GI request -> reply (cache hit)", med("request_ms")),
+            row("of which server", med("server_ms")),
+            row("of which transfer", med("transfer_ms")),
+            row("decode (f16m7-diff-zstd GI, f16-diff-zstd depth + mask)", med("decode_ms")),
+            row("warp + combine + fill + blend", med("warp_ms")),
+            row("generate (onnxruntime-web, U-Net base 32)", lambda e: e["generate"]["median_ms"]),
+            row(
+                "bytes received per frame (gi_reply)",
+                lambda e: e["gi_reply_bytes_per_frame"] / 1e3,
+                "kB",
+            ),
+            row("mesh received (all LPM levels)", lambda e: e["mesh_bytes"] / 1e3, "kB"),
+        ]
+    )
+    ff_rows = []
+    rtts: list[float] = []
+    for name, d in runs:
+        ff: dict[str, dict[float, dict[str, Any]]] = {}
+        for f in d["first_frame"]:
+            ff.setdefault(f["mesh"], {})[f["rtt_ms"]] = f
+        rtts = sorted(next(iter(ff.values())))
+        for m, label in (("lpm_level0", "LPM level 0"), ("full_mesh", "full mesh")):
+            if m in ff:
+                kb = ff[m][rtts[0]]["lpm_bytes"] / 1e3
+                ff_rows.append(
+                    f"| {name}, {label} ({kb:,.0f} kB of mesh in by then) | "
+                    + " | ".join(f"{ff[m][r]['first_frame_ms'] / 1e3:.2f} s" for r in rtts)
+                    + " |"
+                )
+    loads = [x for _, d in runs for x in walk_load_averages(d)]
+    gen = cols[0][1]["generate"]
+    text = (
+        f"**Web client** (`benchmarks/web_client.py`, chromium {runs[0][1]['chromium']} headless: "
+        f"WebGL2 on **{backend}**, i.e. on the CPU: no GPU here; every number below is a "
+        f"{backend} number. The test path walked twice, medians of the second walk (GI from "
+        f"the store); server {runs[0][1]['config']['spp']} spp GI, denoised; load average "
+        f"{span(loads, f2)}: other jobs were running):\n\n"
+        f"| stage ({backend}) | {hdr} |\n|---|" + "---|" * len(cols) + "\n"
+        f"{rows}\n\n"
+        f"onnxruntime-web ran with {gen['threads']} WebAssembly thread(s) (the page is "
+        "cross-origin isolated). First frame (opening the page to the first finished frame: "
+        "page, handshake, mesh, raster, GI (a store hit), warp; 128x128, "
+        f"{backend}; median of {runs[0][1]['config'].get('repeats', 1)} runs: differences under "
+        "about a second are within this loaded machine's noise) by emulated round trip:\n\n"
+        "| scene, mesh sent | "
+        + " | ".join(f"{r:g} ms" for r in rtts)
+        + " |\n|---|"
+        + "---|" * len(rtts)
+        + "\n"
+        + "\n".join(ff_rows)
+        + "\n"
+    )
+    for name, d in runs:
+        acc = d.get("accuracy")
+        if not acc:
+            continue
+        w = acc["wrt"]
+        g = [e["generate"] for e in d["stages"] if "max_abs_diff_vs_onnxruntime" in e["generate"]]
+        text += (
+            f"\nAgainst icbtool ({name}, {acc['size']}x{acc['size']}, {len(w)} cameras): coverage "
+            f"agrees on {100 * min(x['mask_agree'] for x in w):.2f} %+ of pixels, depth p99 "
+            f"relative error {max(x['depth_rel_p99'] for x in w):.1e}, normals p99 "
+            f"{max(x['normal_deg_p99'] for x in w):.2f} degree, albedo mean error "
+            f"{max(x['albedo_abs_mean'] for x in w):.1e}, DL mean error "
+            f"{100 * max(x['dl_rel_mean'] for x in w if x['dl_rel_mean'] is not None):.1f} % "
+            "of the DL mean (p99 "
+            f"{max(x['dl_p99'] for x in w):.3f}); final frames vs the Python client's SSIM "
+            f"{span(acc['ssim_final'], lambda v: f'{v:.3f}')} over {len(acc['ssim_final'])} "
+            "frames"
+        )
+        if g:
+            text += (
+                "; the generator in onnxruntime-web vs onnxruntime max abs difference "
+                + " / ".join(f"{x['max_abs_diff_vs_onnxruntime']:.1e}" for x in g)
+            )
+        text += ".\n"
+    return text
+
+
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "intro": block_intro,
     "raster": block_raster,
@@ -882,6 +980,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "gan-spp": block_gan_spp,
     "lpm": block_lpm,
     "net": block_net,
+    "web": block_web,
 }
 
 

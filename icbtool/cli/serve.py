@@ -4,6 +4,11 @@ Clients authenticate with --token, receive the scene's mesh levels (never the fu
 mesh's source), ask for GI maps (answered from the store or path traced, coalesced, encoded) and
 the generator (--generator, sent once). SIGINT/SIGTERM stop it cleanly: every committed store
 record is kept. Prints ``listening on ws://HOST:PORT`` once it accepts connections.
+
+With --web the same host and port also serve the browser client (icbtool/web, built by
+``make web``), and one more line is printed: ``web client: http://HOST:PORT/#token=...``, the URL
+that opens the client already authenticated (the token stays in the URL fragment, which the
+browser never sends, so no server log holds it).
 """
 
 from __future__ import annotations
@@ -84,10 +89,25 @@ def run(args: argparse.Namespace) -> int:
     cloud_cfg = args.cloud_options.build(args)
     if cloud_cfg.denoise:
         require("pyoidn", "denoising the served GI maps (--no-denoise skips it)")
+    if server_cfg.web:
+        from icbtool.net import web
+
+        try:
+            web.check_bundle()
+        except web.WebBundleMissing as e:
+            raise UsageError(f"--web: {e}") from None
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s: %(message)s")
     scene = load_scene(args.scene)
     server = net.Server(scene, args.store, token, server_cfg, cloud_cfg, generator=args.generator)
-    server.on_listening = lambda url: print(f"listening on {url}", flush=True)
+
+    def listening(url: str) -> None:
+        print(f"listening on {url}", flush=True)
+        if server_cfg.web:
+            from icbtool.net.web import page_url
+
+            print(f"web client: {page_url(url, token)}", flush=True)
+
+    server.on_listening = listening
     server.serve_forever()
     s = server.stats
     print(

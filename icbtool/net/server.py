@@ -83,6 +83,9 @@ class ServerConfig:
     """Stream levels of detail (icbtool.lpm) when available, else the full mesh as one level."""
     send_full_mesh: bool = False
     """Also stream the LPM's finest level (the full-detail mesh itself); off: it stays here."""
+    web: bool = False
+    """Also answer plain HTTP GETs on the same host/port with the browser client's page
+    (:mod:`icbtool.net.web`; ``icbtool serve --web``)."""
 
     def __post_init__(self) -> None:
         for k in ("max_message_bytes", "chunk_bytes", "max_pending", "send_queue"):
@@ -243,6 +246,7 @@ class Server:
                 ping_interval=20,
                 ping_timeout=60,
                 close_timeout=2,
+                process_request=self._http_handler(),
             ) as ws_server:
                 self.port = int(next(iter(ws_server.sockets)).getsockname()[1])
                 log.info("icbtool server on %s (scene %s)", self.url, self.scene.name)
@@ -333,6 +337,14 @@ class Server:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+    def _http_handler(self) -> Any:
+        """The page's HTTP hook when :attr:`ServerConfig.web` is on (icbtool.net.web), else None."""
+        if not self.config.web:
+            return None
+        from icbtool.net import web
+
+        return web.http_handler()
 
     @property
     def codecs(self) -> list[str]:
