@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 
 from icbtool._optional import require
 from icbtool.cli._common import (
@@ -50,6 +51,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--limit", type=positive_int, default=None, help="at most this many cameras")
     p.add_argument("--denoise", action="store_true", help="denoise GI with OIDN")
     add_denoise_quality_argument(p)
+    p.add_argument(
+        "--workers",
+        type=int_at_least(0),
+        default=0,
+        help="render workers: 0 renders in this process; N starts a local Dask cluster of N "
+        "worker processes on 127.0.0.1 (same records; needs the 'cloud' extra)",
+    )
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="render on an existing Dask cluster (e.g. tcp://127.0.0.1:8786) instead",
+    )
     p.set_defaults(func=_run)
 
 
@@ -59,6 +73,9 @@ def _run(args: argparse.Namespace) -> int:
         require("pyoidn", "--denoise (Open Image Denoise)")
     from icbtool import bake as B
     from icbtool import store as st
+
+    if args.workers or args.scheduler:
+        require("distributed", "render workers on Dask (--workers N / --scheduler)")
 
     scene = load_scene(args.scene)
     cfg = B.BakeConfig(
@@ -74,8 +91,15 @@ def _run(args: argparse.Namespace) -> int:
         denoise=args.denoise,
         denoise_quality=args.denoise_quality,
     )
-    with st.open(args.store) as store:
-        rep = B.bake(scene, args.path, store, cfg)
+    with contextlib.ExitStack() as stack:
+        pool = None
+        if args.workers or args.scheduler:
+            from icbtool.system.workers import open_pool
+
+            pool = stack.enter_context(open_pool(scene, args.workers, args.scheduler))
+            print(f"render workers: {pool.capacity} at {pool.address}", flush=True)
+        store = stack.enter_context(st.open(args.store))
+        rep = B.bake(scene, args.path, store, cfg, pool=pool)
         n = len(store)
     print(
         f"baked {len(rep.rendered)} views ({len(rep.skipped)} already stored) in "

@@ -1,6 +1,8 @@
 """``icbtool serve``: the ICB cloud as a WebSocket server (icbtool.net.Server).
 
-Clients authenticate with --token, receive the scene's mesh levels (never the full-detail
+Clients authenticate with a token: --token / $ICBTOOL_TOKEN (at least 32 characters unless
+--allow-weak-token), or none given: a fresh 256-bit token is generated and printed once. They
+receive the scene's mesh levels (never the full-detail
 mesh's source), ask for GI maps (answered from the store or path traced, coalesced, encoded) and
 the generator (--generator, sent once). SIGINT/SIGTERM stop it cleanly: every committed store
 record is kept. Prints ``listening on ws://HOST:PORT`` once it accepts connections.
@@ -39,15 +41,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--token",
         default=None,
-        help="shared secret of the clients (default: $ICBTOOL_TOKEN); required",
+        help="shared secret of the clients (default: $ICBTOOL_TOKEN, else a new 256-bit token "
+        "printed once)",
     )
+    p.add_argument(
+        "--allow-weak-token",
+        action="store_true",
+        help="accept a token under 32 characters (it can be guessed offline from one recorded "
+        "handshake: docs/protocol.md, Threat model)",
+    )
+    p.add_argument(
+        "--tls-cert", default=None, help="PEM certificate: serve wss:// (with --tls-key)"
+    )
+    p.add_argument("--tls-key", default=None, help="PEM private key of --tls-cert")
     p.add_argument("--generator", default=None, metavar="RUN", help="a trained GAN run to offer")
     p.add_argument(
         "--workers",
-        type=positive_int,
-        default=1,
-        help="cloud render threads: 1 (the only supported value: one thread owns the store and "
-        "GL context; the tracer already uses every core)",
+        type=int_at_least(0),
+        default=0,
+        help="render workers: 0 renders in this process; N starts a local Dask cluster of N "
+        "worker processes on 127.0.0.1 (needs the 'cloud' extra)",
+    )
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="render on an existing Dask cluster (e.g. tcp://10.0.0.5:8786) instead",
     )
     p.add_argument("--spp", type=positive_int, default=16, help="samples per pixel of the GI")
     p.add_argument("--latency", type=float_in(0.0), default=0.1, help="T_IL for the prefetch (s)")
@@ -63,13 +82,26 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from icbtool import net, system
+    from icbtool.net.server import MIN_TOKEN_CHARS, new_token
 
     require("websockets", "icbtool serve")
     token = args.token or os.environ.get("ICBTOOL_TOKEN")
-    if not token:
-        raise UsageError("--token (or $ICBTOOL_TOKEN) is required")
-    if args.workers != 1:
-        raise UsageError("--workers: only 1 is supported (see --help)")
+    generated = not token
+    if generated:
+        token = new_token()
+    elif len(token) < MIN_TOKEN_CHARS and not args.allow_weak_token:
+        raise UsageError(
+            f"--token: {len(token)} characters is too short to resist offline guessing (at least "
+            f"{MIN_TOKEN_CHARS}); leave it out to get a 256-bit one, or pass "
+            "--allow-weak-token"
+        )
+    if (args.tls_cert is None) != (args.tls_key is None):
+        raise UsageError("--tls-cert and --tls-key go together")
+    for flag, f in (("--tls-cert", args.tls_cert), ("--tls-key", args.tls_key)):
+        if f is not None and not Path(f).is_file():
+            raise UsageError(f"{flag} {f!r}: no such file")
+    if args.workers or args.scheduler:
+        require("distributed", "render workers on Dask (--workers N / --scheduler)")
     if args.generator is not None and not (
         Path(args.generator).is_file() or (Path(args.generator) / "generator.pt").is_file()
     ):
@@ -83,7 +115,15 @@ def run(args: argparse.Namespace) -> int:
         args.store,
         token,
         net.ServerConfig(
-            host=args.host, port=args.port, max_pending=args.max_pending, lpm=not args.no_lpm
+            host=args.host,
+            port=args.port,
+            max_pending=args.max_pending,
+            lpm=not args.no_lpm,
+            workers=args.workers,
+            scheduler=args.scheduler,
+            tls_cert=args.tls_cert,
+            tls_key=args.tls_key,
+            allow_weak_token=args.allow_weak_token,
         ),
         system.CloudConfig(
             prefetch=not args.no_prefetch,
@@ -94,6 +134,8 @@ def run(args: argparse.Namespace) -> int:
         ),
         generator=args.generator,
     )
+    if generated:  # printed once, never logged
+        print(f"token: {token}", flush=True)
     server.on_listening = lambda url: print(f"listening on {url}", flush=True)
     server.serve_forever()
     s = server.stats

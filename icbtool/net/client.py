@@ -183,6 +183,7 @@ class NetworkSource(GISource):
 
     async def _connect(self, token: str) -> None:
         connect = require("websockets.asyncio.client", "the networked ICB client").connect
+        wsx = require("websockets.exceptions", "the networked ICB client")
 
         cfg = self.config
         tls: Any = None
@@ -202,7 +203,7 @@ class NetworkSource(GISource):
                 ping_timeout=60,
                 close_timeout=2,
             )
-        except OSError as e:  # ssl.SSLError (certificate not trusted) is an OSError
+        except (OSError, wsx.WebSocketException) as e:  # ssl.SSLError is an OSError
             raise NetError(f"cannot connect to {self.url}: {e}") from e
         self._send_lock = asyncio.Lock()
         hs = crypto.ClientHandshake(token)
