@@ -148,7 +148,7 @@ def run_network(args: argparse.Namespace, scene: object, cfg: object, out: Path)
     from icbtool import net
 
     require("websockets", "the networked demo (--network)")
-    token = secrets.token_urlsafe(16)
+    token = secrets.token_urlsafe(32)  # 256 bits: icbtool serve refuses short tokens
     cmd = [sys.executable, "-m", "icbtool", "serve", args.scene, "--store", str(out / "cache"),
            "--port", "0", "--spp", str(args.spp), "--latency", str(args.latency),
            "--denoise-quality", args.denoise_quality, "--log-level", "WARNING"]  # fmt: skip

@@ -286,7 +286,8 @@ class Server:
     Args:
         scene: the full-detail :class:`icbtool.scene.Scene` (never leaves the server).
         store_dir: the cloud's CRT-buffer store directory (:func:`icbtool.store.open`).
-        token: the shared secret clients authenticate with.
+        token: the shared secret clients authenticate with (at least :data:`MIN_TOKEN_CHARS`
+            characters unless ``config.allow_weak_token``; :func:`new_token` makes one).
         config: :class:`ServerConfig`.
         cloud_config: :class:`~icbtool.system.CloudConfig` of the answers (spp, prefetch, ...).
         generator: a trained GAN run directory (with ``generator.pt``) offered to clients, or
@@ -295,8 +296,11 @@ class Server:
     Use :meth:`start` / :meth:`stop` (a background thread; also a context manager) or
     :meth:`serve_forever` (this thread, until SIGINT/SIGTERM).
 
+    Raises:
+        ValueError: an empty or short token (see ``token``), a generator file that is not one.
+
     Example:
-        >>> with Server(scene, "out/cache", token="s3cret") as srv:  # doctest: +SKIP
+        >>> with Server(scene, "out/cache", token=new_token()) as srv:  # doctest: +SKIP
         ...     print(srv.url)
     """
 
@@ -1056,4 +1060,4 @@ def stats_dict(stats: ServerStats) -> dict[str, Any]:
     return asdict(stats)
 
 
-__all__ = ["Server", "ServerConfig", "ServerStats", "camera_key"]
+__all__ = ["MIN_TOKEN_CHARS", "Server", "ServerConfig", "ServerStats", "camera_key", "new_token"]
