@@ -182,6 +182,10 @@ def run_hits(scene: Any, workers: int, args: argparse.Namespace, tmp: Path) -> d
         for t in threads:
             t.start()
         time.sleep(1.0)  # every hit client is replaying
+        t_idle = time.perf_counter()
+        time.sleep(args.idle_s)  # the baseline: the same hits, no miss rendering
+        with lock:
+            idle = [ms for t0, ms in hits if t0 >= t_idle]
         mthreads = [threading.Thread(target=misser, args=(i,)) for i in range(args.miss_clients)]
         for t in mthreads:
             t.start()
@@ -202,6 +206,9 @@ def run_hits(scene: Any, workers: int, args: argparse.Namespace, tmp: Path) -> d
         "workers": workers,
         "hit_clients": args.hit_clients,
         "miss_clients": args.miss_clients,
+        "hits_without_misses": len(idle),
+        "idle_hit_p50_ms": float(np.percentile(idle, 50)) if idle else None,
+        "idle_hit_p99_ms": float(np.percentile(idle, 99)) if idle else None,
         "hits_during_misses": len(during),
         "hit_p50_ms": float(np.percentile(during, 50)) if during else None,
         "hit_p99_ms": float(np.percentile(during, 99)) if during else None,
@@ -474,7 +481,8 @@ def main() -> None:
     ap.add_argument("--misses", type=int, default=1, help="misses per miss client")
     ap.add_argument("--miss-size", type=int, default=1024)
     ap.add_argument("--hit-size", type=int, default=64)
-    ap.add_argument("--max-hits", type=int, default=5000, help="per hit client (a bound)")
+    ap.add_argument("--max-hits", type=int, default=20000, help="per hit client (a bound)")
+    ap.add_argument("--idle-s", type=float, default=20.0, help="hits alone first, for a baseline")
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--bake-views", type=int, default=8)
     ap.add_argument("--bake-size", type=int, default=160)

@@ -404,3 +404,14 @@ def test_tls_with_a_certificate_the_test_makes(scene, tmp_path):
             NetworkSource(srv.url.replace("wss://", "ws://"), TOKEN, NetClientConfig(timeout_s=10))
     with pytest.raises(ValueError, match="tls_cert and tls_key"):
         ServerConfig(tls_cert=str(cert))
+
+
+def test_a_coarser_stored_reference_does_not_answer_a_finer_request(server, scene):
+    """A 16 x 16 record covers the 64 x 64 request's frustum but has a quarter of its pixel
+    density: a miss (rendered at 64), after which the 16 x 16 request is a hit."""
+    with _client(server.url) as src:
+        small = src.request(_request(scene, 5.0, size=16))
+        big = src.request(_request(scene, 5.0, seq=1, size=64))
+        again = src.request(_request(scene, 5.0, seq=2, size=16))
+    assert not small.cache_hit and not big.cache_hit and again.cache_hit
+    assert big.reference.camera.height >= 64

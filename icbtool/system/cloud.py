@@ -5,7 +5,8 @@ For a :class:`~icbtool.system.messages.GIRequest` (ICB.md sections 3, 4 and 6):
 1. predict where the client can be after the latency: the prefetch camera (wider FOV, pulled
    back; :func:`icbtool.prefetch.prefetch_camera`), its FOV rounded up to a step so that a stored
    reference covers the slightly different FOVs of the next requests;
-2. look that camera up in the octree cache (a similar camera whose FOV covers it is a hit);
+2. look that camera up in the octree cache (a similar camera whose FOV covers it, with at least
+   :data:`MIN_DENSITY` of its pixel density, is a hit);
    a hit whose payload is damaged (missing, truncated, checksum) is a miss, logged as a WARNING;
 3. on a miss, render a CRT-buffer there (raster G-buffers + path-traced GI, optionally
    denoised) and store it (replacing the damaged record, if that was the miss).
@@ -37,6 +38,11 @@ log = logging.getLogger(__name__)
 
 #: The prefetch camera's depth range when the client sent none (it sees no geometry).
 DEFAULT_DEPTH_RANGE = (0.1, 100.0)
+#: A stored reference answers a request only with at least this fraction of its pixel density
+#: (focal length in pixels): a coarser one is a miss.
+MIN_DENSITY = 0.95
+#: Coarser similar records skipped per lookup before it counts as a miss.
+MAX_COARSE_SKIPS = 4
 
 
 @dataclass(frozen=True)
@@ -143,11 +149,27 @@ class Cloud(GISource):
             because the similar record is damaged, that record's id (else None).
         """
         t0 = time.perf_counter()
-        hit = self.store.lookup(ref_cam, scene=self.scene, intrinsics="covering")
+        hit = self._covering_hit(ref_cam)
         # a damaged record (payload missing, truncated, checksum) is a miss: get_intact logs it
         found = None if hit is None else self.store.get_intact(hit.record_id)
         damaged = hit.record_id if (hit is not None and found is None) else None
         return found, damaged, 1e3 * (time.perf_counter() - t0)
+
+    def _covering_hit(self, ref_cam: Camera) -> Any:
+        """The best stored camera that covers ``ref_cam`` with at least its pixel density (a
+        64 x 64 record never answers a 1024 x 1024 request), or None."""
+        exclude: list[int] = []
+        for _ in range(MAX_COARSE_SKIPS + 1):
+            hit = self.store.lookup(
+                ref_cam, scene=self.scene, intrinsics="covering", exclude=exclude or None
+            )
+            if hit is None:
+                return None
+            cam = hit.camera
+            if min(cam.fx / ref_cam.fx, cam.fy / ref_cam.fy) >= MIN_DENSITY:
+                return hit
+            exclude.append(hit.record_id)
+        return None
 
     def trace_config(self, seq: int) -> Any:
         """The :class:`icbtool.trace.TraceConfig` of the render for request ``seq``."""
