@@ -415,3 +415,36 @@ def test_a_coarser_stored_reference_does_not_answer_a_finer_request(server, scen
         again = src.request(_request(scene, 5.0, seq=2, size=16))
     assert not small.cache_hit and not big.cache_hit and again.cache_hit
     assert big.reference.camera.height >= 64
+
+
+def test_render_slots_go_round_robin_over_clients_and_the_queue_is_bounded():
+    """Client 1 queues three misses, then client 2 one: with one worker, client 2's miss is the
+    second to render, not the fourth; beyond the limit a miss is refused busy."""
+    from icbtool.net.server import _FairQueue
+
+    async def scenario() -> list[str]:
+        q = _FairQueue(capacity=1, limit=4)
+        order: list[str] = []
+
+        async def job(client: int, name: str) -> None:
+            q.admit()
+            await q.acquire(client)
+            order.append(name)
+            await asyncio.sleep(0)
+            q.release()
+
+        await q.acquire(0)  # a render is running: everything below waits
+        tasks = [asyncio.create_task(job(1, f"a{i}")) for i in range(3)]
+        await asyncio.sleep(0)
+        tasks.append(asyncio.create_task(job(2, "b0")))
+        await asyncio.sleep(0)
+        assert q.queued == 4
+        with pytest.raises(protocol.ProtocolError) as e:
+            q.admit()
+        assert e.value.code == "busy" and "max_queued_renders" in e.value.message
+        q.release()
+        await asyncio.gather(*tasks)
+        assert q.running == 0 and q.queued == 0
+        return order
+
+    assert _run(scenario()) == ["a0", "b0", "a1", "a2"]
