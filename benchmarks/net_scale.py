@@ -133,6 +133,7 @@ def run_hits(scene: Any, workers: int, args: argparse.Namespace, tmp: Path) -> d
     srv = ServeProcess(tmp / f"hits{workers}", token, "--workers", str(workers),
                        "--spp", str(args.spp), "--max-pending", "4")  # fmt: skip
     cfg = NetClientConfig(timeout_s=T)
+    miss_cfg = NetClientConfig(timeout_s=3 * T)  # niced renders on a loaded machine: slow
     try:
         hit_reqs = [_request(scene, 0.5 + 1.2 * k, args.hit_size, seq=k) for k in range(4)]
         with NetworkSource(srv.url, token, cfg) as warm:
@@ -140,7 +141,7 @@ def run_hits(scene: Any, workers: int, args: argparse.Namespace, tmp: Path) -> d
                 warm.request_remote(r)  # rendered once: hits from now on
             assert all(warm.request_remote(r).cache_hit for r in hit_reqs)
         clients = [NetworkSource(srv.url, token, cfg) for _ in range(args.hit_clients)]
-        miss_clients = [NetworkSource(srv.url, token, cfg) for _ in range(args.miss_clients)]
+        miss_clients = [NetworkSource(srv.url, token, miss_cfg) for _ in range(args.miss_clients)]
         window = {"start": float("inf"), "end": 0.0}
         hits: list[tuple[float, float]] = []  # (sent at, ms)
         misses: list[float] = []
@@ -310,14 +311,17 @@ def run_bake(scene: Any, args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
     dask = str(Path(sys.executable).with_name("dask"))
     port = _free_port()
     addr = f"tcp://127.0.0.1:{port}"
-    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--no-dashboard"], env=ENV, stderr=subprocess.DEVNULL)]  # fmt: skip
+    # --dashboard-address: the HTTP endpoint (health, metrics) listens on every interface
+    # otherwise, even with --no-dashboard
+    local = ["--host", "127.0.0.1", "--no-dashboard", "--dashboard-address", "127.0.0.1:0"]
+    procs = [subprocess.Popen([dask, "scheduler", "--port", str(port), *local], env=ENV,
+                              stderr=subprocess.DEVNULL)]  # fmt: skip
     try:
         time.sleep(2.0)
         for _ in range(2):
             procs.append(subprocess.Popen(
-                [dask, "worker", addr, "--host", "127.0.0.1", "--nthreads", "1",
-                 "--no-dashboard", "--no-nanny"], env=ENV, stderr=subprocess.DEVNULL,
+                [dask, "worker", addr, *local, "--nthreads", "1", "--no-nanny"], env=ENV,
+                stderr=subprocess.DEVNULL,
             ))  # fmt: skip
         t0 = time.perf_counter()
         with DaskPool(scene, scheduler=addr, timeout_s=T) as pool:

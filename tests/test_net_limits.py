@@ -448,3 +448,30 @@ def test_render_slots_go_round_robin_over_clients_and_the_queue_is_bounded():
         return order
 
     assert _run(scenario()) == ["a0", "b0", "a1", "a2"]
+
+
+def test_render_threads_run_at_a_lower_priority():
+    """Linux priorities are per thread: the render thread's nice value rises, the caller's
+    does not (threads it starts, such as the tracer's, inherit it)."""
+    import threading
+
+    from icbtool.system.workers import lower_priority
+
+    if not hasattr(os, "getpriority"):
+        pytest.skip("no thread priorities on this OS")
+    me = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    seen: list[int] = []
+
+    def render_thread() -> None:
+        lower_priority(max(me, 10))
+        child = threading.Thread(
+            target=lambda: seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+        )
+        child.start()
+        child.join()
+
+    t = threading.Thread(target=render_thread)
+    t.start()
+    t.join(T)
+    assert seen == [max(me, 10)]
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == me

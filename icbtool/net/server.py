@@ -131,6 +131,10 @@ class ServerConfig:
     """PEM private key file of ``tls_cert``."""
     allow_weak_token: bool = False
     """Accept a token shorter than :data:`MIN_TOKEN_CHARS` (tests, a trusted network only)."""
+    render_nice: int = 10
+    """Nice value (CPU priority, 0-19) of the renders this server starts (its render thread or
+    its local cluster's workers): hits then get a core at once while renders fill the others.
+    A joined cluster's workers keep their own."""
 
     def __post_init__(self) -> None:
         for k in (
@@ -158,6 +162,10 @@ class ServerConfig:
             v = getattr(self, k)
             if v is not None and not Path(v).is_file():
                 raise ValueError(f"ServerConfig.{k}: no such file: {v}")
+        if not (isinstance(self.render_nice, int) and 0 <= self.render_nice <= 19):
+            raise ValueError(
+                f"ServerConfig.render_nice must be in [0, 19], got {self.render_nice!r}"
+            )
         if self.max_render_side < self.max_request_side:
             raise ValueError(
                 f"ServerConfig.max_render_side ({self.max_render_side}) must be >= "

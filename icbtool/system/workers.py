@@ -15,6 +15,13 @@ Scaling out). Two pools behind one interface (``submit(job) -> concurrent.future
   workers once (scattered to every worker, no shared filesystem assumed); each worker process
   keeps one rasterizer per scene.
 
+A server runs its renders at a lower CPU priority (``nice``: :data:`RENDER_NICE` on the render
+thread of a :class:`LocalPool` or in the workers of a local cluster; Linux priorities are per
+thread and the tracer's threads inherit them): on a machine whose cores the renders fill, its
+lookups and replies still get a core at once (docs/protocol.md, section Scaling out). A bake
+leaves priorities alone (``nice=0``, the default), and so does a pool on a cluster joined with
+``scheduler``.
+
 The pools never touch a store: the process that owns it (server or baker) is its only writer.
 A task whose worker dies is retried by the scheduler on another worker; if the scene itself was
 lost with it (every worker holding it died) the pool scatters it again and resubmits the job,
@@ -83,9 +90,30 @@ def _rasterizer_for(scene: Any) -> Any:
     return r
 
 
-def run_job(shipped: ShippedScene, job: RenderJob) -> Any:
+#: Nice value of render threads (see the module docstring).
+RENDER_NICE = 10
+_niced: set[int] = set()
+
+
+def lower_priority(nice: int) -> None:
+    """Raise this thread's nice value to ``nice`` once (threads it starts inherit it); 0: no
+    change. An OS that refuses is logged, not fatal."""
+    tid = threading.get_native_id()
+    if nice <= 0 or tid in _niced:
+        return
+    _niced.add(tid)
+    try:
+        import os
+
+        os.setpriority(os.PRIO_PROCESS, tid, max(os.getpriority(os.PRIO_PROCESS, tid), nice))
+    except (AttributeError, OSError) as e:  # not Linux, or not allowed
+        log.info("render thread priority unchanged: %r", e)
+
+
+def run_job(shipped: ShippedScene, job: RenderJob, nice: int = 0) -> Any:
     """The task a worker runs: :func:`icbtool.bake.render_job` with this worker's scene and
-    rasterizer. Returns the :class:`~icbtool.store.record.CRTBuffer`."""
+    rasterizer, at ``nice`` priority. Returns the :class:`~icbtool.store.record.CRTBuffer`."""
+    lower_priority(nice)
     scene = shipped.build()
     rasterizer = _rasterizer_for(scene) if job.gbuffer == "raster" else None
     return render_job(scene, job, rasterizer)
@@ -96,17 +124,20 @@ class LocalPool:
 
     Args:
         scene: the scene every job renders.
+        nice: nice value of the render thread (0: unchanged).
     """
 
     capacity = 1
 
-    def __init__(self, scene: Any) -> None:
+    def __init__(self, scene: Any, nice: int = 0) -> None:
         self.scene = scene
+        self.nice = nice
         self._rasterizer: Any = None
         self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="icb-render")
         self.address = "in-process"
 
     def _run(self, job: RenderJob) -> Any:
+        lower_priority(self.nice)
         if job.gbuffer == "raster" and self._rasterizer is None:
             from icbtool import raster
 
@@ -141,6 +172,8 @@ class DaskPool:
         scheduler: address of an existing scheduler (``tcp://host:port``) to join instead.
         retries: how many times a job whose scene or worker was lost is submitted again.
         timeout_s: how long to wait for the scheduler and for a first worker.
+        nice: nice value of the render threads of a local cluster (0: unchanged); ignored with
+            ``scheduler`` (a joined cluster's workers are left as their owner started them).
 
     Raises:
         MissingOptionalDependency: dask/distributed are not installed (the ``cloud`` extra).
@@ -154,6 +187,7 @@ class DaskPool:
         scheduler: str | None = None,
         retries: int = 1,
         timeout_s: float = 60.0,
+        nice: int = 0,
     ) -> None:
         distributed = require("distributed", "render workers on Dask distributed")
         if scheduler is None and (not isinstance(workers, int) or workers < 1):
@@ -182,6 +216,7 @@ class DaskPool:
             raise
         self.retries = retries
         self.resubmitted = 0
+        self.nice = nice if self.cluster is not None else 0
 
     def _scatter(self) -> Any:
         return self.client.scatter(self._shipped, broadcast=True, hash=False)
@@ -197,7 +232,7 @@ class DaskPool:
     def _submit(self, job: RenderJob, out: concurrent.futures.Future[Any], attempt: int) -> None:
         with self._lock:
             scene_f = self._scene_future
-        fut = self.client.submit(run_job, scene_f, job, pure=False, retries=0)
+        fut = self.client.submit(run_job, scene_f, job, self.nice, pure=False, retries=0)
         fut.add_done_callback(lambda f: self._done(f, job, out, attempt, scene_f))
 
     def _done(
@@ -251,13 +286,16 @@ class DaskPool:
         self.close()
 
 
-def open_pool(scene: Any, workers: int = 0, scheduler: str | None = None) -> LocalPool | DaskPool:
+def open_pool(
+    scene: Any, workers: int = 0, scheduler: str | None = None, nice: int = 0
+) -> LocalPool | DaskPool:
     """The render pool for ``workers`` / ``scheduler`` (see the module docstring).
 
     Args:
         scene: the scene every job renders.
         workers: 0: :class:`LocalPool` (this process); N >= 1: a local Dask cluster of N workers.
         scheduler: join this Dask scheduler instead (``workers`` is then ignored).
+        nice: nice value of the render threads this pool starts (a server: :data:`RENDER_NICE`).
 
     Raises:
         ValueError: ``workers`` < 0.
@@ -265,8 +303,8 @@ def open_pool(scene: Any, workers: int = 0, scheduler: str | None = None) -> Loc
     if not isinstance(workers, int) or isinstance(workers, bool) or workers < 0:
         raise ValueError(f"workers must be an integer >= 0, got {workers!r}")
     if scheduler is None and workers == 0:
-        return LocalPool(scene)
-    return DaskPool(scene, workers, scheduler)
+        return LocalPool(scene, nice)
+    return DaskPool(scene, workers, scheduler, nice=nice)
 
 
 __all__ = ["DaskPool", "LocalPool", "RenderError", "ShippedScene", "open_pool", "run_job"]
