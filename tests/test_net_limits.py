@@ -463,7 +463,7 @@ def test_render_threads_run_at_a_lower_priority():
     seen: list[int] = []
 
     def render_thread() -> None:
-        lower_priority(max(me, 10))
+        lower_priority(5)
         child = threading.Thread(
             target=lambda: seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
         )
@@ -473,5 +473,5 @@ def test_render_threads_run_at_a_lower_priority():
     t = threading.Thread(target=render_thread)
     t.start()
     t.join(T)
-    assert seen == [max(me, 10)]
+    assert seen == [min(19, me + 5)]
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == me

@@ -132,9 +132,9 @@ class ServerConfig:
     allow_weak_token: bool = False
     """Accept a token shorter than :data:`MIN_TOKEN_CHARS` (tests, a trusted network only)."""
     render_nice: int = 10
-    """Nice value (CPU priority, 0-19) of the renders this server starts (its render thread or
-    its local cluster's workers): hits then get a core at once while renders fill the others.
-    A joined cluster's workers keep their own."""
+    """Added to the nice value (CPU priority) of the renders this server starts (its render
+    thread or its local cluster's workers; capped at 19): hits then get a core at once while
+    renders fill the others. A joined cluster's workers keep their own."""
 
     def __post_init__(self) -> None:
         for k in (

@@ -96,8 +96,9 @@ _niced: set[int] = set()
 
 
 def lower_priority(nice: int) -> None:
-    """Raise this thread's nice value to ``nice`` once (threads it starts inherit it); 0: no
-    change. An OS that refuses is logged, not fatal."""
+    """Add ``nice`` to this thread's nice value once (at most 19; threads it starts inherit
+    it); 0: no change. Relative, so a server started under ``nice`` keeps its edge over its
+    renders. An OS that refuses is logged, not fatal."""
     tid = threading.get_native_id()
     if nice <= 0 or tid in _niced:
         return
@@ -105,7 +106,7 @@ def lower_priority(nice: int) -> None:
     try:
         import os
 
-        os.setpriority(os.PRIO_PROCESS, tid, max(os.getpriority(os.PRIO_PROCESS, tid), nice))
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
     except (AttributeError, OSError) as e:  # not Linux, or not allowed
         log.info("render thread priority unchanged: %r", e)
 
