@@ -274,6 +274,10 @@ def _warm(scene: Any, cfg: Any, pool: Any, tmp: Path) -> None:
 
 
 def run_bake(scene: Any, args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
+    """Every mode's pool is opened and warmed first, then the modes bake in turn, ``repeats``
+    rounds (interleaved: each sees the same load); records/min is the median over the rounds."""
+    import contextlib
+
     from icbtool import bake as B
     from icbtool.system.workers import DaskPool
 
@@ -281,42 +285,26 @@ def run_bake(scene: Any, args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
         spp=args.bake_spp, resolution=(args.bake_size, args.bake_size), limit=args.bake_views,
         progress=False, seed=3,
     )  # fmt: skip
-    runs: list[dict[str, Any]] = []
-
-    def record(mode: str, dt: float, start_s: float, store_dir: Path, extra: dict) -> None:
-        recs = _records(store_dir)
-        runs.append({
-            "mode": mode, "seconds": dt, "records": len(recs),
-            "records_per_min": 60.0 * len(recs) / dt, "start_s": start_s,
-            "identical_to_single": _same(recs, single) if mode != "single" else True,
-            "load_average_end": _load(), **extra,
-        })  # fmt: skip
-        print(runs[-1], flush=True)
-
-    _warm(scene, cfg, None, tmp)
-    d = tmp / "bake_single"
-    dt = _bake_one(scene, cfg, d, None)
-    single = _records(d)
-    record("single", dt, 0.0, d, {})
-    for n in (1, 2):
-        t0 = time.perf_counter()
-        with DaskPool(scene, workers=n) as pool:
-            start = time.perf_counter() - t0
-            _warm(scene, cfg, pool, tmp)
-            d = tmp / f"bake_local{n}"
-            dt = _bake_one(scene, cfg, d, pool)
-            net = sockets_on_loopback(_tree_pids(os.getpid()))
-        record(f"local {n} worker{'s' if n > 1 else ''}", dt, start, d, {"sockets": net})
-    # a scheduler and two workers started by hand, as on separate machines
     dask = str(Path(sys.executable).with_name("dask"))
     port = _free_port()
     addr = f"tcp://127.0.0.1:{port}"
     # --dashboard-address: the HTTP endpoint (health, metrics) listens on every interface
     # otherwise, even with --no-dashboard
     local = ["--host", "127.0.0.1", "--no-dashboard", "--dashboard-address", "127.0.0.1:0"]
-    procs = [subprocess.Popen([dask, "scheduler", "--port", str(port), *local], env=ENV,
-                              stderr=subprocess.DEVNULL)]  # fmt: skip
-    try:
+    procs: list[subprocess.Popen] = []
+    runs: dict[str, dict[str, Any]] = {}
+    with contextlib.ExitStack() as stack:
+        pools: dict[str, Any] = {"single": None}
+        for n in (1, 2):
+            t0 = time.perf_counter()
+            pools[f"local {n} worker{'s' if n > 1 else ''}"] = stack.enter_context(
+                DaskPool(scene, workers=n)
+            )
+            runs[list(pools)[-1]] = {"start_s": time.perf_counter() - t0}
+        # a scheduler and two workers started by hand, as on separate machines
+        procs.append(subprocess.Popen([dask, "scheduler", "--port", str(port), *local],
+                                      env=ENV, stderr=subprocess.DEVNULL))  # fmt: skip
+        stack.callback(_stop_all, procs)
         time.sleep(2.0)
         for _ in range(2):
             procs.append(subprocess.Popen(
@@ -324,30 +312,59 @@ def run_bake(scene: Any, args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
                 stderr=subprocess.DEVNULL,
             ))  # fmt: skip
         t0 = time.perf_counter()
-        with DaskPool(scene, scheduler=addr, timeout_s=T) as pool:
-            pool.client.wait_for_workers(2, timeout=T)
-            pool.capacity = 2
-            start = time.perf_counter() - t0
+        ext = stack.enter_context(DaskPool(scene, scheduler=addr, timeout_s=T))
+        ext.client.wait_for_workers(2, timeout=T)
+        ext.capacity = 2
+        pools["dask scheduler + 2 dask workers"] = ext
+        runs["dask scheduler + 2 dask workers"] = {"start_s": time.perf_counter() - t0}
+        for pool in pools.values():
             _warm(scene, cfg, pool, tmp)
-            d = tmp / "bake_external"
-            dt = _bake_one(scene, cfg, d, pool)
-            net = sockets_on_loopback([os.getpid(), *(p.pid for p in procs)])
-        record("dask scheduler + 2 dask workers", dt, start, d, {"sockets": net})
-    finally:
-        for p in procs[::-1]:
-            p.send_signal(signal.SIGTERM)
-        for p in procs:
-            try:
-                p.wait(60)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        net = sockets_on_loopback([*_tree_pids(os.getpid()), *(p.pid for p in procs)])
+        single: list[Any] = []
+        for r in range(args.bake_repeats):
+            for mode, pool in pools.items():
+                d = tmp / f"bake_{r}_{mode.replace(' ', '_')}"
+                dt = _bake_one(scene, cfg, d, pool)
+                recs = _records(d)
+                if mode == "single" and not single:
+                    single = recs
+                e = runs.setdefault(mode, {})
+                e.setdefault("seconds", []).append(dt)
+                e.setdefault("load_average", []).append(_load())
+                e["identical_to_single"] = e.get("identical_to_single", True) and _same(
+                    recs, single
+                )
+                e["records"] = len(recs)
+                print(mode, r, f"{dt:.1f} s", e["identical_to_single"], flush=True)
+                shutil.rmtree(d)
+    out = []
+    for mode, e in runs.items():
+        med = float(np.median(e["seconds"]))
+        out.append({
+            "mode": mode, **e, "median_seconds": med,
+            "records_per_min": 60.0 * e["records"] / med,
+            "load_average_end": e["load_average"][-1],
+        })  # fmt: skip
+    out.sort(key=lambda x: list(pools).index(x["mode"]))
     return {
         "scene": scene.name,
         "views": args.bake_views,
         "size": args.bake_size,
         "spp": args.bake_spp,
-        "runs": runs,
+        "repeats": args.bake_repeats,
+        "sockets": net,
+        "runs": out,
     }
+
+
+def _stop_all(procs: list[subprocess.Popen]) -> None:
+    for p in procs[::-1]:
+        p.send_signal(signal.SIGTERM)
+    for p in procs:
+        try:
+            p.wait(60)
+        except subprocess.TimeoutExpired:
+            p.kill()
 
 
 # ------------------------------------------------------------------------------- 3. attack
@@ -492,6 +509,7 @@ def main() -> None:
     ap.add_argument("--bake-size", type=int, default=160)
     ap.add_argument("--bake-spp", type=int, default=16)
     ap.add_argument("--attack-rounds", type=int, default=3)
+    ap.add_argument("--bake-repeats", type=int, default=3, help="interleaved rounds per mode")
     args = ap.parse_args()
     from icbtool import scene as sc
 

@@ -829,10 +829,7 @@ def block_net_scale(results: Path) -> str:
         for r in b["runs"]
     )
     a = d["attack"]
-    loop = all(
-        x["sockets"]["all_loopback"]
-        for x in [*d["hits"], *(r for r in b["runs"] if "sockets" in r)]
-    )
+    loop = all(x["sockets"]["all_loopback"] for x in [*d["hits"], b])
     rounds = ", ".join(f"{x:.0f}" for x in a["rss_after_each_round_mb"])
     return (
         f"**The cloud at scale** (`benchmarks/net_scale.py`, cornell_box, `icbtool serve` in its "
@@ -844,8 +841,8 @@ def block_net_scale(results: Path) -> str:
         "miss (count) | errors | load avg |\n|---|---|---|---|---|---|---|---|\n"
         f"{rows}\n\n"
         f"Bake throughput, {b['views']} views of the test path at {b['size']}^2, {b['spp']} spp "
-        "(after one warm-up view per worker), and whether every record equals the "
-        "single-process bake bit for bit:\n\n"
+        f"(after one warm-up view per worker; median of {b['repeats']} interleaved rounds), and "
+        "whether every record equals the single-process bake bit for bit:\n\n"
         "| bake | records/min | identical | load avg |\n|---|---|---|---|\n"
         f"{brows}\n\n"
         f"Server memory under the attack set of issue 18 (8192^2 requests, id 2^53, LPM ranges "

@@ -39,7 +39,10 @@ def _value(f: Field) -> st.SearchStrategy[Any]:
         lo = f.minimum if f.minimum is not None else None
         hi = f.maximum if f.maximum is not None else None
         s = st.floats(
-            min_value=lo, max_value=hi, exclude_min=f.exclusive, allow_nan=False,
+            min_value=lo,
+            max_value=hi,
+            exclude_min=f.exclusive,
+            allow_nan=False,
             allow_infinity=False,
         ) | st.integers(int(lo or 0) + f.exclusive, int(hi if hi is not None else 2**53 - 1))
     elif f.type == "boolean":
