@@ -855,8 +855,11 @@ def block_net(results: Path) -> str:
         f"{b['generator_bytes'] / 1e6:.1f} MB: shipping it pays off after "
         f"{b['break_even_frames']:.0f} remote frames ({b['break_even_frames'] / 30:.0f} s at 30 "
         "fps).\n\nFirst rasterized frame with the LPM's coarsest level "
-        f"({lv0['triangles']:,} triangles, {lv0['bytes_received'] / 1e3:.0f} kB) against the full "
-        f"mesh ({full['triangles']:,} triangles, {full['bytes_received'] / 1e6:.1f} MB), Sponza; "
+        f"({lv0['triangles']:,} triangles; {lv0['bytes_received'] / 1e3:.0f} kB received in all, "
+        "handshake and scene_info with the camera paths included: the level itself is its "
+        "`scene_info.lpm.levels[0].bytes`, the LPM table below) against the full "
+        f"mesh ({full['triangles']:,} triangles, {full['bytes_received'] / 1e6:.1f} MB received), "
+        "Sponza; "
         f"mesh in hand / first frame (including the client's rasterizer set-up){build}:\n\n"
         "| network | LPM level 0 | full mesh |\n|---|---|---|\n"
         f"{ff_rows}\n\nThroughput on loopback (cache hits, clients asking at once): {tp}.\n"
@@ -961,6 +964,48 @@ def block_web(results: Path) -> str:
     return text
 
 
+def block_net_scale(results: Path) -> str:
+    d = load("net/net_scale.json", results)
+    hc = d["config"]["hits"]
+    rows = "\n".join(
+        f"| {h['workers']} | {h['idle_hit_p50_ms']:.0f} / {h['idle_hit_p99_ms']:.0f} ms | "
+        f"{h['hits_during_misses']} | {h['hit_p50_ms']:.0f} ms | "
+        f"{h['hit_p99_ms']:.0f} ms | {h['miss_median_ms'] / 1e3:.1f} s ({h['misses']}) | "
+        f"{h['n_errors']} | {h['load_average_end']:.1f} |"
+        for h in d["hits"]
+    )
+    b = d["bake"]
+    brows = "\n".join(
+        f"| {r['mode']} | {r['records_per_min']:.1f} | "
+        f"{'yes' if r['identical_to_single'] else 'NO'} | {r['load_average_end']:.1f} |"
+        for r in b["runs"]
+    )
+    a = d["attack"]
+    loop = all(x["sockets"]["all_loopback"] for x in [*d["hits"], b])
+    rounds = ", ".join(f"{x:.0f}" for x in a["rss_after_each_round_mb"])
+    return (
+        f"**The cloud at scale** (`benchmarks/net_scale.py`, cornell_box, `icbtool serve` in its "
+        f"own process, local Dask workers, {hc['spp']} spp denoised GI). {hc['hit_clients']} "
+        f"clients replay cache hits ({hc['hit_size']}^2) while {hc['miss_clients']} clients ask "
+        f"for {hc['miss_size']}^2 misses; hit latency measured while the misses render (before "
+        "this design a miss held every hit behind it: 32-37 s, issue 18):\n\n"
+        "| render workers | hits alone p50 / p99 | hits during the misses | hit p50 | hit p99 | "
+        "miss (count) | errors | load avg |\n|---|---|---|---|---|---|---|---|\n"
+        f"{rows}\n\n"
+        f"Bake throughput, {b['views']} views of the test path at {b['size']}^2, {b['spp']} spp "
+        f"(after one warm-up view per worker; median of {b['repeats']} interleaved rounds), and "
+        "whether every record equals the single-process bake bit for bit:\n\n"
+        "| bake | records/min | identical | load avg |\n|---|---|---|---|\n"
+        f"{brows}\n\n"
+        f"Server memory under the attack set of issue 18 (8192^2 requests, id 2^53, LPM ranges "
+        f"with no level, velocity 1e308, fx = 0, duplicate ids, bursts, 80 malformed frames, a 9 "
+        f"MB message, 30 silent connections), {len(a['rss_after_each_round_mb'])} rounds: RSS "
+        f"{a['rss_before_mb']:.0f} MB before, {rounds} MB after each round; still serving: "
+        f"{'yes' if a['still_serving_hits'] else 'NO'}. Every socket on 127.0.0.1 "
+        f"(`ss -tnp`): {'yes' if loop else 'NO'}.\n"
+    )
+
+
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "intro": block_intro,
     "raster": block_raster,
@@ -981,6 +1026,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "lpm": block_lpm,
     "net": block_net,
     "web": block_web,
+    "net-scale": block_net_scale,
 }
 
 

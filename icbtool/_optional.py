@@ -29,6 +29,8 @@ EXTRAS: dict[str, tuple[str, str]] = {
     "websockets": ("net", "websockets"),
     "cryptography": ("net", "cryptography"),
     "zstandard": ("net", "zstandard"),
+    "dask": ("cloud", "dask[distributed]"),
+    "distributed": ("cloud", "dask[distributed]"),
 }
 
 

@@ -7,15 +7,24 @@ replaced) render G-buffers + DL (raster) and GI (path tracer) and ``put`` them.
 
 The tracer already uses both cores (two Embree threads); the raster runs in this process between
 traces (a few tens of ms against seconds of tracing), so the two are not overlapped.
+
+Scale-out: with a ``pool`` (:func:`icbtool.system.workers.open_pool`: render workers on Dask
+distributed, docs/protocol.md section Scaling out) every view is one :class:`RenderJob`, a pure
+function of the scene (sent to the workers once), the camera and the trace config, run by
+:func:`render_job` on a worker; this process stays the store's only writer and puts the records
+in path order, so a pool bake writes the same records (same ids, same maps bit for bit) as the
+single-process one and stays resumable the same way.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import itertools
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -253,12 +262,53 @@ def render_crt_buffer(
     return CRTBuffer(camera=cam, meta=meta, **maps)
 
 
+@dataclass(frozen=True)
+class RenderJob:
+    """One CRT-buffer to render: everything but the scene (a render worker's task input).
+
+    Attributes:
+        camera: the cloud camera.
+        trace_config: the :class:`icbtool.trace.TraceConfig` of the GI map (its seed included).
+        gbuffer: "raster" (OpenGL G-buffers and DL) or "trace" (primary ray cast, no OpenGL).
+        buffers: raster buffers to keep (see :func:`render_crt_buffer`).
+        tags: tags of the record.
+    """
+
+    camera: Camera
+    trace_config: Any
+    gbuffer: Literal["raster", "trace"] = "raster"
+    buffers: tuple[str, ...] = CRT_RASTER_BUFFERS
+    tags: dict[str, Any] = field(default_factory=dict)
+
+
+def render_job(scene: Any, job: RenderJob, rasterizer: Any = None) -> CRTBuffer:
+    """Render ``job`` (a pure function of the scene and the job: same inputs, same maps).
+
+    Args:
+        scene: the :class:`icbtool.scene.Scene`.
+        job: the :class:`RenderJob`.
+        rasterizer: an open :class:`icbtool.raster.Rasterizer` of ``scene`` for
+            ``gbuffer="raster"`` (required then); ignored for "trace".
+
+    Returns:
+        The :class:`CRTBuffer`.
+
+    Raises:
+        ValueError: ``gbuffer="raster"`` without a rasterizer.
+    """
+    if job.gbuffer == "raster" and rasterizer is None:
+        raise ValueError("render_job: gbuffer='raster' needs an open rasterizer of the scene")
+    r = rasterizer if job.gbuffer == "raster" else None
+    return render_crt_buffer(scene, job.camera, job.trace_config, r, job.buffers, job.tags)
+
+
 def bake(
     scene: Any,
     path: CameraPath | str,
     store: Any,
     config: BakeConfig | None = None,
     camera_fn: Callable[[Camera, int], Camera] | None = None,
+    pool: Any = None,
 ) -> BakeReport:
     """Render the CRT-buffers of every camera of ``path`` into ``store`` (resumable).
 
@@ -269,14 +319,18 @@ def bake(
         config: :class:`BakeConfig`.
         camera_fn: optional ``(client_camera, index) -> cloud camera`` replacing
             :func:`cloud_camera` (must be deterministic for resuming to work).
+        pool: render workers (:func:`icbtool.system.workers.open_pool`, an object with
+            ``submit(job) -> concurrent.futures.Future`` and ``capacity``); None renders in this
+            process. Either way this process writes the store, in path order.
 
     Returns:
         :class:`BakeReport`.
 
     Raises:
         ValueError: unknown path name, bad config.
+        RuntimeError: a view failed on the workers (after the pool's retries); the views before
+            it are stored, so running the bake again resumes there.
     """
-    from icbtool import trace
 
     cfg = config or BakeConfig()
     if isinstance(path, str):
@@ -313,18 +367,15 @@ def bake(
                 problem,
             )
         todo.append((i, cam, list(problems)))
+    jobs = [
+        (i, _view_job(cfg, path.name, i, cam, camera_fn is None), damaged)
+        for i, cam, damaged in todo
+    ]
     t0 = time.perf_counter()
     rendered: list[int] = []
     replaced: list[int] = []
     times: list[float] = []
     with contextlib.ExitStack() as stack:
-        rasterizer = None
-        if cfg.gbuffer == "raster" and todo:
-            from icbtool import raster
-
-            rasterizer = raster.Rasterizer(scene, raster.RasterConfig())
-            if hasattr(rasterizer, "__enter__"):
-                rasterizer = stack.enter_context(rasterizer)
         bar = None
         if cfg.progress:
             from tqdm import tqdm
@@ -334,21 +385,11 @@ def bake(
                     total=len(indices), initial=len(skipped), desc=f"bake {path.name}", unit="view"
                 )
             )
-        for i, cam, damaged in todo:
-            tcfg = trace.TraceConfig(
-                spp=cfg.spp,
-                seed=cfg.seed + i,
-                max_depth=cfg.max_depth,
-                denoise=cfg.denoise,
-                denoise_quality=cfg.denoise_quality,
-            )
-            tags = {
-                **cfg.tags,
-                "path": path.name,
-                "index": i,
-                "cloud_camera": cfg.cloud_camera if camera_fn is None else "custom",
-            }
-            buf = render_crt_buffer(scene, cam, tcfg, rasterizer, tags=tags)
+        if pool is None:
+            results = _render_here(scene, [j for _, j, _ in jobs], stack)
+        else:
+            results = _render_on(pool, [j for _, j, _ in jobs])
+        for (_, _, damaged), buf in zip(jobs, results, strict=True):
             dt = buf.meta.render_time_s
             if damaged:  # the new record replaces the damaged ones (never an intact one)
                 rid = store.replace_damaged(damaged[0], buf)
@@ -370,3 +411,65 @@ def bake(
         float(np.mean(times)) if times else 0.0,
         replaced,
     )
+
+
+def _view_job(cfg: BakeConfig, path_name: str, i: int, cam: Camera, own_camera: bool) -> RenderJob:
+    """The render job of view ``i`` of a path (seed ``cfg.seed + i``, whoever renders it)."""
+    from icbtool import trace
+
+    tcfg = trace.TraceConfig(
+        spp=cfg.spp,
+        seed=cfg.seed + i,
+        max_depth=cfg.max_depth,
+        denoise=cfg.denoise,
+        denoise_quality=cfg.denoise_quality,
+    )
+    tags = {
+        **cfg.tags,
+        "path": path_name,
+        "index": i,
+        "cloud_camera": cfg.cloud_camera if own_camera else "custom",
+    }
+    return RenderJob(cam, tcfg, cfg.gbuffer, CRT_RASTER_BUFFERS, tags)
+
+
+def _render_here(
+    scene: Any, jobs: list[RenderJob], stack: contextlib.ExitStack
+) -> Iterator[CRTBuffer]:
+    """The jobs rendered one after the other in this process (one rasterizer for all)."""
+    rasterizer = None
+    if any(j.gbuffer == "raster" for j in jobs):
+        from icbtool import raster
+
+        rasterizer = raster.Rasterizer(scene, raster.RasterConfig())
+        if hasattr(rasterizer, "__enter__"):
+            rasterizer = stack.enter_context(rasterizer)
+    for job in jobs:
+        yield render_job(scene, job, rasterizer)
+
+
+def _render_on(pool: Any, jobs: list[RenderJob]) -> Iterator[CRTBuffer]:
+    """The jobs rendered by ``pool``, yielded in job order; at most ``2 * pool.capacity`` jobs
+    are submitted ahead of the one being written (bounded memory on a long path)."""
+    window = max(2, 2 * int(pool.capacity))
+    futures: collections.deque[Any] = collections.deque()
+    it = iter(jobs)
+    try:
+        for job in itertools.islice(it, window):
+            futures.append((job, pool.submit(job)))
+        while futures:
+            job, fut = futures.popleft()
+            try:
+                buf = fut.result()
+            except Exception as e:
+                raise RuntimeError(
+                    f"bake: view {job.tags.get('index')} failed on the render workers: {e!r}; "
+                    "the views before it are stored: run the bake again to resume"
+                ) from e
+            nxt = next(it, None)
+            if nxt is not None:
+                futures.append((nxt, pool.submit(nxt)))
+            yield buf
+    finally:
+        for _, fut in futures:
+            fut.cancel()

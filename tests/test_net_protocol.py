@@ -33,12 +33,18 @@ def _value(f: Field) -> st.SearchStrategy[Any]:
         s = _text
     elif f.type == "integer":
         lo = int(f.minimum) if f.minimum is not None else -(2**53) + 1
-        s = st.integers(lo, 2**53 - 1)
+        hi = int(f.maximum) if f.maximum is not None else 2**53 - 1
+        s = st.integers(lo, hi)
     elif f.type == "number":
         lo = f.minimum if f.minimum is not None else None
-        s = st.floats(min_value=lo, allow_nan=False, allow_infinity=False) | st.integers(
-            int(lo or 0), 2**53 - 1
-        )
+        hi = f.maximum if f.maximum is not None else None
+        s = st.floats(
+            min_value=lo,
+            max_value=hi,
+            exclude_min=f.exclusive,
+            allow_nan=False,
+            allow_infinity=False,
+        ) | st.integers(int(lo or 0) + f.exclusive, int(hi if hi is not None else 2**53 - 1))
     elif f.type == "boolean":
         s = st.booleans()
     elif f.type in ("base64", "hex"):

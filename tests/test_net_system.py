@@ -33,7 +33,7 @@ from icbtool.net.shaper import Link, ShaperConfig  # noqa: E402
 
 pytestmark = [pytest.mark.network, pytest.mark.gl]
 
-TOKEN = "test-token"
+TOKEN = "test-token-" + "x" * 32  # long enough: the server refuses short tokens
 #: Tiny renders: the tests check the system, not the images.
 CLOUD = system.CloudConfig(spp=1, denoise=False, max_depth=2)
 T = 120.0  # every client wait

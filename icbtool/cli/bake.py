@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 
 from icbtool._optional import require
 from icbtool.cli._common import (
@@ -11,6 +12,7 @@ from icbtool.cli._common import (
     add_scene_argument,
     add_size_arguments,
     check_out_dir,
+    int_at_least,
     load_scene,
 )
 from icbtool.cli._options import add_config
@@ -34,6 +36,19 @@ def _options(p: argparse.ArgumentParser) -> None:
         "--store", required=True, metavar="DIR", help="store directory (created if missing)"
     )
     add_size_arguments(p, what="render")
+    p.add_argument(
+        "--workers",
+        type=int_at_least(0),
+        default=0,
+        help="render workers: 0 renders in this process; N starts a local Dask cluster of N "
+        "worker processes on 127.0.0.1 (same records; needs the 'cloud' extra)",
+    )
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="render on an existing Dask cluster (e.g. tcp://127.0.0.1:8786) instead",
+    )
     bake = add_config(p, BakeConfig, skip=("resolution", "prefetch_config", "progress", "tags"))
     p.set_defaults(func=_run, bake_options=bake)
 
@@ -49,9 +64,19 @@ def _run(args: argparse.Namespace) -> int:
     from icbtool import bake as B
     from icbtool import store as st
 
+    if args.workers or args.scheduler:
+        require("distributed", "render workers on Dask (--workers N / --scheduler)")
+
     scene = load_scene(args.scene)
-    with st.open(args.store) as store:
-        rep = B.bake(scene, args.path, store, cfg)
+    with contextlib.ExitStack() as stack:
+        pool = None
+        if args.workers or args.scheduler:
+            from icbtool.system.workers import open_pool
+
+            pool = stack.enter_context(open_pool(scene, args.workers, args.scheduler))
+            print(f"render workers: {pool.capacity} at {pool.address}", flush=True)
+        store = stack.enter_context(st.open(args.store))
+        rep = B.bake(scene, args.path, store, cfg, pool=pool)
         n = len(store)
     print(
         f"baked {len(rep.rendered)} views ({len(rep.skipped)} already stored) in "

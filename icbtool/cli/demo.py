@@ -116,7 +116,7 @@ def run_network(
     from icbtool import net
 
     require("websockets", "the networked demo (--network)")
-    token = secrets.token_urlsafe(16)
+    token = secrets.token_urlsafe(32)  # 256 bits: icbtool serve refuses short tokens
     cmd = [sys.executable, "-m", "icbtool", "serve", args.scene, "--store", str(out / "cache"),
            "--port", "0", "--log-level", "WARNING"]  # fmt: skip
     cmd += config_argv(cfg.cloud, args.loop_options, "cloud")  # the same cloud settings

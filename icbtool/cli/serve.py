@@ -1,6 +1,8 @@
 """``icbtool serve``: the ICB cloud as a WebSocket server (icbtool.net.Server).
 
-Clients authenticate with --token, receive the scene's mesh levels (never the full-detail
+Clients authenticate with a token: --token / $ICBTOOL_TOKEN (at least 32 characters unless
+--allow-weak-token), or none given: a fresh 256-bit token is generated and printed once. They
+receive the scene's mesh levels (never the full-detail
 mesh's source), ask for GI maps (answered from the store or path traced, coalesced, encoded) and
 the generator (--generator, sent once). SIGINT/SIGTERM stop it cleanly: every committed store
 record is kept. Prints ``listening on ws://HOST:PORT`` once it accepts connections.
@@ -24,7 +26,6 @@ from icbtool.cli._common import (
     add_command,
     add_scene_argument,
     load_scene,
-    positive_int,
 )
 from icbtool.cli._options import add_config
 
@@ -50,16 +51,10 @@ def _options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--token",
         default=None,
-        help="shared secret of the clients (default: $ICBTOOL_TOKEN); required",
+        help="shared secret of the clients (default: $ICBTOOL_TOKEN, else a new 256-bit token "
+        "printed once)",
     )
     p.add_argument("--generator", default=None, metavar="RUN", help="a trained GAN run to offer")
-    p.add_argument(
-        "--workers",
-        type=positive_int,
-        default=1,
-        help="cloud render threads: 1 (the only supported value: one thread owns the store and "
-        "GL context; the tracer already uses every core)",
-    )
     p.add_argument(
         "--log-level",
         default="INFO",
@@ -74,19 +69,32 @@ def _options(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from icbtool import net
+    from icbtool.net.server import MIN_TOKEN_CHARS, new_token
 
     require("websockets", "icbtool serve")
+    server_cfg = args.server_options.build(args)  # a bad setting: one line, exit 2, no work
+    cloud_cfg = args.cloud_options.build(args)
     token = args.token or os.environ.get("ICBTOOL_TOKEN")
-    if not token:
-        raise UsageError("--token (or $ICBTOOL_TOKEN) is required")
-    if args.workers != 1:
-        raise UsageError("--workers: only 1 is supported (see --help)")
+    generated = not token
+    if generated:
+        token = new_token()
+    elif len(token) < MIN_TOKEN_CHARS and not server_cfg.allow_weak_token:
+        raise UsageError(
+            f"--token: {len(token)} characters is too short to resist offline guessing (at least "
+            f"{MIN_TOKEN_CHARS}); leave it out to get a 256-bit one, or pass "
+            "--allow-weak-token"
+        )
+    if (server_cfg.tls_cert is None) != (server_cfg.tls_key is None):
+        raise UsageError("--tls-cert and --tls-key go together")
+    for flag, f in (("--tls-cert", server_cfg.tls_cert), ("--tls-key", server_cfg.tls_key)):
+        if f is not None and not Path(f).is_file():
+            raise UsageError(f"{flag} {f!r}: no such file")
+    if server_cfg.workers or server_cfg.scheduler:
+        require("distributed", "render workers on Dask (--workers N / --scheduler)")
     if args.generator is not None and not (
         Path(args.generator).is_file() or (Path(args.generator) / "generator.pt").is_file()
     ):
         raise UsageError(f"--generator {args.generator!r}: no generator.pt there")
-    server_cfg = args.server_options.build(args)
-    cloud_cfg = args.cloud_options.build(args)
     if cloud_cfg.denoise:
         require("pyoidn", "denoising the served GI maps (--no-denoise skips it)")
     if server_cfg.web:
@@ -107,6 +115,8 @@ def run(args: argparse.Namespace) -> int:
 
             print(f"web client: {page_url(url, token)}", flush=True)
 
+    if generated:  # printed once, never logged
+        print(f"token: {token}", flush=True)
     server.on_listening = listening
     server.serve_forever()
     s = server.stats

@@ -1,5 +1,7 @@
 """The networked ICB system's wire layer: message framing, session crypto, GI/depth codecs.
 
+* :mod:`icbtool.net.errors`: the error codes, :class:`ProtocolError` and base64, which the
+  protocol, crypto and codec modules share (none of them imports another to raise one).
 * :mod:`icbtool.net.protocol`: one WebSocket binary message = ``u32 header length | JSON header
   | payload``; the message kinds and their fields (docs/protocol.md).
 * :mod:`icbtool.net.crypto`: X25519 + HKDF-SHA256 session keys, token authentication by HMAC,

@@ -68,6 +68,9 @@ class NetClientConfig:
     """Largest message accepted from the server."""
     use_generator: bool = True
     """Fetch the generator when the server offers one and generate locally once it is here."""
+    ca_file: str | None = None
+    """``wss://`` servers: the PEM certificate(s) to trust (e.g. a self-signed server's own
+    certificate); None: the system's trust store."""
 
     def __post_init__(self) -> None:
         if not self.timeout_s > 0:
@@ -180,11 +183,18 @@ class NetworkSource(GISource):
 
     async def _connect(self, token: str) -> None:
         connect = require("websockets.asyncio.client", "the networked ICB client").connect
+        wsx = require("websockets.exceptions", "the networked ICB client")
 
         cfg = self.config
+        tls: Any = None
+        if self.url.startswith("wss://"):
+            import ssl
+
+            tls = ssl.create_default_context(cafile=cfg.ca_file)
         try:
             self._ws = await connect(
                 self.url,
+                ssl=tls,
                 max_size=cfg.max_message_bytes,
                 compression=None,
                 proxy=None,
@@ -193,7 +203,7 @@ class NetworkSource(GISource):
                 ping_timeout=60,
                 close_timeout=2,
             )
-        except OSError as e:
+        except (OSError, wsx.WebSocketException) as e:  # ssl.SSLError is an OSError
             raise NetError(f"cannot connect to {self.url}: {e}") from e
         self._send_lock = asyncio.Lock()
         hs = crypto.ClientHandshake(token)

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from icbtool._optional import require
-from icbtool.net.protocol import ProtocolError
+from icbtool.net.errors import ProtocolError
 
 #: Largest array (elements) a part may decode to: 64 Mi elements (256 MiB of float32).
 MAX_ELEMENTS = 64 * 2**20

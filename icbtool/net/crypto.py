@@ -34,7 +34,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from icbtool._optional import require
-from icbtool.net.protocol import ProtocolError, b64, unb64
+from icbtool.net.errors import ProtocolError, b64, unb64
 
 #: Prefix of the transcript and of the HKDF info strings.
 LABEL = b"icbtool/net/v1"

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from icbtool.camera import Camera
+from icbtool.net.errors import ERROR_CODES, MAX_SAFE_INTEGER, ProtocolError, b64, safe_ref, unb64
 from icbtool.system.messages import GIRequest
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -40,49 +41,8 @@ PROTOCOL_VERSION = 1
 DEFAULT_MAX_MESSAGE = 64 * 2**20
 #: Limit on the JSON header of one message, bytes.
 MAX_HEADER = 64 * 2**10
-#: Largest integer magnitude a field may hold (JavaScript's Number.MAX_SAFE_INTEGER).
-MAX_SAFE_INTEGER = 2**53 - 1
 #: Header keys that belong to the frame, not to a kind's fields.
 RESERVED_KEYS = ("v", "kind", "ctr")
-
-#: Every error code a :class:`ProtocolError` (and an ``error`` message) can carry.
-ERROR_CODES: dict[str, str] = {
-    "malformed": "the frame cannot be parsed: too short, header length beyond the data, bad "
-    "UTF-8 or JSON, duplicate keys, a header that is not an object, no v/kind",
-    "version": "the header's v is not the receiver's PROTOCOL_VERSION",
-    "unknown_kind": "the header's kind is not one of the message kinds",
-    "too_large": "the message or its header is over the receiver's size limit",
-    "bad_field": "a field is missing, has the wrong type or an invalid value (the message names "
-    "the kind and the field); also a payload where the kind has none, or one that does not match "
-    "its description (sizes, hash)",
-    "auth": "the client's authentication failed (wrong token) or a message came before it",
-    "crypto": "a sealed message failed to decrypt or authenticate (tampered header or payload, "
-    "wrong key), or a message was sealed when it must not be (or not when it must)",
-    "replay": "a sealed message's counter is not above the last one accepted in its direction",
-    "busy": "the server is at capacity (too many clients or queued requests); try again later",
-    "internal": "the peer failed while handling a valid message",
-    "not_found": "the message names something that does not exist (LPM level, generator)",
-}
-
-
-class ProtocolError(ValueError):
-    """A message broke the protocol, or the peer reported an error.
-
-    Attributes:
-        code: one of :data:`ERROR_CODES`.
-        message: what was wrong, naming the kind and field where there is one.
-        ref: the ``id`` of the request it concerns (``gi_request.id``), or None.
-    """
-
-    def __init__(self, code: str, message: str, ref: int | None = None) -> None:
-        if code not in ERROR_CODES:
-            raise ValueError(
-                f"ProtocolError code must be one of {sorted(ERROR_CODES)}, got {code!r}"
-            )
-        super().__init__(f"[{code}] {message}")
-        self.code = code
-        self.message = message
-        self.ref = ref
 
 
 @dataclass(frozen=True)
@@ -121,6 +81,8 @@ class Field:
         items: an array's element.
         fields: an object's known keys (None: any object); other keys are allowed and ignored.
         minimum: an integer's or number's smallest value.
+        maximum: an integer's or number's largest value (a documented limit, section Limits).
+        exclusive: the minimum itself is not allowed (``> minimum``).
         length: an array's length, or the byte length of a base64/hex value, when fixed.
     """
 
@@ -133,6 +95,8 @@ class Field:
     fields: tuple[Field, ...] | None = None
     minimum: float | None = None
     length: int | None = None
+    maximum: float | None = None
+    exclusive: bool = False
 
 
 @dataclass(frozen=True)
@@ -160,13 +124,25 @@ def _f(name: str, type: FieldType, doc: str, **kw: Any) -> Field:
     return Field(name, type, doc, **kw)
 
 
+#: Largest image side of any camera object, pixels (a gi_request's camera has a server limit
+#: below it: ``scene_info.limits.max_request_side``).
+MAX_IMAGE_SIDE = 32768
+#: Largest magnitude of a velocity component of a gi_request (scene units/s or rad/s): beyond
+#: it no reference camera can be predicted (docs/protocol.md, section Limits).
+MAX_VELOCITY = 1e6
+
 _NAT = {"minimum": 0}
 _VEC3 = {"items": Field("", "number", ""), "length": 3}
+_VELOCITY = {
+    "items": Field("", "number", "", minimum=-MAX_VELOCITY, maximum=MAX_VELOCITY),
+    "length": 3,
+}
+_SIDE = {"minimum": 1, "maximum": MAX_IMAGE_SIDE}
 _CAMERA_FIELDS = (
-    _f("height", "integer", "image height, pixels", minimum=1),
-    _f("width", "integer", "image width, pixels", minimum=1),
-    _f("fx", "number", "focal length along x, pixels (> 0)", minimum=0),
-    _f("fy", "number", "focal length along y, pixels (> 0)", minimum=0),
+    _f("height", "integer", "image height, pixels", **_SIDE),
+    _f("width", "integer", "image width, pixels", **_SIDE),
+    _f("fx", "number", "focal length along x, pixels", minimum=0, exclusive=True),
+    _f("fy", "number", "focal length along y, pixels", minimum=0, exclusive=True),
     _f("cx", "number", "principal point x, continuous pixel coordinates"),
     _f("cy", "number", "principal point y, continuous pixel coordinates"),
     _f(
@@ -179,8 +155,13 @@ _CAMERA_FIELDS = (
 )
 _REQUEST_FIELDS = (
     _f("camera", "object", "the client's camera when it sent the request", fields=_CAMERA_FIELDS),
-    _f("velocity_t", "array", "translation velocity in the camera frame, scene units/s", **_VEC3),
-    _f("velocity_r", "array", "angular velocity (pitch, yaw, roll rates), rad/s", **_VEC3),
+    _f(
+        "velocity_t",
+        "array",
+        "translation velocity in the camera frame, scene units/s",
+        **_VELOCITY,
+    ),
+    _f("velocity_r", "array", "angular velocity (pitch, yaw, roll rates), rad/s", **_VELOCITY),
     _f("time_s", "number", "the client's clock when it sent the request, s"),
     _f("seq", "integer", "the request's sequence number (seeds the server's render)", **_NAT),
     _f(
@@ -211,6 +192,35 @@ _LEVEL_FIELDS = (
     _f("chunks", "integer", "number of lpm_chunk messages of this level", **_NAT),
 )
 _B64_KEY = {"length": 32}
+_LIMIT_FIELDS = (
+    _f(
+        "max_message_bytes",
+        "integer",
+        "largest message the server accepts (more: closed with 1009)",
+        minimum=1,
+    ),
+    _f(
+        "max_request_side",
+        "integer",
+        "largest height or width of a gi_request's camera (more: error bad_field)",
+        minimum=1,
+    ),
+    _f(
+        "max_render_side",
+        "integer",
+        "largest side of a rendered reference: a wider prefetch camera is scaled down to it "
+        "(same field of view), and gi_reply.camera states the size rendered",
+        minimum=1,
+    ),
+    _f("spp", "integer", "path-tracing samples per pixel of every render", minimum=1),
+    _f(
+        "max_queued_renders",
+        "integer",
+        "cache misses the server queues for its render workers, all clients together "
+        "(more: error busy)",
+        minimum=1,
+    ),
+)
 
 #: Every message kind, by name.
 KINDS: dict[str, KindSpec] = {
@@ -341,6 +351,13 @@ KINDS: dict[str, KindSpec] = {
                     "most gi_requests a client may have unanswered (more: error busy)",
                     required=False,
                     minimum=1,
+                ),
+                _f(
+                    "limits",
+                    "object",
+                    "the server's limits (section Limits)",
+                    required=False,
+                    fields=_LIMIT_FIELDS,
                 ),
             ),
             payload='UTF-8 JSON object {"paths": {name: path}}: the named camera paths '
@@ -488,10 +505,11 @@ def _type_text(f: Field) -> str:
         t = f"array[{f.length}] of {inner}" if f.length is not None else f"array of {inner}"
     elif t in ("base64", "hex") and f.length is not None:
         t = f"{t} ({f.length} bytes)"
-    elif t == "integer" and f.minimum is not None:
-        t = f"integer >= {f.minimum:g}"
-    elif t == "number" and f.minimum is not None:
-        t = f"number >= {f.minimum:g}"
+    elif t in ("integer", "number") and f.minimum is not None:
+        op = ">" if f.exclusive else ">="
+        t = f"{t} {op} {f.minimum:g}"
+        if f.maximum is not None:
+            t = f"{f.type} in [{f.minimum:g}, {f.maximum:g}]"
     return t + (" or null" if f.nullable else "")
 
 
@@ -580,8 +598,10 @@ def _check_value(value: Any, f: Field, where: str, ref: int | None) -> None:
         )
     if f.type == "integer" and abs(value) > MAX_SAFE_INTEGER:
         raise bad(f"must be within +-(2^53 - 1) (a JavaScript-safe integer), got {value}")
-    if f.minimum is not None and value < f.minimum:
-        raise bad(f"must be >= {f.minimum:g}, got {value}")
+    if f.minimum is not None and (value <= f.minimum if f.exclusive else value < f.minimum):
+        raise bad(f"must be {'>' if f.exclusive else '>='} {f.minimum:g}, got {value}")
+    if f.maximum is not None and value > f.maximum:
+        raise bad(f"must be <= {f.maximum:g} (section Limits), got {value:g}")
     if f.type == "base64":
         try:
             raw = base64.b64decode(value.encode("ascii"), validate=True)
@@ -672,11 +692,8 @@ def validate(msg: Message) -> None:
 
 
 def _ref_of(fields: Any) -> int | None:
-    if isinstance(fields, dict):
-        r = fields.get("id")
-        if isinstance(r, int) and not isinstance(r, bool):
-            return r
-    return None
+    # only an id the reply can carry (an error about an id out of range says ref: null)
+    return safe_ref(fields.get("id")) if isinstance(fields, dict) else None
 
 
 # ---------------------------------------------------------------------------------- framing
@@ -857,23 +874,6 @@ def raise_for_error(msg: Message) -> Message:
 
 
 # ---------------------------------------------------------------------------------- helpers
-def b64(data: bytes) -> str:
-    """Standard base64 with padding (RFC 4648 section 4), as the protocol's base64 fields use."""
-    return base64.b64encode(data).decode("ascii")
-
-
-def unb64(text: str, what: str = "value") -> bytes:
-    """Inverse of :func:`b64`.
-
-    Raises:
-        ProtocolError: ``"bad_field"`` naming ``what`` when ``text`` is not valid base64.
-    """
-    try:
-        return base64.b64decode(text.encode("ascii"), validate=True)
-    except (binascii.Error, UnicodeEncodeError, ValueError, AttributeError):
-        raise ProtocolError("bad_field", f"{what}: is not valid base64") from None
-
-
 def camera_to_json(cam: Camera) -> dict[str, Any]:
     """A camera as the protocol's camera object (exact: floats keep every bit through JSON).
 
@@ -986,6 +986,9 @@ __all__ = [
     "HANDSHAKE_KINDS",
     "KINDS",
     "MAX_HEADER",
+    "MAX_IMAGE_SIDE",
+    "MAX_SAFE_INTEGER",
+    "MAX_VELOCITY",
     "PROTOCOL_VERSION",
     "Field",
     "KindSpec",

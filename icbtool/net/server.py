@@ -9,34 +9,51 @@ Per connection (the protocol is :mod:`icbtool.net.protocol`):
 3. on request: the mesh levels coarse to fine (``lpm_chunk`` ... ``lpm_done`` per level), the GI
    of a client request (``gi_request`` -> ``gi_reply``), the generator (``generator_chunk``, once).
 
-Threads. The :class:`~icbtool.system.Cloud` (octree store + rasterizer + path tracer) lives on ONE
-worker thread that opens it and runs every lookup and render: its SQLite connection may only be
-used by the thread that opened it, its OpenGL context is current on one thread, and a render
-already uses both cores (the tracer's two Embree threads), so a second render thread would only
-make both slower. The event loop only parses, coalesces, queues and sends; encoding the GI maps
-(zstd releases the GIL) runs in a small second pool so the cloud thread goes on rendering.
+Threads and processes (docs/protocol.md, sections Scaling out and Limits). Cache hits never wait
+behind renders: every request is first looked up on its own thread over a *read-only* store
+connection (it follows the writer's commits), a hit is encoded in a small pool and sent. A miss
+becomes a render job (:class:`~icbtool.bake.RenderJob`) for the render workers
+(:mod:`icbtool.system.workers`: one render thread here with ``workers=0``, else tasks on a Dask
+cluster, local or joined with ``scheduler``); the misses wait in a fair queue (round robin over
+clients: one client's burst cannot starve the others) bounded by
+:attr:`ServerConfig.max_queued_renders`. A finished render is put by the store's one writer
+thread (the store's crash safety is unchanged) and sent.
 
 Coalescing: requests whose prefetch cameras are the same (the cloud rounds the FOV; poses rounded
 to 1e-6) while one is being answered share that answer: one lookup or render, every requester
 gets its reply. Bounds: at most :attr:`ServerConfig.max_pending` GI requests per client (more:
-``error busy``), a bounded send queue per connection (a client that does not read stalls only
-its own producers and is dropped after :attr:`ServerConfig.send_timeout_s`), a maximum message
-size, a handshake timeout. Any error of one connection ends that connection only.
+``error busy``), at most :attr:`ServerConfig.max_queued_renders` misses waiting for a worker
+(more: ``busy``), a request camera of at most :attr:`ServerConfig.max_request_side` pixels a side
+(more: ``bad_field``), references rendered at most :attr:`ServerConfig.max_render_side` a side
+(a wider prefetch camera is scaled down; the reply's camera says so), a bounded send queue per
+connection (a client that does not read stalls only its own producers and is dropped after
+:attr:`ServerConfig.send_timeout_s`), a maximum message size, a handshake timeout. Any error of one
+connection ends that connection only; the server never sends a message its own validator rejects.
+
+Close codes: 1000 after ``bye``, 1001 when the server shuts down, 1008 after a failed handshake or
+a sealing failure (``auth``, ``crypto``, ``replay``), 1009 for a message over the size limit.
+
+Security: the token must be long (:data:`MIN_TOKEN_CHARS`; :func:`new_token` makes a 256-bit
+one) unless :attr:`ServerConfig.allow_weak_token`; with :attr:`ServerConfig.tls_cert` the server
+speaks ``wss://`` (TLS under the protocol's own sealing).
 
 Shutdown (:meth:`Server.stop`, SIGINT/SIGTERM in :meth:`Server.serve_forever`): stop accepting,
-close the connections, cancel the renders not started, let the running one finish (its record is
-committed by the store's atomic put), close the store.
+close the connections, drop the misses not started, let the running renders finish and be
+committed by the store's atomic put, close the workers and the store.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import concurrent.futures
 import contextlib
 import hashlib
 import itertools
 import json
 import logging
+import math
+import secrets
 import signal
 import threading
 import time
@@ -51,8 +68,20 @@ from icbtool.net import codec as codec_mod
 from icbtool.net import crypto, protocol
 from icbtool.net.mesh_stream import MeshStream
 from icbtool.system.cloud import Cloud, CloudConfig
+from icbtool.system.messages import GIReply
 
 log = logging.getLogger(__name__)
+
+#: Shortest token a server accepts without :attr:`ServerConfig.allow_weak_token` (characters;
+#: :func:`new_token` makes 43, 256 random bits). An eavesdropper who records one handshake can
+#: test token guesses offline (docs/protocol.md, section Threat model): only a token that cannot
+#: be guessed is safe.
+MIN_TOKEN_CHARS = 32
+
+
+def new_token() -> str:
+    """A fresh 256-bit token (43 URL-safe base64 characters), what ``icbtool serve`` prints."""
+    return secrets.token_urlsafe(32)
 
 
 @dataclass(frozen=True)
@@ -86,9 +115,40 @@ class ServerConfig:
     web: bool = False
     """Also answer plain HTTP GETs on the same host/port with the browser client's page
     (:mod:`icbtool.net.web`; ``icbtool serve --web``)."""
+    workers: int = 0
+    """Render workers: 0 renders on one thread of this process; N >= 1 starts a local Dask
+    cluster of N worker processes on 127.0.0.1 (the ``cloud`` extra)."""
+    scheduler: str | None = None
+    """Address of an existing Dask scheduler (``tcp://host:8786``) whose workers render the
+    misses; overrides ``workers``."""
+    max_queued_renders: int = 32
+    """Cache misses waiting for a render worker, all clients together (more: ``error busy``)."""
+    max_request_side: int = 2048
+    """Largest height or width of a gi_request's camera (more: ``error bad_field``)."""
+    max_render_side: int = 2560
+    """Largest side of a rendered reference; a wider prefetch camera is scaled down to it (same
+    field of view) and the reply's camera states the size rendered."""
+    tls_cert: str | None = None
+    """PEM certificate (chain) file: serve ``wss://`` (needs ``tls_key``)."""
+    tls_key: str | None = None
+    """PEM private key file of ``tls_cert``."""
+    allow_weak_token: bool = False
+    """Accept a token shorter than :data:`MIN_TOKEN_CHARS` (tests, a trusted network only)."""
+    render_nice: int = 10
+    """Added to the nice value (CPU priority) of the renders this server starts (its render
+    thread or its local cluster's workers; capped at 19): hits then get a core at once while
+    renders fill the others. A joined cluster's workers keep their own."""
 
     def __post_init__(self) -> None:
-        for k in ("max_message_bytes", "chunk_bytes", "max_pending", "send_queue"):
+        for k in (
+            "max_message_bytes",
+            "chunk_bytes",
+            "max_pending",
+            "send_queue",
+            "max_queued_renders",
+            "max_request_side",
+            "max_render_side",
+        ):
             v = getattr(self, k)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"ServerConfig.{k} must be an integer >= 1, got {v!r}")
@@ -97,6 +157,23 @@ class ServerConfig:
         for k in ("send_timeout_s", "handshake_timeout_s"):
             if not getattr(self, k) > 0:
                 raise ValueError(f"ServerConfig.{k} must be > 0")
+        if not isinstance(self.workers, int) or isinstance(self.workers, bool) or self.workers < 0:
+            raise ValueError(f"ServerConfig.workers must be an integer >= 0, got {self.workers!r}")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("ServerConfig.tls_cert and tls_key go together (both or neither)")
+        for k in ("tls_cert", "tls_key"):
+            v = getattr(self, k)
+            if v is not None and not Path(v).is_file():
+                raise ValueError(f"ServerConfig.{k}: no such file: {v}")
+        if not (isinstance(self.render_nice, int) and 0 <= self.render_nice <= 19):
+            raise ValueError(
+                f"ServerConfig.render_nice must be in [0, 19], got {self.render_nice!r}"
+            )
+        if self.max_render_side < self.max_request_side:
+            raise ValueError(
+                f"ServerConfig.max_render_side ({self.max_render_side}) must be >= "
+                f"max_request_side ({self.max_request_side})"
+            )
 
 
 @dataclass
@@ -113,6 +190,7 @@ class ServerStats:
     busy: int = 0
     coalesced: int = 0
     renders: int = 0
+    render_failures: int = 0
     cache_hits: int = 0
     generator_sent: int = 0
     dropped_slow: int = 0
@@ -127,7 +205,90 @@ def camera_key(cam: Any) -> str:
 
 
 class _Closing(Exception):
-    """This connection ends (the reason was logged / sent)."""
+    """This connection ends (the reason was logged / sent) with WebSocket close ``code``."""
+
+    def __init__(self, reason: str, code: int = 1000) -> None:
+        super().__init__(reason)
+        self.code = code
+
+
+class _FairQueue:
+    """Render slots handed out round robin over clients (docs/protocol.md, Scaling out).
+
+    ``capacity`` renders run at once (the workers' threads); the others wait, each client in
+    its own FIFO, and a freed slot goes to the next client in turn, so a client with many
+    misses queued delays another client's miss by at most one render per slot. At most
+    ``limit`` misses wait (:meth:`admit` raises ``busy`` beyond). Event-loop only.
+    """
+
+    def __init__(self, capacity: int, limit: int) -> None:
+        self.capacity = max(1, int(capacity))
+        self.limit = limit
+        self.running = 0
+        self._waiting: collections.OrderedDict[int, collections.deque[asyncio.Future[None]]] = (
+            collections.OrderedDict()
+        )
+        self._closed = False
+
+    @property
+    def queued(self) -> int:
+        return sum(len(q) for q in self._waiting.values())
+
+    def admit(self) -> None:
+        """Raise ``busy`` when no miss may be added now."""
+        if self._closed:
+            raise _Closing("server is shutting down", 1001)
+        if self.running >= self.capacity and self.queued >= self.limit:
+            raise protocol.ProtocolError(
+                "busy",
+                f"the render queue is full ({self.limit} misses waiting, scene_info.limits."
+                "max_queued_renders); try again later",
+            )
+
+    async def acquire(self, client: int) -> None:
+        """Wait for a render slot, in this client's turn."""
+        if self._closed:
+            raise _Closing("server is shutting down", 1001)
+        if self.running < self.capacity and not self._waiting:
+            self.running += 1
+            return
+        fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._waiting.setdefault(client, collections.deque()).append(fut)
+        try:
+            await fut  # release() hands the slot over: running was counted for us
+        except asyncio.CancelledError:
+            if fut.done() and not fut.cancelled():  # the slot was ours: pass it on
+                self.release()
+            else:
+                q = self._waiting.get(client)
+                if q is not None and fut in q:
+                    q.remove(fut)
+                    if not q:
+                        del self._waiting[client]
+            raise
+
+    def release(self) -> None:
+        """Free a slot: the next client in turn gets it."""
+        self.running -= 1
+        while self._waiting and self.running < self.capacity:
+            client, q = next(iter(self._waiting.items()))
+            fut = q.popleft()
+            del self._waiting[client]
+            if q:  # this client goes to the back of the line
+                self._waiting[client] = q
+            if not fut.done():
+                self.running += 1
+                fut.set_result(None)
+
+    def close(self) -> int:
+        """Refuse new work and cancel the waiting misses; how many were waiting."""
+        self._closed = True
+        n = 0
+        for q in self._waiting.values():
+            for fut in q:
+                n += fut.cancel()
+        self._waiting.clear()
+        return n
 
 
 class Server:
@@ -136,7 +297,8 @@ class Server:
     Args:
         scene: the full-detail :class:`icbtool.scene.Scene` (never leaves the server).
         store_dir: the cloud's CRT-buffer store directory (:func:`icbtool.store.open`).
-        token: the shared secret clients authenticate with.
+        token: the shared secret clients authenticate with (at least :data:`MIN_TOKEN_CHARS`
+            characters unless ``config.allow_weak_token``; :func:`new_token` makes one).
         config: :class:`ServerConfig`.
         cloud_config: :class:`~icbtool.system.CloudConfig` of the answers (spp, prefetch, ...).
         generator: a trained GAN run directory (with ``generator.pt``) offered to clients, or
@@ -145,8 +307,11 @@ class Server:
     Use :meth:`start` / :meth:`stop` (a background thread; also a context manager) or
     :meth:`serve_forever` (this thread, until SIGINT/SIGTERM).
 
+    Raises:
+        ValueError: an empty or short token (see ``token``), a generator file that is not one.
+
     Example:
-        >>> with Server(scene, "out/cache", token="s3cret") as srv:  # doctest: +SKIP
+        >>> with Server(scene, "out/cache", token=new_token()) as srv:  # doctest: +SKIP
         ...     print(srv.url)
     """
 
@@ -159,12 +324,18 @@ class Server:
         cloud_config: CloudConfig | None = None,
         generator: str | Path | None = None,
     ) -> None:
+        self.config = config or ServerConfig()
         if not isinstance(token, str) or not token:
             raise ValueError("Server token must be a non-empty string")
+        if len(token) < MIN_TOKEN_CHARS and not self.config.allow_weak_token:
+            raise ValueError(
+                f"Server token of {len(token)} characters is too short to resist offline "
+                f"guessing (at least {MIN_TOKEN_CHARS}; icbtool.net.server.new_token() makes a "
+                "256-bit one); ServerConfig(allow_weak_token=True) accepts it anyway"
+            )
         self.scene = scene
         self.store_dir = Path(store_dir)
         self.token = token
-        self.config = config or ServerConfig()
         self.cloud_config = cloud_config or CloudConfig()
         self.stats = ServerStats()
         self.mesh = MeshStream(
@@ -187,10 +358,14 @@ class Server:
             self._generator = g.read_bytes()
             self._generator_sha = hashlib.sha256(self._generator).hexdigest()
         self.port: int | None = None
-        self._cloud: Cloud | None = None
-        self._worker: concurrent.futures.ThreadPoolExecutor | None = None
+        self._cloud: Cloud | None = None  # the writer (store owner), on the _writer thread
+        self._reader: Cloud | None = None  # lookups, read-only store, on the _lookup thread
+        self._writer: concurrent.futures.ThreadPoolExecutor | None = None
+        self._lookup: concurrent.futures.ThreadPoolExecutor | None = None
         self._encoder: concurrent.futures.ThreadPoolExecutor | None = None
-        self._jobs: set[concurrent.futures.Future[Any]] = set()
+        self._pool: Any = None
+        self._renders: _FairQueue | None = None
+        self._render_tasks: set[asyncio.Task[Any]] = set()
         self._inflight: dict[str, asyncio.Future[Any]] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
@@ -207,76 +382,129 @@ class Server:
     def url(self) -> str:
         if self.port is None:
             raise RuntimeError("server is not listening")
-        return f"ws://{self.config.host}:{self.port}"
+        scheme = "wss" if self.config.tls_cert is not None else "ws"
+        return f"{scheme}://{self.config.host}:{self.port}"
 
     @property
     def generator_offered(self) -> bool:
         return self._generator is not None
 
-    def _open_cloud(self) -> None:
+    @property
+    def workers_address(self) -> str:
+        """Where the renders run: ``"in-process"`` or the Dask scheduler's address."""
+        return str(getattr(self._pool, "address", "not started"))
+
+    def _open_writer(self) -> None:
         self._cloud = Cloud(self.scene, str(self.store_dir), self.cloud_config)
 
-    def _close_cloud(self) -> None:
+    def _open_reader(self) -> None:
+        from icbtool import store as store_mod
+
+        c = self.cloud_config
+        scfg = store_mod.StoreConfig(
+            alpha_pos=c.alpha_pos,
+            alpha_dir=c.alpha_dir,
+            readonly=True,
+            create=False,
+            refresh_interval_s=0.0,  # a lookup sees every put committed before it
+        )
+        self._reader = Cloud(self.scene, store_mod.open(str(self.store_dir), scfg), c)
+
+    def _close_reader(self) -> None:
+        if self._reader is not None:
+            self._reader.store.close()
+            self._reader = None
+
+    def _close_writer(self) -> None:
         if self._cloud is not None:
             self._cloud.close()
             self._cloud = None
 
+    def _tls_context(self) -> Any:
+        if self.config.tls_cert is None:
+            return None
+        import ssl
+
+        ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+        ctx.load_cert_chain(self.config.tls_cert, self.config.tls_key)
+        return ctx
+
+    def serve_options(self) -> dict[str, Any]:
+        """Keyword arguments of ``websockets.asyncio.server.serve`` (one place to extend, e.g.
+        with ``process_request``)."""
+        return {
+            "max_size": self.config.max_message_bytes,
+            "max_queue": 4,
+            "write_limit": 2**16,
+            "compression": None,
+            "ping_interval": 20,
+            "ping_timeout": 60,
+            "close_timeout": 2,
+            "ssl": self._tls_context(),
+            "process_request": self._http_handler(),
+        }
+
     async def serve(self) -> None:
         """Serve until :meth:`stop` (or the stop event) is set; then shut down cleanly."""
         serve = require("websockets.asyncio.server", "icbtool.net.Server").serve
+        from icbtool.system.workers import open_pool
 
         cfg = self.config
         self._loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         if self._stop_requested:
             self._stop.set()
-        self._worker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="icb-cloud")
+        self._writer = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="icb-store")
+        self._lookup = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="icb-lookup")
         self._encoder = concurrent.futures.ThreadPoolExecutor(2, thread_name_prefix="icb-encode")
         try:
-            # the cloud is opened on its own thread (SQLite and GL are bound to it)
-            await asyncio.wrap_future(self._worker.submit(self._open_cloud))
-            async with serve(
-                self._handle,
-                cfg.host,
-                cfg.port,
-                max_size=cfg.max_message_bytes,
-                max_queue=4,
-                write_limit=2**16,
-                compression=None,
-                ping_interval=20,
-                ping_timeout=60,
-                close_timeout=2,
-                process_request=self._http_handler(),
-            ) as ws_server:
-                self.port = int(next(iter(ws_server.sockets)).getsockname()[1])
-                log.info("icbtool server on %s (scene %s)", self.url, self.scene.name)
+            # each store connection is opened on its own thread (SQLite binds it there); the
+            # writer first: it creates the store and registers the scene the reader follows
+            await asyncio.wrap_future(self._writer.submit(self._open_writer))
+            await asyncio.wrap_future(self._lookup.submit(self._open_reader))
+            self._pool = await asyncio.to_thread(open_pool, self.scene, cfg.workers, cfg.scheduler)
+            self._renders = _FairQueue(self._pool.capacity, cfg.max_queued_renders)
+            async with serve(self._handle, cfg.host, cfg.port, **self.serve_options()) as ws:
+                self.port = int(next(iter(ws.sockets)).getsockname()[1])
+                log.info(
+                    "icbtool server on %s (scene %s, renders: %s)",
+                    self.url,
+                    self.scene.name,
+                    self.workers_address,
+                )
                 self._ready.set()
                 if self.on_listening is not None:
                     self.on_listening(self.url)
                 await self._stop.wait()
                 log.info("shutting down: closing connections")
-                ws_server.close(close_connections=True)
-                await ws_server.wait_closed()
+                ws.close(close_connections=True)
+                await ws.wait_closed()
         except BaseException as e:
             self._start_error = e
             raise
         finally:
             self._ready.set()
-            await self._shutdown_worker()
+            await self._shutdown_workers()
 
-    async def _shutdown_worker(self) -> None:
-        """Cancel the renders not started, let the running one commit, close the store."""
-        if self._worker is None:
-            return
-        cancelled = sum(f.cancel() for f in list(self._jobs))
-        if cancelled:
-            log.info("cancelled %d queued cloud jobs", cancelled)
-        closing = self._worker.submit(self._close_cloud)
-        self._worker.shutdown(wait=False)
-        await asyncio.wrap_future(closing)  # after the running job: FIFO, one thread
+    async def _shutdown_workers(self) -> None:
+        """Drop the misses not started, let the running renders commit, close everything."""
+        if self._renders is not None:
+            dropped = self._renders.close()
+            if dropped:
+                log.info("dropped %d queued renders", dropped)
+        if self._render_tasks:
+            await asyncio.wait(list(self._render_tasks), timeout=600)
+        if self._pool is not None:
+            await asyncio.to_thread(self._pool.close)
+            self._pool = None
+        for ex, close in ((self._lookup, self._close_reader), (self._writer, self._close_writer)):
+            if ex is not None:
+                with contextlib.suppress(Exception):
+                    await asyncio.wrap_future(ex.submit(close))
+                ex.shutdown(wait=False)
         if self._encoder is not None:
             self._encoder.shutdown(wait=False, cancel_futures=True)
-        self._worker = None
+        self._writer = self._lookup = None
         log.info("cloud closed (store committed)")
 
     def start(self, timeout_s: float = 60.0) -> Server:
@@ -381,6 +609,13 @@ class Server:
             "up": base["up"],
             "default_camera": base["default_camera"],
             "max_pending": self.config.max_pending,
+            "limits": {
+                "max_message_bytes": self.config.max_message_bytes,
+                "max_request_side": self.config.max_request_side,
+                "max_render_side": self.config.max_render_side,
+                "spp": self.cloud_config.spp,
+                "max_queued_renders": self.config.max_queued_renders,
+            },
         }
 
     def scene_paths(self) -> bytes:
@@ -389,46 +624,120 @@ class Server:
         return json.dumps({"paths": paths}, separators=(",", ":")).encode() if paths else b""
 
     # ------------------------------------------------------------------ the cloud, coalesced
-    def _cloud_job(self, fn: Any, *args: Any) -> asyncio.Future[Any]:
-        if self._worker is None:
-            raise _Closing("server is shutting down")
-        f = self._worker.submit(fn, *args)
-        self._jobs.add(f)
-        f.add_done_callback(self._jobs.discard)
-        return asyncio.wrap_future(f)
+    def reference_camera(self, req: Any) -> Any:
+        """The camera rendered (or looked up) for ``req``, within the limits.
 
-    def _answer_on_worker(self, req: Any, queued_at: float) -> Any:
-        started = time.perf_counter()
-        assert self._cloud is not None
-        reply = self._cloud.request(req)
-        reply.timings_ms["queue"] = 1e3 * (started - queued_at)
-        return reply
+        Raises:
+            ProtocolError: ``bad_field`` when the request's camera is over
+                :attr:`ServerConfig.max_request_side`, or no reference camera can be predicted
+                from its camera and motion.
+        """
+        cfg = self.config
+        cam = req.camera
+        if max(cam.height, cam.width) > cfg.max_request_side:
+            raise protocol.ProtocolError(
+                "bad_field",
+                f"gi_request.request.camera: {cam.height}x{cam.width} is over this server's "
+                f"limit of {cfg.max_request_side} pixels a side (scene_info.limits."
+                "max_request_side)",
+            )
+        assert self._reader is not None
+        try:
+            ref = self._reader.reference_camera(req)
+            ok = np.isfinite(ref.world_from_cam).all() and math.isfinite(ref.fx * ref.fy)
+        except (ValueError, ArithmeticError):
+            ok = False
+        if not ok:
+            raise protocol.ProtocolError(
+                "bad_field",
+                "gi_request.request: no reference camera can be predicted from this camera and "
+                "motion (check velocity_t, velocity_r and depth_range)",
+            )
+        side = max(ref.height, ref.width)
+        if side > cfg.max_render_side:  # same field of view, fewer pixels (the reply says so)
+            k = cfg.max_render_side / side
+            ref = ref.resized(max(1, int(ref.height * k)), max(1, int(ref.width * k)))
+        return ref
 
-    async def answer(self, req: Any) -> tuple[Any, bool]:
+    async def answer(self, req: Any, client: int = 0) -> tuple[Any, bool]:
         """The cloud's reply to ``req``, coalesced with an identical request in flight.
+
+        Args:
+            req: the :class:`~icbtool.system.GIRequest`.
+            client: the requesting connection (misses are queued fairly per client).
 
         Returns:
             (reply, coalesced): ``coalesced`` is True when another request's answer was shared.
+
+        Raises:
+            ProtocolError: ``bad_field`` (limits), ``busy`` (render queue full) or ``internal``
+                (the render failed on the workers after their retries).
         """
-        assert self._cloud is not None
-        ref_cam = self._cloud.reference_camera(req)
+        ref_cam = self.reference_camera(req)
         key = camera_key(ref_cam)
         fut = self._inflight.get(key)
         if fut is not None:
             self.stats.coalesced += 1
             return await asyncio.shield(fut), True
-        fut = self._cloud_job(self._answer_on_worker, req, time.perf_counter())
+        fut = asyncio.get_running_loop().create_future()
         self._inflight[key] = fut
         try:
-            reply = await asyncio.shield(fut)
+            reply = await self._lookup_or_render(req, ref_cam, client)
+            fut.set_result(reply)
+        except BaseException as e:
+            if isinstance(e, asyncio.CancelledError):
+                fut.cancel()
+            else:
+                fut.set_exception(e)
+                fut.exception()  # retrieved here: the sharers get it too
+            raise
         finally:
             if self._inflight.get(key) is fut:
                 del self._inflight[key]
-        if reply.cache_hit:
-            self.stats.cache_hits += 1
-        else:
-            self.stats.renders += 1
         return reply, False
+
+    async def _lookup_or_render(self, req: Any, ref_cam: Any, client: int) -> Any:
+        if self._lookup is None or self._reader is None:
+            raise _Closing("server is shutting down")
+        found, damaged, lookup_ms = await asyncio.wrap_future(
+            self._lookup.submit(self._reader.lookup, ref_cam)
+        )
+        if found is not None:
+            self.stats.cache_hits += 1
+            return GIReply(found, True, {"lookup": lookup_ms, "render": 0.0}, req.seq)
+        assert self._renders is not None
+        self._renders.admit()  # busy when the queue is full, before any work
+        job = self._reader.job(ref_cam, req.seq)
+        task = asyncio.get_running_loop().create_task(self._render_and_store(job, damaged, client))
+        self._render_tasks.add(task)
+        task.add_done_callback(self._render_tasks.discard)
+        # shielded: a client that leaves does not cancel a render others may share, nor its put
+        ref, timings = await asyncio.shield(task)
+        return GIReply(ref, False, {"lookup": lookup_ms, **timings}, req.seq)
+
+    async def _render_and_store(
+        self, job: Any, damaged: int | None, client: int
+    ) -> tuple[Any, dict[str, float]]:
+        assert self._renders is not None
+        t_queued = time.perf_counter()
+        await self._renders.acquire(client)
+        try:
+            t0 = time.perf_counter()
+            try:
+                ref = await asyncio.wrap_future(self._pool.submit(job))
+            except Exception as e:
+                self.stats.render_failures += 1
+                log.warning("render failed on the workers: %r", e)
+                raise protocol.ProtocolError(
+                    "internal", "the render failed on the render workers; send the request again"
+                ) from None
+            t1 = time.perf_counter()
+            assert self._writer is not None and self._cloud is not None
+            await asyncio.wrap_future(self._writer.submit(self._cloud.store_render, ref, damaged))
+            self.stats.renders += 1
+        finally:
+            self._renders.release()
+        return ref, {"queue": 1e3 * (t0 - t_queued), "render": 1e3 * (t1 - t0)}
 
     def encode_reference(
         self, ref: Any, gi_codec: str, depth_codec: str
@@ -464,6 +773,7 @@ class Server:
         try:
             await conn.run()
         except _Closing as e:
+            conn.close_code, conn.close_reason = e.code, str(e)[:100]
             log.info("connection %d closed: %s", conn.id, e)
         except ConnectionClosed as e:
             log.info("connection %d lost: %s", conn.id, e)
@@ -487,6 +797,8 @@ class _Connection:
         self.writer: asyncio.Task[None] | None = None
         self.streaming_lpm = False
         self.generator_sent = False
+        self.close_code = 1000
+        self.close_reason = ""
 
     # -------------------------------------------------------------- sending
     async def send_plain(self, msg: protocol.Message) -> None:
@@ -514,7 +826,18 @@ class _Connection:
             msg = await self.out.get()
             if msg is None:
                 return
-            data = protocol.encode(msg, self.channel)
+            try:
+                data = protocol.encode(msg, self.channel)
+            except protocol.ProtocolError as e:  # a bug of ours: report it, keep the session
+                log.error("connection %d: cannot send %s: %s", self.id, msg.kind, e)
+                data = protocol.encode(
+                    protocol.error_message(
+                        protocol.ProtocolError(
+                            "internal", f"the server could not encode its {msg.kind} reply"
+                        )
+                    ),
+                    self.channel,
+                )
             self._count(msg.kind, len(data))
             try:
                 await asyncio.wait_for(self.ws.send(data), timeout)
@@ -552,10 +875,10 @@ class _Connection:
             if e.code == "auth":
                 self.server.stats.auth_failures += 1
             await self.error(e.code, e.message, e.ref, sealed=False)
-            raise _Closing(f"handshake: {e.code}: {e.message}") from None
+            raise _Closing(f"handshake: {e.code}: {e.message}", 1008) from None
         except TimeoutError:
             await self.error("auth", "handshake not completed in time", sealed=False)
-            raise _Closing("handshake timeout") from None
+            raise _Closing("handshake timeout", 1008) from None
         self.server.stats.authenticated += 1
 
     async def run(self) -> None:
@@ -574,7 +897,7 @@ class _Connection:
                 srv.stats.protocol_errors += 1
                 await self.error(e.code, e.message, e.ref)
                 if e.code in ("crypto", "replay", "auth"):
-                    raise _Closing(f"{e.code}: {e.message}") from None
+                    raise _Closing(f"{e.code}: {e.message}", 1008) from None
                 continue
             if msg.kind == "bye":
                 return
@@ -585,6 +908,14 @@ class _Connection:
         if msg.kind == "gi_request":
             rid = msg.fields.get("id")
             srv.stats.gi_requests += 1
+            if rid in self.pending:
+                await self.error(
+                    "bad_field",
+                    f"gi_request.id: {rid} is already pending on this connection (ids of "
+                    "unanswered requests must differ); this request is ignored",
+                    None,
+                )
+                return
             if len(self.pending) >= srv.config.max_pending:
                 srv.stats.busy += 1
                 await self.error(
@@ -636,7 +967,7 @@ class _Connection:
                     raise protocol.ProtocolError(
                         "bad_field", f"gi_request.codec: {c!r} is not one of {srv.codecs}", rid
                     )
-            reply, coalesced = await srv.answer(req)
+            reply, coalesced = await srv.answer(req, self.id)
             t0 = time.perf_counter()
             assert srv._encoder is not None
             parts, payload = await asyncio.wrap_future(
@@ -662,26 +993,37 @@ class _Connection:
             await self.send(out)
         except protocol.ProtocolError as e:
             await self.error(e.code, e.message, rid)
-        except (ValueError, KeyError, TypeError) as e:
-            await self.error("bad_field", f"gi_request {rid!r}: {e}", rid)
+        except _Closing:
+            raise
+        except Exception as e:  # never Python's words on the wire: log them, say "internal"
+            log.exception("connection %d: gi_request %s failed: %r", self.id, rid, e)
+            await self.error("internal", f"the server failed to answer gi_request {rid}", rid)
         finally:
             self.pending.discard(rid)
 
     async def stream_lpm(self, fields: dict[str, Any]) -> None:
-        """Levels 0..max_level, coarse to fine, each file in pieces of at most ``chunk_bytes``."""
+        """Levels min_level..max_level offered, coarse to fine, each file in pieces of at most
+        ``chunk_bytes``; a range with no level offered is ``not_found``, min > max
+        ``bad_field``."""
         srv = self.server
         top = fields["max_level"]
-        low = fields.get("min_level", 0)  # optional (beyond the schema): skip coarser levels
-        if not isinstance(low, int) or isinstance(low, bool):
-            await self.error("bad_field", "lpm_request.min_level: must be an integer")
-            self.streaming_lpm = False
-            return
+        low = fields.get("min_level", 0)
         try:
-            for lv in srv.mesh.levels:
-                if lv.index > top:
-                    break
-                if lv.index < low:
-                    continue
+            if low > top:
+                await self.error(
+                    "bad_field", f"lpm_request: min_level {low} is above max_level {top}"
+                )
+                return
+            levels = [lv for lv in srv.mesh.levels if low <= lv.index <= top]
+            if not levels:
+                offered = [lv.index for lv in srv.mesh.levels]
+                await self.error(
+                    "not_found",
+                    f"lpm_request: no level in [{low}, {top}]; this server offers levels "
+                    f"{offered} (scene_info.lpm.levels)",
+                )
+                return
+            for lv in levels:
                 pieces = srv.mesh.pieces(lv, srv.config.chunk_bytes)
                 for k, (name, part, piece, sha) in enumerate(pieces):
                     await self.send(
@@ -731,11 +1073,11 @@ class _Connection:
             except (TimeoutError, Exception):
                 self.writer.cancel()
         with contextlib.suppress(Exception):
-            await self.ws.close()
+            await self.ws.close(self.close_code, self.close_reason)
 
 
 def stats_dict(stats: ServerStats) -> dict[str, Any]:
     return asdict(stats)
 
 
-__all__ = ["Server", "ServerConfig", "ServerStats", "camera_key"]
+__all__ = ["MIN_TOKEN_CHARS", "Server", "ServerConfig", "ServerStats", "camera_key", "new_token"]

@@ -5,12 +5,18 @@ For a :class:`~icbtool.system.messages.GIRequest` (docs/design.md sections 3, 4 
 1. predict where the client can be after the latency: the prefetch camera (wider FOV, pulled
    back; :func:`icbtool.prefetch.prefetch_camera`), its FOV rounded up to a step so that a stored
    reference covers the slightly different FOVs of the next requests;
-2. look that camera up in the octree cache (a similar camera whose FOV covers it is a hit);
+2. look that camera up in the octree cache (a similar camera whose FOV covers it, with at least
+   :data:`MIN_DENSITY` of its pixel density, is a hit);
    a hit whose payload is damaged (missing, truncated, checksum) is a miss, logged as a WARNING;
 3. on a miss, render a CRT-buffer there (raster G-buffers + path-traced GI, optionally
    denoised) and store it (replacing the damaged record, if that was the miss).
 
 Every step is timed in the reply.
+
+The steps are also separate methods (:meth:`Cloud.lookup`, :meth:`Cloud.job`,
+:meth:`Cloud.store_render`) so that a server can run them on different threads and processes:
+lookups on a read-only store (a Cloud over ``StoreConfig(readonly=True)``), renders on render
+workers (:mod:`icbtool.system.workers`), the puts on the one writer.
 """
 
 from __future__ import annotations
@@ -39,6 +45,11 @@ log = logging.getLogger(__name__)
 
 #: The prefetch camera's depth range when the client sent none (it sees no geometry).
 DEFAULT_DEPTH_RANGE = (0.1, 100.0)
+#: A stored reference answers a request only with at least this fraction of its pixel density
+#: (focal length in pixels): a coarser one is a miss.
+MIN_DENSITY = 0.95
+#: Coarser similar records skipped per lookup before it counts as a miss.
+MAX_COARSE_SKIPS = 4
 
 
 @dataclass(frozen=True)
@@ -116,7 +127,8 @@ class Cloud(GISource):
         self._own_store = isinstance(store, (str, os.PathLike))
         scfg = store_mod.StoreConfig(alpha_pos=cfg.alpha_pos, alpha_dir=cfg.alpha_dir)
         self.store = store_mod.open(store, scfg) if self._own_store else store
-        self.store.register_scene(scene)
+        if not getattr(self.store, "readonly", False):  # a reader follows the writer's scenes
+            self.store.register_scene(scene)
         self._rasterizer = rasterizer
         self._own_rasterizer = False
         self.renders = 0
@@ -135,51 +147,86 @@ class Cloud(GISource):
         ).camera
         return round_fov(cam, self.config.fov_step_deg, self._prefetch_cfg.max_fov_deg)
 
+    # ------------------------------------------------------------------ the steps
+    def lookup(self, ref_cam: Camera) -> tuple[Any, int | None, float]:
+        """Look ``ref_cam`` up in the store.
+
+        Returns:
+            (record, damaged, lookup_ms): the stored CRT-buffer on a hit (else None); on a miss
+            because the similar record is damaged, that record's id (else None).
+        """
+        t0 = time.perf_counter()
+        hit = self._covering_hit(ref_cam)
+        # a damaged record (payload missing, truncated, checksum) is a miss: get_intact logs it
+        found = None if hit is None else self.store.get_intact(hit.record_id)
+        damaged = hit.record_id if (hit is not None and found is None) else None
+        return found, damaged, 1e3 * (time.perf_counter() - t0)
+
+    def _covering_hit(self, ref_cam: Camera) -> Any:
+        """The best stored camera that covers ``ref_cam`` with at least its pixel density (a
+        64 x 64 record never answers a 1024 x 1024 request), or None."""
+        exclude: list[int] = []
+        for _ in range(MAX_COARSE_SKIPS + 1):
+            hit = self.store.lookup(
+                ref_cam, scene=self.scene, intrinsics="covering", exclude=exclude or None
+            )
+            if hit is None:
+                return None
+            cam = hit.camera
+            if min(cam.fx / ref_cam.fx, cam.fy / ref_cam.fy) >= MIN_DENSITY:
+                return hit
+            exclude.append(hit.record_id)
+        return None
+
+    def trace_config(self, seq: int) -> Any:
+        """The :class:`icbtool.trace.TraceConfig` of the render for request ``seq``."""
+        from icbtool import trace
+
+        cfg = self.config
+        return trace.TraceConfig(
+            spp=cfg.spp,
+            seed=cfg.seed + 1000 + seq,
+            max_depth=cfg.max_depth,
+            denoise=cfg.denoise,
+            denoise_quality=cfg.denoise_quality,
+        )
+
+    def job(self, camera: Camera, seq: int = 0) -> Any:
+        """The :class:`icbtool.bake.RenderJob` of a render at ``camera`` for request ``seq``."""
+        from icbtool.bake import RenderJob
+
+        return RenderJob(camera, self.trace_config(seq), "raster", WRT_BUFFERS, {"frame": seq})
+
+    def store_render(self, ref: Any, damaged: int | None = None) -> int:
+        """Put a rendered reference (replacing the damaged record ``damaged``); its id."""
+        if damaged is None:
+            return self.store.put(ref)
+        self.damaged_replaced += 1
+        return self.store.replace_damaged(damaged, ref)
+
     # ------------------------------------------------------------------ GISource
     def request(self, req: GIRequest, wrt: RasterBuffers | None = None) -> GIReply:
         """Answer ``req`` from the cache, or render and store a new reference."""
         ref_cam = self.reference_camera(req)
-        t0 = time.perf_counter()
-        hit = self.store.lookup(ref_cam, scene=self.scene, intrinsics="covering")
-        # a damaged record (payload missing, truncated, checksum) is a miss: get_intact logs it
-        found = None if hit is None else self.store.get_intact(hit.record_id)
-        lookup_ms = 1e3 * (time.perf_counter() - t0)
+        found, damaged, lookup_ms = self.lookup(ref_cam)
         if found is not None:
             return GIReply(found, True, {"lookup": lookup_ms, "render": 0.0}, req.seq)
         t0 = time.perf_counter()
         ref = self.render(ref_cam, req.seq)
         render_ms = 1e3 * (time.perf_counter() - t0)
-        if hit is None:
-            self.store.put(ref)
-        else:  # the re-render replaces the damaged record
-            self.store.replace_damaged(hit.record_id, ref)
-            self.damaged_replaced += 1
+        self.store_render(ref, damaged)
         return GIReply(ref, False, {"lookup": lookup_ms, "render": render_ms}, req.seq)
 
     def render(self, camera: Camera, seq: int = 0) -> CRTBuffer:
         """Render a CRT-buffer (the client's WRT-buffers + path-traced GI) at ``camera``."""
-        from icbtool import raster, trace
-        from icbtool.bake import render_crt_buffer
+        from icbtool import raster
+        from icbtool.bake import render_job
 
-        cfg = self.config
         if self._rasterizer is None:
             self._rasterizer = raster.Rasterizer(self.scene)
             self._own_rasterizer = True
         self.renders += 1
-        return render_crt_buffer(
-            self.scene,
-            camera,
-            trace.TraceConfig(
-                spp=cfg.spp,
-                seed=cfg.seed + 1000 + seq,
-                max_depth=cfg.max_depth,
-                denoise=cfg.denoise,
-                denoise_quality=cfg.denoise_quality,
-            ),
-            self._rasterizer,
-            buffers=WRT_BUFFERS,
-            tags={"frame": seq},
-        )
+        return render_job(self.scene, self.job(camera, seq), self._rasterizer)
 
     def close(self) -> None:
         if self._own_rasterizer and self._rasterizer is not None:

@@ -1,0 +1,161 @@
+"""Render workers on Dask distributed (icbtool.system.workers): known answers against the
+single-process path, a worker killed mid-render, the scene lost with every worker.
+
+One local cluster (two worker processes of one thread, every socket on 127.0.0.1, no dashboard)
+serves the whole module; images are tiny. Every wait is bounded; nothing asserts a time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+distributed = pytest.importorskip("distributed")
+
+from icbtool import bake as B  # noqa: E402
+from icbtool import scene as sc  # noqa: E402
+from icbtool import store as st  # noqa: E402
+from icbtool import system  # noqa: E402
+from icbtool.system.workers import DaskPool, LocalPool, open_pool  # noqa: E402
+
+pytestmark = [pytest.mark.network, pytest.mark.gl]
+
+T = 180.0
+MAPS = ("gi", "dl", "albedo", "normal_world", "normal_view", "depth", "position", "mask")
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return sc.PROCEDURAL["cornell_box"]()
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """Started once for the module: 2 workers, 1 thread each, loopback only."""
+    with distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        host="127.0.0.1",
+        dashboard_address=None,
+        processes=True,
+    ) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def watcher(cluster):
+    """A client of the test's own, to look at and kill workers."""
+    with distributed.Client(cluster.scheduler_address, set_as_default=False) as c:
+        yield c
+
+
+def _wait_workers(client, n: int) -> None:
+    client.wait_for_workers(n, timeout=T)
+
+
+def _bake_cfg(limit: int = 4) -> B.BakeConfig:
+    return B.BakeConfig(
+        spp=2, max_depth=2, resolution=(20, 24), limit=limit, progress=False, seed=7
+    )
+
+
+def test_dask_bake_equals_the_single_process_bake_bit_for_bit(scene, cluster, tmp_path):
+    with st.open(tmp_path / "one") as s1:
+        r1 = B.bake(scene, "test", s1, _bake_cfg())
+        one = [s1.get(i) for i in r1.rendered]
+    with open_pool(scene, scheduler=cluster.scheduler_address) as pool:
+        assert isinstance(pool, DaskPool) and pool.capacity == 2
+        with st.open(tmp_path / "two") as s2:
+            r2 = B.bake(scene, "test", s2, _bake_cfg(limit=2), pool=pool)  # interrupted...
+            r3 = B.bake(scene, "test", s2, _bake_cfg(), pool=pool)  # ...and resumed
+            assert r3.skipped == [0, 1] and len(r3.rendered) == 2
+            two = [s2.get(i) for i in r2.rendered + r3.rendered]
+    assert r1.rendered == r2.rendered + r3.rendered  # same ids: written in path order
+    for a, b in zip(one, two, strict=True):
+        assert a.camera.to_dict() == b.camera.to_dict()
+        assert a.meta.tags == b.meta.tags
+        for name in MAPS:
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
+def test_trace_gbuffers_on_workers_equal_the_local_pool(scene, cluster):
+    job = B.RenderJob(
+        scene.paths["test"].camera_at(1.0).resized(12, 16),
+        _tcfg(),
+        "trace",
+    )
+    with LocalPool(scene) as here, DaskPool(scene, scheduler=cluster.scheduler_address) as there:
+        a, b = here.submit(job).result(T), there.submit(job).result(T)
+    for name in ("gi", "dl", "depth", "mask"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
+def _tcfg():
+    from icbtool import trace
+
+    return trace.TraceConfig(spp=2, seed=3, max_depth=2)
+
+
+def test_scene_lost_with_every_worker_is_scattered_again(scene, cluster, watcher):
+    _wait_workers(watcher, 2)
+    job = B.RenderJob(scene.paths["test"].camera_at(2.0).resized(12, 12), _tcfg(), "trace")
+    with DaskPool(scene, scheduler=cluster.scheduler_address, retries=2) as pool:
+        before = pool.submit(job).result(T)
+        for pid in watcher.run(os.getpid).values():  # every holder of the scene dies
+            os.kill(pid, signal.SIGKILL)
+        after = pool.submit(job).result(T)  # restarted workers, the scene sent again
+    assert np.array_equal(before.gi, after.gi)
+    _wait_workers(watcher, 2)
+
+
+def test_worker_killed_mid_render_the_request_is_answered_store_intact(
+    scene, cluster, watcher, tmp_path
+):
+    pytest.importorskip("websockets")
+    from icbtool.net.client import NetClientConfig, NetError, NetworkSource
+    from icbtool.net.server import Server, ServerConfig, new_token
+
+    _wait_workers(watcher, 2)
+    token = new_token()
+    slow = system.CloudConfig(spp=64, denoise=False, max_depth=4)
+    cfg = ServerConfig(scheduler=cluster.scheduler_address)
+    store_dir = tmp_path / "store"
+    with Server(scene, store_dir, token, cfg, slow) as srv:
+        assert srv.workers_address == cluster.scheduler_address
+        with NetworkSource(srv.url, token, NetClientConfig(timeout_s=T)) as src:
+            p = scene.paths["test"]
+            cam = p.with_intrinsics(p.intrinsics.resized(64, 64)).camera_at(1.5)
+            req = system.GIRequest(cam, time_s=1.5, seq=1, depth_range=(0.5, 8.0))
+            fut = asyncio.run_coroutine_threadsafe(src._ask(req), src._loop)
+            busy = _wait_processing(watcher)
+            pids = watcher.run(os.getpid)
+            os.kill(pids[busy], signal.SIGKILL)
+            try:
+                msg, _ = fut.result(T)
+                answered = msg.fields["cache_hit"] is False
+            except NetError as e:  # refused, in the protocol's words
+                answered = False
+                assert e.code == "internal"
+            assert answered or srv.stats.render_failures == 1
+            _wait_workers(watcher, 2)
+            nxt = src.request(system.GIRequest(cam, time_s=1.5, seq=2, depth_range=(0.5, 8)))
+            assert np.isfinite(nxt.reference.gi).all()
+    with st.open(store_dir, st.StoreConfig(readonly=True)) as s:
+        report = s.check()
+        assert report.ok and len(s) >= 1
+
+
+def _wait_processing(client) -> str:
+    """The address of a worker that is running a task (bounded wait)."""
+    deadline = time.monotonic() + T
+    while time.monotonic() < deadline:
+        for addr, keys in client.processing().items():
+            if keys:
+                return addr
+        time.sleep(0.02)
+    raise AssertionError("no task started on the workers")
