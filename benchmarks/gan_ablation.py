@@ -1,7 +1,8 @@
 """What limits learned GI: the recipe, and one change at a time (issue 17's ablation).
 
 The recipe (``RECIPE``, the ``cpu`` preset's training): configuration J (albedo, DL, world
-normals, world positions), demodulated targets, the full-resolution skip, width 16, L1 + SSIM
+normals, world positions) with Fourier features of the position computed inside the network,
+demodulated targets, the full-resolution skip, width 16, L1 + SSIM
 loss without the critic, cosine learning rate, weight averaging, 64-pixel crops in batches of 8,
 trained on the train path plus the coverage views (``train,cover``: benchmarks/gan_coverage.py).
 Each variant changes exactly one thing. Runs train round-robin in chunks (resumable: a rerun
@@ -46,6 +47,7 @@ RECIPE = dict(
     hdr_scale=0.05,
     hdr_max=4.0,
     train_path="train,cover",
+    position_octaves=6,
 )
 
 #: name -> (what changes, the fields that change)
@@ -67,6 +69,7 @@ VARIANTS: dict[str, tuple[str, dict]] = {
     ),  # fmt: skip
     "base 32": ("twice the width (the cpu preset before)", {"base": 32}),
     "input I": ("configuration I (depth instead of position)", {"inputs": "I"}),
+    "no position features": ("no Fourier features of the position", {"position_octaves": 0}),
 }
 
 

@@ -22,6 +22,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "benchmarks" / "results"
 README = REPO / "README.md"
@@ -602,6 +604,113 @@ def block_mitsuba_xml(results: Path) -> str:
     )
 
 
+def _baseline_line(results: Path) -> str:
+    """One line: the trivial baselines on the current store's test path (gan/baselines_train.json),
+    appended to every older GAN table (issue 17: every table carries its baselines)."""
+    d = load("gan/baselines_train.json", results)
+    t = d["paths"]["test"]
+    m = t["methods"]
+    names = ("constant", "albedo x k", "nearest irradiance", "warp + inpaint",
+             "tracer 1 spp + OIDN")  # fmt: skip
+    cells = ", ".join(f"{n} {m[n]['ssim']:.3f}" for n in names if n in m)
+    return (
+        f"Baselines on the test path of the current Sponza store (`benchmarks/gan_baselines.py`, "
+        f"same scene, train path and bake settings; {t['views']} test views, every one scored; "
+        f"fitted on the train path): SSIM {cells}.\n"
+    )
+
+
+def block_gan_baselines(results: Path) -> str:
+    order = ("constant", "albedo x k", "nearest irradiance", "warp + inpaint",
+             "tracer 1 spp + OIDN")  # fmt: skip
+    out = []
+    for tag, what in (
+        ("train", "fitted / trained on the train path alone"),
+        ("cover", "fitted / trained on the train path + the 40 coverage views"),
+    ):
+        rel = f"gan/baselines_{tag}.json"
+        if not (results / rel).is_file():
+            continue
+        d = load(rel, results)
+        paths = list(d["paths"])
+        methods = list(order) + [n for n in d["methods"] if n not in order]
+        pp = d["paths"]
+        head = " | ".join(
+            f"{p} ({pp[p]['views']} views, coverage {pp[p]['coverage_median_pct']:.2f} %)"
+            for p in paths
+        )
+        rows = []
+        for n in methods:
+            cells = []
+            for p in paths:
+                r = d["paths"][p]["methods"].get(n)
+                cells.append(
+                    "-" if r is None else f"{r['ssim']:.3f} / {r['mse']:.0f} / {r['flip']:.3f}"
+                )
+            ms = [
+                d["paths"][p]["methods"][n]["ms_median"]
+                for p in paths
+                if n in d["paths"][p]["methods"]
+            ]
+            rows.append(f"| {n} | " + " | ".join(cells) + f" | {np.median(ms):.0f} |")
+        load_txt = f"{d['load_1min'][0]:.1f}-{d['load_1min'][1]:.1f}"
+        out.append(
+            f"{what.capitalize()} (`--tag {tag}`; SSIM / MSE (0-255) / FLIP, means over every "
+            f"view; coverage: median distance from a view's pixels to the nearest fitted pixel, % "
+            f"of the scene's diagonal; ms per 128x128 frame on this CPU, 1-minute load "
+            f"{load_txt}):\n\n| method | {head} | ms |\n|---|"
+            + "---|" * (len(paths) + 1)
+            + "\n"
+            + "\n".join(rows)
+            + "\n"
+        )
+    return (
+        "**Learned GI against what needs no network** (`benchmarks/gan_baselines.py`, Sponza "
+        "128x128; truth: 256-spp denoised traces (walk: 128 spp); test: the project's test "
+        "path; walk: held-out views of a seeded random walk of the atrium in every direction):"
+        "\n\n" + "\n".join(out)
+    )
+
+
+def block_gan_ablation(results: Path) -> str:
+    d = load("gan/ablation.json", results)
+    v = d["variants"]
+    paths = [p for p in ("test", "walk") if any(p in x for x in v.values())]
+    rows = "\n".join(
+        f"| {n} | {x['change']} | {x['iteration']} | "
+        + " | ".join(f"{x[p]['ssim']:.3f} / {x[p]['mse']:.0f}" if p in x else "-" for p in paths)
+        + f" | {x['seconds'] / 60:.0f} |"
+        for n, x in v.items()
+    )
+    return (
+        "**What limits the generator** (`benchmarks/gan_ablation.py`: the `cpu` preset's recipe "
+        "and one change at a time; SSIM / MSE over every view; minutes of training on this "
+        f"loaded 2-core machine, 1-minute load {d['load_1min'][0]:.1f} at the end):\n\n"
+        "| variant | change | iterations | " + " | ".join(paths) + " | minutes |\n"
+        "|---|---|---|" + "---|" * len(paths) + "---|\n" + rows + "\n"
+    )
+
+
+def block_gan_coverage(results: Path) -> str:
+    d = load("gan/coverage.json", results)
+    mc = d["median_coverage"]
+    b = d["bake"]
+    cells = "; ".join(
+        f"{p}: {100 * c['train']:.2f} % with the train path alone, {100 * c['train+cover']:.2f} % "
+        "with the coverage views"
+        for p, c in mc.items()
+    )
+    return (
+        "**Coverage** (`benchmarks/gan_coverage.py`): the planner scored "
+        f"{d['candidates']} candidate cameras in {d['plan_seconds']:.0f} s; "
+        f"{100 * d['uncovered_before']:.0f} % of their surface was farther than "
+        f"{100 * d['radius']:.0f} % of the diagonal from every train pixel. The first "
+        f"{d['views']} views of its plan were baked ({b['spp']} spp, denoised, "
+        f"{b['seconds'] / 60:.0f} min at load {b['load_1min'][0]:.0f}). Median distance from an "
+        f"evaluation view's pixels to the nearest training pixel: {cells}.\n"
+    )
+
+
 def block_gan_figure7(results: Path) -> str:
     d = load("gan/figure7.json", results)
     cfg = load("gan/figure7_config.json", results)
@@ -632,6 +741,7 @@ def block_gan_figure7(results: Path) -> str:
         "| configuration | SSIM | MSE | reaches target at |\n|---|---|---|---|\n"
         f"{rows}\n\nBest: {sm['best']}. World normals minus view normals (SSIM): {pairs}.\n"
         + _demodulated(results)
+        + _baseline_line(results)
     )
 
 
@@ -666,7 +776,10 @@ def block_gan_figure8(results: Path) -> str:
         )
     return (
         "**Figure 8** (`benchmarks/gan_figure8.py`: generated | traced | difference x4 on test "
-        "frames spread along the test path):\n\n" + "\n".join(lines) + "\n"
+        "frames spread along the test path):\n\n"
+        + "\n".join(lines)
+        + "\n"
+        + _baseline_line(results)
     )
 
 
@@ -720,7 +833,7 @@ def block_gan_time_error(results: Path) -> str:
         f"curve):\nthe generator ({e['generator']}) takes "
         f"{e['ms']:.1f} ms for SSIM {e['ssim']:.3f}; the path tracer at that SSIM: "
         f"{speed('raw')}; {speed('denoised')}.\nGenerator alone (1 / 2 threads), by size: "
-        f"{size_txt}.{load_txt}\n"
+        f"{size_txt}.{load_txt}\n" + _baseline_line(results)
     )
 
 
@@ -773,6 +886,7 @@ def block_gan_warped(results: Path) -> str:
         f"{holes} % of the pixels):\n\n| method | {head} |\n|---|"
         + "---|" * len(ks)
         + f"\n{rows}\n"
+        + _baseline_line(results)
     )
 
 
@@ -790,7 +904,7 @@ def block_gan_spp(results: Path) -> str:
         "baked at each sample count, noisy targets unless denoised; the same 256-spp test truth; "
         "baking times are the records' own, taken when each store was baked, under different "
         "loads of this 2-core machine):\n\n| train targets | baking time | test SSIM | test MSE "
-        f"|\n|---|---|---|---|\n{rows}\n"
+        f"|\n|---|---|---|---|\n{rows}\n" + _baseline_line(results)
     )
 
 
@@ -1023,6 +1137,9 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "gan-time-error": block_gan_time_error,
     "gan-warped": block_gan_warped,
     "gan-spp": block_gan_spp,
+    "gan-baselines": block_gan_baselines,
+    "gan-ablation": block_gan_ablation,
+    "gan-coverage": block_gan_coverage,
     "lpm": block_lpm,
     "net": block_net,
     "web": block_web,

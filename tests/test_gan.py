@@ -331,6 +331,7 @@ def test_config_validation_and_presets():
     assert (c.crop, c.base, c.device, c.inputs, c.weight_adv) == (128, 32, "cpu", "I", 1.0)
     r = T.TrainConfig.preset("cpu")  # the measured recipe (docs/gan.md)
     assert (r.crop, r.base, r.inputs, r.demodulate, r.full_res_skip) == (64, 16, "J", True, True)
+    assert r.position_octaves == 6
     assert (r.weight_adv, r.weight_ssim, r.lr_schedule, r.ema) == (0.0, 20.0, "cosine", 0.999)
     with pytest.raises(ValueError, match="multiple of 32"):
         T.TrainConfig(crop=100)
@@ -785,3 +786,28 @@ def test_equal_quality_interpolates_in_log_cost_and_says_when_there_is_no_equal_
     assert equal_quality([10, 50, 100], [0.5, 0.95, 0.7], 0.9).cost < 50
     with pytest.raises(ValueError, match="costs"):
         equal_quality([0.0, 1.0], [0.1, 0.2], 0.15)
+
+
+def test_fourier_features_of_the_position_channels_are_computed_inside_the_network(
+    store, tmp_path
+):
+    cfg = M.GeneratorConfig(in_channels=5, base=4, fourier_channels=(1, 4), fourier_octaves=2)
+    g = M.UNetGenerator(cfg)
+    assert cfg.n_features == 12
+    x = torch.zeros(1, 5, 32, 32)
+    x[0, 1:4] = 0.25
+    f = g.features(x)
+    assert f.shape == (1, 17, 32, 32)
+    # channel order: x, then sin/cos per octave: sin(pi p), cos(pi p), sin(2 pi p), cos(2 pi p)
+    np.testing.assert_allclose(f[0, 5:8, 0, 0], np.sin(np.pi * 0.25), atol=1e-6)
+    np.testing.assert_allclose(f[0, 8:11, 0, 0], np.cos(np.pi * 0.25), atol=1e-6)
+    np.testing.assert_allclose(f[0, 11:14, 0, 0], np.sin(2 * np.pi * 0.25), atol=1e-6)
+    assert g(x).shape == (1, 3, 32, 32)
+    with pytest.raises(ValueError, match="fourier_channels"):
+        M.GeneratorConfig(in_channels=3, fourier_channels=(1, 4), fourier_octaves=2)
+    with pytest.raises(ValueError, match="position_octaves needs 'position'"):
+        T.train(store, tiny(inputs="I", position_octaves=2), tmp_path / "bad", progress=False)
+    T.train(store, tiny(inputs="J", position_octaves=2), tmp_path / "run", progress=False)
+    gen = Generator.load(tmp_path / "run")
+    assert gen.module.config.fourier_octaves == 2
+    assert gen.generate(make_record(9)).shape == (32, 32, 3)

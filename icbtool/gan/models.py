@@ -12,6 +12,7 @@ which the per-sample gradient penalty of WGAN-GP forbids.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -44,6 +45,12 @@ class GeneratorConfig:
             convolution invents every pixel's detail from half-resolution features; with the
             skip, the last up level outputs ``base`` features that are concatenated with the
             input and mapped to the output by a 3x3 convolution).
+        fourier_channels, fourier_octaves: the network appends ``sin(2^k pi x)`` and
+            ``cos(2^k pi x)`` (k < ``fourier_octaves``) of the input channels ``fourier_channels``
+            (start, stop), e.g. the encoded world positions, to its input (our addition: a
+            convolutional network represents a high-frequency function of position, such as a
+            scene's irradiance, far better from such features; NeRF's positional encoding).
+            Computed inside the network, so its ONNX export takes the same input.
     """
 
     in_channels: int
@@ -51,6 +58,17 @@ class GeneratorConfig:
     base: int = 32
     norm: Norm = "batch"
     full_res_skip: bool = False
+    fourier_channels: tuple[int, int] | None = None
+    fourier_octaves: int = 0
+
+    @property
+    def n_features(self) -> int:
+        """Channels the network computes from the input: Fourier features of the channels
+        ``fourier_channels`` (start, stop), ``2 * fourier_octaves`` per channel."""
+        if not self.fourier_octaves or self.fourier_channels is None:
+            return 0
+        a, b = self.fourier_channels
+        return 2 * self.fourier_octaves * (b - a)
 
     def __post_init__(self) -> None:
         _check_int("GeneratorConfig", "in_channels", self.in_channels, 1)
@@ -58,6 +76,15 @@ class GeneratorConfig:
         _check_int("GeneratorConfig", "base", self.base, 1)
         if self.norm not in NORMS:
             raise ValueError(f"GeneratorConfig.norm must be one of {NORMS}, got {self.norm!r}")
+        _check_int("GeneratorConfig", "fourier_octaves", self.fourier_octaves, 0)
+        if self.fourier_channels is not None:
+            a, b = (int(v) for v in self.fourier_channels)
+            if not 0 <= a < b <= self.in_channels:
+                raise ValueError(
+                    f"GeneratorConfig.fourier_channels must be (start, stop) within the "
+                    f"{self.in_channels} input channels, got {self.fourier_channels}"
+                )
+            object.__setattr__(self, "fourier_channels", (a, b))
 
 
 @dataclass(frozen=True)
@@ -107,7 +134,8 @@ class UNetGenerator(nn.Module):
         b, n = config.base, config.norm
         widths = [b * m for m in (1, 2, 4, 8, 8)]
         self.down = nn.ModuleList()
-        c_in = config.in_channels
+        c_in = config.in_channels + config.n_features
+        c_input = c_in
         for i, w in enumerate(widths):
             inner = 0 < i < LEVELS - 1  # no norm on the first level nor the 1/32 bottleneck
             self.down.append(
@@ -136,7 +164,7 @@ class UNetGenerator(nn.Module):
                 )  # fmt: skip
             )
             self.head = nn.Sequential(
-                nn.Conv2d(b + config.in_channels, config.out_channels, 3, 1, 1), nn.Tanh()
+                nn.Conv2d(b + c_input, config.out_channels, 3, 1, 1), nn.Tanh()
             )
         else:
             self.up.append(
@@ -144,7 +172,21 @@ class UNetGenerator(nn.Module):
             )
             self.head = None
 
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` with the Fourier features of :class:`GeneratorConfig` appended."""
+        c = self.config
+        if not c.n_features:
+            return x
+        a, b = c.fourier_channels
+        p = x[:, a:b]
+        feats = []
+        for k in range(c.fourier_octaves):
+            w = math.pi * 2.0**k
+            feats += [torch.sin(w * p), torch.cos(w * p)]
+        return torch.cat([x, *feats], dim=1)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = self.features(x)
         inp, skips = x, []
         for layer in self.down:
             x = layer(x)

@@ -103,6 +103,9 @@ class TrainConfig:
             ``iterations`` stretches the rest of the schedule; one with the same ``iterations``
             is bit-exact).
         lr_final: the cosine schedule's last learning rate as a fraction of ``lr``.
+        position_octaves: the generator appends Fourier features (sin, cos at ``2^k pi``,
+            k < ``position_octaves``) of its encoded world-position input (our addition; needs
+            "position" among the inputs; 0: off; :class:`~icbtool.gan.models.GeneratorConfig`).
         ema: decay of an exponential moving average of the generator's weights, which is then
             what is evaluated and saved (our addition; 0: off, e.g. 0.999; at iteration t the
             decay is min(ema, (1 + t) / (10 + t)), so early averages forget the initial weights).
@@ -145,6 +148,7 @@ class TrainConfig:
     full_res_skip: bool = False
     lr_schedule: Literal["constant", "cosine"] = "constant"
     lr_final: float = 0.05
+    position_octaves: int = 0
     ema: float = 0.0
     eval_every: int = 250
     eval_frames: int = 0
@@ -157,8 +161,8 @@ class TrainConfig:
     def __post_init__(self) -> None:
         resolve_inputs(self.inputs)
         for n in ("iterations", "crop", "base", "batch_size", "n_critic", "eval_every",
-                  "eval_frames", "checkpoint_every"):  # fmt: skip
-            v, lo = getattr(self, n), 0 if n == "eval_frames" else 1
+                  "eval_frames", "checkpoint_every", "position_octaves"):  # fmt: skip
+            v, lo = getattr(self, n), 0 if n in ("eval_frames", "position_octaves") else 1
             if not isinstance(v, int) or isinstance(v, bool) or v < lo:
                 raise ValueError(f"TrainConfig.{n} must be an integer >= {lo}, got {v!r}")
         if self.crop % MULTIPLE:
@@ -208,10 +212,10 @@ class TrainConfig:
         """A named preset with field overrides.
 
         - ``cpu``: the recipe measured best on 2 CPU cores (docs/gan.md; README "Learned GI"):
-          configuration J (albedo, DL, world normals, positions), demodulated targets, the
-          full-resolution skip, width 16, L1 + SSIM without the critic, cosine learning rate
-          from 2e-4, weight averaging, 64-pixel crops in batches of 8, 3000 iterations. Give it
-          the coverage views too (``train_path="train,cover"``, benchmarks/gan_coverage.py).
+          configuration J (albedo, DL, world normals, positions) with 6 octaves of Fourier
+          features of the position, demodulated targets, the full-resolution skip, width 16,
+          L1 + SSIM without the critic, cosine learning rate from 2e-4, weight averaging,
+          64-pixel crops in batches of 8, 3000 iterations. Give it the coverage views too (``train_path="train,cover"``, benchmarks/gan_coverage.py).
         - ``paper-cpu``: the paper's design at CPU size (configuration I, L_a + 100 L_c with the
           WGAN-GP critic, base 32, 128-pixel crops, no VGG): what ``cpu`` was before.
         - ``paper``: 256 x 256, base 64, VGG19 perceptual loss (``vgg19_weights`` defaults to
@@ -452,9 +456,17 @@ class _Run:
         random.seed(c.seed)
         init_gen = torch.Generator().manual_seed(c.seed)
         self.gp_gen = torch.Generator().manual_seed(c.seed + 1)
+        pos = self.enc.channel_slices().get("position")
+        if c.position_octaves and pos is None:
+            raise ValueError(
+                f"TrainConfig.position_octaves needs 'position' among the inputs, got "
+                f"{self.enc.inputs}"
+            )
         self.g_cfg = GeneratorConfig(
-            self.enc.n_channels, 3, c.base, c.norm, full_res_skip=c.full_res_skip
-        )
+            self.enc.n_channels, 3, c.base, c.norm, full_res_skip=c.full_res_skip,
+            fourier_channels=(pos.start, pos.stop) if c.position_octaves else None,
+            fourier_octaves=c.position_octaves,
+        )  # fmt: skip
         self.d_cfg = DiscriminatorConfig(self.enc.n_channels, 3, c.base, c.critic_norm)
         self.gen, self.critic = UNetGenerator(self.g_cfg), PatchDiscriminator(self.d_cfg)
         init_weights(self.gen, init_gen)
