@@ -215,7 +215,8 @@ class TrainConfig:
           configuration J (albedo, DL, world normals, positions) with 6 octaves of Fourier
           features of the position, demodulated targets, the full-resolution skip, width 16,
           L1 + SSIM without the critic, cosine learning rate from 2e-4, weight averaging,
-          64-pixel crops in batches of 8, 3000 iterations. Give it the coverage views too (``train_path="train,cover"``, benchmarks/gan_coverage.py).
+          64-pixel crops in batches of 8, 3000 iterations. Give it the coverage views too
+          (``train_path="train,cover"``, benchmarks/gan_coverage.py).
         - ``paper-cpu``: the paper's design at CPU size (configuration I, L_a + 100 L_c with the
           WGAN-GP critic, base 32, 128-pixel crops, no VGG): what ``cpu`` was before.
         - ``paper``: 256 x 256, base 64, VGG19 perceptual loss (``vgg19_weights`` defaults to
