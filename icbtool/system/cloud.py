@@ -26,7 +26,7 @@ import math
 import os
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from icbtool.buffers import WRT_BUFFERS
 from icbtool.camera import Camera
