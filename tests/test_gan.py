@@ -788,9 +788,7 @@ def test_equal_quality_interpolates_in_log_cost_and_says_when_there_is_no_equal_
         equal_quality([0.0, 1.0], [0.1, 0.2], 0.15)
 
 
-def test_fourier_features_of_the_position_channels_are_computed_inside_the_network(
-    store, tmp_path
-):
+def test_fourier_features_of_the_position_channels_are_computed_inside_the_network(store, tmp_path):
     cfg = M.GeneratorConfig(in_channels=5, base=4, fourier_channels=(1, 4), fourier_octaves=2)
     g = M.UNetGenerator(cfg)
     assert cfg.n_features == 12
