@@ -24,6 +24,7 @@ read-only, in the user-wide cache (``~/.cache/numba`` or ``$NUMBA_CACHE_DIR``).
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numba as nb
 import numpy as np
@@ -31,7 +32,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-from icbtool.trace.rtc import RAYHIT_WORDS
+from icbtool.trace.layout import RAYHIT_WORDS
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy", boundscheck=False)
 
@@ -209,9 +210,49 @@ def _sample_base(seed_mix, pix, sid):
 
 # ---------------------------------------------------------------------------------- shading
 @nb.njit(inline="always", **_JIT)
-def _sky(sky_kind, sky, dx, dy, dz):
-    """Sky radiance along (dx, dy, dz); sky = [zenith, horizon, ground, up] (float32 values)."""
-    if sky_kind == 1:
+def _envmap(sk, dx, dy, dz):
+    """Radiance of the lat-long map ``sk.env`` (H, W + 1, 3) float32 (last column = first)
+    along the world direction (dx, dy, dz): Mitsuba's envmap lookup (bilinear, half-texel
+    shifted in u), see :class:`icbtool.scene.Sky`."""
+    r = sk.env_rot  # world_from_map: map-space direction = r^T d
+    lx = r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz
+    ly = r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz
+    lz = r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz
+    env = sk.env
+    h = env.shape[0]
+    w1 = env.shape[1]
+    u = math.atan2(lx, -lz) * (0.5 * _INV_PI) - 0.5 / (w1 - 1)
+    u -= math.floor(u)
+    v = math.acos(min(max(ly, -1.0), 1.0)) * _INV_PI
+    x = u * (w1 - 1)
+    y = v * (h - 1)
+    xi = min(np.int64(x), w1 - 2)
+    yi = min(np.int64(y), h - 2)
+    fx = x - xi
+    fy = y - yi
+    ga = (1 - fy) * (1 - fx)
+    gb = (1 - fy) * fx
+    gc = fy * (1 - fx)
+    gd = fy * fx
+    k = sk.env_scale
+    return (
+        k * (ga * env[yi, xi, 0] + gb * env[yi, xi + 1, 0])
+        + k * (gc * env[yi + 1, xi, 0] + gd * env[yi + 1, xi + 1, 0]),
+        k * (ga * env[yi, xi, 1] + gb * env[yi, xi + 1, 1])
+        + k * (gc * env[yi + 1, xi, 1] + gd * env[yi + 1, xi + 1, 1]),
+        k * (ga * env[yi, xi, 2] + gb * env[yi, xi + 1, 2])
+        + k * (gc * env[yi + 1, xi, 2] + gd * env[yi + 1, xi + 1, 2]),
+    )
+
+
+@nb.njit(inline="always", **_JIT)
+def _sky(sk, dx, dy, dz):
+    """Sky radiance along (dx, dy, dz). Uniform and gradient skies: ``sk.rad`` = [zenith,
+    horizon, ground, up] (float32 values); an envmap: :func:`_envmap`."""
+    if sk.kind == SKY_ENVMAP:
+        return _envmap(sk, dx, dy, dz)
+    sky = sk.rad
+    if sk.kind == SKY_UNIFORM:
         return (
             np.float64(np.float32(sky[0, 0])),
             np.float64(np.float32(sky[0, 1])),
@@ -363,15 +404,7 @@ def rtc_occluded_batch(rtc, fn, o, d, tfar, out, lo, hi):
 def _cdf_pick(cdf, row, u):
     """(first index k with cdf[row, k] > u, the remainder of u within that cell in [0, 1))."""
     n = cdf.shape[1]
-    a = 0
-    b = n
-    while a < b:
-        mid = (a + b) // 2
-        if cdf[row, mid] <= u:
-            a = mid + 1
-        else:
-            b = mid
-    k = min(a, n - 1)
+    k = min(np.searchsorted(cdf[row], u, side="right"), n - 1)
     lo = cdf[row, k - 1] if k > 0 else 0.0
     width = cdf[row, k] - lo
     r = (u - lo) / width if width > 0 else 0.5
@@ -379,46 +412,63 @@ def _cdf_pick(cdf, row, u):
 
 
 @nb.njit(inline="always", **_JIT)
-def _sky_sample(frame, marg, cond, pdf, u1, u2):
-    """A direction drawn from the sky table and its density: (dx, dy, dz, pdf).
-    marg: (1, nc) row CDF; cond: (nc, nphi) column CDFs."""
-    nc, nphi = pdf.shape
-    i, rc = _cdf_pick(marg, 0, u1)
-    j, rp = _cdf_pick(cond, i, u2)
-    c = -1.0 + (i + rc) * (2.0 / nc)
-    phi = (j + rp) * (2.0 * _PI / nphi)
+def _sky_sample(sk, u1, u2):
+    """A direction drawn from the sky table of ``sk`` and its density: (dx, dy, dz, pdf).
+
+    ``sk.marg``: (1, nc) row CDF; ``sk.cond``: (nc, nphi) column CDFs; rows are equal in
+    ``c = d . up`` (``sk.rows == ROWS_COS``) or in the polar angle (``ROWS_THETA``, envmaps;
+    uniform in ``c`` within a row either way); columns start at azimuth ``sk.phi0``."""
+    frame = sk.frame
+    nc, nphi = sk.pdf.shape
+    i, rc = _cdf_pick(sk.marg, 0, u1)
+    j, rp = _cdf_pick(sk.cond, i, u2)
+    if sk.rows == ROWS_THETA:
+        c_hi = math.cos(i * (_PI / nc))
+        c_lo = math.cos((i + 1) * (_PI / nc))
+        c = c_hi + rc * (c_lo - c_hi)
+    else:
+        c = -1.0 + (i + rc) * (2.0 / nc)
+    phi = sk.phi0 + (j + rp) * (2.0 * _PI / nphi)
     sn = math.sqrt(max(0.0, 1.0 - c * c))
     x = sn * math.cos(phi)
     y = sn * math.sin(phi)
     d0 = x * frame[0, 0] + y * frame[1, 0] + c * frame[2, 0]
     d1 = x * frame[0, 1] + y * frame[1, 1] + c * frame[2, 1]
     d2 = x * frame[0, 2] + y * frame[1, 2] + c * frame[2, 2]
-    return d0, d1, d2, pdf[i, j]
+    return d0, d1, d2, sk.pdf[i, j]
 
 
 @nb.njit(inline="always", **_JIT)
-def _sky_pdf(frame, pdf, dx, dy, dz):
-    """Density of the sky table's sampling at the unit direction (dx, dy, dz)."""
-    nc, nphi = pdf.shape
+def _sky_pdf(sk, dx, dy, dz):
+    """Density of :func:`_sky_sample` at the unit direction (dx, dy, dz)."""
+    frame = sk.frame
+    nc, nphi = sk.pdf.shape
     c = dx * frame[2, 0] + dy * frame[2, 1] + dz * frame[2, 2]
-    i = min(max(np.int64((c + 1.0) * 0.5 * nc), 0), nc - 1)
+    if sk.rows == ROWS_THETA:
+        th = math.acos(min(max(c, -1.0), 1.0))
+        i = min(max(np.int64(th * (nc / _PI)), 0), nc - 1)
+    else:
+        i = min(max(np.int64((c + 1.0) * 0.5 * nc), 0), nc - 1)
     j = 0
     if nphi > 1:
-        phi = math.atan2(
-            dx * frame[1, 0] + dy * frame[1, 1] + dz * frame[1, 2],
-            dx * frame[0, 0] + dy * frame[0, 1] + dz * frame[0, 2],
+        phi = (
+            math.atan2(
+                dx * frame[1, 0] + dy * frame[1, 1] + dz * frame[1, 2],
+                dx * frame[0, 0] + dy * frame[0, 1] + dz * frame[0, 2],
+            )
+            - sk.phi0
         )
         if phi < 0:
             phi += 2.0 * _PI
         j = min(max(np.int64(phi * (nphi / (2.0 * _PI))), 0), nphi - 1)
-    return pdf[i, j]
+    return sk.pdf[i, j]
 
 
 @nb.njit(**_JIT)
-def sky_sample_batch(frame, marg, cond, pdf, u, out_d, out_pdf):
+def sky_sample_batch(sk, u, out_d, out_pdf):
     """:func:`_sky_sample` for uniform pairs u (N, 2) (tests and tools)."""
     for n in range(len(u)):
-        d0, d1, d2, p = _sky_sample(frame, marg, cond, pdf, u[n, 0], u[n, 1])
+        d0, d1, d2, p = _sky_sample(sk, u[n, 0], u[n, 1])
         out_d[n, 0] = d0
         out_d[n, 1] = d1
         out_d[n, 2] = d2
@@ -426,123 +476,450 @@ def sky_sample_batch(frame, marg, cond, pdf, u, out_d, out_pdf):
 
 
 @nb.njit(**_JIT)
-def sky_pdf_batch(frame, pdf, d, out):
+def sky_pdf_batch(sk, d, out):
     """:func:`_sky_pdf` for unit directions d (N, 3) (tests and tools)."""
     for n in range(len(d)):
-        out[n] = _sky_pdf(frame, pdf, d[n, 0], d[n, 1], d[n, 2])
+        out[n] = _sky_pdf(sk, d[n, 0], d[n, 1], d[n, 2])
 
+
+@nb.njit(**_JIT)
+def sky_radiance_batch(sk, d, out):
+    """:func:`_sky` for unit directions d (N, 3) (tests: the kernels' lookup = Sky.radiance)."""
+    for n in range(len(d)):
+        a, b, c = _sky(sk, d[n, 0], d[n, 1], d[n, 2])
+        out[n, 0] = a
+        out[n, 1] = b
+        out[n, 2] = c
+
+
+# ---------------------------------------------------------------------------------- parameters
+# The parameter struct of trace_paths: named tuples (numba types every field; built by
+# icbtool.trace.tracer._Tracer). Arrays are C-contiguous; scalars are int64 or float64.
+
+#: Embree 4: scene handle, addresses of rtcIntersect1 and rtcOccluded1.
+EmbreeFns = namedtuple("EmbreeFns", ["scene", "fn_intersect", "fn_occluded"])
+#: Camera: (fx, fy, cx, cy), world_from_cam rotation (3, 3), centre (3,), image width, jitter
+#: (1: box-filter the pixel, 0: its centre).
+View = namedtuple("View", ["intr", "r_wc", "pos", "width", "jitter"])
+#: Surfaces: per face (F) float32 corners (F, 3, 3), geometric normal (F, 3), corner normals
+#: (F, 3, 3), material (F,), corner uvs (F, 3, 2); per material (M) albedo and emission (M, 3)
+#: float64, texture offset into the texels (-1: untextured) and (h, w); texels (codes into
+#: tex_lut, or values if it is empty); nearest (1: nearest texel, 0: bilinear), shading_normals
+#: (1: interpolated, 0: flat), scene diagonal.
+Surfaces = namedtuple(
+    "Surfaces",
+    [
+        "tri", "face_n", "vn", "face_mat", "face_uv", "mat_albedo", "mat_emission",
+        "tex_flat", "tex_lut", "tex_off", "tex_hw", "nearest", "shading_normals", "diag",
+    ],
+)  # fmt: skip
+#: Lights: suns (S, 6) direction, irradiance; punct (Q, 12) position, intensity, axis, cos_in,
+#: cos_out, is_spot; emissive triangles: pmf (F,), area (F,), part of an AreaLight (F,),
+#: emissive faces (E,) and their CDF (E,).
+Lights = namedtuple(
+    "Lights", ["suns", "punct", "face_light_pmf", "face_area", "face_is_area", "emit_faces",
+               "emit_cdf"],
+)  # fmt: skip
+#: Sky: kind (SKY_*), [zenith, horizon, ground, up] (4, 3), envmap (H, W + 1, 3) float32 (the
+#: first column repeated), world_from_map (3, 3), its scale; importance table (see
+#: icbtool.trace.tracer.SkyTable): frame (3, 3), marg (1, nc), cond (nc, nphi), pdf (nc, nphi),
+#: rows (ROWS_*), phi0; mis (1: one light sample per vertex, MIS with the BSDF).
+SkyParams = namedtuple(
+    "SkyParams", ["kind", "rad", "env", "env_rot", "env_scale", "frame", "marg", "cond", "pdf",
+                  "rows", "phi0", "mis"],
+)  # fmt: skip
+#: Sampling: hash seed, per-dimension salts (independent sampler), Sobol pixel seed, sampler
+#: (SAMPLER_*), depth limit, Russian roulette depth, want_aux (1: first-hit albedo/normal).
+Sampling = namedtuple(
+    "Sampling", ["seed_mix", "salts", "pixseed", "sampler", "limit", "rr_depth", "want_aux"]
+)
+#: Everything trace_paths reads.
+TraceParams = namedtuple("TraceParams", ["embree", "cam", "surf", "lights", "sky", "sampling"])
+#: Per-sample outputs (P rows): direct, gi (P, 3), first hit (P,), first-hit albedo and normal
+#: (P, 3) (or (1, 3) when not wanted).
+Outputs = namedtuple("Outputs", ["direct", "gi", "first_hit", "albedo", "normal"])
+
+SKY_NONE = 0
+SKY_UNIFORM = 1
+SKY_GRADIENT = 2
+SKY_ENVMAP = 3
+ROWS_COS = 0
+ROWS_THETA = 1
 
 #: Samples per block; the threads of a pass take every n-th block (balanced, no false sharing).
 BLOCK = 256
-
-# iparams of trace_paths
-IP_LIMIT = 0
-IP_RR_DEPTH = 1
-IP_SAMPLER = 2
-IP_NEAREST = 3
-IP_SHADING_NORMALS = 4
-IP_WANT_AUX = 5
-IP_JITTER = 6
-IP_WIDTH = 7
-IP_SKY_MIS = 8
-N_IPARAMS = 9
 
 #: Sobol pairs of the sky light sample (vertices 1 .. LD_MAX_DEPTH): after the other dimensions
 SKY_PAIR0 = 1 + 3 * (LD_MAX_DEPTH + 1)
 
 
+# ---------------------------------------------------------------------------------- path steps
+@nb.njit(inline="always", **_JIT)
+def _camera_ray(p, pix_s, sid_s, ps_pix, base_s):
+    """Unit world direction of the camera ray through pixel ``pix_s`` (jittered or centred)."""
+    v = p.cam
+    sm = p.sampling
+    if v.jitter:
+        if sm.sampler == SAMPLER_SOBOL:
+            jx, jy = _sobol2(ps_pix, sid_s, 0)
+        else:
+            jx = _u01(base_s, sm.salts[0])
+            jy = _u01(base_s, sm.salts[1])
+    else:
+        jx = 0.5
+        jy = 0.5
+    intr = v.intr
+    r_wc = v.r_wc
+    cxp = (np.float64(pix_s % v.width) + jx - intr[2]) / intr[0]
+    cyp = (np.float64(pix_s // v.width) + jy - intr[3]) / intr[1]
+    nrm = math.sqrt(cxp * cxp + cyp * cyp + 1.0)
+    cxp /= nrm
+    cyp /= nrm
+    czp = 1.0 / nrm
+    dx = r_wc[0, 0] * cxp + r_wc[0, 1] * cyp + r_wc[0, 2] * czp
+    dy = r_wc[1, 0] * cxp + r_wc[1, 1] * cyp + r_wc[1, 2] * czp
+    dz = r_wc[2, 0] * cxp + r_wc[2, 1] * cyp + r_wc[2, 2] * czp
+    return dx, dy, dz
+
+
+@nb.njit(inline="always", **_JIT)
+def _sky_seen(sk, out, s, depth, pdf_prev, t0, t1, t2, dx, dy, dz):
+    """A ray that left the scene: the sky's radiance (direct for a camera ray; else gi, MIS-
+    weighted against the sky's light sample)."""
+    le = _sky(sk, dx, dy, dz)
+    if depth == 1:
+        out.direct[s, 0] += le[0] * t0
+        out.direct[s, 1] += le[1] * t1
+        out.direct[s, 2] += le[2] * t2
+    else:
+        w = 1.0
+        if sk.mis:  # MIS weight of the BSDF sample against the sky sample
+            psk = _sky_pdf(sk, dx, dy, dz)
+            w = pdf_prev * pdf_prev / max(pdf_prev * pdf_prev + psk * psk, 1e-300)
+        out.gi[s, 0] += le[0] * t0 * w
+        out.gi[s, 1] += le[1] * t1 * w
+        out.gi[s, 2] += le[2] * t2 * w
+
+
+@nb.njit(inline="always", **_JIT)
+def _hit_frame(sf, prim, h_u, h_v, dx, dy, dz):
+    """Where a ray hit face ``prim`` at barycentrics (h_u, h_v): (point, barycentrics (w0, b1,
+    b2), cos_o (geometric normal . -ray), front, forward-facing geometric normal nf, shading
+    normal ns on nf's side), vectors as 3-tuples."""
+    tri = sf.tri
+    fn = sf.face_n
+    vn = sf.vn
+    b1 = np.float64(h_u)
+    b2 = np.float64(h_v)
+    w0 = 1.0 - b1 - b2
+    x0 = w0 * tri[prim, 0, 0] + b1 * tri[prim, 1, 0] + b2 * tri[prim, 2, 0]
+    x1 = w0 * tri[prim, 0, 1] + b1 * tri[prim, 1, 1] + b2 * tri[prim, 2, 1]
+    x2 = w0 * tri[prim, 0, 2] + b1 * tri[prim, 1, 2] + b2 * tri[prim, 2, 2]
+    g0 = np.float64(fn[prim, 0])
+    g1 = np.float64(fn[prim, 1])
+    g2 = np.float64(fn[prim, 2])
+    cos_o = -(g0 * dx + g1 * dy + g2 * dz)
+    if g0 == 0 and g1 == 0 and g2 == 0:
+        g0, g1, g2 = -dx, -dy, -dz
+        cos_o = 1.0
+    front = cos_o > 0
+    if front:
+        nf0, nf1, nf2 = g0, g1, g2
+    else:
+        nf0, nf1, nf2 = -g0, -g1, -g2
+    if sf.shading_normals:
+        a0 = w0 * vn[prim, 0, 0] + b1 * vn[prim, 1, 0] + b2 * vn[prim, 2, 0]
+        a1 = w0 * vn[prim, 0, 1] + b1 * vn[prim, 1, 1] + b2 * vn[prim, 2, 1]
+        a2 = w0 * vn[prim, 0, 2] + b1 * vn[prim, 1, 2] + b2 * vn[prim, 2, 2]
+        ln = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        if ln > 1e-20:
+            ns0, ns1, ns2 = a0 / ln, a1 / ln, a2 / ln
+        else:
+            ns0, ns1, ns2 = nf0, nf1, nf2
+        if ns0 * nf0 + ns1 * nf1 + ns2 * nf2 < 0:
+            ns0, ns1, ns2 = -ns0, -ns1, -ns2
+    else:
+        ns0, ns1, ns2 = nf0, nf1, nf2
+    return (x0, x1, x2), (w0, b1, b2), cos_o, front, (nf0, nf1, nf2), (ns0, ns1, ns2)
+
+
+@nb.njit(inline="always", **_JIT)
+def _emission_seen(p, out, s, prim, th, cos_o, depth, from_first, pdf_prev, t0, t1, t2):
+    """Emission of the front face ``prim`` hit at distance th: direct for a camera ray (and, MIS-
+    weighted, for a bounce off the first hit into an AreaLight); else gi, MIS-weighted against
+    the emitter sample."""
+    em = p.surf.mat_emission
+    lt = p.lights
+    m = p.surf.face_mat[prim]
+    e0 = em[m, 0]
+    e1 = em[m, 1]
+    e2 = em[m, 2]
+    if not (e0 > 0 or e1 > 0 or e2 > 0):
+        return
+    if depth == 1:
+        out.direct[s, 0] += e0 * t0
+        out.direct[s, 1] += e1 * t1
+        out.direct[s, 2] += e2 * t2
+        return
+    pl = lt.face_light_pmf[prim] / max(lt.face_area[prim], 1e-300) * th * th / max(cos_o, 1e-12)
+    pb = pdf_prev
+    w = pb * pb / max(pb * pb + pl * pl, 1e-300) if pl > 0 else 1.0
+    _add_to(
+        out.direct,
+        out.gi,
+        from_first and lt.face_is_area[prim],
+        s,
+        e0 * t0 * w,
+        e1 * t1 * w,
+        e2 * t2 * w,
+    )
+
+
+@nb.njit(inline="always", **_JIT)
+def _albedo_at(sf, prim, bary):
+    """Albedo of face ``prim`` at barycentrics (w0, b1, b2): its material's, times its texture
+    (repeat; bilinear or nearest)."""
+    w0, b1, b2 = bary
+    m = sf.face_mat[prim]
+    al0 = sf.mat_albedo[m, 0]
+    al1 = sf.mat_albedo[m, 1]
+    al2 = sf.mat_albedo[m, 2]
+    if sf.tex_off[m] < 0:
+        return al0, al1, al2
+    face_uv = sf.face_uv
+    tex = sf.tex_flat
+    lut = sf.tex_lut
+    uu = w0 * face_uv[prim, 0, 0] + b1 * face_uv[prim, 1, 0] + b2 * face_uv[prim, 2, 0]
+    vv = w0 * face_uv[prim, 0, 1] + b1 * face_uv[prim, 1, 1] + b2 * face_uv[prim, 2, 1]
+    th = sf.tex_hw[m, 0]
+    tw = sf.tex_hw[m, 1]
+    off = sf.tex_off[m]
+    xx = uu * tw - 0.5
+    yy = (1.0 - vv) * th - 0.5
+    if sf.nearest:
+        xi = np.int64(math.floor(xx + 0.5)) % tw
+        yi = np.int64(math.floor(yy + 0.5)) % th
+        q = off + (yi * tw + xi) * 3
+        al0 *= _texel(tex, lut, q)
+        al1 *= _texel(tex, lut, q + 1)
+        al2 *= _texel(tex, lut, q + 2)
+        return al0, al1, al2
+    fx0 = math.floor(xx)
+    fy0 = math.floor(yy)
+    fx = xx - fx0
+    fy = yy - fy0
+    xa = np.int64(fx0) % tw
+    ya = np.int64(fy0) % th
+    xb = xa + 1 if xa + 1 < tw else 0
+    yb = ya + 1 if ya + 1 < th else 0
+    p00 = off + (ya * tw + xa) * 3
+    p01 = off + (ya * tw + xb) * 3
+    p10 = off + (yb * tw + xa) * 3
+    p11 = off + (yb * tw + xb) * 3
+    ga = (1 - fy) * (1 - fx)
+    gb = (1 - fy) * fx
+    gc = fy * (1 - fx)
+    gd = fy * fx
+    al0 *= _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd)
+    al1 *= _bilerp(tex, lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd)
+    al2 *= _bilerp(tex, lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd)
+    return al0, al1, al2
+
+
+@nb.njit(inline="always", **_JIT)
+def _sun_lights(p, ray, log, out, s, to_direct, nf, ns, so, fo):
+    """Next-event estimation of every directional light (delta: no MIS); returns the number of
+    shadow rays traced. nf, ns: normals; so: float32 ray origin; fo: BSDF value f / pi."""
+    suns = p.lights.suns
+    n_shadow = 0
+    for j in range(suns.shape[0]):
+        wi0 = -suns[j, 0]
+        wi1 = -suns[j, 1]
+        wi2 = -suns[j, 2]
+        c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
+        if c > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0:
+            tf = np.float32(np.inf)
+            n_shadow += 1
+            if _visible(p.embree, ray, log, so, wi0, wi1, wi2, tf):
+                _add_to(
+                    out.direct,
+                    out.gi,
+                    to_direct,
+                    s,
+                    fo[0] * suns[j, 3] * c,
+                    fo[1] * suns[j, 4] * c,
+                    fo[2] * suns[j, 5] * c,
+                )
+    return n_shadow
+
+
+@nb.njit(inline="always", **_JIT)
+def _point_spot_lights(p, ray, log, out, s, to_direct, x, nf, ns, so, fo, eps):
+    """Next-event estimation of every point and spot light (delta); returns the shadow rays."""
+    punct = p.lights.punct
+    n_shadow = 0
+    for j in range(punct.shape[0]):
+        wi0, wi1, wi2, dist = _towards(x[0], x[1], x[2], punct[j, 0], punct[j, 1], punct[j, 2])
+        c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
+        fall = 1.0
+        if punct[j, 11] > 0:
+            ca = -(wi0 * punct[j, 6] + wi1 * punct[j, 7] + wi2 * punct[j, 8])
+            xf = min(max((ca - punct[j, 10]) / (punct[j, 9] - punct[j, 10]), 0.0), 1.0)
+            fall = xf * xf * (3.0 - 2.0 * xf)
+        i0 = punct[j, 3] * fall
+        i1 = punct[j, 4] * fall
+        i2 = punct[j, 5] * fall
+        if (
+            c > 0
+            and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0
+            and dist > 0
+            and (i0 > 0 or i1 > 0 or i2 > 0)
+        ):
+            tf = np.float32(dist * (1 - 1e-5) - eps)
+            n_shadow += 1
+            if _visible(p.embree, ray, log, so, wi0, wi1, wi2, tf):
+                g = c / (dist * dist)
+                _add_to(
+                    out.direct, out.gi, to_direct, s, fo[0] * i0 * g, fo[1] * i1 * g, fo[2] * i2 * g
+                )
+    return n_shadow
+
+
+@nb.njit(inline="always", **_JIT)
+def _emitter_light(p, ray, log, out, s, to_direct, x, nf, ns, so, fo, eps, ul, ra, r2):
+    """One emissive triangle drawn by power (ul), a uniform point on it (ra, r2), MIS-weighted
+    against BSDF sampling (power heuristic); returns the shadow rays traced (0 or 1)."""
+    lt = p.lights
+    tri = p.surf.tri
+    fn = p.surf.face_n
+    n_e = len(lt.emit_faces)
+    lf = lt.emit_faces[min(np.searchsorted(lt.emit_cdf, ul, side="right"), n_e - 1)]
+    r1 = math.sqrt(ra)
+    ca = r1 * (1 - r2)
+    cb = r1 * r2
+    y0 = (
+        np.float64(tri[lf, 0, 0])
+        + ca * (np.float64(tri[lf, 1, 0]) - np.float64(tri[lf, 0, 0]))
+        + cb * (np.float64(tri[lf, 2, 0]) - np.float64(tri[lf, 0, 0]))
+    )
+    y1 = (
+        np.float64(tri[lf, 0, 1])
+        + ca * (np.float64(tri[lf, 1, 1]) - np.float64(tri[lf, 0, 1]))
+        + cb * (np.float64(tri[lf, 2, 1]) - np.float64(tri[lf, 0, 1]))
+    )
+    y2 = (
+        np.float64(tri[lf, 0, 2])
+        + ca * (np.float64(tri[lf, 1, 2]) - np.float64(tri[lf, 0, 2]))
+        + cb * (np.float64(tri[lf, 2, 2]) - np.float64(tri[lf, 0, 2]))
+    )
+    wi0, wi1, wi2, dist = _towards(x[0], x[1], x[2], y0, y1, y2)
+    c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
+    cl = -(fn[lf, 0] * wi0 + fn[lf, 1] * wi1 + fn[lf, 2] * wi2)
+    if not (c > 0 and cl > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0 and dist > 0):
+        return 0
+    pl = lt.face_light_pmf[lf] / lt.face_area[lf] * dist * dist / cl
+    pb = c * _INV_PI
+    w = pl * pl / (pl * pl + pb * pb)
+    g = c * w / pl
+    eps_l = _eps(y0, y1, y2, dist, p.surf.diag)
+    tf = np.float32(max(dist - eps - eps_l, 0.0))
+    if _visible(p.embree, ray, log, so, wi0, wi1, wi2, tf):
+        em = p.surf.mat_emission
+        m = p.surf.face_mat[lf]
+        _add_to(
+            out.direct,
+            out.gi,
+            to_direct and lt.face_is_area[lf],
+            s,
+            fo[0] * em[m, 0] * g,
+            fo[1] * em[m, 1] * g,
+            fo[2] * em[m, 2] * g,
+        )
+    return 1
+
+
+@nb.njit(inline="always", **_JIT)
+def _sky_light(p, ray, log, out, s, nf, ns, so, fo, us1, us2):
+    """One direction drawn from the sky's table (us1, us2), MIS-weighted against BSDF sampling;
+    always gi. Returns the shadow rays traced (0 or 1)."""
+    sk = p.sky
+    wi0, wi1, wi2, psk = _sky_sample(sk, us1, us2)
+    c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
+    if not (psk > 0 and c > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0):
+        return 0
+    pb = c * _INV_PI
+    g = c * (psk / (psk * psk + pb * pb))  # c * w / psk, w = power heuristic
+    tf = np.float32(np.inf)
+    if _visible(p.embree, ray, log, so, wi0, wi1, wi2, tf):
+        le = _sky(sk, wi0, wi1, wi2)
+        _add_to(
+            out.direct, out.gi, False, s, fo[0] * le[0] * g, fo[1] * le[1] * g, fo[2] * le[2] * g
+        )
+    return 1
+
+
+@nb.njit(inline="always", **_JIT)
+def _cosine_sample(nf, ns, u1, u2):
+    """A cosine-weighted direction about the shading normal (Duff et al. basis), mirrored above
+    the geometric surface, and its density: (wi0, wi1, wi2, pdf)."""
+    ns0, ns1, ns2 = ns
+    nf0, nf1, nf2 = nf
+    sign = 1.0 if ns2 >= 0 else -1.0
+    a = -1.0 / (sign + ns2)
+    b = ns0 * ns1 * a
+    ta0 = 1 + sign * ns0 * ns0 * a
+    ta1 = sign * b
+    ta2 = -sign * ns0
+    tb0 = b
+    tb1 = sign + ns1 * ns1 * a
+    tb2 = -ns1
+    r = math.sqrt(u1)
+    phi = 2 * _PI * u2
+    zc = math.sqrt(max(0.0, 1 - u1))
+    rc = r * math.cos(phi)
+    rs = r * math.sin(phi)
+    wi0 = rc * ta0 + rs * tb0 + zc * ns0
+    wi1 = rc * ta1 + rs * tb1 + zc * ns1
+    wi2 = rc * ta2 + rs * tb2 + zc * ns2
+    below = wi0 * nf0 + wi1 * nf1 + wi2 * nf2
+    if below <= 0:
+        wi0 -= 2 * below * nf0
+        wi1 -= 2 * below * nf1
+        wi2 -= 2 * below * nf2
+    ln = math.sqrt(wi0 * wi0 + wi1 * wi1 + wi2 * wi2)
+    if ln > 1e-20:
+        wi0, wi1, wi2 = wi0 / ln, wi1 / ln, wi2 / ln
+    else:
+        wi0, wi1, wi2 = nf0, nf1, nf2
+    return wi0, wi1, wi2, max(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1e-12) * _INV_PI
+
+
 @nb.njit(**_JIT)
-def trace_paths(
-    # embree: scene handle, rtcIntersect1, rtcOccluded1
-    rtc,
-    fn_isect,
-    fn_occl,
-    # samples (P): pixel, sample id; seed of the per-sample hashes, per-dimension salts
-    pix,
-    sid,
-    seed_mix,
-    salts,
-    # camera: (fx, fy, cx, cy), world_from_cam rotation (3, 3), centre (3,)
-    intr,
-    r_wc,
-    pos,
-    # scene: per face (F) float32 corners (F, 3, 3), geometric normal (F, 3), corner normals
-    # (F, 3, 3); per material (M) albedo, emission (M, 3) float64; material (F,), corner uvs
-    # (F, 3, 2) float32; texels (codes into tex_lut, or values if it is empty), per-material
-    # offset into them (-1: untextured) and (h, w)
-    tri,
-    fn,
-    vn,
-    mat_albedo,
-    mat_emission,
-    face_mat,
-    face_uv,
-    tex_flat,
-    tex_lut,
-    tex_off,
-    tex_hw,
-    # emitters: pmf (F,), area (F,), part of an AreaLight (F,), emissive faces (E,), their CDF
-    face_light_pmf,
-    face_area,
-    face_is_area,
-    emit_faces,
-    emit_cdf,
-    # delta lights (see below); sky: 0 none, 1 uniform, 2 gradient, [zenith, horizon, ground, up]
-    suns,
-    punct,
-    sky_kind,
-    sky,
-    # sky importance table (see icbtool.trace.tracer.SkyTable)
-    sky_frame,
-    sky_marg,
-    sky_cond,
-    sky_pdf,
-    # parameters (see IP_*), scene diagonal, Sobol pixel seed
-    iparams,
-    diag,
-    pixseed0,
-    # outputs per sample (P): direct, gi, first hit, first-hit albedo and normal
-    direct,
-    gi,
-    first_hit,
-    alb_out,
-    nrm_out,
-    # (3,) rays traced by this part: primary, bounce, shadow
-    counts,
-    # ray log (benchmarks): o, d (C, 3), tfar (C,), kind (C,) 0 = camera, 1 = shadow, 2 = bounce;
-    # log_n (1,) entries used; C <= 1 turns logging off
-    log_o,
-    log_d,
-    log_tf,
-    log_kind,
-    log_n,
-    # this part's share: blocks part, part + n_parts, ...
-    part,
-    n_parts,
-):
+def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
     """Trace one whole path per sample (every depth, shadow rays inline) for a share of samples.
+
+    Args:
+        p: :data:`TraceParams`.
+        out: :data:`Outputs` (per sample rows, added to).
+        counts: (3,) int64 rays traced by this part: primary, bounce, shadow (added to).
+        log: ray log (benchmarks): o, d (C, 3), tfar (C,), kind (C,) 0 = camera, 1 = shadow,
+            2 = bounce; n (1,) entries used; C <= 1 turns logging off.
+        part, n_parts: this part's share: blocks part, part + n_parts, ...
+        pix, sid: (P,) pixel index (row-major) and sample index of each sample.
 
     Outputs are per sample, so parts write disjoint rows: several threads can run parts at once
     (the kernel releases the GIL). Per sample, contributions are added in a fixed order (emission
     seen, then each light's shadow-tested sample: suns, point/spot, emitter, sky), so images do
     not depend on the number of parts.
-
-    suns: (S, 6) direction, irradiance. punct: (Q, 12) position, intensity, axis, cos_in,
-    cos_out, is_spot.
     """
-    limit = iparams[IP_LIMIT]
-    rr_depth = iparams[IP_RR_DEPTH]
-    sampler = iparams[IP_SAMPLER]
-    nearest = iparams[IP_NEAREST]
-    shading_normals = iparams[IP_SHADING_NORMALS]
-    want_aux = iparams[IP_WANT_AUX]
-    jitter = iparams[IP_JITTER]
-    width = iparams[IP_WIDTH]
-    sky_mis = iparams[IP_SKY_MIS] != 0 and sky_kind != 0
-    n_s = suns.shape[0]
-    n_q = punct.shape[0]
-    n_e = len(emit_faces)
-    log = (log_o, log_d, log_tf, log_kind, log_n)
+    sm = p.sampling
+    limit = sm.limit
+    rr_depth = sm.rr_depth
+    sampler = sm.sampler
+    salts = sm.salts
+    sky_on = p.sky.kind != SKY_NONE
+    sky_mis = p.sky.mis != 0 and sky_on
+    n_e = len(p.lights.emit_faces)
     ray = _rayhit()
     n_prim = 0
     n_bounce = 0
@@ -551,30 +928,12 @@ def trace_paths(
     n_blocks = (P + BLOCK - 1) // BLOCK
     for blk in range(part, n_blocks, n_parts):
         for s in range(blk * BLOCK, min(P, (blk + 1) * BLOCK)):
-            ps_pix = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD))
-            base_s = _sample_base(seed_mix, pix[s], sid[s])
-            # ---- primary ray
-            if jitter:
-                if sampler == SAMPLER_SOBOL:
-                    jx, jy = _sobol2(ps_pix, sid[s], 0)
-                else:
-                    jx = _u01(base_s, salts[0])
-                    jy = _u01(base_s, salts[1])
-            else:
-                jx = 0.5
-                jy = 0.5
-            cxp = (np.float64(pix[s] % width) + jx - intr[2]) / intr[0]
-            cyp = (np.float64(pix[s] // width) + jy - intr[3]) / intr[1]
-            nrm = math.sqrt(cxp * cxp + cyp * cyp + 1.0)
-            cxp /= nrm
-            cyp /= nrm
-            czp = 1.0 / nrm
-            dx = r_wc[0, 0] * cxp + r_wc[0, 1] * cyp + r_wc[0, 2] * czp
-            dy = r_wc[1, 0] * cxp + r_wc[1, 1] * cyp + r_wc[1, 2] * czp
-            dz = r_wc[2, 0] * cxp + r_wc[2, 1] * cyp + r_wc[2, 2] * czp
-            ox = np.float32(pos[0])
-            oy = np.float32(pos[1])
-            oz = np.float32(pos[2])
+            pixel_seed = _mix(sm.pixseed ^ (np.uint64(pix[s]) * _GOLD))
+            base_s = _sample_base(sm.seed_mix, pix[s], sid[s])
+            dx, dy, dz = _camera_ray(p, pix[s], sid[s], pixel_seed, base_s)
+            ox = np.float32(p.cam.pos[0])
+            oy = np.float32(p.cam.pos[1])
+            oz = np.float32(p.cam.pos[2])
             t0 = 1.0
             t1 = 1.0
             t2 = 1.0
@@ -584,151 +943,33 @@ def trace_paths(
                 # ---- closest hit of segment `depth`
                 _log_ray(log, 0 if depth == 1 else 2, ox, oy, oz, dx, dy, dz, np.float32(np.inf))
                 dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
-                h_t, prim, h_u, h_v = _intersect(rtc, fn_isect, ray, ox, oy, oz, dx32, dy32, dz32)
+                h_t, prim, h_u, h_v = _intersect(
+                    p.embree.scene, p.embree.fn_intersect, ray, ox, oy, oz, dx32, dy32, dz32
+                )
                 if depth == 1:
                     n_prim += 1
                 else:
                     n_bounce += 1
                 if prim < 0:
-                    if sky_kind != 0:
-                        le = _sky(sky_kind, sky, dx, dy, dz)
-                        if depth == 1:
-                            direct[s, 0] += le[0] * t0
-                            direct[s, 1] += le[1] * t1
-                            direct[s, 2] += le[2] * t2
-                        else:
-                            w = 1.0
-                            if sky_mis:  # MIS weight of the BSDF sample against the sky sample
-                                psk = _sky_pdf(sky_frame, sky_pdf, dx, dy, dz)
-                                w = (
-                                    pdf_prev
-                                    * pdf_prev
-                                    / max(pdf_prev * pdf_prev + psk * psk, 1e-300)
-                                )
-                            gi[s, 0] += le[0] * t0 * w
-                            gi[s, 1] += le[1] * t1 * w
-                            gi[s, 2] += le[2] * t2 * w
+                    if sky_on:
+                        _sky_seen(p.sky, out, s, depth, pdf_prev, t0, t1, t2, dx, dy, dz)
                     break
-                b1 = np.float64(h_u)
-                b2 = np.float64(h_v)
                 th = np.float64(h_t)
-                w0 = 1.0 - b1 - b2
-                x0 = w0 * tri[prim, 0, 0] + b1 * tri[prim, 1, 0] + b2 * tri[prim, 2, 0]
-                x1 = w0 * tri[prim, 0, 1] + b1 * tri[prim, 1, 1] + b2 * tri[prim, 2, 1]
-                x2 = w0 * tri[prim, 0, 2] + b1 * tri[prim, 1, 2] + b2 * tri[prim, 2, 2]
-                g0 = np.float64(fn[prim, 0])
-                g1 = np.float64(fn[prim, 1])
-                g2 = np.float64(fn[prim, 2])
-                cos_o = -(g0 * dx + g1 * dy + g2 * dz)
-                if g0 == 0 and g1 == 0 and g2 == 0:
-                    g0, g1, g2 = -dx, -dy, -dz
-                    cos_o = 1.0
-                front = cos_o > 0
+                x, bary, cos_o, front, nf, ns = _hit_frame(p.surf, prim, h_u, h_v, dx, dy, dz)
                 if front:
-                    nf0, nf1, nf2 = g0, g1, g2
-                else:
-                    nf0, nf1, nf2 = -g0, -g1, -g2
-                if shading_normals:
-                    a0 = w0 * vn[prim, 0, 0] + b1 * vn[prim, 1, 0] + b2 * vn[prim, 2, 0]
-                    a1 = w0 * vn[prim, 0, 1] + b1 * vn[prim, 1, 1] + b2 * vn[prim, 2, 1]
-                    a2 = w0 * vn[prim, 0, 2] + b1 * vn[prim, 1, 2] + b2 * vn[prim, 2, 2]
-                    ln = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-                    if ln > 1e-20:
-                        ns0, ns1, ns2 = a0 / ln, a1 / ln, a2 / ln
-                    else:
-                        ns0, ns1, ns2 = nf0, nf1, nf2
-                    if ns0 * nf0 + ns1 * nf1 + ns2 * nf2 < 0:
-                        ns0, ns1, ns2 = -ns0, -ns1, -ns2
-                else:
-                    ns0, ns1, ns2 = nf0, nf1, nf2
-                # ---- emission seen (one-sided)
-                m = face_mat[prim]
-                e0 = mat_emission[m, 0]
-                e1 = mat_emission[m, 1]
-                e2 = mat_emission[m, 2]
-                if front and (e0 > 0 or e1 > 0 or e2 > 0):
-                    if depth == 1:
-                        direct[s, 0] += e0 * t0
-                        direct[s, 1] += e1 * t1
-                        direct[s, 2] += e2 * t2
-                    else:
-                        pl = (
-                            face_light_pmf[prim]
-                            / max(face_area[prim], 1e-300)
-                            * th
-                            * th
-                            / max(cos_o, 1e-12)
-                        )
-                        pb = pdf_prev
-                        w = pb * pb / max(pb * pb + pl * pl, 1e-300) if pl > 0 else 1.0
-                        if from_first and face_is_area[prim]:
-                            direct[s, 0] += e0 * t0 * w
-                            direct[s, 1] += e1 * t1 * w
-                            direct[s, 2] += e2 * t2 * w
-                        else:
-                            gi[s, 0] += e0 * t0 * w
-                            gi[s, 1] += e1 * t1 * w
-                            gi[s, 2] += e2 * t2 * w
-                # ---- albedo (texture with repeat)
-                al0 = mat_albedo[m, 0]
-                al1 = mat_albedo[m, 1]
-                al2 = mat_albedo[m, 2]
-                if tex_off[m] >= 0:
-                    uu = (
-                        w0 * face_uv[prim, 0, 0]
-                        + b1 * face_uv[prim, 1, 0]
-                        + b2 * face_uv[prim, 2, 0]
+                    _emission_seen(
+                        p, out, s, prim, th, cos_o, depth, from_first, pdf_prev, t0, t1, t2
                     )
-                    vv = (
-                        w0 * face_uv[prim, 0, 1]
-                        + b1 * face_uv[prim, 1, 1]
-                        + b2 * face_uv[prim, 2, 1]
-                    )
-                    th_ = tex_hw[m, 0]
-                    tw_ = tex_hw[m, 1]
-                    off = tex_off[m]
-                    xx = uu * tw_ - 0.5
-                    yy = (1.0 - vv) * th_ - 0.5
-                    if nearest:
-                        xi = np.int64(math.floor(xx + 0.5)) % tw_
-                        yi = np.int64(math.floor(yy + 0.5)) % th_
-                        p = off + (yi * tw_ + xi) * 3
-                        al0 *= _texel(tex_flat, tex_lut, p)
-                        al1 *= _texel(tex_flat, tex_lut, p + 1)
-                        al2 *= _texel(tex_flat, tex_lut, p + 2)
-                    else:
-                        fx0 = math.floor(xx)
-                        fy0 = math.floor(yy)
-                        fx = xx - fx0
-                        fy = yy - fy0
-                        xa = np.int64(fx0) % tw_
-                        ya = np.int64(fy0) % th_
-                        xb = xa + 1 if xa + 1 < tw_ else 0
-                        yb = ya + 1 if ya + 1 < th_ else 0
-                        p00 = off + (ya * tw_ + xa) * 3
-                        p01 = off + (ya * tw_ + xb) * 3
-                        p10 = off + (yb * tw_ + xa) * 3
-                        p11 = off + (yb * tw_ + xb) * 3
-                        ga = (1 - fy) * (1 - fx)
-                        gb = (1 - fy) * fx
-                        gc = fy * (1 - fx)
-                        gd = fy * fx
-                        al0 *= _bilerp(tex_flat, tex_lut, p00, p01, p10, p11, ga, gb, gc, gd)
-                        al1 *= _bilerp(
-                            tex_flat, tex_lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd
-                        )
-                        al2 *= _bilerp(
-                            tex_flat, tex_lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd
-                        )
+                al0, al1, al2 = _albedo_at(p.surf, prim, bary)
                 if depth == 1:
-                    first_hit[s] = True
-                    if want_aux:
-                        alb_out[s, 0] = al0
-                        alb_out[s, 1] = al1
-                        alb_out[s, 2] = al2
-                        nrm_out[s, 0] = ns0
-                        nrm_out[s, 1] = ns1
-                        nrm_out[s, 2] = ns2
+                    out.first_hit[s] = True
+                    if sm.want_aux:
+                        out.albedo[s, 0] = al0
+                        out.albedo[s, 1] = al1
+                        out.albedo[s, 2] = al2
+                        out.normal[s, 0] = ns[0]
+                        out.normal[s, 1] = ns[1]
+                        out.normal[s, 2] = ns[2]
                 if depth >= limit:
                     break
                 f0 = t0 * al0
@@ -736,191 +977,47 @@ def trace_paths(
                 f2 = t2 * al2
                 if not (f0 > 0 or f1 > 0 or f2 > 0):
                     break
-                eps = _eps(x0, x1, x2, th, diag)
-                xo0 = x0 + nf0 * eps
-                xo1 = x1 + nf1 * eps
-                xo2 = x2 + nf2 * eps
-                so0 = np.float32(xo0)
-                so1 = np.float32(xo1)
-                so2 = np.float32(xo2)
-                fo0 = f0 * _INV_PI
-                fo1 = f1 * _INV_PI
-                fo2 = f2 * _INV_PI
+                # ---- next-event estimation from the offset origin `so` (float32)
+                eps = _eps(x[0], x[1], x[2], th, p.surf.diag)
+                so = (
+                    np.float32(x[0] + nf[0] * eps),
+                    np.float32(x[1] + nf[1] * eps),
+                    np.float32(x[2] + nf[2] * eps),
+                )
+                fo = (f0 * _INV_PI, f1 * _INV_PI, f2 * _INV_PI)
                 to_direct_dl = depth == 1
                 dim0 = 2 + depth * DIMS_PER_BOUNCE
                 pair0 = 1 + 3 * depth
-                # ---- suns
-                for j in range(n_s):
-                    wi0 = -suns[j, 0]
-                    wi1 = -suns[j, 1]
-                    wi2 = -suns[j, 2]
-                    c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
-                    if c > 0 and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0:
-                        tf = np.float32(np.inf)
-                        n_shadow += 1
-                        if _visible(rtc, fn_occl, ray, log, so0, so1, so2, wi0, wi1, wi2, tf):
-                            _add_to(
-                                direct,
-                                gi,
-                                to_direct_dl,
-                                s,
-                                fo0 * suns[j, 3] * c,
-                                fo1 * suns[j, 4] * c,
-                                fo2 * suns[j, 5] * c,
-                            )
-                # ---- point and spot lights
-                for j in range(n_q):
-                    wi0, wi1, wi2, dist = _towards(
-                        x0, x1, x2, punct[j, 0], punct[j, 1], punct[j, 2]
-                    )
-                    c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
-                    fall = 1.0
-                    if punct[j, 11] > 0:
-                        ca = -(wi0 * punct[j, 6] + wi1 * punct[j, 7] + wi2 * punct[j, 8])
-                        xf = min(max((ca - punct[j, 10]) / (punct[j, 9] - punct[j, 10]), 0.0), 1.0)
-                        fall = xf * xf * (3.0 - 2.0 * xf)
-                    i0 = punct[j, 3] * fall
-                    i1 = punct[j, 4] * fall
-                    i2 = punct[j, 5] * fall
-                    if (
-                        c > 0
-                        and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0
-                        and dist > 0
-                        and (i0 > 0 or i1 > 0 or i2 > 0)
-                    ):
-                        tf = np.float32(dist * (1 - 1e-5) - eps)
-                        n_shadow += 1
-                        if _visible(rtc, fn_occl, ray, log, so0, so1, so2, wi0, wi1, wi2, tf):
-                            g = c / (dist * dist)
-                            _add_to(
-                                direct,
-                                gi,
-                                to_direct_dl,
-                                s,
-                                fo0 * i0 * g,
-                                fo1 * i1 * g,
-                                fo2 * i2 * g,
-                            )
-                # ---- emissive triangles (power-sampled, MIS with the BSDF)
                 use_ld = sampler == SAMPLER_SOBOL and depth <= LD_MAX_DEPTH
+                n_shadow += _sun_lights(p, ray, log, out, s, to_direct_dl, nf, ns, so, fo)
+                n_shadow += _point_spot_lights(
+                    p, ray, log, out, s, to_direct_dl, x, nf, ns, so, fo, eps
+                )
                 if n_e > 0:
                     if use_ld:
-                        ul = _sobol1d(ps_pix, sid[s], pair0 + 1)
-                        ra, r2 = _sobol2(ps_pix, sid[s], pair0 + 2)
+                        ul = _sobol1d(pixel_seed, sid[s], pair0 + 1)
+                        ra, r2 = _sobol2(pixel_seed, sid[s], pair0 + 2)
                     else:
                         ul = _u01(base_s, salts[dim0 + 2])
                         ra = _u01(base_s, salts[dim0 + 3])
                         r2 = _u01(base_s, salts[dim0 + 4])
-                    # first k with cdf[k] > ul (searchsorted side='right')
-                    a_ = 0
-                    b_ = n_e
-                    while a_ < b_:
-                        mid = (a_ + b_) // 2
-                        if emit_cdf[mid] <= ul:
-                            a_ = mid + 1
-                        else:
-                            b_ = mid
-                    lf = emit_faces[min(a_, n_e - 1)]
-                    r1 = math.sqrt(ra)
-                    ca_ = r1 * (1 - r2)
-                    cb_ = r1 * r2
-                    y0 = (
-                        np.float64(tri[lf, 0, 0])
-                        + ca_ * (np.float64(tri[lf, 1, 0]) - np.float64(tri[lf, 0, 0]))
-                        + cb_ * (np.float64(tri[lf, 2, 0]) - np.float64(tri[lf, 0, 0]))
+                    n_shadow += _emitter_light(
+                        p, ray, log, out, s, to_direct_dl, x, nf, ns, so, fo, eps, ul, ra, r2
                     )
-                    y1 = (
-                        np.float64(tri[lf, 0, 1])
-                        + ca_ * (np.float64(tri[lf, 1, 1]) - np.float64(tri[lf, 0, 1]))
-                        + cb_ * (np.float64(tri[lf, 2, 1]) - np.float64(tri[lf, 0, 1]))
-                    )
-                    y2 = (
-                        np.float64(tri[lf, 0, 2])
-                        + ca_ * (np.float64(tri[lf, 1, 2]) - np.float64(tri[lf, 0, 2]))
-                        + cb_ * (np.float64(tri[lf, 2, 2]) - np.float64(tri[lf, 0, 2]))
-                    )
-                    wi0, wi1, wi2, dist = _towards(x0, x1, x2, y0, y1, y2)
-                    c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
-                    cl = -(fn[lf, 0] * wi0 + fn[lf, 1] * wi1 + fn[lf, 2] * wi2)
-                    if c > 0 and cl > 0 and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0 and dist > 0:
-                        pl = face_light_pmf[lf] / face_area[lf] * dist * dist / cl
-                        pb = c * _INV_PI
-                        w = pl * pl / (pl * pl + pb * pb)
-                        g = c * w / pl
-                        eps_l = _eps(y0, y1, y2, dist, diag)
-                        tf = np.float32(max(dist - eps - eps_l, 0.0))
-                        n_shadow += 1
-                        if _visible(rtc, fn_occl, ray, log, so0, so1, so2, wi0, wi1, wi2, tf):
-                            _add_to(
-                                direct,
-                                gi,
-                                to_direct_dl and face_is_area[lf],
-                                s,
-                                fo0 * mat_emission[face_mat[lf], 0] * g,
-                                fo1 * mat_emission[face_mat[lf], 1] * g,
-                                fo2 * mat_emission[face_mat[lf], 2] * g,
-                            )
-                # ---- sky (importance-sampled from its table, MIS with the BSDF); always gi
                 if sky_mis:
                     if use_ld:
-                        us1, us2 = _sobol2(ps_pix, sid[s], SKY_PAIR0 + depth)
+                        us1, us2 = _sobol2(pixel_seed, sid[s], SKY_PAIR0 + depth)
                     else:
                         us1 = _u01(base_s, salts[dim0 + 6])
                         us2 = _u01(base_s, salts[dim0 + 7])
-                    wi0, wi1, wi2, psk = _sky_sample(
-                        sky_frame, sky_marg, sky_cond, sky_pdf, us1, us2
-                    )
-                    c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
-                    if psk > 0 and c > 0 and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0:
-                        pb = c * _INV_PI
-                        g = c * (psk / (psk * psk + pb * pb))  # c * w / psk, w = power heuristic
-                        tf = np.float32(np.inf)
-                        n_shadow += 1
-                        if _visible(rtc, fn_occl, ray, log, so0, so1, so2, wi0, wi1, wi2, tf):
-                            le = _sky(sky_kind, sky, wi0, wi1, wi2)
-                            _add_to(
-                                direct,
-                                gi,
-                                False,
-                                s,
-                                fo0 * le[0] * g,
-                                fo1 * le[1] * g,
-                                fo2 * le[2] * g,
-                            )
-                # ---- bounce: cosine-weighted about the shading normal (Duff et al. basis)
+                    n_shadow += _sky_light(p, ray, log, out, s, nf, ns, so, fo, us1, us2)
+                # ---- bounce
                 if use_ld:
-                    u1, u2 = _sobol2(ps_pix, sid[s], pair0)
+                    u1, u2 = _sobol2(pixel_seed, sid[s], pair0)
                 else:
                     u1 = _u01(base_s, salts[dim0])
                     u2 = _u01(base_s, salts[dim0 + 1])
-                sign = 1.0 if ns2 >= 0 else -1.0
-                a = -1.0 / (sign + ns2)
-                b = ns0 * ns1 * a
-                ta0 = 1 + sign * ns0 * ns0 * a
-                ta1 = sign * b
-                ta2 = -sign * ns0
-                tb0 = b
-                tb1 = sign + ns1 * ns1 * a
-                tb2 = -ns1
-                r = math.sqrt(u1)
-                phi = 2 * _PI * u2
-                zc = math.sqrt(max(0.0, 1 - u1))
-                rc = r * math.cos(phi)
-                rs = r * math.sin(phi)
-                wi0 = rc * ta0 + rs * tb0 + zc * ns0
-                wi1 = rc * ta1 + rs * tb1 + zc * ns1
-                wi2 = rc * ta2 + rs * tb2 + zc * ns2
-                below = wi0 * nf0 + wi1 * nf1 + wi2 * nf2
-                if below <= 0:
-                    wi0 -= 2 * below * nf0
-                    wi1 -= 2 * below * nf1
-                    wi2 -= 2 * below * nf2
-                ln = math.sqrt(wi0 * wi0 + wi1 * wi1 + wi2 * wi2)
-                if ln > 1e-20:
-                    wi0, wi1, wi2 = wi0 / ln, wi1 / ln, wi2 / ln
-                else:
-                    wi0, wi1, wi2 = nf0, nf1, nf2
-                pdf = max(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1e-12) * _INV_PI
+                wi0, wi1, wi2, pdf = _cosine_sample(nf, ns, u1, u2)
                 if depth + 1 > rr_depth:  # Russian roulette for the next segment
                     q = min(max(f0, max(f1, f2)), 0.95)
                     if not (_u01(base_s, salts[dim0 + 5]) < q):
@@ -928,7 +1025,7 @@ def trace_paths(
                     f0 /= q
                     f1 /= q
                     f2 /= q
-                ox, oy, oz = so0, so1, so2
+                ox, oy, oz = so
                 dx, dy, dz = wi0, wi1, wi2
                 t0, t1, t2 = f0, f1, f2
                 pdf_prev = pdf
@@ -966,11 +1063,13 @@ def _log_ray(log, kind, ox, oy, oz, dx, dy, dz, tf):
 
 
 @nb.njit(inline="always", **_JIT)
-def _visible(rtc, fn_occl, ray, log, ox, oy, oz, dx, dy, dz, tf):
-    """Shadow ray from the float32 origin along the unit (dx, dy, dz) up to ``tf``: unblocked?"""
+def _visible(emb, ray, log, so, dx, dy, dz, tf):
+    """Shadow ray from the float32 origin ``so`` (3-tuple) along the unit (dx, dy, dz) up to
+    ``tf``: unblocked? ``emb``: :data:`EmbreeFns`."""
+    ox, oy, oz = so
     _log_ray(log, 1, ox, oy, oz, dx, dy, dz, tf)
     dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
-    return not _occluded(rtc, fn_occl, ray, ox, oy, oz, dx32, dy32, dz32, tf)
+    return not _occluded(emb.scene, emb.fn_occluded, ray, ox, oy, oz, dx32, dy32, dz32, tf)
 
 
 @nb.njit(**_JIT)
