@@ -209,16 +209,16 @@ def _sample_base(seed_mix, pix, sid):
 
 
 # ---------------------------------------------------------------------------------- shading
+# (Helpers take the arrays they read, not the parameter struct: an inlined helper that takes a
+# tuple of arrays increfs and decrefs every array in it per call, atomically.)
 @nb.njit(inline="always", **_JIT)
-def _envmap(sk, dx, dy, dz):
-    """Radiance of the lat-long map ``sk.env`` (H, W + 1, 3) float32 (last column = first)
-    along the world direction (dx, dy, dz): Mitsuba's envmap lookup (bilinear, half-texel
-    shifted in u), see :class:`icbtool.scene.Sky`."""
-    r = sk.env_rot  # world_from_map: map-space direction = r^T d
-    lx = r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz
-    ly = r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz
-    lz = r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz
-    env = sk.env
+def _envmap(env, rot, scale, dx, dy, dz):
+    """Radiance of the lat-long map ``env`` (H, W + 1, 3) float32 (last column = first) along
+    the world direction (dx, dy, dz); ``rot``: world_from_map (3, 3). Mitsuba's envmap lookup
+    (bilinear, half-texel shifted in u), see :class:`icbtool.scene.Sky`."""
+    lx = rot[0, 0] * dx + rot[1, 0] * dy + rot[2, 0] * dz
+    ly = rot[0, 1] * dx + rot[1, 1] * dy + rot[2, 1] * dz
+    lz = rot[0, 2] * dx + rot[1, 2] * dy + rot[2, 2] * dz
     h = env.shape[0]
     w1 = env.shape[1]
     u = math.atan2(lx, -lz) * (0.5 * _INV_PI) - 0.5 / (w1 - 1)
@@ -234,25 +234,23 @@ def _envmap(sk, dx, dy, dz):
     gb = (1 - fy) * fx
     gc = fy * (1 - fx)
     gd = fy * fx
-    k = sk.env_scale
     return (
-        k * (ga * env[yi, xi, 0] + gb * env[yi, xi + 1, 0])
-        + k * (gc * env[yi + 1, xi, 0] + gd * env[yi + 1, xi + 1, 0]),
-        k * (ga * env[yi, xi, 1] + gb * env[yi, xi + 1, 1])
-        + k * (gc * env[yi + 1, xi, 1] + gd * env[yi + 1, xi + 1, 1]),
-        k * (ga * env[yi, xi, 2] + gb * env[yi, xi + 1, 2])
-        + k * (gc * env[yi + 1, xi, 2] + gd * env[yi + 1, xi + 1, 2]),
+        scale * (ga * env[yi, xi, 0] + gb * env[yi, xi + 1, 0])
+        + scale * (gc * env[yi + 1, xi, 0] + gd * env[yi + 1, xi + 1, 0]),
+        scale * (ga * env[yi, xi, 1] + gb * env[yi, xi + 1, 1])
+        + scale * (gc * env[yi + 1, xi, 1] + gd * env[yi + 1, xi + 1, 1]),
+        scale * (ga * env[yi, xi, 2] + gb * env[yi, xi + 1, 2])
+        + scale * (gc * env[yi + 1, xi, 2] + gd * env[yi + 1, xi + 1, 2]),
     )
 
 
 @nb.njit(inline="always", **_JIT)
-def _sky(sk, dx, dy, dz):
-    """Sky radiance along (dx, dy, dz). Uniform and gradient skies: ``sk.rad`` = [zenith,
-    horizon, ground, up] (float32 values); an envmap: :func:`_envmap`."""
-    if sk.kind == SKY_ENVMAP:
-        return _envmap(sk, dx, dy, dz)
-    sky = sk.rad
-    if sk.kind == SKY_UNIFORM:
+def _sky(kind, sky, env, rot, scale, dx, dy, dz):
+    """Sky radiance along (dx, dy, dz). Uniform and gradient skies: ``sky`` = [zenith, horizon,
+    ground, up] (float32 values); an envmap (``kind == SKY_ENVMAP``): :func:`_envmap`."""
+    if kind == SKY_ENVMAP:
+        return _envmap(env, rot, scale, dx, dy, dz)
+    if kind == SKY_UNIFORM:
         return (
             np.float64(np.float32(sky[0, 0])),
             np.float64(np.float32(sky[0, 1])),
@@ -412,39 +410,37 @@ def _cdf_pick(cdf, row, u):
 
 
 @nb.njit(inline="always", **_JIT)
-def _sky_sample(sk, u1, u2):
-    """A direction drawn from the sky table of ``sk`` and its density: (dx, dy, dz, pdf).
+def _sky_sample(frame, marg, cond, pdf, rows, phi0, u1, u2):
+    """A direction drawn from a sky table and its density: (dx, dy, dz, pdf).
 
-    ``sk.marg``: (1, nc) row CDF; ``sk.cond``: (nc, nphi) column CDFs; rows are equal in
-    ``c = d . up`` (``sk.rows == ROWS_COS``) or in the polar angle (``ROWS_THETA``, envmaps;
-    uniform in ``c`` within a row either way); columns start at azimuth ``sk.phi0``."""
-    frame = sk.frame
-    nc, nphi = sk.pdf.shape
-    i, rc = _cdf_pick(sk.marg, 0, u1)
-    j, rp = _cdf_pick(sk.cond, i, u2)
-    if sk.rows == ROWS_THETA:
+    marg: (1, nc) row CDF; cond: (nc, nphi) column CDFs; rows are equal in ``c = d . up``
+    (``rows == ROWS_COS``) or in the polar angle (``ROWS_THETA``, envmaps; uniform in ``c``
+    within a row either way); columns start at azimuth ``phi0``."""
+    nc, nphi = pdf.shape
+    i, rc = _cdf_pick(marg, 0, u1)
+    j, rp = _cdf_pick(cond, i, u2)
+    if rows == ROWS_THETA:
         c_hi = math.cos(i * (_PI / nc))
         c_lo = math.cos((i + 1) * (_PI / nc))
         c = c_hi + rc * (c_lo - c_hi)
     else:
         c = -1.0 + (i + rc) * (2.0 / nc)
-    phi = sk.phi0 + (j + rp) * (2.0 * _PI / nphi)
+    phi = phi0 + (j + rp) * (2.0 * _PI / nphi)
     sn = math.sqrt(max(0.0, 1.0 - c * c))
     x = sn * math.cos(phi)
     y = sn * math.sin(phi)
     d0 = x * frame[0, 0] + y * frame[1, 0] + c * frame[2, 0]
     d1 = x * frame[0, 1] + y * frame[1, 1] + c * frame[2, 1]
     d2 = x * frame[0, 2] + y * frame[1, 2] + c * frame[2, 2]
-    return d0, d1, d2, sk.pdf[i, j]
+    return d0, d1, d2, pdf[i, j]
 
 
 @nb.njit(inline="always", **_JIT)
-def _sky_pdf(sk, dx, dy, dz):
+def _sky_pdf(frame, pdf, rows, phi0, dx, dy, dz):
     """Density of :func:`_sky_sample` at the unit direction (dx, dy, dz)."""
-    frame = sk.frame
-    nc, nphi = sk.pdf.shape
+    nc, nphi = pdf.shape
     c = dx * frame[2, 0] + dy * frame[2, 1] + dz * frame[2, 2]
-    if sk.rows == ROWS_THETA:
+    if rows == ROWS_THETA:
         th = math.acos(min(max(c, -1.0), 1.0))
         i = min(max(np.int64(th * (nc / _PI)), 0), nc - 1)
     else:
@@ -456,19 +452,20 @@ def _sky_pdf(sk, dx, dy, dz):
                 dx * frame[1, 0] + dy * frame[1, 1] + dz * frame[1, 2],
                 dx * frame[0, 0] + dy * frame[0, 1] + dz * frame[0, 2],
             )
-            - sk.phi0
+            - phi0
         )
         if phi < 0:
             phi += 2.0 * _PI
         j = min(max(np.int64(phi * (nphi / (2.0 * _PI))), 0), nphi - 1)
-    return sk.pdf[i, j]
+    return pdf[i, j]
 
 
 @nb.njit(**_JIT)
 def sky_sample_batch(sk, u, out_d, out_pdf):
-    """:func:`_sky_sample` for uniform pairs u (N, 2) (tests and tools)."""
+    """:func:`_sky_sample` of the :data:`SkyParams` ``sk`` for uniform pairs u (N, 2)."""
+    frame, marg, cond, pdf, rows, phi0 = sk.frame, sk.marg, sk.cond, sk.pdf, sk.rows, sk.phi0
     for n in range(len(u)):
-        d0, d1, d2, p = _sky_sample(sk, u[n, 0], u[n, 1])
+        d0, d1, d2, p = _sky_sample(frame, marg, cond, pdf, rows, phi0, u[n, 0], u[n, 1])
         out_d[n, 0] = d0
         out_d[n, 1] = d1
         out_d[n, 2] = d2
@@ -477,16 +474,19 @@ def sky_sample_batch(sk, u, out_d, out_pdf):
 
 @nb.njit(**_JIT)
 def sky_pdf_batch(sk, d, out):
-    """:func:`_sky_pdf` for unit directions d (N, 3) (tests and tools)."""
+    """:func:`_sky_pdf` of the :data:`SkyParams` ``sk`` for unit directions d (N, 3)."""
+    frame, pdf, rows, phi0 = sk.frame, sk.pdf, sk.rows, sk.phi0
     for n in range(len(d)):
-        out[n] = _sky_pdf(sk, d[n, 0], d[n, 1], d[n, 2])
+        out[n] = _sky_pdf(frame, pdf, rows, phi0, d[n, 0], d[n, 1], d[n, 2])
 
 
 @nb.njit(**_JIT)
 def sky_radiance_batch(sk, d, out):
-    """:func:`_sky` for unit directions d (N, 3) (tests: the kernels' lookup = Sky.radiance)."""
+    """:func:`_sky` of the :data:`SkyParams` ``sk`` for unit directions d (N, 3) (tests: the
+    kernels' lookup equals Sky.radiance)."""
+    kind, rad, env, rot, scale = sk.kind, sk.rad, sk.env, sk.env_rot, sk.env_scale
     for n in range(len(d)):
-        a, b, c = _sky(sk, d[n, 0], d[n, 1], d[n, 2])
+        a, b, c = _sky(kind, rad, env, rot, scale, d[n, 0], d[n, 1], d[n, 2])
         out[n, 0] = a
         out[n, 1] = b
         out[n, 2] = c
@@ -555,23 +555,19 @@ SKY_PAIR0 = 1 + 3 * (LD_MAX_DEPTH + 1)
 
 # ---------------------------------------------------------------------------------- path steps
 @nb.njit(inline="always", **_JIT)
-def _camera_ray(p, pix_s, sid_s, ps_pix, base_s):
+def _camera_ray(intr, r_wc, width, jitter, sampler, salts, pix_s, sid_s, ps_pix, base_s):
     """Unit world direction of the camera ray through pixel ``pix_s`` (jittered or centred)."""
-    v = p.cam
-    sm = p.sampling
-    if v.jitter:
-        if sm.sampler == SAMPLER_SOBOL:
+    if jitter:
+        if sampler == SAMPLER_SOBOL:
             jx, jy = _sobol2(ps_pix, sid_s, 0)
         else:
-            jx = _u01(base_s, sm.salts[0])
-            jy = _u01(base_s, sm.salts[1])
+            jx = _u01(base_s, salts[0])
+            jy = _u01(base_s, salts[1])
     else:
         jx = 0.5
         jy = 0.5
-    intr = v.intr
-    r_wc = v.r_wc
-    cxp = (np.float64(pix_s % v.width) + jx - intr[2]) / intr[0]
-    cyp = (np.float64(pix_s // v.width) + jy - intr[3]) / intr[1]
+    cxp = (np.float64(pix_s % width) + jx - intr[2]) / intr[0]
+    cyp = (np.float64(pix_s // width) + jy - intr[3]) / intr[1]
     nrm = math.sqrt(cxp * cxp + cyp * cyp + 1.0)
     cxp /= nrm
     cyp /= nrm
@@ -583,32 +579,10 @@ def _camera_ray(p, pix_s, sid_s, ps_pix, base_s):
 
 
 @nb.njit(inline="always", **_JIT)
-def _sky_seen(sk, out, s, depth, pdf_prev, t0, t1, t2, dx, dy, dz):
-    """A ray that left the scene: the sky's radiance (direct for a camera ray; else gi, MIS-
-    weighted against the sky's light sample)."""
-    le = _sky(sk, dx, dy, dz)
-    if depth == 1:
-        out.direct[s, 0] += le[0] * t0
-        out.direct[s, 1] += le[1] * t1
-        out.direct[s, 2] += le[2] * t2
-    else:
-        w = 1.0
-        if sk.mis:  # MIS weight of the BSDF sample against the sky sample
-            psk = _sky_pdf(sk, dx, dy, dz)
-            w = pdf_prev * pdf_prev / max(pdf_prev * pdf_prev + psk * psk, 1e-300)
-        out.gi[s, 0] += le[0] * t0 * w
-        out.gi[s, 1] += le[1] * t1 * w
-        out.gi[s, 2] += le[2] * t2 * w
-
-
-@nb.njit(inline="always", **_JIT)
-def _hit_frame(sf, prim, h_u, h_v, dx, dy, dz):
+def _hit_frame(tri, fn, vn, shading_normals, prim, h_u, h_v, dx, dy, dz):
     """Where a ray hit face ``prim`` at barycentrics (h_u, h_v): (point, barycentrics (w0, b1,
     b2), cos_o (geometric normal . -ray), front, forward-facing geometric normal nf, shading
     normal ns on nf's side), vectors as 3-tuples."""
-    tri = sf.tri
-    fn = sf.face_n
-    vn = sf.vn
     b1 = np.float64(h_u)
     b2 = np.float64(h_v)
     w0 = 1.0 - b1 - b2
@@ -627,7 +601,7 @@ def _hit_frame(sf, prim, h_u, h_v, dx, dy, dz):
         nf0, nf1, nf2 = g0, g1, g2
     else:
         nf0, nf1, nf2 = -g0, -g1, -g2
-    if sf.shading_normals:
+    if shading_normals:
         a0 = w0 * vn[prim, 0, 0] + b1 * vn[prim, 1, 0] + b2 * vn[prim, 2, 0]
         a1 = w0 * vn[prim, 0, 1] + b1 * vn[prim, 1, 1] + b2 * vn[prim, 2, 1]
         a2 = w0 * vn[prim, 0, 2] + b1 * vn[prim, 1, 2] + b2 * vn[prim, 2, 2]
@@ -644,93 +618,64 @@ def _hit_frame(sf, prim, h_u, h_v, dx, dy, dz):
 
 
 @nb.njit(inline="always", **_JIT)
-def _emission_seen(p, out, s, prim, th, cos_o, depth, from_first, pdf_prev, t0, t1, t2):
-    """Emission of the front face ``prim`` hit at distance th: direct for a camera ray (and, MIS-
-    weighted, for a bounce off the first hit into an AreaLight); else gi, MIS-weighted against
-    the emitter sample."""
-    em = p.surf.mat_emission
-    lt = p.lights
-    m = p.surf.face_mat[prim]
-    e0 = em[m, 0]
-    e1 = em[m, 1]
-    e2 = em[m, 2]
-    if not (e0 > 0 or e1 > 0 or e2 > 0):
-        return
-    if depth == 1:
-        out.direct[s, 0] += e0 * t0
-        out.direct[s, 1] += e1 * t1
-        out.direct[s, 2] += e2 * t2
-        return
-    pl = lt.face_light_pmf[prim] / max(lt.face_area[prim], 1e-300) * th * th / max(cos_o, 1e-12)
-    pb = pdf_prev
-    w = pb * pb / max(pb * pb + pl * pl, 1e-300) if pl > 0 else 1.0
-    _add_to(
-        out.direct,
-        out.gi,
-        from_first and lt.face_is_area[prim],
-        s,
-        e0 * t0 * w,
-        e1 * t1 * w,
-        e2 * t2 * w,
-    )
-
-
-@nb.njit(inline="always", **_JIT)
-def _albedo_at(sf, prim, bary):
-    """Albedo of face ``prim`` at barycentrics (w0, b1, b2): its material's, times its texture
-    (repeat; bilinear or nearest)."""
+def _albedo_at(mat_albedo, face_uv, tex, lut, tex_off, tex_hw, nearest, m, prim, bary):
+    """Albedo of face ``prim`` (material m) at barycentrics (w0, b1, b2): the material's, times
+    its texture if any (repeat; bilinear or nearest)."""
     w0, b1, b2 = bary
-    m = sf.face_mat[prim]
-    al0 = sf.mat_albedo[m, 0]
-    al1 = sf.mat_albedo[m, 1]
-    al2 = sf.mat_albedo[m, 2]
-    if sf.tex_off[m] < 0:
-        return al0, al1, al2
-    face_uv = sf.face_uv
-    tex = sf.tex_flat
-    lut = sf.tex_lut
-    uu = w0 * face_uv[prim, 0, 0] + b1 * face_uv[prim, 1, 0] + b2 * face_uv[prim, 2, 0]
-    vv = w0 * face_uv[prim, 0, 1] + b1 * face_uv[prim, 1, 1] + b2 * face_uv[prim, 2, 1]
-    th = sf.tex_hw[m, 0]
-    tw = sf.tex_hw[m, 1]
-    off = sf.tex_off[m]
-    xx = uu * tw - 0.5
-    yy = (1.0 - vv) * th - 0.5
-    if sf.nearest:
-        xi = np.int64(math.floor(xx + 0.5)) % tw
-        yi = np.int64(math.floor(yy + 0.5)) % th
-        q = off + (yi * tw + xi) * 3
-        al0 *= _texel(tex, lut, q)
-        al1 *= _texel(tex, lut, q + 1)
-        al2 *= _texel(tex, lut, q + 2)
-        return al0, al1, al2
-    fx0 = math.floor(xx)
-    fy0 = math.floor(yy)
-    fx = xx - fx0
-    fy = yy - fy0
-    xa = np.int64(fx0) % tw
-    ya = np.int64(fy0) % th
-    xb = xa + 1 if xa + 1 < tw else 0
-    yb = ya + 1 if ya + 1 < th else 0
-    p00 = off + (ya * tw + xa) * 3
-    p01 = off + (ya * tw + xb) * 3
-    p10 = off + (yb * tw + xa) * 3
-    p11 = off + (yb * tw + xb) * 3
-    ga = (1 - fy) * (1 - fx)
-    gb = (1 - fy) * fx
-    gc = fy * (1 - fx)
-    gd = fy * fx
-    al0 *= _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd)
-    al1 *= _bilerp(tex, lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd)
-    al2 *= _bilerp(tex, lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd)
+    al0 = mat_albedo[m, 0]
+    al1 = mat_albedo[m, 1]
+    al2 = mat_albedo[m, 2]
+    if tex_off[m] >= 0:
+        uu = w0 * face_uv[prim, 0, 0] + b1 * face_uv[prim, 1, 0] + b2 * face_uv[prim, 2, 0]
+        vv = w0 * face_uv[prim, 0, 1] + b1 * face_uv[prim, 1, 1] + b2 * face_uv[prim, 2, 1]
+        th = tex_hw[m, 0]
+        tw = tex_hw[m, 1]
+        off = tex_off[m]
+        xx = uu * tw - 0.5
+        yy = (1.0 - vv) * th - 0.5
+        if nearest:
+            xi = np.int64(math.floor(xx + 0.5)) % tw
+            yi = np.int64(math.floor(yy + 0.5)) % th
+            q = off + (yi * tw + xi) * 3
+            al0 *= _texel(tex, lut, q)
+            al1 *= _texel(tex, lut, q + 1)
+            al2 *= _texel(tex, lut, q + 2)
+        else:
+            fx0 = math.floor(xx)
+            fy0 = math.floor(yy)
+            fx = xx - fx0
+            fy = yy - fy0
+            xa = np.int64(fx0) % tw
+            ya = np.int64(fy0) % th
+            xb = xa + 1 if xa + 1 < tw else 0
+            yb = ya + 1 if ya + 1 < th else 0
+            p00 = off + (ya * tw + xa) * 3
+            p01 = off + (ya * tw + xb) * 3
+            p10 = off + (yb * tw + xa) * 3
+            p11 = off + (yb * tw + xb) * 3
+            ga = (1 - fy) * (1 - fx)
+            gb = (1 - fy) * fx
+            gc = fy * (1 - fx)
+            gd = fy * fx
+            al0 *= _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd)
+            al1 *= _bilerp(tex, lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd)
+            al2 *= _bilerp(tex, lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd)
     return al0, al1, al2
 
 
 @nb.njit(inline="always", **_JIT)
-def _sun_lights(p, ray, log, out, s, to_direct, nf, ns, so, fo):
+def _emission_mis_weight(pmf, area, th, cos_o, pdf_prev):
+    """Power-heuristic weight of a BSDF-sampled hit on an emitter (face pick pmf, face area,
+    distance th, cosine at the emitter cos_o) against the emitter sample."""
+    pl = pmf / max(area, 1e-300) * th * th / max(cos_o, 1e-12)
+    pb = pdf_prev
+    return pb * pb / max(pb * pb + pl * pl, 1e-300) if pl > 0 else 1.0
+
+
+@nb.njit(inline="always", **_JIT)
+def _sun_lights(suns, emb, ray, log, direct, gi, s, to_direct, nf, ns, so, fo):
     """Next-event estimation of every directional light (delta: no MIS); returns the number of
     shadow rays traced. nf, ns: normals; so: float32 ray origin; fo: BSDF value f / pi."""
-    suns = p.lights.suns
     n_shadow = 0
     for j in range(suns.shape[0]):
         wi0 = -suns[j, 0]
@@ -740,10 +685,10 @@ def _sun_lights(p, ray, log, out, s, to_direct, nf, ns, so, fo):
         if c > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0:
             tf = np.float32(np.inf)
             n_shadow += 1
-            if _visible(p.embree, ray, log, so, wi0, wi1, wi2, tf):
+            if _visible(emb, ray, log, so, wi0, wi1, wi2, tf):
                 _add_to(
-                    out.direct,
-                    out.gi,
+                    direct,
+                    gi,
                     to_direct,
                     s,
                     fo[0] * suns[j, 3] * c,
@@ -754,9 +699,8 @@ def _sun_lights(p, ray, log, out, s, to_direct, nf, ns, so, fo):
 
 
 @nb.njit(inline="always", **_JIT)
-def _point_spot_lights(p, ray, log, out, s, to_direct, x, nf, ns, so, fo, eps):
+def _point_spot_lights(punct, emb, ray, log, direct, gi, s, to_direct, x, nf, ns, so, fo, eps):
     """Next-event estimation of every point and spot light (delta); returns the shadow rays."""
-    punct = p.lights.punct
     n_shadow = 0
     for j in range(punct.shape[0]):
         wi0, wi1, wi2, dist = _towards(x[0], x[1], x[2], punct[j, 0], punct[j, 1], punct[j, 2])
@@ -777,23 +721,17 @@ def _point_spot_lights(p, ray, log, out, s, to_direct, x, nf, ns, so, fo, eps):
         ):
             tf = np.float32(dist * (1 - 1e-5) - eps)
             n_shadow += 1
-            if _visible(p.embree, ray, log, so, wi0, wi1, wi2, tf):
+            if _visible(emb, ray, log, so, wi0, wi1, wi2, tf):
                 g = c / (dist * dist)
-                _add_to(
-                    out.direct, out.gi, to_direct, s, fo[0] * i0 * g, fo[1] * i1 * g, fo[2] * i2 * g
-                )
+                _add_to(direct, gi, to_direct, s, fo[0] * i0 * g, fo[1] * i1 * g, fo[2] * i2 * g)
     return n_shadow
 
 
 @nb.njit(inline="always", **_JIT)
-def _emitter_light(p, ray, log, out, s, to_direct, x, nf, ns, so, fo, eps, ul, ra, r2):
-    """One emissive triangle drawn by power (ul), a uniform point on it (ra, r2), MIS-weighted
-    against BSDF sampling (power heuristic); returns the shadow rays traced (0 or 1)."""
-    lt = p.lights
-    tri = p.surf.tri
-    fn = p.surf.face_n
-    n_e = len(lt.emit_faces)
-    lf = lt.emit_faces[min(np.searchsorted(lt.emit_cdf, ul, side="right"), n_e - 1)]
+def _emitter_point(tri, emit_faces, emit_cdf, ul, ra, r2):
+    """An emissive face drawn by power (ul) and a uniform point on it (ra, r2): (face, point)."""
+    n_e = len(emit_faces)
+    lf = emit_faces[min(np.searchsorted(emit_cdf, ul, side="right"), n_e - 1)]
     r1 = math.sqrt(ra)
     ca = r1 * (1 - r2)
     cb = r1 * r2
@@ -812,50 +750,44 @@ def _emitter_light(p, ray, log, out, s, to_direct, x, nf, ns, so, fo, eps, ul, r
         + ca * (np.float64(tri[lf, 1, 2]) - np.float64(tri[lf, 0, 2]))
         + cb * (np.float64(tri[lf, 2, 2]) - np.float64(tri[lf, 0, 2]))
     )
-    wi0, wi1, wi2, dist = _towards(x[0], x[1], x[2], y0, y1, y2)
-    c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
-    cl = -(fn[lf, 0] * wi0 + fn[lf, 1] * wi1 + fn[lf, 2] * wi2)
-    if not (c > 0 and cl > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0 and dist > 0):
-        return 0
-    pl = lt.face_light_pmf[lf] / lt.face_area[lf] * dist * dist / cl
-    pb = c * _INV_PI
-    w = pl * pl / (pl * pl + pb * pb)
-    g = c * w / pl
-    eps_l = _eps(y0, y1, y2, dist, p.surf.diag)
-    tf = np.float32(max(dist - eps - eps_l, 0.0))
-    if _visible(p.embree, ray, log, so, wi0, wi1, wi2, tf):
-        em = p.surf.mat_emission
-        m = p.surf.face_mat[lf]
-        _add_to(
-            out.direct,
-            out.gi,
-            to_direct and lt.face_is_area[lf],
-            s,
-            fo[0] * em[m, 0] * g,
-            fo[1] * em[m, 1] * g,
-            fo[2] * em[m, 2] * g,
-        )
-    return 1
+    return lf, (y0, y1, y2)
 
 
 @nb.njit(inline="always", **_JIT)
-def _sky_light(p, ray, log, out, s, nf, ns, so, fo, us1, us2):
-    """One direction drawn from the sky's table (us1, us2), MIS-weighted against BSDF sampling;
-    always gi. Returns the shadow rays traced (0 or 1)."""
-    sk = p.sky
-    wi0, wi1, wi2, psk = _sky_sample(sk, us1, us2)
+def _emitter_light(lf, y, fn, pmf, area, diag, emb, ray, log, x, nf, ns, so, eps):
+    """Next-event estimation towards the point y on emissive face lf (face pick pmf, face
+    area), MIS-weighted against BSDF sampling (power heuristic): (geometry times weight g,
+    visible, shadow rays traced 0 or 1); the contribution is f / pi * emission * g."""
+    wi0, wi1, wi2, dist = _towards(x[0], x[1], x[2], y[0], y[1], y[2])
+    c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
+    cl = -(fn[lf, 0] * wi0 + fn[lf, 1] * wi1 + fn[lf, 2] * wi2)
+    if not (c > 0 and cl > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0 and dist > 0):
+        return 0.0, False, 0
+    pl = pmf / area * dist * dist / cl
+    pb = c * _INV_PI
+    w = pl * pl / (pl * pl + pb * pb)
+    g = c * w / pl
+    eps_l = _eps(y[0], y[1], y[2], dist, diag)
+    tf = np.float32(max(dist - eps - eps_l, 0.0))
+    return g, _visible(emb, ray, log, so, wi0, wi1, wi2, tf), 1
+
+
+@nb.njit(inline="always", **_JIT)
+def _sky_light(kind, sky, env, rot, scale, frame, marg, cond, pdf, rows, phi0, emb, ray, log,
+               nf, ns, so, us1, us2):  # fmt: skip
+    """Next-event estimation of the sky: one direction drawn from its table (us1, us2), MIS-
+    weighted against BSDF sampling: (radiance (3-tuple), geometry times weight g, visible,
+    shadow rays traced 0 or 1); the contribution is f / pi * radiance * g."""
+    wi0, wi1, wi2, psk = _sky_sample(frame, marg, cond, pdf, rows, phi0, us1, us2)
     c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
     if not (psk > 0 and c > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0):
-        return 0
+        return (0.0, 0.0, 0.0), 0.0, False, 0
     pb = c * _INV_PI
     g = c * (psk / (psk * psk + pb * pb))  # c * w / psk, w = power heuristic
     tf = np.float32(np.inf)
-    if _visible(p.embree, ray, log, so, wi0, wi1, wi2, tf):
-        le = _sky(sk, wi0, wi1, wi2)
-        _add_to(
-            out.direct, out.gi, False, s, fo[0] * le[0] * g, fo[1] * le[1] * g, fo[2] * le[2] * g
-        )
-    return 1
+    if _visible(emb, ray, log, so, wi0, wi1, wi2, tf):
+        return _sky(kind, sky, env, rot, scale, wi0, wi1, wi2), g, True, 1
+    return (0.0, 0.0, 0.0), g, False, 1
 
 
 @nb.njit(inline="always", **_JIT)
@@ -900,7 +832,7 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
 
     Args:
         p: :data:`TraceParams`.
-        out: :data:`Outputs` (per sample rows, added to).
+        out: :data:`Outputs` (per-sample rows, added to).
         counts: (3,) int64 rays traced by this part: primary, bounce, shadow (added to).
         log: ray log (benchmarks): o, d (C, 3), tfar (C,), kind (C,) 0 = camera, 1 = shadow,
             2 = bounce; n (1,) entries used; C <= 1 turns logging off.
@@ -912,14 +844,22 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
     seen, then each light's shadow-tested sample: suns, point/spot, emitter, sky), so images do
     not depend on the number of parts.
     """
-    sm = p.sampling
-    limit = sm.limit
-    rr_depth = sm.rr_depth
-    sampler = sm.sampler
-    salts = sm.salts
-    sky_on = p.sky.kind != SKY_NONE
-    sky_mis = p.sky.mis != 0 and sky_on
-    n_e = len(p.lights.emit_faces)
+    # the struct's fields as locals, once (see the note above the shading helpers)
+    emb = (p.embree.scene, p.embree.fn_occluded)
+    rtc = p.embree.scene
+    fn_isect = p.embree.fn_intersect
+    intr, r_wc, pos, width, jitter = p.cam
+    sf = p.surf
+    tri, fn, vn, face_mat, face_uv = sf.tri, sf.face_n, sf.vn, sf.face_mat, sf.face_uv
+    mat_albedo, mat_emission = sf.mat_albedo, sf.mat_emission
+    tex, lut, tex_off, tex_hw = sf.tex_flat, sf.tex_lut, sf.tex_off, sf.tex_hw
+    nearest, shading_normals, diag = sf.nearest, sf.shading_normals, sf.diag
+    suns, punct, face_light_pmf, face_area, face_is_area, emit_faces, emit_cdf = p.lights
+    sky_kind, sky, env, rot, scale, frame, marg, cond, spdf, rows, phi0, mis = p.sky
+    seed_mix, salts, pixseed0, sampler, limit, rr_depth, want_aux = p.sampling
+    direct, gi, first_hit, alb_out, nrm_out = out
+    sky_mis = mis != 0 and sky_kind != SKY_NONE
+    n_e = len(emit_faces)
     ray = _rayhit()
     n_prim = 0
     n_bounce = 0
@@ -928,12 +868,14 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
     n_blocks = (P + BLOCK - 1) // BLOCK
     for blk in range(part, n_blocks, n_parts):
         for s in range(blk * BLOCK, min(P, (blk + 1) * BLOCK)):
-            pixel_seed = _mix(sm.pixseed ^ (np.uint64(pix[s]) * _GOLD))
-            base_s = _sample_base(sm.seed_mix, pix[s], sid[s])
-            dx, dy, dz = _camera_ray(p, pix[s], sid[s], pixel_seed, base_s)
-            ox = np.float32(p.cam.pos[0])
-            oy = np.float32(p.cam.pos[1])
-            oz = np.float32(p.cam.pos[2])
+            pixel_seed = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD))
+            base_s = _sample_base(seed_mix, pix[s], sid[s])
+            dx, dy, dz = _camera_ray(
+                intr, r_wc, width, jitter, sampler, salts, pix[s], sid[s], pixel_seed, base_s
+            )
+            ox = np.float32(pos[0])
+            oy = np.float32(pos[1])
+            oz = np.float32(pos[2])
             t0 = 1.0
             t1 = 1.0
             t2 = 1.0
@@ -943,33 +885,71 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                 # ---- closest hit of segment `depth`
                 _log_ray(log, 0 if depth == 1 else 2, ox, oy, oz, dx, dy, dz, np.float32(np.inf))
                 dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
-                h_t, prim, h_u, h_v = _intersect(
-                    p.embree.scene, p.embree.fn_intersect, ray, ox, oy, oz, dx32, dy32, dz32
-                )
+                h_t, prim, h_u, h_v = _intersect(rtc, fn_isect, ray, ox, oy, oz, dx32, dy32, dz32)
                 if depth == 1:
                     n_prim += 1
                 else:
                     n_bounce += 1
-                if prim < 0:
-                    if sky_on:
-                        _sky_seen(p.sky, out, s, depth, pdf_prev, t0, t1, t2, dx, dy, dz)
+                if prim < 0:  # ---- the sky: direct for a camera ray, else gi (MIS-weighted)
+                    if sky_kind != SKY_NONE:
+                        le = _sky(sky_kind, sky, env, rot, scale, dx, dy, dz)
+                        if depth == 1:
+                            direct[s, 0] += le[0] * t0
+                            direct[s, 1] += le[1] * t1
+                            direct[s, 2] += le[2] * t2
+                        else:
+                            w = 1.0
+                            if sky_mis:  # MIS weight of the BSDF sample against the sky sample
+                                psk = _sky_pdf(frame, spdf, rows, phi0, dx, dy, dz)
+                                w = (
+                                    pdf_prev
+                                    * pdf_prev
+                                    / max(pdf_prev * pdf_prev + psk * psk, 1e-300)
+                                )
+                            gi[s, 0] += le[0] * t0 * w
+                            gi[s, 1] += le[1] * t1 * w
+                            gi[s, 2] += le[2] * t2 * w
                     break
                 th = np.float64(h_t)
-                x, bary, cos_o, front, nf, ns = _hit_frame(p.surf, prim, h_u, h_v, dx, dy, dz)
-                if front:
-                    _emission_seen(
-                        p, out, s, prim, th, cos_o, depth, from_first, pdf_prev, t0, t1, t2
-                    )
-                al0, al1, al2 = _albedo_at(p.surf, prim, bary)
+                x, bary, cos_o, front, nf, ns = _hit_frame(
+                    tri, fn, vn, shading_normals, prim, h_u, h_v, dx, dy, dz
+                )
+                # ---- emission seen (one-sided): direct for a camera ray and for a bounce off
+                # the first hit into an AreaLight (MIS-weighted); else gi (MIS-weighted)
+                m = face_mat[prim]
+                e0 = mat_emission[m, 0]
+                e1 = mat_emission[m, 1]
+                e2 = mat_emission[m, 2]
+                if front and (e0 > 0 or e1 > 0 or e2 > 0):
+                    if depth == 1:
+                        direct[s, 0] += e0 * t0
+                        direct[s, 1] += e1 * t1
+                        direct[s, 2] += e2 * t2
+                    else:
+                        w = _emission_mis_weight(
+                            face_light_pmf[prim], face_area[prim], th, cos_o, pdf_prev
+                        )
+                        _add_to(
+                            direct,
+                            gi,
+                            from_first and face_is_area[prim],
+                            s,
+                            e0 * t0 * w,
+                            e1 * t1 * w,
+                            e2 * t2 * w,
+                        )
+                al0, al1, al2 = _albedo_at(
+                    mat_albedo, face_uv, tex, lut, tex_off, tex_hw, nearest, m, prim, bary
+                )
                 if depth == 1:
-                    out.first_hit[s] = True
-                    if sm.want_aux:
-                        out.albedo[s, 0] = al0
-                        out.albedo[s, 1] = al1
-                        out.albedo[s, 2] = al2
-                        out.normal[s, 0] = ns[0]
-                        out.normal[s, 1] = ns[1]
-                        out.normal[s, 2] = ns[2]
+                    first_hit[s] = True
+                    if want_aux:
+                        alb_out[s, 0] = al0
+                        alb_out[s, 1] = al1
+                        alb_out[s, 2] = al2
+                        nrm_out[s, 0] = ns[0]
+                        nrm_out[s, 1] = ns[1]
+                        nrm_out[s, 2] = ns[2]
                 if depth >= limit:
                     break
                 f0 = t0 * al0
@@ -977,8 +957,8 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                 f2 = t2 * al2
                 if not (f0 > 0 or f1 > 0 or f2 > 0):
                     break
-                # ---- next-event estimation from the offset origin `so` (float32)
-                eps = _eps(x[0], x[1], x[2], th, p.surf.diag)
+                # ---- next-event estimation from the offset float32 origin `so`
+                eps = _eps(x[0], x[1], x[2], th, diag)
                 so = (
                     np.float32(x[0] + nf[0] * eps),
                     np.float32(x[1] + nf[1] * eps),
@@ -989,11 +969,13 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                 dim0 = 2 + depth * DIMS_PER_BOUNCE
                 pair0 = 1 + 3 * depth
                 use_ld = sampler == SAMPLER_SOBOL and depth <= LD_MAX_DEPTH
-                n_shadow += _sun_lights(p, ray, log, out, s, to_direct_dl, nf, ns, so, fo)
-                n_shadow += _point_spot_lights(
-                    p, ray, log, out, s, to_direct_dl, x, nf, ns, so, fo, eps
+                n_shadow += _sun_lights(
+                    suns, emb, ray, log, direct, gi, s, to_direct_dl, nf, ns, so, fo
                 )
-                if n_e > 0:
+                n_shadow += _point_spot_lights(
+                    punct, emb, ray, log, direct, gi, s, to_direct_dl, x, nf, ns, so, fo, eps
+                )
+                if n_e > 0:  # emissive triangles, power-sampled
                     if use_ld:
                         ul = _sobol1d(pixel_seed, sid[s], pair0 + 1)
                         ra, r2 = _sobol2(pixel_seed, sid[s], pair0 + 2)
@@ -1001,16 +983,44 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                         ul = _u01(base_s, salts[dim0 + 2])
                         ra = _u01(base_s, salts[dim0 + 3])
                         r2 = _u01(base_s, salts[dim0 + 4])
-                    n_shadow += _emitter_light(
-                        p, ray, log, out, s, to_direct_dl, x, nf, ns, so, fo, eps, ul, ra, r2
-                    )
-                if sky_mis:
+                    lf, y = _emitter_point(tri, emit_faces, emit_cdf, ul, ra, r2)
+                    g, vis, k = _emitter_light(
+                        lf, y, fn, face_light_pmf[lf], face_area[lf], diag, emb, ray, log, x,
+                        nf, ns, so, eps,
+                    )  # fmt: skip
+                    n_shadow += k
+                    if vis:
+                        me = face_mat[lf]
+                        _add_to(
+                            direct,
+                            gi,
+                            to_direct_dl and face_is_area[lf],
+                            s,
+                            fo[0] * mat_emission[me, 0] * g,
+                            fo[1] * mat_emission[me, 1] * g,
+                            fo[2] * mat_emission[me, 2] * g,
+                        )
+                if sky_mis:  # the sky, importance-sampled from its table; always gi
                     if use_ld:
                         us1, us2 = _sobol2(pixel_seed, sid[s], SKY_PAIR0 + depth)
                     else:
                         us1 = _u01(base_s, salts[dim0 + 6])
                         us2 = _u01(base_s, salts[dim0 + 7])
-                    n_shadow += _sky_light(p, ray, log, out, s, nf, ns, so, fo, us1, us2)
+                    le, g, vis, k = _sky_light(
+                        sky_kind, sky, env, rot, scale, frame, marg, cond, spdf, rows, phi0,
+                        emb, ray, log, nf, ns, so, us1, us2,
+                    )  # fmt: skip
+                    n_shadow += k
+                    if vis:
+                        _add_to(
+                            direct,
+                            gi,
+                            False,
+                            s,
+                            fo[0] * le[0] * g,
+                            fo[1] * le[1] * g,
+                            fo[2] * le[2] * g,
+                        )
                 # ---- bounce
                 if use_ld:
                     u1, u2 = _sobol2(pixel_seed, sid[s], pair0)
@@ -1065,11 +1075,12 @@ def _log_ray(log, kind, ox, oy, oz, dx, dy, dz, tf):
 @nb.njit(inline="always", **_JIT)
 def _visible(emb, ray, log, so, dx, dy, dz, tf):
     """Shadow ray from the float32 origin ``so`` (3-tuple) along the unit (dx, dy, dz) up to
-    ``tf``: unblocked? ``emb``: :data:`EmbreeFns`."""
+    ``tf``: unblocked? ``emb``: (Embree scene, rtcOccluded1 address)."""
     ox, oy, oz = so
+    rtc, fn_occl = emb
     _log_ray(log, 1, ox, oy, oz, dx, dy, dz, tf)
     dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
-    return not _occluded(emb.scene, emb.fn_occluded, ray, ox, oy, oz, dx32, dy32, dz32, tf)
+    return not _occluded(rtc, fn_occl, ray, ox, oy, oz, dx32, dy32, dz32, tf)
 
 
 @nb.njit(**_JIT)
