@@ -209,8 +209,9 @@ def _sample_base(seed_mix, pix, sid):
 
 
 # ---------------------------------------------------------------------------------- shading
-# (Helpers take the arrays they read, not the parameter struct: an inlined helper that takes a
-# tuple of arrays increfs and decrefs every array in it per call, atomically.)
+# Helpers take the few arrays they read (or scalars), never the parameter struct: numba increfs
+# and decrefs (atomically) every array an inlined helper is given, per call; a struct of ~35
+# arrays made the kernel 2-3x slower, a handful of arrays per vertex ~15 %.
 @nb.njit(inline="always", **_JIT)
 def _envmap(env, rot, scale, dx, dy, dz):
     """Radiance of the lat-long map ``env`` (H, W + 1, 3) float32 (last column = first) along
@@ -399,10 +400,25 @@ def rtc_occluded_batch(rtc, fn, o, d, tfar, out, lo, hi):
 
 # ---------------------------------------------------------------------------------- sky table
 @nb.njit(inline="always", **_JIT)
+def _search_right(cdf, row, u):
+    """First index k with cdf[row, k] > u (numpy's searchsorted(side='right') on one row of a
+    2D CDF; a loop here is ~30 % faster than np.searchsorted in numba)."""
+    a = 0
+    b = cdf.shape[1]
+    while a < b:
+        mid = (a + b) // 2
+        if cdf[row, mid] <= u:
+            a = mid + 1
+        else:
+            b = mid
+    return a
+
+
+@nb.njit(inline="always", **_JIT)
 def _cdf_pick(cdf, row, u):
     """(first index k with cdf[row, k] > u, the remainder of u within that cell in [0, 1))."""
     n = cdf.shape[1]
-    k = min(np.searchsorted(cdf[row], u, side="right"), n - 1)
+    k = min(_search_right(cdf, row, u), n - 1)
     lo = cdf[row, k - 1] if k > 0 else 0.0
     width = cdf[row, k] - lo
     r = (u - lo) / width if width > 0 else 0.5
@@ -515,7 +531,7 @@ Surfaces = namedtuple(
 )  # fmt: skip
 #: Lights: suns (S, 6) direction, irradiance; punct (Q, 12) position, intensity, axis, cos_in,
 #: cos_out, is_spot; emissive triangles: pmf (F,), area (F,), part of an AreaLight (F,),
-#: emissive faces (E,) and their CDF (E,).
+#: emissive faces (E,) and their CDF (1, E).
 Lights = namedtuple(
     "Lights", ["suns", "punct", "face_light_pmf", "face_area", "face_is_area", "emit_faces",
                "emit_cdf"],
@@ -618,49 +634,46 @@ def _hit_frame(tri, fn, vn, shading_normals, prim, h_u, h_v, dx, dy, dz):
 
 
 @nb.njit(inline="always", **_JIT)
-def _albedo_at(mat_albedo, face_uv, tex, lut, tex_off, tex_hw, nearest, m, prim, bary):
-    """Albedo of face ``prim`` (material m) at barycentrics (w0, b1, b2): the material's, times
-    its texture if any (repeat; bilinear or nearest)."""
+def _tex_coords(face_uv, prim, bary):
+    """Texture coordinates (u, v) at barycentrics (w0, b1, b2) of face ``prim``."""
     w0, b1, b2 = bary
-    al0 = mat_albedo[m, 0]
-    al1 = mat_albedo[m, 1]
-    al2 = mat_albedo[m, 2]
-    if tex_off[m] >= 0:
-        uu = w0 * face_uv[prim, 0, 0] + b1 * face_uv[prim, 1, 0] + b2 * face_uv[prim, 2, 0]
-        vv = w0 * face_uv[prim, 0, 1] + b1 * face_uv[prim, 1, 1] + b2 * face_uv[prim, 2, 1]
-        th = tex_hw[m, 0]
-        tw = tex_hw[m, 1]
-        off = tex_off[m]
-        xx = uu * tw - 0.5
-        yy = (1.0 - vv) * th - 0.5
-        if nearest:
-            xi = np.int64(math.floor(xx + 0.5)) % tw
-            yi = np.int64(math.floor(yy + 0.5)) % th
-            q = off + (yi * tw + xi) * 3
-            al0 *= _texel(tex, lut, q)
-            al1 *= _texel(tex, lut, q + 1)
-            al2 *= _texel(tex, lut, q + 2)
-        else:
-            fx0 = math.floor(xx)
-            fy0 = math.floor(yy)
-            fx = xx - fx0
-            fy = yy - fy0
-            xa = np.int64(fx0) % tw
-            ya = np.int64(fy0) % th
-            xb = xa + 1 if xa + 1 < tw else 0
-            yb = ya + 1 if ya + 1 < th else 0
-            p00 = off + (ya * tw + xa) * 3
-            p01 = off + (ya * tw + xb) * 3
-            p10 = off + (yb * tw + xa) * 3
-            p11 = off + (yb * tw + xb) * 3
-            ga = (1 - fy) * (1 - fx)
-            gb = (1 - fy) * fx
-            gc = fy * (1 - fx)
-            gd = fy * fx
-            al0 *= _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd)
-            al1 *= _bilerp(tex, lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd)
-            al2 *= _bilerp(tex, lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd)
-    return al0, al1, al2
+    uu = w0 * face_uv[prim, 0, 0] + b1 * face_uv[prim, 1, 0] + b2 * face_uv[prim, 2, 0]
+    vv = w0 * face_uv[prim, 0, 1] + b1 * face_uv[prim, 1, 1] + b2 * face_uv[prim, 2, 1]
+    return uu, vv
+
+
+@nb.njit(inline="always", **_JIT)
+def _texture(tex, lut, off, th, tw, nearest, uu, vv):
+    """RGB of the texture at ``off`` in the texels (th x tw, repeat) at (uu, vv): nearest texel
+    or bilinear."""
+    xx = uu * tw - 0.5
+    yy = (1.0 - vv) * th - 0.5
+    if nearest:
+        xi = np.int64(math.floor(xx + 0.5)) % tw
+        yi = np.int64(math.floor(yy + 0.5)) % th
+        q = off + (yi * tw + xi) * 3
+        return _texel(tex, lut, q), _texel(tex, lut, q + 1), _texel(tex, lut, q + 2)
+    fx0 = math.floor(xx)
+    fy0 = math.floor(yy)
+    fx = xx - fx0
+    fy = yy - fy0
+    xa = np.int64(fx0) % tw
+    ya = np.int64(fy0) % th
+    xb = xa + 1 if xa + 1 < tw else 0
+    yb = ya + 1 if ya + 1 < th else 0
+    p00 = off + (ya * tw + xa) * 3
+    p01 = off + (ya * tw + xb) * 3
+    p10 = off + (yb * tw + xa) * 3
+    p11 = off + (yb * tw + xb) * 3
+    ga = (1 - fy) * (1 - fx)
+    gb = (1 - fy) * fx
+    gc = fy * (1 - fx)
+    gd = fy * fx
+    return (
+        _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd),
+        _bilerp(tex, lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd),
+        _bilerp(tex, lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd),
+    )
 
 
 @nb.njit(inline="always", **_JIT)
@@ -672,66 +685,46 @@ def _emission_mis_weight(pmf, area, th, cos_o, pdf_prev):
     return pb * pb / max(pb * pb + pl * pl, 1e-300) if pl > 0 else 1.0
 
 
+# Light samples: each light type gives a direction wi, the shadow ray's length and whether the
+# sample can contribute (above both normals); trace_paths traces the shadow ray and adds the
+# contribution f / pi * radiance * geometry.
 @nb.njit(inline="always", **_JIT)
-def _sun_lights(suns, emb, ray, log, direct, gi, s, to_direct, nf, ns, so, fo):
-    """Next-event estimation of every directional light (delta: no MIS); returns the number of
-    shadow rays traced. nf, ns: normals; so: float32 ray origin; fo: BSDF value f / pi."""
-    n_shadow = 0
-    for j in range(suns.shape[0]):
-        wi0 = -suns[j, 0]
-        wi1 = -suns[j, 1]
-        wi2 = -suns[j, 2]
-        c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
-        if c > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0:
-            tf = np.float32(np.inf)
-            n_shadow += 1
-            if _visible(emb, ray, log, so, wi0, wi1, wi2, tf):
-                _add_to(
-                    direct,
-                    gi,
-                    to_direct,
-                    s,
-                    fo[0] * suns[j, 3] * c,
-                    fo[1] * suns[j, 4] * c,
-                    fo[2] * suns[j, 5] * c,
-                )
-    return n_shadow
+def _sun_sample(d0, d1, d2, nf, ns):
+    """A directional light travelling along d: (usable, wi, cos at the shading normal)."""
+    wi0 = -d0
+    wi1 = -d1
+    wi2 = -d2
+    c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
+    ok = c > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0
+    return ok, wi0, wi1, wi2, c
 
 
 @nb.njit(inline="always", **_JIT)
-def _point_spot_lights(punct, emb, ray, log, direct, gi, s, to_direct, x, nf, ns, so, fo, eps):
-    """Next-event estimation of every point and spot light (delta); returns the shadow rays."""
-    n_shadow = 0
-    for j in range(punct.shape[0]):
-        wi0, wi1, wi2, dist = _towards(x[0], x[1], x[2], punct[j, 0], punct[j, 1], punct[j, 2])
-        c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
-        fall = 1.0
-        if punct[j, 11] > 0:
-            ca = -(wi0 * punct[j, 6] + wi1 * punct[j, 7] + wi2 * punct[j, 8])
-            xf = min(max((ca - punct[j, 10]) / (punct[j, 9] - punct[j, 10]), 0.0), 1.0)
-            fall = xf * xf * (3.0 - 2.0 * xf)
-        i0 = punct[j, 3] * fall
-        i1 = punct[j, 4] * fall
-        i2 = punct[j, 5] * fall
-        if (
-            c > 0
-            and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0
-            and dist > 0
-            and (i0 > 0 or i1 > 0 or i2 > 0)
-        ):
-            tf = np.float32(dist * (1 - 1e-5) - eps)
-            n_shadow += 1
-            if _visible(emb, ray, log, so, wi0, wi1, wi2, tf):
-                g = c / (dist * dist)
-                _add_to(direct, gi, to_direct, s, fo[0] * i0 * g, fo[1] * i1 * g, fo[2] * i2 * g)
-    return n_shadow
+def _punctual_sample(punct, j, x, nf, ns, eps):
+    """Point or spot light j of ``punct`` (Q, 12) from x: (usable, wi, shadow-ray length,
+    intensity towards x (spot falloff applied), geometry cos / r^2)."""
+    wi0, wi1, wi2, dist = _towards(x[0], x[1], x[2], punct[j, 0], punct[j, 1], punct[j, 2])
+    c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
+    fall = 1.0
+    if punct[j, 11] > 0:
+        ca = -(wi0 * punct[j, 6] + wi1 * punct[j, 7] + wi2 * punct[j, 8])
+        xf = min(max((ca - punct[j, 10]) / (punct[j, 9] - punct[j, 10]), 0.0), 1.0)
+        fall = xf * xf * (3.0 - 2.0 * xf)
+    i0 = punct[j, 3] * fall
+    i1 = punct[j, 4] * fall
+    i2 = punct[j, 5] * fall
+    ok = c > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0 and dist > 0
+    ok = ok and (i0 > 0 or i1 > 0 or i2 > 0)
+    tf = np.float32(dist * (1 - 1e-5) - eps)
+    g = c / (dist * dist) if ok else 0.0
+    return ok, wi0, wi1, wi2, tf, (i0, i1, i2), g
 
 
 @nb.njit(inline="always", **_JIT)
 def _emitter_point(tri, emit_faces, emit_cdf, ul, ra, r2):
     """An emissive face drawn by power (ul) and a uniform point on it (ra, r2): (face, point)."""
     n_e = len(emit_faces)
-    lf = emit_faces[min(np.searchsorted(emit_cdf, ul, side="right"), n_e - 1)]
+    lf = emit_faces[min(_search_right(emit_cdf, 0, ul), n_e - 1)]
     r1 = math.sqrt(ra)
     ca = r1 * (1 - r2)
     cb = r1 * r2
@@ -754,40 +747,33 @@ def _emitter_point(tri, emit_faces, emit_cdf, ul, ra, r2):
 
 
 @nb.njit(inline="always", **_JIT)
-def _emitter_light(lf, y, fn, pmf, area, diag, emb, ray, log, x, nf, ns, so, eps):
-    """Next-event estimation towards the point y on emissive face lf (face pick pmf, face
-    area), MIS-weighted against BSDF sampling (power heuristic): (geometry times weight g,
-    visible, shadow rays traced 0 or 1); the contribution is f / pi * emission * g."""
+def _emitter_sample(y, nl, pmf, area, diag, x, nf, ns, eps):
+    """The point y on an emissive face (normal nl, face pick pmf, area) seen from x: (usable,
+    wi, shadow-ray length, geometry times the MIS weight against BSDF sampling, power
+    heuristic)."""
     wi0, wi1, wi2, dist = _towards(x[0], x[1], x[2], y[0], y[1], y[2])
     c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
-    cl = -(fn[lf, 0] * wi0 + fn[lf, 1] * wi1 + fn[lf, 2] * wi2)
+    cl = -(nl[0] * wi0 + nl[1] * wi1 + nl[2] * wi2)
     if not (c > 0 and cl > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0 and dist > 0):
-        return 0.0, False, 0
+        return False, wi0, wi1, wi2, np.float32(0.0), 0.0
     pl = pmf / area * dist * dist / cl
     pb = c * _INV_PI
     w = pl * pl / (pl * pl + pb * pb)
     g = c * w / pl
     eps_l = _eps(y[0], y[1], y[2], dist, diag)
     tf = np.float32(max(dist - eps - eps_l, 0.0))
-    return g, _visible(emb, ray, log, so, wi0, wi1, wi2, tf), 1
+    return True, wi0, wi1, wi2, tf, g
 
 
 @nb.njit(inline="always", **_JIT)
-def _sky_light(kind, sky, env, rot, scale, frame, marg, cond, pdf, rows, phi0, emb, ray, log,
-               nf, ns, so, us1, us2):  # fmt: skip
-    """Next-event estimation of the sky: one direction drawn from its table (us1, us2), MIS-
-    weighted against BSDF sampling: (radiance (3-tuple), geometry times weight g, visible,
-    shadow rays traced 0 or 1); the contribution is f / pi * radiance * g."""
-    wi0, wi1, wi2, psk = _sky_sample(frame, marg, cond, pdf, rows, phi0, us1, us2)
+def _sky_light_weight(psk, wi0, wi1, wi2, nf, ns):
+    """A sky direction drawn from its table with density psk: (usable, geometry times the MIS
+    weight against BSDF sampling, power heuristic)."""
     c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
     if not (psk > 0 and c > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0):
-        return (0.0, 0.0, 0.0), 0.0, False, 0
+        return False, 0.0
     pb = c * _INV_PI
-    g = c * (psk / (psk * psk + pb * pb))  # c * w / psk, w = power heuristic
-    tf = np.float32(np.inf)
-    if _visible(emb, ray, log, so, wi0, wi1, wi2, tf):
-        return _sky(kind, sky, env, rot, scale, wi0, wi1, wi2), g, True, 1
-    return (0.0, 0.0, 0.0), g, False, 1
+    return True, c * (psk / (psk * psk + pb * pb))  # c * w / psk, w = power heuristic
 
 
 @nb.njit(inline="always", **_JIT)
@@ -845,9 +831,7 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
     not depend on the number of parts.
     """
     # the struct's fields as locals, once (see the note above the shading helpers)
-    emb = (p.embree.scene, p.embree.fn_occluded)
-    rtc = p.embree.scene
-    fn_isect = p.embree.fn_intersect
+    rtc, fn_isect, fn_occl = p.embree
     intr, r_wc, pos, width, jitter = p.cam
     sf = p.surf
     tri, fn, vn, face_mat, face_uv = sf.tri, sf.face_n, sf.vn, sf.face_mat, sf.face_uv
@@ -859,6 +843,8 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
     seed_mix, salts, pixseed0, sampler, limit, rr_depth, want_aux = p.sampling
     direct, gi, first_hit, alb_out, nrm_out = out
     sky_mis = mis != 0 and sky_kind != SKY_NONE
+    n_s = suns.shape[0]
+    n_q = punct.shape[0]
     n_e = len(emit_faces)
     ray = _rayhit()
     n_prim = 0
@@ -938,9 +924,17 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                             e1 * t1 * w,
                             e2 * t2 * w,
                         )
-                al0, al1, al2 = _albedo_at(
-                    mat_albedo, face_uv, tex, lut, tex_off, tex_hw, nearest, m, prim, bary
-                )
+                al0 = mat_albedo[m, 0]
+                al1 = mat_albedo[m, 1]
+                al2 = mat_albedo[m, 2]
+                if tex_off[m] >= 0:  # textured (repeat)
+                    uu, vv = _tex_coords(face_uv, prim, bary)
+                    r0, r1, r2 = _texture(
+                        tex, lut, tex_off[m], tex_hw[m, 0], tex_hw[m, 1], nearest, uu, vv
+                    )
+                    al0 *= r0
+                    al1 *= r1
+                    al2 *= r2
                 if depth == 1:
                     first_hit[s] = True
                     if want_aux:
@@ -969,58 +963,81 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                 dim0 = 2 + depth * DIMS_PER_BOUNCE
                 pair0 = 1 + 3 * depth
                 use_ld = sampler == SAMPLER_SOBOL and depth <= LD_MAX_DEPTH
-                n_shadow += _sun_lights(
-                    suns, emb, ray, log, direct, gi, s, to_direct_dl, nf, ns, so, fo
-                )
-                n_shadow += _point_spot_lights(
-                    punct, emb, ray, log, direct, gi, s, to_direct_dl, x, nf, ns, so, fo, eps
-                )
-                if n_e > 0:  # emissive triangles, power-sampled
+                for j in range(n_s):  # directional lights (delta: no MIS)
+                    ok, wi0, wi1, wi2, c = _sun_sample(suns[j, 0], suns[j, 1], suns[j, 2], nf, ns)
+                    if ok:
+                        n_shadow += 1
+                        if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)):
+                            _add_to(
+                                direct,
+                                gi,
+                                to_direct_dl,
+                                s,
+                                fo[0] * suns[j, 3] * c,
+                                fo[1] * suns[j, 4] * c,
+                                fo[2] * suns[j, 5] * c,
+                            )
+                for j in range(n_q):  # point and spot lights (delta)
+                    ok, wi0, wi1, wi2, tf, ii, g = _punctual_sample(punct, j, x, nf, ns, eps)
+                    if ok:
+                        n_shadow += 1
+                        if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
+                            _add_to(
+                                direct,
+                                gi,
+                                to_direct_dl,
+                                s,
+                                fo[0] * ii[0] * g,
+                                fo[1] * ii[1] * g,
+                                fo[2] * ii[2] * g,
+                            )
+                if n_e > 0:  # emissive triangles: power-sampled, MIS with the BSDF
                     if use_ld:
                         ul = _sobol1d(pixel_seed, sid[s], pair0 + 1)
-                        ra, r2 = _sobol2(pixel_seed, sid[s], pair0 + 2)
+                        ra, rb = _sobol2(pixel_seed, sid[s], pair0 + 2)
                     else:
                         ul = _u01(base_s, salts[dim0 + 2])
                         ra = _u01(base_s, salts[dim0 + 3])
-                        r2 = _u01(base_s, salts[dim0 + 4])
-                    lf, y = _emitter_point(tri, emit_faces, emit_cdf, ul, ra, r2)
-                    g, vis, k = _emitter_light(
-                        lf, y, fn, face_light_pmf[lf], face_area[lf], diag, emb, ray, log, x,
-                        nf, ns, so, eps,
-                    )  # fmt: skip
-                    n_shadow += k
-                    if vis:
-                        me = face_mat[lf]
-                        _add_to(
-                            direct,
-                            gi,
-                            to_direct_dl and face_is_area[lf],
-                            s,
-                            fo[0] * mat_emission[me, 0] * g,
-                            fo[1] * mat_emission[me, 1] * g,
-                            fo[2] * mat_emission[me, 2] * g,
-                        )
+                        rb = _u01(base_s, salts[dim0 + 4])
+                    lf, y = _emitter_point(tri, emit_faces, emit_cdf, ul, ra, rb)
+                    nl = (fn[lf, 0], fn[lf, 1], fn[lf, 2])
+                    ok, wi0, wi1, wi2, tf, g = _emitter_sample(
+                        y, nl, face_light_pmf[lf], face_area[lf], diag, x, nf, ns, eps
+                    )
+                    if ok:
+                        n_shadow += 1
+                        if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
+                            me = face_mat[lf]
+                            _add_to(
+                                direct,
+                                gi,
+                                to_direct_dl and face_is_area[lf],
+                                s,
+                                fo[0] * mat_emission[me, 0] * g,
+                                fo[1] * mat_emission[me, 1] * g,
+                                fo[2] * mat_emission[me, 2] * g,
+                            )
                 if sky_mis:  # the sky, importance-sampled from its table; always gi
                     if use_ld:
                         us1, us2 = _sobol2(pixel_seed, sid[s], SKY_PAIR0 + depth)
                     else:
                         us1 = _u01(base_s, salts[dim0 + 6])
                         us2 = _u01(base_s, salts[dim0 + 7])
-                    le, g, vis, k = _sky_light(
-                        sky_kind, sky, env, rot, scale, frame, marg, cond, spdf, rows, phi0,
-                        emb, ray, log, nf, ns, so, us1, us2,
-                    )  # fmt: skip
-                    n_shadow += k
-                    if vis:
-                        _add_to(
-                            direct,
-                            gi,
-                            False,
-                            s,
-                            fo[0] * le[0] * g,
-                            fo[1] * le[1] * g,
-                            fo[2] * le[2] * g,
-                        )
+                    wi0, wi1, wi2, psk = _sky_sample(frame, marg, cond, spdf, rows, phi0, us1, us2)
+                    ok, g = _sky_light_weight(psk, wi0, wi1, wi2, nf, ns)
+                    if ok:
+                        n_shadow += 1
+                        if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)):
+                            le = _sky(sky_kind, sky, env, rot, scale, wi0, wi1, wi2)
+                            _add_to(
+                                direct,
+                                gi,
+                                False,
+                                s,
+                                fo[0] * le[0] * g,
+                                fo[1] * le[1] * g,
+                                fo[2] * le[2] * g,
+                            )
                 # ---- bounce
                 if use_ld:
                     u1, u2 = _sobol2(pixel_seed, sid[s], pair0)
@@ -1073,11 +1090,10 @@ def _log_ray(log, kind, ox, oy, oz, dx, dy, dz, tf):
 
 
 @nb.njit(inline="always", **_JIT)
-def _visible(emb, ray, log, so, dx, dy, dz, tf):
+def _visible(rtc, fn_occl, ray, log, so, dx, dy, dz, tf):
     """Shadow ray from the float32 origin ``so`` (3-tuple) along the unit (dx, dy, dz) up to
-    ``tf``: unblocked? ``emb``: (Embree scene, rtcOccluded1 address)."""
+    ``tf``: unblocked?"""
     ox, oy, oz = so
-    rtc, fn_occl = emb
     _log_ray(log, 1, ox, oy, oz, dx, dy, dz, tf)
     dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
     return not _occluded(rtc, fn_occl, ray, ox, oy, oz, dx32, dy32, dz32, tf)

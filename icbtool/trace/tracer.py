@@ -620,7 +620,7 @@ class _Tracer:
                 sd.face_area,
                 sd.k_face_is_area,
                 sd.k_emit_faces,
-                sd.k_emit_cdf,
+                sd.k_emit_cdf[None],  # (1, E): a one-row CDF
             ),
             sd.k_sky_table.params(sd.sky, self.sky_mis),
             K.Sampling(
