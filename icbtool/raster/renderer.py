@@ -797,6 +797,24 @@ class Rasterizer:
         if not isinstance(camera, Camera):
             raise TypeError(f"camera must be an icbtool Camera, got {type(camera).__name__}")
         names = check_buffers(buffers)
+        k = self.config.dl_supersample
+        if k == 1 or "dl" not in names:
+            return self._render(camera, names)
+        # dl at k x k points per pixel (box filter, as the tracer's jittered pixels); the other
+        # buffers at the pixel centres
+        t0 = time.perf_counter()
+        h, w = camera.height, camera.width
+        big = self._render(camera.resized(k * h, k * w), ("dl",))
+        out = self._render(camera, tuple(n for n in names if n != "dl"))
+        out.dl = np.ascontiguousarray(big.dl.reshape(h, k, w, k, 3).mean(axis=(1, 3)))
+        for key, ms in big.timings.items():
+            out.timings[f"dl_x{k}_{key}"] = ms
+        out.timings["total"] = 1e3 * (time.perf_counter() - t0)
+        return out
+
+    def _render(self, camera: Camera, names: tuple[str, ...]) -> RasterBuffers:
+        """:meth:`render` of the checked ``names`` (possibly none: the mask alone), one sample
+        per pixel."""
         GL = self._gl
         cfg = self.config
         self._context.make_current()
