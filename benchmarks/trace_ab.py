@@ -9,7 +9,7 @@ single-threaded by default), with the 1-minute load recorded every render.
 
     .venv/bin/python benchmarks/trace_ab.py --a /tmp/before --b . [--rounds 9] [--size 128]
 
-Writes benchmarks/results/trace/ab_<scene>.json.
+Writes benchmarks/results/trace/ab_<scene or --name>.json.
 """
 
 from __future__ import annotations
@@ -81,6 +81,7 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=8)
     ap.add_argument("--rounds", type=int, default=9)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--name", default=None, help="results file ab_<name>.json (default: scene)")
     args = ap.parse_args()
     a = _start(args.a.resolve(), args.scene, args.size, args.spp, args.threads)
     b = _start(args.b.resolve(), args.scene, args.size, args.spp, args.threads)
@@ -119,7 +120,7 @@ def main() -> None:
         "rounds": rows,
     }
     OUT.mkdir(parents=True, exist_ok=True)
-    path = OUT / f"ab_{args.scene}.json"
+    path = OUT / f"ab_{args.name or args.scene}.json"
     path.write_text(json.dumps(res, indent=1))
     med, cmed = res["median_ratio_b_over_a"], res["median_cpu_ratio_b_over_a"]
     print(

@@ -294,7 +294,8 @@ class Sky:
     first row is the north pole, the last the south pole) and the map is interpolated
     bilinearly, periodic in u. The radiance is ``envmap_scale * map``. For an envmap ``zenith``,
     ``horizon`` and ``ground`` hold its mean radiance over the sphere (what a uniform sky of the
-    same power would be) and ``up`` is ``world_from_map``'s second column. See docs/design.md.
+    same power would be) and ``up`` is ``world_from_map``'s second column. See README.md,
+    "Environment maps".
 
     Attributes:
         envmap: (H, W, 3) float32 linear radiance, read-only (``kind='envmap'`` only).
