@@ -77,8 +77,9 @@ def one(name: str, scene, cam, spp: int, repeats: int) -> tuple[dict, np.ndarray
     ref, cov = tr.direct, tr.mask[..., 0] > 0.5
     t_ref = time.perf_counter() - t0
     lum = ref.mean(-1)
-    emitter = binary_dilation(lum > 2.0 * np.percentile(lum[cov], 99.0), iterations=2)
-    emitter &= lum > 1.0  # (the light itself: far brighter than anything it lights)
+    # the light itself: far brighter than anything it lights; and its 2-pixel neighbourhood
+    core = lum > 0.5 * lum.max()
+    emitter = binary_dilation(core, iterations=2)
     edge = cov & ~emitter & (np.abs(lum - median_filter(lum, 3)) > 0.05 * np.maximum(lum, 1e-3))
     rows, imgs = [], [ref]
     for k in KS:

@@ -527,6 +527,8 @@ class _SceneData:
                 rows.append([*lt.position, *lt.intensity, 0, 0, 0, 1, 0, 0.0])
         self.k_punct = np.array(rows, np.float64).reshape(-1, 12)
         self.k_sky_table = SkyTable.empty() if self.sky is None else SkyTable.of(self.sky)
+        # the kernels' sky parameters (an envmap's periodic copy made once per scene)
+        self.k_sky_params = self.k_sky_table.params(self.sky)
         assert self.k_tri.shape == (F, 3, 3)
 
     @classmethod
@@ -622,7 +624,7 @@ class _Tracer:
                 sd.k_emit_faces,
                 sd.k_emit_cdf[None],  # (1, E): a one-row CDF
             ),
-            sd.k_sky_table.params(sd.sky, self.sky_mis),
+            sd.k_sky_params._replace(mis=int(self.sky_mis)),
             K.Sampling(
                 self._seed_mix,
                 self._salts,
