@@ -247,10 +247,17 @@ def _envmap(env, rot, scale, dx, dy, dz):
 
 @nb.njit(inline="always", **_JIT)
 def _sky(kind, sky, env, rot, scale, dx, dy, dz):
-    """Sky radiance along (dx, dy, dz). Uniform and gradient skies: ``sky`` = [zenith, horizon,
-    ground, up] (float32 values); an envmap (``kind == SKY_ENVMAP``): :func:`_envmap`."""
+    """Sky radiance along (dx, dy, dz): :func:`_envmap` for an envmap (``kind == SKY_ENVMAP``),
+    else :func:`_sky_analytic`."""
     if kind == SKY_ENVMAP:
         return _envmap(env, rot, scale, dx, dy, dz)
+    return _sky_analytic(kind, sky, dx, dy, dz)
+
+
+@nb.njit(inline="always", **_JIT)
+def _sky_analytic(kind, sky, dx, dy, dz):
+    """Radiance of a uniform or gradient sky along (dx, dy, dz); ``sky`` = [zenith, horizon,
+    ground, up] (float32 values)."""
     if kind == SKY_UNIFORM:
         return (
             np.float64(np.float32(sky[0, 0])),
@@ -643,16 +650,20 @@ def _tex_coords(face_uv, prim, bary):
 
 
 @nb.njit(inline="always", **_JIT)
-def _texture(tex, lut, off, th, tw, nearest, uu, vv):
-    """RGB of the texture at ``off`` in the texels (th x tw, repeat) at (uu, vv): nearest texel
-    or bilinear."""
+def _nearest_texel(off, th, tw, uu, vv):
+    """Offset of the nearest texel's red value at (uu, vv) in a texture at ``off`` in the
+    texels (th x tw, RGB, repeat)."""
+    xi = np.int64(math.floor(uu * tw - 0.5 + 0.5)) % tw
+    yi = np.int64(math.floor((1.0 - vv) * th - 0.5 + 0.5)) % th
+    return off + (yi * tw + xi) * 3
+
+
+@nb.njit(inline="always", **_JIT)
+def _bilinear_footprint(off, th, tw, uu, vv):
+    """The four texel offsets (red values) and bilinear weights at (uu, vv) in a texture at
+    ``off`` (th x tw, RGB, repeat): (p00, p01, p10, p11, ga, gb, gc, gd)."""
     xx = uu * tw - 0.5
     yy = (1.0 - vv) * th - 0.5
-    if nearest:
-        xi = np.int64(math.floor(xx + 0.5)) % tw
-        yi = np.int64(math.floor(yy + 0.5)) % th
-        q = off + (yi * tw + xi) * 3
-        return _texel(tex, lut, q), _texel(tex, lut, q + 1), _texel(tex, lut, q + 2)
     fx0 = math.floor(xx)
     fy0 = math.floor(yy)
     fx = xx - fx0
@@ -661,18 +672,15 @@ def _texture(tex, lut, off, th, tw, nearest, uu, vv):
     ya = np.int64(fy0) % th
     xb = xa + 1 if xa + 1 < tw else 0
     yb = ya + 1 if ya + 1 < th else 0
-    p00 = off + (ya * tw + xa) * 3
-    p01 = off + (ya * tw + xb) * 3
-    p10 = off + (yb * tw + xa) * 3
-    p11 = off + (yb * tw + xb) * 3
-    ga = (1 - fy) * (1 - fx)
-    gb = (1 - fy) * fx
-    gc = fy * (1 - fx)
-    gd = fy * fx
     return (
-        _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd),
-        _bilerp(tex, lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd),
-        _bilerp(tex, lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd),
+        off + (ya * tw + xa) * 3,
+        off + (ya * tw + xb) * 3,
+        off + (yb * tw + xa) * 3,
+        off + (yb * tw + xb) * 3,
+        (1 - fy) * (1 - fx),
+        (1 - fy) * fx,
+        fy * (1 - fx),
+        fy * fx,
     )
 
 
@@ -878,7 +886,10 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                     n_bounce += 1
                 if prim < 0:  # ---- the sky: direct for a camera ray, else gi (MIS-weighted)
                     if sky_kind != SKY_NONE:
-                        le = _sky(sky_kind, sky, env, rot, scale, dx, dy, dz)
+                        if sky_kind == SKY_ENVMAP:
+                            le = _envmap(env, rot, scale, dx, dy, dz)
+                        else:
+                            le = _sky_analytic(sky_kind, sky, dx, dy, dz)
                         if depth == 1:
                             direct[s, 0] += le[0] * t0
                             direct[s, 1] += le[1] * t1
@@ -929,12 +940,18 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                 al2 = mat_albedo[m, 2]
                 if tex_off[m] >= 0:  # textured (repeat)
                     uu, vv = _tex_coords(face_uv, prim, bary)
-                    r0, r1, r2 = _texture(
-                        tex, lut, tex_off[m], tex_hw[m, 0], tex_hw[m, 1], nearest, uu, vv
-                    )
-                    al0 *= r0
-                    al1 *= r1
-                    al2 *= r2
+                    if nearest:
+                        q = _nearest_texel(tex_off[m], tex_hw[m, 0], tex_hw[m, 1], uu, vv)
+                        al0 *= _texel(tex, lut, q)
+                        al1 *= _texel(tex, lut, q + 1)
+                        al2 *= _texel(tex, lut, q + 2)
+                    else:
+                        p00, p01, p10, p11, ga, gb, gc, gd = _bilinear_footprint(
+                            tex_off[m], tex_hw[m, 0], tex_hw[m, 1], uu, vv
+                        )
+                        al0 *= _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd)
+                        al1 *= _bilerp(tex, lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd)
+                        al2 *= _bilerp(tex, lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd)
                 if depth == 1:
                     first_hit[s] = True
                     if want_aux:
@@ -1028,7 +1045,10 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                     if ok:
                         n_shadow += 1
                         if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)):
-                            le = _sky(sky_kind, sky, env, rot, scale, wi0, wi1, wi2)
+                            if sky_kind == SKY_ENVMAP:
+                                le = _envmap(env, rot, scale, wi0, wi1, wi2)
+                            else:
+                                le = _sky_analytic(sky_kind, sky, wi0, wi1, wi2)
                             _add_to(
                                 direct,
                                 gi,
