@@ -2,9 +2,15 @@
 
 :func:`trace_paths` does all per-sample work: primary rays, closest hits and shadow rays (through
 Embree 4's C API, see :mod:`icbtool.trace.rtc` and :func:`call3`), hit attributes, textures,
-emission with MIS, next-event estimation (sun, point/spot, emissive triangles, sky), cosine BSDF
-sampling and Russian roulette. The driver in :mod:`icbtool.trace.tracer` runs it on a few Python
-threads (the kernels release the GIL) and merges the samples with :func:`accumulate_pass`.
+emission with MIS, next-event estimation (sun, point/spot, emissive triangles, sky or environment
+map), cosine BSDF sampling and Russian roulette. It takes one parameter struct,
+:data:`TraceParams` (named tuples: Embree, camera, surfaces, lights, sky, sampling) and its
+outputs (:data:`Outputs`); its steps are inlined helpers: :func:`_camera_ray`,
+:func:`_hit_frame`, the texture footprint, and one sample function per light type
+(:func:`_sun_sample`, :func:`_punctual_sample`, :func:`_emitter_point` + :func:`_emitter_sample`,
+:func:`_sky_sample` + :func:`_sky_light_weight`) whose shadow ray the loop traces. The driver in
+:mod:`icbtool.trace.tracer` runs it on a few Python threads (the kernels release the GIL) and
+merges the samples with :func:`accumulate_pass`.
 
 Random numbers are a pure function of (seed, pixel, sample index, dimension), never of the thread
 that computes them, so images do not depend on the number of threads. Two samplers:
