@@ -12,9 +12,10 @@ process.
 Light transport: two-sided Lambertian surfaces (textured albedo), one-sided emissive faces, a
 directional sun, point and spot lights (delta lights: next-event estimation only), emissive
 triangles (next-event estimation sampled by power, combined with BSDF sampling by multiple
-importance sampling, power heuristic) and a sky (one light sample per vertex drawn from a table
-of its luminance, :class:`SkyTable`, combined with BSDF sampling by MIS; or BSDF sampling alone
-for a smooth sky, see ``TraceConfig.sky_sampling``).
+importance sampling, power heuristic) and a sky, uniform, gradient or a lat-long environment map
+(one light sample per vertex drawn from a table of its luminance, :class:`SkyTable`, combined
+with BSDF sampling by MIS; or BSDF sampling alone for a smooth sky, see
+``TraceConfig.sky_sampling``).
 
 The DL/GI split (fixed system-wide): ``direct`` = emission of the first visible surface + direct
 light at the first hit from the scene's directional, point, spot and *area* lights (the emissive
