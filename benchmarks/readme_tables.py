@@ -637,13 +637,26 @@ def block_trace_refactor(results: Path) -> str:
             f"{label} {d['args']['size']}^2: {d['median_cpu_ratio_b_over_a']:.3f} "
             f"(quartiles {q[0]:.3f}-{q[-1]:.3f}, {len(d['rounds'])} rounds)"
         )
+    tp = ""
+    path = results / "trace" / "refactor_throughput.json"
+    if path.is_file():
+        d = json.loads(path.read_text())
+        med = d["median_tracer_Mrays_per_s"]
+        loads = [r["load_average_1min"] for r in d["runs"]]
+        tp = (
+            f"\n`benchmarks/trace_throughput.py` ({d['args']}), {len(d['runs']) // 2} runs of "
+            "each version interleaved, median tracer Mrays/s (wall, 2 threads)\nbefore / after: "
+            + "; ".join(f"{k} {v['before']:.2f} / {v['after']:.2f}" for k, v in med.items())
+            + f" (1-minute load {min(loads):.1f}-{max(loads):.1f}: wall times this loaded "
+            "vary 2-5x between runs)."
+        )
     return (
         "**Tracer refactor** (`benchmarks/trace_ab.py`: the split `trace_paths` (B) against the "
         "62-argument kernel (A),\none process per checkout, renders alternating; rays per "
         "second of process CPU time, single-threaded,\nmedian B/A): "
         + "; ".join(rows)
         + ".\nImages are bit-identical (Cornell, plane under a peaked sky, boxes, Sponza; both "
-        "samplers).\n"
+        "samplers)." + tp + "\n"
     )
 
 
