@@ -643,8 +643,9 @@ def block_trace_refactor(results: Path) -> str:
         d = json.loads(path.read_text())
         med = d["median_tracer_Mrays_per_s"]
         loads = [r["load_average_1min"] for r in d["runs"]]
+        n_runs = len({(r["version"], r["run"]) for r in d["runs"]}) // 2
         tp = (
-            f"\n`benchmarks/trace_throughput.py` ({d['args']}), {len(d['runs']) // 2} runs of "
+            f"\n`benchmarks/trace_throughput.py` ({d['args']}), {n_runs} runs of "
             "each version interleaved, median tracer Mrays/s (wall, 2 threads)\nbefore / after: "
             + "; ".join(f"{k} {v['before']:.2f} / {v['after']:.2f}" for k, v in med.items())
             + f" (1-minute load {min(loads):.1f}-{max(loads):.1f}: wall times this loaded "
