@@ -662,7 +662,11 @@ class Scene:
 
     @property
     def light_hash(self) -> str:
-        """SHA-256 (hex, 16 chars) of the light setup (lights + sky) alone."""
+        """SHA-256 (hex, 16 chars) of the light setup (lights + sky, an environment map's
+        texels included) alone."""
+        return derived(self, "light_hash", self._light_hash)
+
+    def _light_hash(self) -> str:
         h = hashlib.sha256()
         for light in self.lights:
             h.update(repr(_light_key(light)).encode())
