@@ -711,6 +711,92 @@ def block_gan_coverage(results: Path) -> str:
     )
 
 
+def block_envmap(results: Path) -> str:
+    d = load("envmap/mitsuba.json", results)
+    bias = ", ".join(f"{100 * b:+.3f}" for b in d["mean_bias_per_channel"])
+    return (
+        "**Environment map** (`benchmarks/envmap_mitsuba.py`): boxes on a floor lit only by a "
+        "generated sky EXR\n(a small sun of peak radiance 2000, a dome, a dark ground; "
+        "rotated 40 degrees about y), "
+        f"{d['size']}x{d['size']}; icbtool's full radiance\n({d['ours_spp']} spp, the map "
+        "importance-sampled with MIS) against Mitsuba's `envmap` + `path` "
+        f"(`{d['mitsuba_variant']}`, 2 x {d['mitsuba_spp'][0]} spp)\nfrom the same file and "
+        f"`to_world`: mean bias per channel {bias} % (target 1 %), blurred (5x5) relative RMSE "
+        f"{100 * d['blurred_rel_rmse_ours_vs_mitsuba']:.2f} %\n(Mitsuba seed to seed "
+        f"{100 * d['blurred_rel_rmse_mitsuba_seed_to_seed']:.2f} %); images side by side in "
+        "`results/envmap/mitsuba.png`.\n"
+    )
+
+
+def block_dl_accuracy(results: Path) -> str:
+    d = load("raster/dl_accuracy.json", results)
+
+    def pct(x: float) -> str:
+        return f"{100 * x:.2f}"
+
+    lines = [
+        "**Client DL accuracy** (`benchmarks/raster_dl_accuracy.py`): the raster's DL against "
+        "the tracer's direct light\n(box-filtered pixels, max_depth 2, "
+        "the reference spp below), mean bias (largest channel) and 5x5-blurred relative RMSE "
+        "over\nthe covered pixels without those that see the ceiling light itself (+2 px: "
+        "at this size a sliver whose\ncoverage is a matter of sample positions; the whole "
+        "image is in the JSON) and on penumbra/edge pixels; cost\nof `dl` at 512x512 "
+        "(median of 5 frames, loaded machine) by `RasterConfig.dl_supersample` k (k x k "
+        "points per pixel).",
+        "",
+        "| scene, size | k | bias | blurred RMSE | penumbra/edge blurred RMSE | ms at 512^2 |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, sc in d["scenes"].items():
+        h, w = sc["size"]
+        for row in sc["by_supersample"]:
+            a = row["without_emitter_pixels"]
+            e = row["penumbra_and_edge_pixels"]
+            b = max(a["bias_per_channel"], key=abs)
+            lines.append(
+                f"| {name} {h}x{w} ({sc['reference']['spp']} spp) | {row['dl_supersample']} | "
+                f"{100 * b:+.2f} % | {pct(a['blurred_rel_rmse'])} % | "
+                f"{pct(e['blurred_rel_rmse'])} % | {row['cost_ms_512']:.0f} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def block_trace_refactor(results: Path) -> str:
+    rows = []
+    for name, label in (("cornell_box", "Cornell box"), ("sponza", "Sponza"), ("aa", "A/A")):
+        path = results / "trace" / f"ab_{name}.json"
+        if not path.is_file():
+            continue
+        d = json.loads(path.read_text())
+        q = d["cpu_ratio_quartiles"]
+        rows.append(
+            f"{label} {d['args']['size']}^2: {d['median_cpu_ratio_b_over_a']:.3f} "
+            f"(quartiles {q[0]:.3f}-{q[-1]:.3f}, {len(d['rounds'])} rounds)"
+        )
+    tp = ""
+    path = results / "trace" / "refactor_throughput.json"
+    if path.is_file():
+        d = json.loads(path.read_text())
+        med = d["median_tracer_Mrays_per_s"]
+        loads = [r["load_average_1min"] for r in d["runs"]]
+        n_runs = len({(r["version"], r["run"]) for r in d["runs"]}) // 2
+        tp = (
+            f"\n`benchmarks/trace_throughput.py` ({d['args']}), {n_runs} runs of "
+            "each version interleaved, median tracer Mrays/s (wall, 2 threads)\nbefore / after: "
+            + "; ".join(f"{k} {v['before']:.2f} / {v['after']:.2f}" for k, v in med.items())
+            + f" (1-minute load {min(loads):.1f}-{max(loads):.1f}: wall times this loaded "
+            "vary 2-5x between runs)."
+        )
+    return (
+        "**Tracer refactor** (`benchmarks/trace_ab.py`: the split `trace_paths` (B) against the "
+        "62-argument kernel (A),\none process per checkout, renders alternating; rays per "
+        "second of process CPU time, single-threaded,\nmedian B/A): "
+        + "; ".join(rows)
+        + ".\nImages are bit-identical (Cornell, plane under a peaked sky, boxes, Sponza; both "
+        "samplers)." + tp + "\n"
+    )
+
+
 def block_gan_figure7(results: Path) -> str:
     d = load("gan/figure7.json", results)
     cfg = load("gan/figure7_config.json", results)
@@ -1132,6 +1218,9 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "loop": block_loop,
     "emitters": block_emitters,
     "mitsuba-xml": block_mitsuba_xml,
+    "envmap": block_envmap,
+    "dl-accuracy": block_dl_accuracy,
+    "trace-refactor": block_trace_refactor,
     "gan-figure7": block_gan_figure7,
     "gan-figure8": block_gan_figure8,
     "gan-time-error": block_gan_time_error,

@@ -113,6 +113,8 @@ def read_exr(path: str | os.PathLike) -> np.ndarray:
             ch = f.channels()
             if "RGB" in ch:
                 return np.asarray(ch["RGB"].pixels, dtype=np.float32)
+            if "RGBA" in ch:
+                return np.ascontiguousarray(np.asarray(ch["RGBA"].pixels, np.float32)[..., :3])
             if "Y" in ch:
                 return np.asarray(ch["Y"].pixels, dtype=np.float32)
             if all(k in ch for k in "RGB"):
@@ -120,6 +122,34 @@ def read_exr(path: str | os.PathLike) -> np.ndarray:
             raise ValueError(f"EXR {path} has channels {sorted(ch)}, expected RGB or Y")
     except (OSError, RuntimeError) as e:
         raise OSError(f"could not read EXR {path}: {e}") from e
+
+
+def read_hdr(path: str | os.PathLike) -> np.ndarray:
+    """Read a linear HDR image, OpenEXR (``.exr``) or Radiance RGBE (``.hdr``, ``.pic``), as
+    (H, W, 3) float32 (a one-channel EXR is repeated to three channels).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: another file type (names it and the types read).
+        OSError: an unreadable or truncated file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"HDR image not found: {path}")
+    ext = path.suffix.lower()
+    if ext == ".exr":
+        img = read_exr(path)
+        return np.ascontiguousarray(np.repeat(img[..., None], 3, 2) if img.ndim == 2 else img)
+    if ext in (".hdr", ".pic"):
+        import cv2
+
+        img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+        if img is None or img.ndim != 3:
+            raise OSError(f"could not read Radiance HDR {path} (truncated or not RGBE)")
+        return np.ascontiguousarray(img[..., ::-1], dtype=np.float32)
+    raise ValueError(
+        f"{path}: unsupported HDR image type {ext!r} (read: .exr (OpenEXR), .hdr/.pic (Radiance))"
+    )
 
 
 def preview(

@@ -758,3 +758,25 @@ def test_sky_sampling_auto_skips_smooth_skies():
     assert res.stats.rays["shadow"] > 0
     with pytest.raises(ValueError, match="sky_sampling"):
         TraceConfig(sky_sampling="env")
+
+
+def test_kernels_and_rtc_do_not_import_each_other_at_module_level():
+    """The RTCRayHit layout lives in trace/layout.py: kernels.py reads it without importing rtc,
+    and rtc imports the kernels only inside its self-check (no import cycle)."""
+    import ast
+
+    root = Path(icb.__file__).parent / "trace"
+
+    def top_imports(name: str) -> set[str]:
+        tree = ast.parse((root / f"{name}.py").read_text())
+        out = set()
+        for node in tree.body:  # module level only
+            if isinstance(node, ast.ImportFrom) and node.module:
+                out.add(node.module)
+            elif isinstance(node, ast.Import):
+                out.update(a.name for a in node.names)
+        return out
+
+    assert "icbtool.trace.rtc" not in top_imports("kernels")
+    assert "icbtool.trace.kernels" not in top_imports("rtc")
+    assert "icbtool.trace.layout" in top_imports("kernels") & top_imports("rtc")

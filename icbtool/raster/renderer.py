@@ -458,6 +458,7 @@ class Rasterizer:
         verts[:, 0, :3], verts[:, 0, 3] = sc.vertices, uv[:, 0]
         verts[:, 1, :3], verts[:, 1, 3] = sc.normals, uv[:, 1]
         self._vert_tex, _ = self._buffer_texture(verts.reshape(-1, 4))
+        self._env_tex = self._upload_envmap() if sc.sky is not None else None
         # Faces sorted along a Morton curve and cut into clusters of CLUSTER_FACES, so that each
         # frame draws only the clusters whose bounding box meets the view frustum (a few draw
         # calls of contiguous ranges).
@@ -509,6 +510,33 @@ class Rasterizer:
         self._tex_array = None
         if self._has_tex:
             self._upload_textures([sc.materials[i].texture for i in layers])
+
+    def _upload_envmap(self) -> int | None:
+        """The sky's lat-long map as an RGB32F texture (H rows, W + 1 columns: the first column
+        repeated), read texel by texel by the resolve shader (its own bilinear lookup, the same
+        as :meth:`icbtool.scene.Sky.radiance`); None for other skies."""
+        sky = self.scene.sky
+        if sky is None or sky.kind != "envmap":
+            return None
+        from icbtool.scene.types import envmap_periodic
+
+        GL = self._gl
+        m = envmap_periodic(sky.envmap)
+        limit = int(GL.glGetIntegerv(GL.GL_MAX_TEXTURE_SIZE))
+        if max(m.shape[:2]) > limit:
+            raise RasterError(
+                f"scene {self.scene.name!r}: environment map {m.shape[1] - 1}x{m.shape[0]} "
+                f"exceeds this GL's GL_MAX_TEXTURE_SIZE = {limit}"
+            )
+        tex = GL.glGenTextures(1)
+        GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
+        GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
+        GL.glTexImage2D(
+            GL.GL_TEXTURE_2D, 0, GL.GL_RGB32F, m.shape[1], m.shape[0], 0, GL.GL_RGB, GL.GL_FLOAT, m
+        )
+        GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
+        GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
+        return tex
 
     def _upload_textures(self, textures: list[np.ndarray]) -> None:
         import cv2
@@ -769,6 +797,24 @@ class Rasterizer:
         if not isinstance(camera, Camera):
             raise TypeError(f"camera must be an icbtool Camera, got {type(camera).__name__}")
         names = check_buffers(buffers)
+        k = self.config.dl_supersample
+        if k == 1 or "dl" not in names:
+            return self._render(camera, names)
+        # dl at k x k points per pixel (box filter, as the tracer's jittered pixels); the other
+        # buffers at the pixel centres
+        t0 = time.perf_counter()
+        h, w = camera.height, camera.width
+        big = self._render(camera.resized(k * h, k * w), ("dl",))
+        out = self._render(camera, tuple(n for n in names if n != "dl"))
+        out.dl = np.ascontiguousarray(big.dl.reshape(h, k, w, k, 3).mean(axis=(1, 3)))
+        for key, ms in big.timings.items():
+            out.timings[f"dl_x{k}_{key}"] = ms
+        out.timings["total"] = 1e3 * (time.perf_counter() - t0)
+        return out
+
+    def _render(self, camera: Camera, names: tuple[str, ...]) -> RasterBuffers:
+        """:meth:`render` of the checked ``names`` (possibly none: the mask alone), one sample
+        per pixel."""
         GL = self._gl
         cfg = self.config
         self._context.make_current()
@@ -915,7 +961,11 @@ class Rasterizer:
             if shadows:
                 defines["SHADOWS"] = True
             if sky is not None:
-                defines["SKY_GRADIENT" if sky.kind == "gradient" else "SKY_UNIFORM"] = True
+                defines[
+                    {"gradient": "SKY_GRADIENT", "envmap": "SKY_ENVMAP"}.get(
+                        sky.kind, "SKY_UNIFORM"
+                    )
+                ] = True
         prog = self._compile("resolve.vert", "resolve.frag", defines)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, ofbo)
         bufs = [
@@ -933,6 +983,8 @@ class Rasterizer:
         ]
         if "HAS_TEX" in defines:
             units.append((0, GL.GL_TEXTURE_2D_ARRAY, self._tex_array, "u_textures"))
+        if "SKY_ENVMAP" in defines:
+            units.append((9, GL.GL_TEXTURE_2D, self._env_tex, "u_env"))
         if shadows:
             st = self._shadow_state
             assert st is not None
@@ -961,6 +1013,9 @@ class Rasterizer:
                 self._set(prog, "u_horizon", sky.horizon, "v3")
                 self._set(prog, "u_ground", sky.ground, "v3")
                 self._set(prog, "u_up", sky.up, "v3")
+                if sky.kind == "envmap":
+                    self._set(prog, "u_map_from_world", sky.world_from_map.T, "m3")
+                    self._set(prog, "u_env_scale", sky.envmap_scale, "f")
         GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
         GL.glEnable(GL.GL_DEPTH_TEST)
 

@@ -41,11 +41,14 @@ description file; ``${VAR}`` and ``${VAR:-default}`` expand environment variable
     # point: position, intensity; spot: position, direction, intensity, inner_deg, outer_deg;
     # area: corner, edge_u, edge_v, radiance (emits towards cross(edge_u, edge_v)); all: name
 
-    [sky]                               # optional; type: uniform (zenith) | gradient
+    [sky]                               # optional; type: uniform (zenith) | gradient | envmap
     type = "gradient"
     zenith = [0.3, 0.45, 0.8]
     horizon = [0.7, 0.75, 0.8]
     ground = [0.2, 0.18, 0.15]
+    # envmap: map = "sky.exr" (EXR or Radiance .hdr, lat-long, relative to this file),
+    # scale = 1.0, rotation = [axis_x, axis_y, axis_z, angle_deg] or a 3x3 matrix (rows), map
+    # space to world (Mitsuba's envmap convention: map +y is up)
 
     [default_camera]                    # optional; also fov_y_deg, height, width, up
     eye = [-10.0, 1.8, 0.0]
@@ -66,6 +69,7 @@ description file; ``${VAR}`` and ``${VAR:-default}`` expand environment variable
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import re
 import tomllib
@@ -95,6 +99,7 @@ _CAMERA_KEYS = {"fov_y_deg", "height", "width"}
 _TOP_KEYS = {"scene", "meshes", "camera", "lights", "sky", "default_camera", "paths"}
 _LIGHT_KEYS = {kind: light_parameters(kind) for kind in LIGHT_TYPES}
 _SKY_KEYS = {"type", "zenith", "horizon", "ground", "up"}
+_ENVMAP_KEYS = {"type", "map", "scale", "rotation"}
 _DEFAULT_CAMERA_KEYS = {"eye", "target", "up"} | _CAMERA_KEYS
 #: Per-path intrinsics keys (``height`` is an orbit parameter, so image sizes are spelled out).
 _PATH_CAMERA_KEYS = {"fov_y_deg": "fov_y_deg", "image_height": "height", "image_width": "width"}
@@ -151,6 +156,62 @@ def expand_env(text: str, where: str) -> str:
         raise SceneError(f"{where}: environment variable {m.group(1)} is not set (no default)")
 
     return _ENV.sub(sub, text)
+
+
+def _sky(table: Any, path: Path, where: str) -> Sky:
+    """The [sky] table: a uniform or gradient sky, or an environment map (``type = "envmap"``)."""
+    kind = table.get("type", "uniform") if isinstance(table, dict) else None
+    if kind != "envmap":
+        s = _check_keys(table, _SKY_KEYS, where, "sky", {"zenith"})
+        try:
+            return Sky(
+                zenith=s["zenith"],
+                horizon=s.get("horizon"),
+                ground=s.get("ground"),
+                kind=s.get("type", "uniform"),
+                up=s.get("up", (0.0, 1.0, 0.0)),
+            )
+        except (ValueError, TypeError) as e:
+            raise SceneError(f"{where}: [sky]: {e}") from None
+    s = _check_keys(table, _ENVMAP_KEYS, where, "sky", {"map"})
+    if not isinstance(s["map"], str) or not s["map"]:
+        raise SceneError(f"{where}: [sky] map must be a file name, got {s['map']!r}")
+    m = Path(s["map"]).expanduser()
+    if not m.is_absolute():
+        m = (path.parent / m).resolve()
+    try:
+        rot = envmap_rotation(s.get("rotation"))
+        return Sky.from_envmap(m, scale=s.get("scale", 1.0), world_from_map=rot)
+    except FileNotFoundError:
+        raise SceneError(f"{where}: [sky] map {str(m)!r} not found") from None
+    except (ValueError, TypeError, OSError) as e:
+        raise SceneError(f"{where}: [sky] map {str(m)!r}: {e}") from None
+
+
+def envmap_rotation(spec: Any) -> np.ndarray:
+    """(3, 3) rotation of an environment map from ``[sky] rotation``: None (identity), an
+    axis-angle ``[x, y, z, angle_deg]`` (as Mitsuba's ``<rotate>``), or a 3x3 matrix (rows).
+
+    Raises:
+        ValueError: any other shape, a zero axis, a non-finite value.
+    """
+    if spec is None:
+        return np.eye(3)
+    a = np.asarray(spec, dtype=np.float64)
+    if a.shape == (3, 3) and np.all(np.isfinite(a)):
+        return a
+    if a.shape == (4,) and np.all(np.isfinite(a)):
+        axis, ang = a[:3], math.radians(a[3])
+        n = np.linalg.norm(axis)
+        if n == 0:
+            raise ValueError(f"rotation axis must not be zero, got {spec!r}")
+        x, y, z = axis / n
+        c, sn = math.cos(ang), math.sin(ang)
+        k = np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]])
+        return np.eye(3) * c + sn * k + (1 - c) * np.outer([x, y, z], [x, y, z])
+    raise ValueError(
+        f"rotation must be [axis_x, axis_y, axis_z, angle_deg] or a 3x3 matrix, got {spec!r}"
+    )
 
 
 def _check_keys(
@@ -541,17 +602,7 @@ def read_description(path: str | os.PathLike) -> SceneDescription:
     lights = tuple(_light(spec, i, where) for i, spec in enumerate(raw_lights))
     sky = None
     if "sky" in doc:
-        s = _check_keys(doc["sky"], _SKY_KEYS, where, "sky", {"zenith"})
-        try:
-            sky = Sky(
-                zenith=s["zenith"],
-                horizon=s.get("horizon"),
-                ground=s.get("ground"),
-                kind=s.get("type", "uniform"),
-                up=s.get("up", (0.0, 1.0, 0.0)),
-            )
-        except (ValueError, TypeError) as e:
-            raise SceneError(f"{where}: [sky]: {e}") from None
+        sky = _sky(doc["sky"], p, where)
     default_camera = None
     if "default_camera" in doc:
         default_camera = _check_keys(

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -284,27 +285,134 @@ class Sky:
     ``kind='uniform'``: ``zenith`` everywhere. ``kind='gradient'``: a simple sky blending from
     ``horizon`` (at the horizon) to ``zenith`` (straight up) with ``sqrt(cos)`` of the elevation,
     and ``ground`` below the horizon. ``up`` is the world up axis.
+
+    ``kind='envmap'``: a latitude-longitude HDR map (:meth:`from_envmap`), with Mitsuba 3's
+    ``envmap`` parametrisation, so a Mitsuba ``to_world`` rotation is ``world_from_map`` as it
+    is. In map space ``+y`` is up; the direction of the image point (u, v) in [0, 1]^2 is
+    ``(sin(phi) sin(theta), cos(theta), -cos(phi) sin(theta))`` with ``theta = v pi``,
+    ``phi = u 2 pi``; texel centres sit at ``u = (i + 0.5) / W`` and at ``v = j / (H - 1)`` (the
+    first row is the north pole, the last the south pole) and the map is interpolated
+    bilinearly, periodic in u. The radiance is ``envmap_scale * map``. For an envmap ``zenith``,
+    ``horizon`` and ``ground`` hold its mean radiance over the sphere (what a uniform sky of the
+    same power would be) and ``up`` is ``world_from_map``'s second column. See README.md,
+    "Environment maps".
+
+    Attributes:
+        envmap: (H, W, 3) float32 linear radiance, read-only (``kind='envmap'`` only).
+        envmap_scale: the map's multiplier.
+        world_from_map: (3, 3) rotation, map space to world.
     """
 
-    zenith: np.ndarray
+    zenith: np.ndarray | None = None
     horizon: np.ndarray | None = None
     ground: np.ndarray | None = None
-    kind: Literal["uniform", "gradient"] = "uniform"
-    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+    kind: Literal["uniform", "gradient", "envmap"] = "uniform"
+    up: np.ndarray | None = None
+    envmap: np.ndarray | None = None
+    envmap_scale: float = 1.0
+    world_from_map: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        if self.kind not in ("uniform", "gradient"):
-            raise ValueError(f"sky kind must be 'uniform' or 'gradient', got {self.kind!r}")
+        if self.kind not in ("uniform", "gradient", "envmap"):
+            raise ValueError(
+                f"sky kind must be 'uniform', 'gradient' or 'envmap', got {self.kind!r}"
+            )
+        if self.kind == "envmap":
+            self._init_envmap()
+            return
+        if self.envmap is not None or self.world_from_map is not None:
+            raise ValueError(f"sky kind {self.kind!r} takes no envmap / world_from_map")
+        if self.zenith is None:
+            raise ValueError(f"sky kind {self.kind!r} needs a zenith radiance")
         object.__setattr__(self, "zenith", _vec3(self.zenith, "sky.zenith", True))
         hz = self.zenith if self.horizon is None else self.horizon
         object.__setattr__(self, "horizon", _vec3(hz, "sky.horizon", True))
         gr = np.zeros(3) if self.ground is None else self.ground
         object.__setattr__(self, "ground", _vec3(gr, "sky.ground", True))
-        object.__setattr__(self, "up", _unit(self.up, "sky.up"))
+        up = np.array([0.0, 1.0, 0.0]) if self.up is None else self.up
+        object.__setattr__(self, "up", _unit(up, "sky.up"))
+
+    def _init_envmap(self) -> None:
+        if self.envmap is None:
+            raise ValueError("sky kind 'envmap' needs an envmap (H, W, 3) array")
+        m = np.array(self.envmap, dtype=np.float32)
+        if m.ndim == 2:
+            m = np.repeat(m[..., None], 3, axis=2)
+        if m.ndim != 3 or m.shape[2] not in (1, 3, 4):
+            raise ValueError(f"sky.envmap must be (H, W, 3), got shape {m.shape}")
+        if m.shape[2] == 1:
+            m = np.repeat(m, 3, axis=2)
+        m = np.ascontiguousarray(m[..., :3])
+        if m.shape[0] < 3 or m.shape[1] < 2:
+            raise ValueError(f"sky.envmap must be at least 3 x 2 texels (H x W), got {m.shape}")
+        bad = ~np.isfinite(m)
+        if bad.any():
+            j, i, _ = np.argwhere(bad)[0]
+            raise ValueError(
+                f"sky.envmap has {int(bad.any(-1).sum())} NaN/Inf texels (first at row {j}, "
+                f"column {i}: {m[j, i].tolist()})"
+            )
+        if (m < 0).any():
+            j, i, _ = np.argwhere(m < 0)[0]
+            raise ValueError(
+                f"sky.envmap has negative radiance (first at row {j}, column {i}: "
+                f"{m[j, i].tolist()})"
+            )
+        scale = float(self.envmap_scale)
+        if not (math.isfinite(scale) and scale >= 0):
+            raise ValueError(f"sky.envmap_scale must be finite and >= 0, got {self.envmap_scale!r}")
+        r = np.eye(3) if self.world_from_map is None else np.array(self.world_from_map, float)
+        if r.shape != (3, 3) or not np.all(np.isfinite(r)):
+            raise ValueError(f"sky.world_from_map must be a finite 3x3 rotation, got {r.tolist()}")
+        if not np.allclose(r.T @ r, np.eye(3), atol=1e-4):
+            raise ValueError(
+                f"sky.world_from_map must be a rotation (orthonormal; no scale or shear), got "
+                f"{np.round(r, 6).tolist()}"
+            )
+        m.setflags(write=False)
+        r.setflags(write=False)
+        object.__setattr__(self, "envmap", m)
+        object.__setattr__(self, "envmap_scale", scale)
+        object.__setattr__(self, "world_from_map", r)
+        mean = envmap_mean_radiance(m) * scale
+        for name in ("zenith", "horizon", "ground"):
+            object.__setattr__(self, name, mean.copy())
+        object.__setattr__(self, "up", r[:, 1].copy())
+
+    @classmethod
+    def from_envmap(
+        cls,
+        path_or_array: Any,
+        scale: float = 1.0,
+        world_from_map: Any = None,
+    ) -> Sky:
+        """A latitude-longitude environment map as the sky (Mitsuba 3's ``envmap`` convention).
+
+        Args:
+            path_or_array: an EXR or Radiance ``.hdr`` file (linear radiance), or an (H, W, 3)
+                array of it.
+            scale: radiance multiplier (Mitsuba's ``scale``).
+            world_from_map: (3, 3) rotation from map to world (the rotation part of Mitsuba's
+                ``to_world``); None = identity (map +y = world +y).
+
+        Raises:
+            FileNotFoundError: no such file. ValueError: an unsupported file type, a bad map
+            (shape, NaN/Inf, negative texels), scale or rotation (the message names it).
+        """
+        if isinstance(path_or_array, (str, os.PathLike)):
+            from icbtool.imageio import read_hdr
+
+            data = read_hdr(path_or_array)
+        else:
+            data = np.asarray(path_or_array)
+        return cls(kind="envmap", envmap=data, envmap_scale=scale, world_from_map=world_from_map)
 
     def radiance(self, directions: np.ndarray) -> np.ndarray:
         """Radiance (..., 3) float32 arriving from the unit ``directions`` (..., 3)."""
         d = np.asarray(directions)
+        if self.kind == "envmap":
+            local = d @ self.world_from_map  # map_from_world = world_from_map.T
+            return envmap_lookup(self.envmap, local) * np.float32(self.envmap_scale)
         if self.kind == "uniform":
             return np.broadcast_to(self.zenith.astype(np.float32), d.shape).copy()
         c = d @ self.up
@@ -315,7 +423,56 @@ class Sky:
 
     @property
     def max_radiance(self) -> float:
+        if self.kind == "envmap":
+            return float(self.envmap.max()) * self.envmap_scale
         return float(max(self.zenith.max(), self.horizon.max(), self.ground.max()))
+
+
+def envmap_periodic(envmap: np.ndarray) -> np.ndarray:
+    """(H, W + 1, 3) float32: the map with its first column repeated at the end (the periodic
+    texel grid the bilinear lookup of :func:`envmap_lookup` reads, as Mitsuba's envmap)."""
+    m = np.asarray(envmap, np.float32)
+    return np.ascontiguousarray(np.concatenate([m, m[:, :1]], axis=1))
+
+
+def envmap_uv(local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Map-space unit directions (..., 3) -> (u, v) in [0, 1] (Mitsuba's ``direction_to_uv``)."""
+    d = np.asarray(local, np.float64)
+    u = np.arctan2(d[..., 0], -d[..., 2]) / (2 * np.pi)
+    v = np.arccos(np.clip(d[..., 1], -1.0, 1.0)) / np.pi
+    return u, v
+
+
+def envmap_lookup(envmap: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """Bilinear radiance (..., 3) float32 of a lat-long map (H, W, 3) along map-space unit
+    directions (..., 3) (the lookup of :class:`Sky` ``kind='envmap'``)."""
+    m = envmap_periodic(envmap)
+    h, w1 = m.shape[:2]
+    u, v = envmap_uv(local)
+    u = u - 0.5 / (w1 - 1)
+    u = u - np.floor(u)
+    x = u * (w1 - 1)
+    y = v * (h - 1)
+    xi = np.minimum(x.astype(np.int64), w1 - 2)
+    yi = np.minimum(y.astype(np.int64), h - 2)
+    fx = (x - xi)[..., None]
+    fy = (y - yi)[..., None]
+    top = (1 - fx) * m[yi, xi] + fx * m[yi, xi + 1]
+    bot = (1 - fx) * m[yi + 1, xi] + fx * m[yi + 1, xi + 1]
+    return ((1 - fy) * top + fy * bot).astype(np.float32)
+
+
+def envmap_mean_radiance(envmap: np.ndarray) -> np.ndarray:
+    """(3,) mean radiance of a lat-long map over the sphere (1/(4 pi) of its integral over solid
+    angle, rows weighted by the solid angle around their latitude)."""
+    m = np.asarray(envmap, np.float64)
+    h = m.shape[0]
+    th = np.arange(h) * (np.pi / (h - 1))
+    # each node row j stands for the band [theta_j - d/2, theta_j + d/2] clipped to [0, pi]
+    lo = np.clip(th - 0.5 * np.pi / (h - 1), 0, np.pi)
+    hi = np.clip(th + 0.5 * np.pi / (h - 1), 0, np.pi)
+    w = np.cos(lo) - np.cos(hi)
+    return (m.mean(axis=1) * w[:, None]).sum(0) / w.sum()
 
 
 Light = DirectionalLight | PointLight | SpotLight | AreaLight
@@ -515,7 +672,11 @@ class Scene:
 
     @property
     def light_hash(self) -> str:
-        """SHA-256 (hex, 16 chars) of the light setup (lights + sky) alone."""
+        """SHA-256 (hex, 16 chars) of the light setup (lights + sky, an environment map's
+        texels included) alone."""
+        return derived(self, "light_hash", self._light_hash)
+
+    def _light_hash(self) -> str:
         h = hashlib.sha256()
         for light in self.lights:
             h.update(repr(_light_key(light)).encode())
@@ -541,7 +702,9 @@ def _light_key(obj: Any) -> tuple:
     for k, v in sorted(vars(obj).items()):
         if k == "shape" and v == "parallelogram":
             continue  # the default shape: the light hashes of older scenes stay valid
-        if isinstance(v, np.ndarray):
+        if isinstance(v, np.ndarray) and v.size > 64:  # an envmap: its content's digest
+            v = ("sha256", v.shape, hashlib.sha256(np.ascontiguousarray(v).tobytes()).hexdigest())
+        elif isinstance(v, np.ndarray):
             v = tuple(np.round(v.astype(np.float64), 9).tolist())
         items.append((k, v))
     return (type(obj).__name__, tuple(items))

@@ -2,9 +2,15 @@
 
 :func:`trace_paths` does all per-sample work: primary rays, closest hits and shadow rays (through
 Embree 4's C API, see :mod:`icbtool.trace.rtc` and :func:`call3`), hit attributes, textures,
-emission with MIS, next-event estimation (sun, point/spot, emissive triangles, sky), cosine BSDF
-sampling and Russian roulette. The driver in :mod:`icbtool.trace.tracer` runs it on a few Python
-threads (the kernels release the GIL) and merges the samples with :func:`accumulate_pass`.
+emission with MIS, next-event estimation (sun, point/spot, emissive triangles, sky or environment
+map), cosine BSDF sampling and Russian roulette. It takes one parameter struct,
+:data:`TraceParams` (named tuples: Embree, camera, surfaces, lights, sky, sampling) and its
+outputs (:data:`Outputs`); its steps are inlined helpers: :func:`_camera_ray`,
+:func:`_hit_frame`, the texture footprint, and one sample function per light type
+(:func:`_sun_sample`, :func:`_punctual_sample`, :func:`_emitter_point` + :func:`_emitter_sample`,
+:func:`_sky_sample` + :func:`_sky_light_weight`) whose shadow ray the loop traces. The driver in
+:mod:`icbtool.trace.tracer` runs it on a few Python threads (the kernels release the GIL) and
+merges the samples with :func:`accumulate_pass`.
 
 Random numbers are a pure function of (seed, pixel, sample index, dimension), never of the thread
 that computes them, so images do not depend on the number of threads. Two samplers:
@@ -24,6 +30,7 @@ read-only, in the user-wide cache (``~/.cache/numba`` or ``$NUMBA_CACHE_DIR``).
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numba as nb
 import numpy as np
@@ -31,7 +38,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-from icbtool.trace.rtc import RAYHIT_WORDS
+from icbtool.trace.layout import RAYHIT_WORDS
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy", boundscheck=False)
 
@@ -208,10 +215,56 @@ def _sample_base(seed_mix, pix, sid):
 
 
 # ---------------------------------------------------------------------------------- shading
+# Helpers take the few arrays they read (or scalars), never the parameter struct: numba increfs
+# and decrefs (atomically) every array an inlined helper is given, per call; a struct of ~35
+# arrays made the kernel 2-3x slower, a handful of arrays per vertex ~15 %.
 @nb.njit(inline="always", **_JIT)
-def _sky(sky_kind, sky, dx, dy, dz):
-    """Sky radiance along (dx, dy, dz); sky = [zenith, horizon, ground, up] (float32 values)."""
-    if sky_kind == 1:
+def _envmap(env, rot, scale, dx, dy, dz):
+    """Radiance of the lat-long map ``env`` (H, W + 1, 3) float32 (last column = first) along
+    the world direction (dx, dy, dz); ``rot``: world_from_map (3, 3). Mitsuba's envmap lookup
+    (bilinear, half-texel shifted in u), see :class:`icbtool.scene.Sky`."""
+    lx = rot[0, 0] * dx + rot[1, 0] * dy + rot[2, 0] * dz
+    ly = rot[0, 1] * dx + rot[1, 1] * dy + rot[2, 1] * dz
+    lz = rot[0, 2] * dx + rot[1, 2] * dy + rot[2, 2] * dz
+    h = env.shape[0]
+    w1 = env.shape[1]
+    u = math.atan2(lx, -lz) * (0.5 * _INV_PI) - 0.5 / (w1 - 1)
+    u -= math.floor(u)
+    v = math.acos(min(max(ly, -1.0), 1.0)) * _INV_PI
+    x = u * (w1 - 1)
+    y = v * (h - 1)
+    xi = min(np.int64(x), w1 - 2)
+    yi = min(np.int64(y), h - 2)
+    fx = x - xi
+    fy = y - yi
+    ga = (1 - fy) * (1 - fx)
+    gb = (1 - fy) * fx
+    gc = fy * (1 - fx)
+    gd = fy * fx
+    return (
+        scale * (ga * env[yi, xi, 0] + gb * env[yi, xi + 1, 0])
+        + scale * (gc * env[yi + 1, xi, 0] + gd * env[yi + 1, xi + 1, 0]),
+        scale * (ga * env[yi, xi, 1] + gb * env[yi, xi + 1, 1])
+        + scale * (gc * env[yi + 1, xi, 1] + gd * env[yi + 1, xi + 1, 1]),
+        scale * (ga * env[yi, xi, 2] + gb * env[yi, xi + 1, 2])
+        + scale * (gc * env[yi + 1, xi, 2] + gd * env[yi + 1, xi + 1, 2]),
+    )
+
+
+@nb.njit(inline="always", **_JIT)
+def _sky(kind, sky, env, rot, scale, dx, dy, dz):
+    """Sky radiance along (dx, dy, dz): :func:`_envmap` for an envmap (``kind == SKY_ENVMAP``),
+    else :func:`_sky_analytic`."""
+    if kind == SKY_ENVMAP:
+        return _envmap(env, rot, scale, dx, dy, dz)
+    return _sky_analytic(kind, sky, dx, dy, dz)
+
+
+@nb.njit(inline="always", **_JIT)
+def _sky_analytic(kind, sky, dx, dy, dz):
+    """Radiance of a uniform or gradient sky along (dx, dy, dz); ``sky`` = [zenith, horizon,
+    ground, up] (float32 values)."""
+    if kind == SKY_UNIFORM:
         return (
             np.float64(np.float32(sky[0, 0])),
             np.float64(np.float32(sky[0, 1])),
@@ -360,18 +413,25 @@ def rtc_occluded_batch(rtc, fn, o, d, tfar, out, lo, hi):
 
 # ---------------------------------------------------------------------------------- sky table
 @nb.njit(inline="always", **_JIT)
-def _cdf_pick(cdf, row, u):
-    """(first index k with cdf[row, k] > u, the remainder of u within that cell in [0, 1))."""
-    n = cdf.shape[1]
+def _search_right(cdf, row, u):
+    """First index k with cdf[row, k] > u (numpy's searchsorted(side='right') on one row of a
+    2D CDF; a loop here is ~30 % faster than np.searchsorted in numba)."""
     a = 0
-    b = n
+    b = cdf.shape[1]
     while a < b:
         mid = (a + b) // 2
         if cdf[row, mid] <= u:
             a = mid + 1
         else:
             b = mid
-    k = min(a, n - 1)
+    return a
+
+
+@nb.njit(inline="always", **_JIT)
+def _cdf_pick(cdf, row, u):
+    """(first index k with cdf[row, k] > u, the remainder of u within that cell in [0, 1))."""
+    n = cdf.shape[1]
+    k = min(_search_right(cdf, row, u), n - 1)
     lo = cdf[row, k - 1] if k > 0 else 0.0
     width = cdf[row, k] - lo
     r = (u - lo) / width if width > 0 else 0.5
@@ -379,14 +439,22 @@ def _cdf_pick(cdf, row, u):
 
 
 @nb.njit(inline="always", **_JIT)
-def _sky_sample(frame, marg, cond, pdf, u1, u2):
-    """A direction drawn from the sky table and its density: (dx, dy, dz, pdf).
-    marg: (1, nc) row CDF; cond: (nc, nphi) column CDFs."""
+def _sky_sample(frame, marg, cond, pdf, rows, phi0, u1, u2):
+    """A direction drawn from a sky table and its density: (dx, dy, dz, pdf).
+
+    marg: (1, nc) row CDF; cond: (nc, nphi) column CDFs; rows are equal in ``c = d . up``
+    (``rows == ROWS_COS``) or in the polar angle (``ROWS_THETA``, envmaps; uniform in ``c``
+    within a row either way); columns start at azimuth ``phi0``."""
     nc, nphi = pdf.shape
     i, rc = _cdf_pick(marg, 0, u1)
     j, rp = _cdf_pick(cond, i, u2)
-    c = -1.0 + (i + rc) * (2.0 / nc)
-    phi = (j + rp) * (2.0 * _PI / nphi)
+    if rows == ROWS_THETA:
+        c_hi = math.cos(i * (_PI / nc))
+        c_lo = math.cos((i + 1) * (_PI / nc))
+        c = c_hi + rc * (c_lo - c_hi)
+    else:
+        c = -1.0 + (i + rc) * (2.0 / nc)
+    phi = phi0 + (j + rp) * (2.0 * _PI / nphi)
     sn = math.sqrt(max(0.0, 1.0 - c * c))
     x = sn * math.cos(phi)
     y = sn * math.sin(phi)
@@ -397,16 +465,23 @@ def _sky_sample(frame, marg, cond, pdf, u1, u2):
 
 
 @nb.njit(inline="always", **_JIT)
-def _sky_pdf(frame, pdf, dx, dy, dz):
-    """Density of the sky table's sampling at the unit direction (dx, dy, dz)."""
+def _sky_pdf(frame, pdf, rows, phi0, dx, dy, dz):
+    """Density of :func:`_sky_sample` at the unit direction (dx, dy, dz)."""
     nc, nphi = pdf.shape
     c = dx * frame[2, 0] + dy * frame[2, 1] + dz * frame[2, 2]
-    i = min(max(np.int64((c + 1.0) * 0.5 * nc), 0), nc - 1)
+    if rows == ROWS_THETA:
+        th = math.acos(min(max(c, -1.0), 1.0))
+        i = min(max(np.int64(th * (nc / _PI)), 0), nc - 1)
+    else:
+        i = min(max(np.int64((c + 1.0) * 0.5 * nc), 0), nc - 1)
     j = 0
     if nphi > 1:
-        phi = math.atan2(
-            dx * frame[1, 0] + dy * frame[1, 1] + dz * frame[1, 2],
-            dx * frame[0, 0] + dy * frame[0, 1] + dz * frame[0, 2],
+        phi = (
+            math.atan2(
+                dx * frame[1, 0] + dy * frame[1, 1] + dz * frame[1, 2],
+                dx * frame[0, 0] + dy * frame[0, 1] + dz * frame[0, 2],
+            )
+            - phi0
         )
         if phi < 0:
             phi += 2.0 * _PI
@@ -415,10 +490,11 @@ def _sky_pdf(frame, pdf, dx, dy, dz):
 
 
 @nb.njit(**_JIT)
-def sky_sample_batch(frame, marg, cond, pdf, u, out_d, out_pdf):
-    """:func:`_sky_sample` for uniform pairs u (N, 2) (tests and tools)."""
+def sky_sample_batch(sk, u, out_d, out_pdf):
+    """:func:`_sky_sample` of the :data:`SkyParams` ``sk`` for uniform pairs u (N, 2)."""
+    frame, marg, cond, pdf, rows, phi0 = sk.frame, sk.marg, sk.cond, sk.pdf, sk.rows, sk.phi0
     for n in range(len(u)):
-        d0, d1, d2, p = _sky_sample(frame, marg, cond, pdf, u[n, 0], u[n, 1])
+        d0, d1, d2, p = _sky_sample(frame, marg, cond, pdf, rows, phi0, u[n, 0], u[n, 1])
         out_d[n, 0] = d0
         out_d[n, 1] = d1
         out_d[n, 2] = d2
@@ -426,123 +502,364 @@ def sky_sample_batch(frame, marg, cond, pdf, u, out_d, out_pdf):
 
 
 @nb.njit(**_JIT)
-def sky_pdf_batch(frame, pdf, d, out):
-    """:func:`_sky_pdf` for unit directions d (N, 3) (tests and tools)."""
+def sky_pdf_batch(sk, d, out):
+    """:func:`_sky_pdf` of the :data:`SkyParams` ``sk`` for unit directions d (N, 3)."""
+    frame, pdf, rows, phi0 = sk.frame, sk.pdf, sk.rows, sk.phi0
     for n in range(len(d)):
-        out[n] = _sky_pdf(frame, pdf, d[n, 0], d[n, 1], d[n, 2])
+        out[n] = _sky_pdf(frame, pdf, rows, phi0, d[n, 0], d[n, 1], d[n, 2])
 
+
+@nb.njit(**_JIT)
+def sky_radiance_batch(sk, d, out):
+    """:func:`_sky` of the :data:`SkyParams` ``sk`` for unit directions d (N, 3) (tests: the
+    kernels' lookup equals Sky.radiance)."""
+    kind, rad, env, rot, scale = sk.kind, sk.rad, sk.env, sk.env_rot, sk.env_scale
+    for n in range(len(d)):
+        a, b, c = _sky(kind, rad, env, rot, scale, d[n, 0], d[n, 1], d[n, 2])
+        out[n, 0] = a
+        out[n, 1] = b
+        out[n, 2] = c
+
+
+# ---------------------------------------------------------------------------------- parameters
+# The parameter struct of trace_paths: named tuples (numba types every field; built by
+# icbtool.trace.tracer._Tracer). Arrays are C-contiguous; scalars are int64 or float64.
+
+#: Embree 4: scene handle, addresses of rtcIntersect1 and rtcOccluded1.
+EmbreeFns = namedtuple("EmbreeFns", ["scene", "fn_intersect", "fn_occluded"])
+#: Camera: (fx, fy, cx, cy), world_from_cam rotation (3, 3), centre (3,), image width, jitter
+#: (1: box-filter the pixel, 0: its centre).
+View = namedtuple("View", ["intr", "r_wc", "pos", "width", "jitter"])
+#: Surfaces: per face (F) float32 corners (F, 3, 3), geometric normal (F, 3), corner normals
+#: (F, 3, 3), material (F,), corner uvs (F, 3, 2); per material (M) albedo and emission (M, 3)
+#: float64, texture offset into the texels (-1: untextured) and (h, w); texels (codes into
+#: tex_lut, or values if it is empty); nearest (1: nearest texel, 0: bilinear), shading_normals
+#: (1: interpolated, 0: flat), scene diagonal.
+Surfaces = namedtuple(
+    "Surfaces",
+    [
+        "tri", "face_n", "vn", "face_mat", "face_uv", "mat_albedo", "mat_emission",
+        "tex_flat", "tex_lut", "tex_off", "tex_hw", "nearest", "shading_normals", "diag",
+    ],
+)  # fmt: skip
+#: Lights: suns (S, 6) direction, irradiance; punct (Q, 12) position, intensity, axis, cos_in,
+#: cos_out, is_spot; emissive triangles: pmf (F,), area (F,), part of an AreaLight (F,),
+#: emissive faces (E,) and their CDF (1, E).
+Lights = namedtuple(
+    "Lights", ["suns", "punct", "face_light_pmf", "face_area", "face_is_area", "emit_faces",
+               "emit_cdf"],
+)  # fmt: skip
+#: Sky: kind (SKY_*), [zenith, horizon, ground, up] (4, 3), envmap (H, W + 1, 3) float32 (the
+#: first column repeated), world_from_map (3, 3), its scale; importance table (see
+#: icbtool.trace.tracer.SkyTable): frame (3, 3), marg (1, nc), cond (nc, nphi), pdf (nc, nphi),
+#: rows (ROWS_*), phi0; mis (1: one light sample per vertex, MIS with the BSDF).
+SkyParams = namedtuple(
+    "SkyParams", ["kind", "rad", "env", "env_rot", "env_scale", "frame", "marg", "cond", "pdf",
+                  "rows", "phi0", "mis"],
+)  # fmt: skip
+#: Sampling: hash seed, per-dimension salts (independent sampler), Sobol pixel seed, sampler
+#: (SAMPLER_*), depth limit, Russian roulette depth, want_aux (1: first-hit albedo/normal).
+Sampling = namedtuple(
+    "Sampling", ["seed_mix", "salts", "pixseed", "sampler", "limit", "rr_depth", "want_aux"]
+)
+#: Everything trace_paths reads.
+TraceParams = namedtuple("TraceParams", ["embree", "cam", "surf", "lights", "sky", "sampling"])
+#: Per-sample outputs (P rows): direct, gi (P, 3), first hit (P,), first-hit albedo and normal
+#: (P, 3) (or (1, 3) when not wanted).
+Outputs = namedtuple("Outputs", ["direct", "gi", "first_hit", "albedo", "normal"])
+
+SKY_NONE = 0
+SKY_UNIFORM = 1
+SKY_GRADIENT = 2
+SKY_ENVMAP = 3
+ROWS_COS = 0
+ROWS_THETA = 1
 
 #: Samples per block; the threads of a pass take every n-th block (balanced, no false sharing).
 BLOCK = 256
-
-# iparams of trace_paths
-IP_LIMIT = 0
-IP_RR_DEPTH = 1
-IP_SAMPLER = 2
-IP_NEAREST = 3
-IP_SHADING_NORMALS = 4
-IP_WANT_AUX = 5
-IP_JITTER = 6
-IP_WIDTH = 7
-IP_SKY_MIS = 8
-N_IPARAMS = 9
 
 #: Sobol pairs of the sky light sample (vertices 1 .. LD_MAX_DEPTH): after the other dimensions
 SKY_PAIR0 = 1 + 3 * (LD_MAX_DEPTH + 1)
 
 
+# ---------------------------------------------------------------------------------- path steps
+@nb.njit(inline="always", **_JIT)
+def _camera_ray(intr, r_wc, width, jitter, sampler, salts, pix_s, sid_s, ps_pix, base_s):
+    """Unit world direction of the camera ray through pixel ``pix_s`` (jittered or centred)."""
+    if jitter:
+        if sampler == SAMPLER_SOBOL:
+            jx, jy = _sobol2(ps_pix, sid_s, 0)
+        else:
+            jx = _u01(base_s, salts[0])
+            jy = _u01(base_s, salts[1])
+    else:
+        jx = 0.5
+        jy = 0.5
+    cxp = (np.float64(pix_s % width) + jx - intr[2]) / intr[0]
+    cyp = (np.float64(pix_s // width) + jy - intr[3]) / intr[1]
+    nrm = math.sqrt(cxp * cxp + cyp * cyp + 1.0)
+    cxp /= nrm
+    cyp /= nrm
+    czp = 1.0 / nrm
+    dx = r_wc[0, 0] * cxp + r_wc[0, 1] * cyp + r_wc[0, 2] * czp
+    dy = r_wc[1, 0] * cxp + r_wc[1, 1] * cyp + r_wc[1, 2] * czp
+    dz = r_wc[2, 0] * cxp + r_wc[2, 1] * cyp + r_wc[2, 2] * czp
+    return dx, dy, dz
+
+
+@nb.njit(inline="always", **_JIT)
+def _hit_frame(tri, fn, vn, shading_normals, prim, h_u, h_v, dx, dy, dz):
+    """Where a ray hit face ``prim`` at barycentrics (h_u, h_v): (point, barycentrics (w0, b1,
+    b2), cos_o (geometric normal . -ray), front, forward-facing geometric normal nf, shading
+    normal ns on nf's side), vectors as 3-tuples."""
+    b1 = np.float64(h_u)
+    b2 = np.float64(h_v)
+    w0 = 1.0 - b1 - b2
+    x0 = w0 * tri[prim, 0, 0] + b1 * tri[prim, 1, 0] + b2 * tri[prim, 2, 0]
+    x1 = w0 * tri[prim, 0, 1] + b1 * tri[prim, 1, 1] + b2 * tri[prim, 2, 1]
+    x2 = w0 * tri[prim, 0, 2] + b1 * tri[prim, 1, 2] + b2 * tri[prim, 2, 2]
+    g0 = np.float64(fn[prim, 0])
+    g1 = np.float64(fn[prim, 1])
+    g2 = np.float64(fn[prim, 2])
+    cos_o = -(g0 * dx + g1 * dy + g2 * dz)
+    if g0 == 0 and g1 == 0 and g2 == 0:
+        g0, g1, g2 = -dx, -dy, -dz
+        cos_o = 1.0
+    front = cos_o > 0
+    if front:
+        nf0, nf1, nf2 = g0, g1, g2
+    else:
+        nf0, nf1, nf2 = -g0, -g1, -g2
+    if shading_normals:
+        a0 = w0 * vn[prim, 0, 0] + b1 * vn[prim, 1, 0] + b2 * vn[prim, 2, 0]
+        a1 = w0 * vn[prim, 0, 1] + b1 * vn[prim, 1, 1] + b2 * vn[prim, 2, 1]
+        a2 = w0 * vn[prim, 0, 2] + b1 * vn[prim, 1, 2] + b2 * vn[prim, 2, 2]
+        ln = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        if ln > 1e-20:
+            ns0, ns1, ns2 = a0 / ln, a1 / ln, a2 / ln
+        else:
+            ns0, ns1, ns2 = nf0, nf1, nf2
+        if ns0 * nf0 + ns1 * nf1 + ns2 * nf2 < 0:
+            ns0, ns1, ns2 = -ns0, -ns1, -ns2
+    else:
+        ns0, ns1, ns2 = nf0, nf1, nf2
+    return (x0, x1, x2), (w0, b1, b2), cos_o, front, (nf0, nf1, nf2), (ns0, ns1, ns2)
+
+
+@nb.njit(inline="always", **_JIT)
+def _tex_coords(face_uv, prim, bary):
+    """Texture coordinates (u, v) at barycentrics (w0, b1, b2) of face ``prim``."""
+    w0, b1, b2 = bary
+    uu = w0 * face_uv[prim, 0, 0] + b1 * face_uv[prim, 1, 0] + b2 * face_uv[prim, 2, 0]
+    vv = w0 * face_uv[prim, 0, 1] + b1 * face_uv[prim, 1, 1] + b2 * face_uv[prim, 2, 1]
+    return uu, vv
+
+
+@nb.njit(inline="always", **_JIT)
+def _nearest_texel(off, th, tw, uu, vv):
+    """Offset of the nearest texel's red value at (uu, vv) in a texture at ``off`` in the
+    texels (th x tw, RGB, repeat)."""
+    xi = np.int64(math.floor(uu * tw - 0.5 + 0.5)) % tw
+    yi = np.int64(math.floor((1.0 - vv) * th - 0.5 + 0.5)) % th
+    return off + (yi * tw + xi) * 3
+
+
+@nb.njit(inline="always", **_JIT)
+def _bilinear_footprint(off, th, tw, uu, vv):
+    """The four texel offsets (red values) and bilinear weights at (uu, vv) in a texture at
+    ``off`` (th x tw, RGB, repeat): (p00, p01, p10, p11, ga, gb, gc, gd)."""
+    xx = uu * tw - 0.5
+    yy = (1.0 - vv) * th - 0.5
+    fx0 = math.floor(xx)
+    fy0 = math.floor(yy)
+    fx = xx - fx0
+    fy = yy - fy0
+    xa = np.int64(fx0) % tw
+    ya = np.int64(fy0) % th
+    xb = xa + 1 if xa + 1 < tw else 0
+    yb = ya + 1 if ya + 1 < th else 0
+    return (
+        off + (ya * tw + xa) * 3,
+        off + (ya * tw + xb) * 3,
+        off + (yb * tw + xa) * 3,
+        off + (yb * tw + xb) * 3,
+        (1 - fy) * (1 - fx),
+        (1 - fy) * fx,
+        fy * (1 - fx),
+        fy * fx,
+    )
+
+
+@nb.njit(inline="always", **_JIT)
+def _emission_mis_weight(pmf, area, th, cos_o, pdf_prev):
+    """Power-heuristic weight of a BSDF-sampled hit on an emitter (face pick pmf, face area,
+    distance th, cosine at the emitter cos_o) against the emitter sample."""
+    pl = pmf / max(area, 1e-300) * th * th / max(cos_o, 1e-12)
+    pb = pdf_prev
+    return pb * pb / max(pb * pb + pl * pl, 1e-300) if pl > 0 else 1.0
+
+
+# Light samples: each light type gives a direction wi, the shadow ray's length and whether the
+# sample can contribute (above both normals); trace_paths traces the shadow ray and adds the
+# contribution f / pi * radiance * geometry.
+@nb.njit(inline="always", **_JIT)
+def _sun_sample(d0, d1, d2, nf, ns):
+    """A directional light travelling along d: (usable, wi, cos at the shading normal)."""
+    wi0 = -d0
+    wi1 = -d1
+    wi2 = -d2
+    c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
+    ok = c > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0
+    return ok, wi0, wi1, wi2, c
+
+
+@nb.njit(inline="always", **_JIT)
+def _punctual_sample(punct, j, x, nf, ns, eps):
+    """Point or spot light j of ``punct`` (Q, 12) from x: (usable, wi, shadow-ray length,
+    intensity towards x (spot falloff applied), geometry cos / r^2)."""
+    wi0, wi1, wi2, dist = _towards(x[0], x[1], x[2], punct[j, 0], punct[j, 1], punct[j, 2])
+    c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
+    fall = 1.0
+    if punct[j, 11] > 0:
+        ca = -(wi0 * punct[j, 6] + wi1 * punct[j, 7] + wi2 * punct[j, 8])
+        xf = min(max((ca - punct[j, 10]) / (punct[j, 9] - punct[j, 10]), 0.0), 1.0)
+        fall = xf * xf * (3.0 - 2.0 * xf)
+    i0 = punct[j, 3] * fall
+    i1 = punct[j, 4] * fall
+    i2 = punct[j, 5] * fall
+    ok = c > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0 and dist > 0
+    ok = ok and (i0 > 0 or i1 > 0 or i2 > 0)
+    tf = np.float32(dist * (1 - 1e-5) - eps)
+    g = c / (dist * dist) if ok else 0.0
+    return ok, wi0, wi1, wi2, tf, (i0, i1, i2), g
+
+
+@nb.njit(inline="always", **_JIT)
+def _emitter_point(tri, emit_faces, emit_cdf, ul, ra, r2):
+    """An emissive face drawn by power (ul) and a uniform point on it (ra, r2): (face, point)."""
+    n_e = len(emit_faces)
+    lf = emit_faces[min(_search_right(emit_cdf, 0, ul), n_e - 1)]
+    r1 = math.sqrt(ra)
+    ca = r1 * (1 - r2)
+    cb = r1 * r2
+    y0 = (
+        np.float64(tri[lf, 0, 0])
+        + ca * (np.float64(tri[lf, 1, 0]) - np.float64(tri[lf, 0, 0]))
+        + cb * (np.float64(tri[lf, 2, 0]) - np.float64(tri[lf, 0, 0]))
+    )
+    y1 = (
+        np.float64(tri[lf, 0, 1])
+        + ca * (np.float64(tri[lf, 1, 1]) - np.float64(tri[lf, 0, 1]))
+        + cb * (np.float64(tri[lf, 2, 1]) - np.float64(tri[lf, 0, 1]))
+    )
+    y2 = (
+        np.float64(tri[lf, 0, 2])
+        + ca * (np.float64(tri[lf, 1, 2]) - np.float64(tri[lf, 0, 2]))
+        + cb * (np.float64(tri[lf, 2, 2]) - np.float64(tri[lf, 0, 2]))
+    )
+    return lf, (y0, y1, y2)
+
+
+@nb.njit(inline="always", **_JIT)
+def _emitter_sample(y, nl, pmf, area, diag, x, nf, ns, eps):
+    """The point y on an emissive face (normal nl, face pick pmf, area) seen from x: (usable,
+    wi, shadow-ray length, geometry times the MIS weight against BSDF sampling, power
+    heuristic)."""
+    wi0, wi1, wi2, dist = _towards(x[0], x[1], x[2], y[0], y[1], y[2])
+    c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
+    cl = -(nl[0] * wi0 + nl[1] * wi1 + nl[2] * wi2)
+    if not (c > 0 and cl > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0 and dist > 0):
+        return False, wi0, wi1, wi2, np.float32(0.0), 0.0
+    pl = pmf / area * dist * dist / cl
+    pb = c * _INV_PI
+    w = pl * pl / (pl * pl + pb * pb)
+    g = c * w / pl
+    eps_l = _eps(y[0], y[1], y[2], dist, diag)
+    tf = np.float32(max(dist - eps - eps_l, 0.0))
+    return True, wi0, wi1, wi2, tf, g
+
+
+@nb.njit(inline="always", **_JIT)
+def _sky_light_weight(psk, wi0, wi1, wi2, nf, ns):
+    """A sky direction drawn from its table with density psk: (usable, geometry times the MIS
+    weight against BSDF sampling, power heuristic)."""
+    c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
+    if not (psk > 0 and c > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0):
+        return False, 0.0
+    pb = c * _INV_PI
+    return True, c * (psk / (psk * psk + pb * pb))  # c * w / psk, w = power heuristic
+
+
+@nb.njit(inline="always", **_JIT)
+def _cosine_sample(nf, ns, u1, u2):
+    """A cosine-weighted direction about the shading normal (Duff et al. basis), mirrored above
+    the geometric surface, and its density: (wi0, wi1, wi2, pdf)."""
+    ns0, ns1, ns2 = ns
+    nf0, nf1, nf2 = nf
+    sign = 1.0 if ns2 >= 0 else -1.0
+    a = -1.0 / (sign + ns2)
+    b = ns0 * ns1 * a
+    ta0 = 1 + sign * ns0 * ns0 * a
+    ta1 = sign * b
+    ta2 = -sign * ns0
+    tb0 = b
+    tb1 = sign + ns1 * ns1 * a
+    tb2 = -ns1
+    r = math.sqrt(u1)
+    phi = 2 * _PI * u2
+    zc = math.sqrt(max(0.0, 1 - u1))
+    rc = r * math.cos(phi)
+    rs = r * math.sin(phi)
+    wi0 = rc * ta0 + rs * tb0 + zc * ns0
+    wi1 = rc * ta1 + rs * tb1 + zc * ns1
+    wi2 = rc * ta2 + rs * tb2 + zc * ns2
+    below = wi0 * nf0 + wi1 * nf1 + wi2 * nf2
+    if below <= 0:
+        wi0 -= 2 * below * nf0
+        wi1 -= 2 * below * nf1
+        wi2 -= 2 * below * nf2
+    ln = math.sqrt(wi0 * wi0 + wi1 * wi1 + wi2 * wi2)
+    if ln > 1e-20:
+        wi0, wi1, wi2 = wi0 / ln, wi1 / ln, wi2 / ln
+    else:
+        wi0, wi1, wi2 = nf0, nf1, nf2
+    return wi0, wi1, wi2, max(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1e-12) * _INV_PI
+
+
 @nb.njit(**_JIT)
-def trace_paths(
-    # embree: scene handle, rtcIntersect1, rtcOccluded1
-    rtc,
-    fn_isect,
-    fn_occl,
-    # samples (P): pixel, sample id; seed of the per-sample hashes, per-dimension salts
-    pix,
-    sid,
-    seed_mix,
-    salts,
-    # camera: (fx, fy, cx, cy), world_from_cam rotation (3, 3), centre (3,)
-    intr,
-    r_wc,
-    pos,
-    # scene: per face (F) float32 corners (F, 3, 3), geometric normal (F, 3), corner normals
-    # (F, 3, 3); per material (M) albedo, emission (M, 3) float64; material (F,), corner uvs
-    # (F, 3, 2) float32; texels (codes into tex_lut, or values if it is empty), per-material
-    # offset into them (-1: untextured) and (h, w)
-    tri,
-    fn,
-    vn,
-    mat_albedo,
-    mat_emission,
-    face_mat,
-    face_uv,
-    tex_flat,
-    tex_lut,
-    tex_off,
-    tex_hw,
-    # emitters: pmf (F,), area (F,), part of an AreaLight (F,), emissive faces (E,), their CDF
-    face_light_pmf,
-    face_area,
-    face_is_area,
-    emit_faces,
-    emit_cdf,
-    # delta lights (see below); sky: 0 none, 1 uniform, 2 gradient, [zenith, horizon, ground, up]
-    suns,
-    punct,
-    sky_kind,
-    sky,
-    # sky importance table (see icbtool.trace.tracer.SkyTable)
-    sky_frame,
-    sky_marg,
-    sky_cond,
-    sky_pdf,
-    # parameters (see IP_*), scene diagonal, Sobol pixel seed
-    iparams,
-    diag,
-    pixseed0,
-    # outputs per sample (P): direct, gi, first hit, first-hit albedo and normal
-    direct,
-    gi,
-    first_hit,
-    alb_out,
-    nrm_out,
-    # (3,) rays traced by this part: primary, bounce, shadow
-    counts,
-    # ray log (benchmarks): o, d (C, 3), tfar (C,), kind (C,) 0 = camera, 1 = shadow, 2 = bounce;
-    # log_n (1,) entries used; C <= 1 turns logging off
-    log_o,
-    log_d,
-    log_tf,
-    log_kind,
-    log_n,
-    # this part's share: blocks part, part + n_parts, ...
-    part,
-    n_parts,
-):
+def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
     """Trace one whole path per sample (every depth, shadow rays inline) for a share of samples.
+
+    Args:
+        p: :data:`TraceParams`.
+        out: :data:`Outputs` (per-sample rows, added to).
+        counts: (3,) int64 rays traced by this part: primary, bounce, shadow (added to).
+        log: ray log (benchmarks): o, d (C, 3), tfar (C,), kind (C,) 0 = camera, 1 = shadow,
+            2 = bounce; n (1,) entries used; C <= 1 turns logging off.
+        part, n_parts: this part's share: blocks part, part + n_parts, ...
+        pix, sid: (P,) pixel index (row-major) and sample index of each sample.
 
     Outputs are per sample, so parts write disjoint rows: several threads can run parts at once
     (the kernel releases the GIL). Per sample, contributions are added in a fixed order (emission
     seen, then each light's shadow-tested sample: suns, point/spot, emitter, sky), so images do
     not depend on the number of parts.
-
-    suns: (S, 6) direction, irradiance. punct: (Q, 12) position, intensity, axis, cos_in,
-    cos_out, is_spot.
     """
-    limit = iparams[IP_LIMIT]
-    rr_depth = iparams[IP_RR_DEPTH]
-    sampler = iparams[IP_SAMPLER]
-    nearest = iparams[IP_NEAREST]
-    shading_normals = iparams[IP_SHADING_NORMALS]
-    want_aux = iparams[IP_WANT_AUX]
-    jitter = iparams[IP_JITTER]
-    width = iparams[IP_WIDTH]
-    sky_mis = iparams[IP_SKY_MIS] != 0 and sky_kind != 0
+    # the struct's fields as locals, once (see the note above the shading helpers)
+    rtc, fn_isect, fn_occl = p.embree
+    intr, r_wc, pos, width, jitter = p.cam
+    sf = p.surf
+    tri, fn, vn, face_mat, face_uv = sf.tri, sf.face_n, sf.vn, sf.face_mat, sf.face_uv
+    mat_albedo, mat_emission = sf.mat_albedo, sf.mat_emission
+    tex, lut, tex_off, tex_hw = sf.tex_flat, sf.tex_lut, sf.tex_off, sf.tex_hw
+    nearest, shading_normals, diag = sf.nearest, sf.shading_normals, sf.diag
+    suns, punct, face_light_pmf, face_area, face_is_area, emit_faces, emit_cdf = p.lights
+    sky_kind, sky, env, rot, scale, frame, marg, cond, spdf, rows, phi0, mis = p.sky
+    seed_mix, salts, pixseed0, sampler, limit, rr_depth, want_aux = p.sampling
+    direct, gi, first_hit, alb_out, nrm_out = out
+    sky_mis = mis != 0 and sky_kind != SKY_NONE
     n_s = suns.shape[0]
     n_q = punct.shape[0]
     n_e = len(emit_faces)
-    log = (log_o, log_d, log_tf, log_kind, log_n)
     ray = _rayhit()
     n_prim = 0
     n_bounce = 0
@@ -551,27 +868,11 @@ def trace_paths(
     n_blocks = (P + BLOCK - 1) // BLOCK
     for blk in range(part, n_blocks, n_parts):
         for s in range(blk * BLOCK, min(P, (blk + 1) * BLOCK)):
-            ps_pix = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD))
+            pixel_seed = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD))
             base_s = _sample_base(seed_mix, pix[s], sid[s])
-            # ---- primary ray
-            if jitter:
-                if sampler == SAMPLER_SOBOL:
-                    jx, jy = _sobol2(ps_pix, sid[s], 0)
-                else:
-                    jx = _u01(base_s, salts[0])
-                    jy = _u01(base_s, salts[1])
-            else:
-                jx = 0.5
-                jy = 0.5
-            cxp = (np.float64(pix[s] % width) + jx - intr[2]) / intr[0]
-            cyp = (np.float64(pix[s] // width) + jy - intr[3]) / intr[1]
-            nrm = math.sqrt(cxp * cxp + cyp * cyp + 1.0)
-            cxp /= nrm
-            cyp /= nrm
-            czp = 1.0 / nrm
-            dx = r_wc[0, 0] * cxp + r_wc[0, 1] * cyp + r_wc[0, 2] * czp
-            dy = r_wc[1, 0] * cxp + r_wc[1, 1] * cyp + r_wc[1, 2] * czp
-            dz = r_wc[2, 0] * cxp + r_wc[2, 1] * cyp + r_wc[2, 2] * czp
+            dx, dy, dz = _camera_ray(
+                intr, r_wc, width, jitter, sampler, salts, pix[s], sid[s], pixel_seed, base_s
+            )
             ox = np.float32(pos[0])
             oy = np.float32(pos[1])
             oz = np.float32(pos[2])
@@ -589,9 +890,12 @@ def trace_paths(
                     n_prim += 1
                 else:
                     n_bounce += 1
-                if prim < 0:
-                    if sky_kind != 0:
-                        le = _sky(sky_kind, sky, dx, dy, dz)
+                if prim < 0:  # ---- the sky: direct for a camera ray, else gi (MIS-weighted)
+                    if sky_kind != SKY_NONE:
+                        if sky_kind == SKY_ENVMAP:
+                            le = _envmap(env, rot, scale, dx, dy, dz)
+                        else:
+                            le = _sky_analytic(sky_kind, sky, dx, dy, dz)
                         if depth == 1:
                             direct[s, 0] += le[0] * t0
                             direct[s, 1] += le[1] * t1
@@ -599,7 +903,7 @@ def trace_paths(
                         else:
                             w = 1.0
                             if sky_mis:  # MIS weight of the BSDF sample against the sky sample
-                                psk = _sky_pdf(sky_frame, sky_pdf, dx, dy, dz)
+                                psk = _sky_pdf(frame, spdf, rows, phi0, dx, dy, dz)
                                 w = (
                                     pdf_prev
                                     * pdf_prev
@@ -609,39 +913,12 @@ def trace_paths(
                             gi[s, 1] += le[1] * t1 * w
                             gi[s, 2] += le[2] * t2 * w
                     break
-                b1 = np.float64(h_u)
-                b2 = np.float64(h_v)
                 th = np.float64(h_t)
-                w0 = 1.0 - b1 - b2
-                x0 = w0 * tri[prim, 0, 0] + b1 * tri[prim, 1, 0] + b2 * tri[prim, 2, 0]
-                x1 = w0 * tri[prim, 0, 1] + b1 * tri[prim, 1, 1] + b2 * tri[prim, 2, 1]
-                x2 = w0 * tri[prim, 0, 2] + b1 * tri[prim, 1, 2] + b2 * tri[prim, 2, 2]
-                g0 = np.float64(fn[prim, 0])
-                g1 = np.float64(fn[prim, 1])
-                g2 = np.float64(fn[prim, 2])
-                cos_o = -(g0 * dx + g1 * dy + g2 * dz)
-                if g0 == 0 and g1 == 0 and g2 == 0:
-                    g0, g1, g2 = -dx, -dy, -dz
-                    cos_o = 1.0
-                front = cos_o > 0
-                if front:
-                    nf0, nf1, nf2 = g0, g1, g2
-                else:
-                    nf0, nf1, nf2 = -g0, -g1, -g2
-                if shading_normals:
-                    a0 = w0 * vn[prim, 0, 0] + b1 * vn[prim, 1, 0] + b2 * vn[prim, 2, 0]
-                    a1 = w0 * vn[prim, 0, 1] + b1 * vn[prim, 1, 1] + b2 * vn[prim, 2, 1]
-                    a2 = w0 * vn[prim, 0, 2] + b1 * vn[prim, 1, 2] + b2 * vn[prim, 2, 2]
-                    ln = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-                    if ln > 1e-20:
-                        ns0, ns1, ns2 = a0 / ln, a1 / ln, a2 / ln
-                    else:
-                        ns0, ns1, ns2 = nf0, nf1, nf2
-                    if ns0 * nf0 + ns1 * nf1 + ns2 * nf2 < 0:
-                        ns0, ns1, ns2 = -ns0, -ns1, -ns2
-                else:
-                    ns0, ns1, ns2 = nf0, nf1, nf2
-                # ---- emission seen (one-sided)
+                x, bary, cos_o, front, nf, ns = _hit_frame(
+                    tri, fn, vn, shading_normals, prim, h_u, h_v, dx, dy, dz
+                )
+                # ---- emission seen (one-sided): direct for a camera ray and for a bounce off
+                # the first hit into an AreaLight (MIS-weighted); else gi (MIS-weighted)
                 m = face_mat[prim]
                 e0 = mat_emission[m, 0]
                 e1 = mat_emission[m, 1]
@@ -652,83 +929,44 @@ def trace_paths(
                         direct[s, 1] += e1 * t1
                         direct[s, 2] += e2 * t2
                     else:
-                        pl = (
-                            face_light_pmf[prim]
-                            / max(face_area[prim], 1e-300)
-                            * th
-                            * th
-                            / max(cos_o, 1e-12)
+                        w = _emission_mis_weight(
+                            face_light_pmf[prim], face_area[prim], th, cos_o, pdf_prev
                         )
-                        pb = pdf_prev
-                        w = pb * pb / max(pb * pb + pl * pl, 1e-300) if pl > 0 else 1.0
-                        if from_first and face_is_area[prim]:
-                            direct[s, 0] += e0 * t0 * w
-                            direct[s, 1] += e1 * t1 * w
-                            direct[s, 2] += e2 * t2 * w
-                        else:
-                            gi[s, 0] += e0 * t0 * w
-                            gi[s, 1] += e1 * t1 * w
-                            gi[s, 2] += e2 * t2 * w
-                # ---- albedo (texture with repeat)
+                        _add_to(
+                            direct,
+                            gi,
+                            from_first and face_is_area[prim],
+                            s,
+                            e0 * t0 * w,
+                            e1 * t1 * w,
+                            e2 * t2 * w,
+                        )
                 al0 = mat_albedo[m, 0]
                 al1 = mat_albedo[m, 1]
                 al2 = mat_albedo[m, 2]
-                if tex_off[m] >= 0:
-                    uu = (
-                        w0 * face_uv[prim, 0, 0]
-                        + b1 * face_uv[prim, 1, 0]
-                        + b2 * face_uv[prim, 2, 0]
-                    )
-                    vv = (
-                        w0 * face_uv[prim, 0, 1]
-                        + b1 * face_uv[prim, 1, 1]
-                        + b2 * face_uv[prim, 2, 1]
-                    )
-                    th_ = tex_hw[m, 0]
-                    tw_ = tex_hw[m, 1]
-                    off = tex_off[m]
-                    xx = uu * tw_ - 0.5
-                    yy = (1.0 - vv) * th_ - 0.5
+                if tex_off[m] >= 0:  # textured (repeat)
+                    uu, vv = _tex_coords(face_uv, prim, bary)
                     if nearest:
-                        xi = np.int64(math.floor(xx + 0.5)) % tw_
-                        yi = np.int64(math.floor(yy + 0.5)) % th_
-                        p = off + (yi * tw_ + xi) * 3
-                        al0 *= _texel(tex_flat, tex_lut, p)
-                        al1 *= _texel(tex_flat, tex_lut, p + 1)
-                        al2 *= _texel(tex_flat, tex_lut, p + 2)
+                        q = _nearest_texel(tex_off[m], tex_hw[m, 0], tex_hw[m, 1], uu, vv)
+                        al0 *= _texel(tex, lut, q)
+                        al1 *= _texel(tex, lut, q + 1)
+                        al2 *= _texel(tex, lut, q + 2)
                     else:
-                        fx0 = math.floor(xx)
-                        fy0 = math.floor(yy)
-                        fx = xx - fx0
-                        fy = yy - fy0
-                        xa = np.int64(fx0) % tw_
-                        ya = np.int64(fy0) % th_
-                        xb = xa + 1 if xa + 1 < tw_ else 0
-                        yb = ya + 1 if ya + 1 < th_ else 0
-                        p00 = off + (ya * tw_ + xa) * 3
-                        p01 = off + (ya * tw_ + xb) * 3
-                        p10 = off + (yb * tw_ + xa) * 3
-                        p11 = off + (yb * tw_ + xb) * 3
-                        ga = (1 - fy) * (1 - fx)
-                        gb = (1 - fy) * fx
-                        gc = fy * (1 - fx)
-                        gd = fy * fx
-                        al0 *= _bilerp(tex_flat, tex_lut, p00, p01, p10, p11, ga, gb, gc, gd)
-                        al1 *= _bilerp(
-                            tex_flat, tex_lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd
+                        p00, p01, p10, p11, ga, gb, gc, gd = _bilinear_footprint(
+                            tex_off[m], tex_hw[m, 0], tex_hw[m, 1], uu, vv
                         )
-                        al2 *= _bilerp(
-                            tex_flat, tex_lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd
-                        )
+                        al0 *= _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd)
+                        al1 *= _bilerp(tex, lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd)
+                        al2 *= _bilerp(tex, lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd)
                 if depth == 1:
                     first_hit[s] = True
                     if want_aux:
                         alb_out[s, 0] = al0
                         alb_out[s, 1] = al1
                         alb_out[s, 2] = al2
-                        nrm_out[s, 0] = ns0
-                        nrm_out[s, 1] = ns1
-                        nrm_out[s, 2] = ns2
+                        nrm_out[s, 0] = ns[0]
+                        nrm_out[s, 1] = ns[1]
+                        nrm_out[s, 2] = ns[2]
                 if depth >= limit:
                     break
                 f0 = t0 * al0
@@ -736,191 +974,103 @@ def trace_paths(
                 f2 = t2 * al2
                 if not (f0 > 0 or f1 > 0 or f2 > 0):
                     break
-                eps = _eps(x0, x1, x2, th, diag)
-                xo0 = x0 + nf0 * eps
-                xo1 = x1 + nf1 * eps
-                xo2 = x2 + nf2 * eps
-                so0 = np.float32(xo0)
-                so1 = np.float32(xo1)
-                so2 = np.float32(xo2)
-                fo0 = f0 * _INV_PI
-                fo1 = f1 * _INV_PI
-                fo2 = f2 * _INV_PI
+                # ---- next-event estimation from the offset float32 origin `so`
+                eps = _eps(x[0], x[1], x[2], th, diag)
+                so = (
+                    np.float32(x[0] + nf[0] * eps),
+                    np.float32(x[1] + nf[1] * eps),
+                    np.float32(x[2] + nf[2] * eps),
+                )
+                fo = (f0 * _INV_PI, f1 * _INV_PI, f2 * _INV_PI)
                 to_direct_dl = depth == 1
                 dim0 = 2 + depth * DIMS_PER_BOUNCE
                 pair0 = 1 + 3 * depth
-                # ---- suns
-                for j in range(n_s):
-                    wi0 = -suns[j, 0]
-                    wi1 = -suns[j, 1]
-                    wi2 = -suns[j, 2]
-                    c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
-                    if c > 0 and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0:
-                        tf = np.float32(np.inf)
-                        n_shadow += 1
-                        if _visible(rtc, fn_occl, ray, log, so0, so1, so2, wi0, wi1, wi2, tf):
-                            _add_to(
-                                direct,
-                                gi,
-                                to_direct_dl,
-                                s,
-                                fo0 * suns[j, 3] * c,
-                                fo1 * suns[j, 4] * c,
-                                fo2 * suns[j, 5] * c,
-                            )
-                # ---- point and spot lights
-                for j in range(n_q):
-                    wi0, wi1, wi2, dist = _towards(
-                        x0, x1, x2, punct[j, 0], punct[j, 1], punct[j, 2]
-                    )
-                    c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
-                    fall = 1.0
-                    if punct[j, 11] > 0:
-                        ca = -(wi0 * punct[j, 6] + wi1 * punct[j, 7] + wi2 * punct[j, 8])
-                        xf = min(max((ca - punct[j, 10]) / (punct[j, 9] - punct[j, 10]), 0.0), 1.0)
-                        fall = xf * xf * (3.0 - 2.0 * xf)
-                    i0 = punct[j, 3] * fall
-                    i1 = punct[j, 4] * fall
-                    i2 = punct[j, 5] * fall
-                    if (
-                        c > 0
-                        and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0
-                        and dist > 0
-                        and (i0 > 0 or i1 > 0 or i2 > 0)
-                    ):
-                        tf = np.float32(dist * (1 - 1e-5) - eps)
-                        n_shadow += 1
-                        if _visible(rtc, fn_occl, ray, log, so0, so1, so2, wi0, wi1, wi2, tf):
-                            g = c / (dist * dist)
-                            _add_to(
-                                direct,
-                                gi,
-                                to_direct_dl,
-                                s,
-                                fo0 * i0 * g,
-                                fo1 * i1 * g,
-                                fo2 * i2 * g,
-                            )
-                # ---- emissive triangles (power-sampled, MIS with the BSDF)
                 use_ld = sampler == SAMPLER_SOBOL and depth <= LD_MAX_DEPTH
-                if n_e > 0:
+                for j in range(n_s):  # directional lights (delta: no MIS)
+                    ok, wi0, wi1, wi2, c = _sun_sample(suns[j, 0], suns[j, 1], suns[j, 2], nf, ns)
+                    if ok:
+                        n_shadow += 1
+                        if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)):
+                            _add_to(
+                                direct,
+                                gi,
+                                to_direct_dl,
+                                s,
+                                fo[0] * suns[j, 3] * c,
+                                fo[1] * suns[j, 4] * c,
+                                fo[2] * suns[j, 5] * c,
+                            )
+                for j in range(n_q):  # point and spot lights (delta)
+                    ok, wi0, wi1, wi2, tf, ii, g = _punctual_sample(punct, j, x, nf, ns, eps)
+                    if ok:
+                        n_shadow += 1
+                        if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
+                            _add_to(
+                                direct,
+                                gi,
+                                to_direct_dl,
+                                s,
+                                fo[0] * ii[0] * g,
+                                fo[1] * ii[1] * g,
+                                fo[2] * ii[2] * g,
+                            )
+                if n_e > 0:  # emissive triangles: power-sampled, MIS with the BSDF
                     if use_ld:
-                        ul = _sobol1d(ps_pix, sid[s], pair0 + 1)
-                        ra, r2 = _sobol2(ps_pix, sid[s], pair0 + 2)
+                        ul = _sobol1d(pixel_seed, sid[s], pair0 + 1)
+                        ra, rb = _sobol2(pixel_seed, sid[s], pair0 + 2)
                     else:
                         ul = _u01(base_s, salts[dim0 + 2])
                         ra = _u01(base_s, salts[dim0 + 3])
-                        r2 = _u01(base_s, salts[dim0 + 4])
-                    # first k with cdf[k] > ul (searchsorted side='right')
-                    a_ = 0
-                    b_ = n_e
-                    while a_ < b_:
-                        mid = (a_ + b_) // 2
-                        if emit_cdf[mid] <= ul:
-                            a_ = mid + 1
-                        else:
-                            b_ = mid
-                    lf = emit_faces[min(a_, n_e - 1)]
-                    r1 = math.sqrt(ra)
-                    ca_ = r1 * (1 - r2)
-                    cb_ = r1 * r2
-                    y0 = (
-                        np.float64(tri[lf, 0, 0])
-                        + ca_ * (np.float64(tri[lf, 1, 0]) - np.float64(tri[lf, 0, 0]))
-                        + cb_ * (np.float64(tri[lf, 2, 0]) - np.float64(tri[lf, 0, 0]))
+                        rb = _u01(base_s, salts[dim0 + 4])
+                    lf, y = _emitter_point(tri, emit_faces, emit_cdf, ul, ra, rb)
+                    nl = (fn[lf, 0], fn[lf, 1], fn[lf, 2])
+                    ok, wi0, wi1, wi2, tf, g = _emitter_sample(
+                        y, nl, face_light_pmf[lf], face_area[lf], diag, x, nf, ns, eps
                     )
-                    y1 = (
-                        np.float64(tri[lf, 0, 1])
-                        + ca_ * (np.float64(tri[lf, 1, 1]) - np.float64(tri[lf, 0, 1]))
-                        + cb_ * (np.float64(tri[lf, 2, 1]) - np.float64(tri[lf, 0, 1]))
-                    )
-                    y2 = (
-                        np.float64(tri[lf, 0, 2])
-                        + ca_ * (np.float64(tri[lf, 1, 2]) - np.float64(tri[lf, 0, 2]))
-                        + cb_ * (np.float64(tri[lf, 2, 2]) - np.float64(tri[lf, 0, 2]))
-                    )
-                    wi0, wi1, wi2, dist = _towards(x0, x1, x2, y0, y1, y2)
-                    c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
-                    cl = -(fn[lf, 0] * wi0 + fn[lf, 1] * wi1 + fn[lf, 2] * wi2)
-                    if c > 0 and cl > 0 and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0 and dist > 0:
-                        pl = face_light_pmf[lf] / face_area[lf] * dist * dist / cl
-                        pb = c * _INV_PI
-                        w = pl * pl / (pl * pl + pb * pb)
-                        g = c * w / pl
-                        eps_l = _eps(y0, y1, y2, dist, diag)
-                        tf = np.float32(max(dist - eps - eps_l, 0.0))
+                    if ok:
                         n_shadow += 1
-                        if _visible(rtc, fn_occl, ray, log, so0, so1, so2, wi0, wi1, wi2, tf):
+                        if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
+                            me = face_mat[lf]
                             _add_to(
                                 direct,
                                 gi,
                                 to_direct_dl and face_is_area[lf],
                                 s,
-                                fo0 * mat_emission[face_mat[lf], 0] * g,
-                                fo1 * mat_emission[face_mat[lf], 1] * g,
-                                fo2 * mat_emission[face_mat[lf], 2] * g,
+                                fo[0] * mat_emission[me, 0] * g,
+                                fo[1] * mat_emission[me, 1] * g,
+                                fo[2] * mat_emission[me, 2] * g,
                             )
-                # ---- sky (importance-sampled from its table, MIS with the BSDF); always gi
-                if sky_mis:
+                if sky_mis:  # the sky, importance-sampled from its table; always gi
                     if use_ld:
-                        us1, us2 = _sobol2(ps_pix, sid[s], SKY_PAIR0 + depth)
+                        us1, us2 = _sobol2(pixel_seed, sid[s], SKY_PAIR0 + depth)
                     else:
                         us1 = _u01(base_s, salts[dim0 + 6])
                         us2 = _u01(base_s, salts[dim0 + 7])
-                    wi0, wi1, wi2, psk = _sky_sample(
-                        sky_frame, sky_marg, sky_cond, sky_pdf, us1, us2
-                    )
-                    c = min(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1.0)
-                    if psk > 0 and c > 0 and nf0 * wi0 + nf1 * wi1 + nf2 * wi2 > 0:
-                        pb = c * _INV_PI
-                        g = c * (psk / (psk * psk + pb * pb))  # c * w / psk, w = power heuristic
-                        tf = np.float32(np.inf)
+                    wi0, wi1, wi2, psk = _sky_sample(frame, marg, cond, spdf, rows, phi0, us1, us2)
+                    ok, g = _sky_light_weight(psk, wi0, wi1, wi2, nf, ns)
+                    if ok:
                         n_shadow += 1
-                        if _visible(rtc, fn_occl, ray, log, so0, so1, so2, wi0, wi1, wi2, tf):
-                            le = _sky(sky_kind, sky, wi0, wi1, wi2)
+                        if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)):
+                            if sky_kind == SKY_ENVMAP:
+                                le = _envmap(env, rot, scale, wi0, wi1, wi2)
+                            else:
+                                le = _sky_analytic(sky_kind, sky, wi0, wi1, wi2)
                             _add_to(
                                 direct,
                                 gi,
                                 False,
                                 s,
-                                fo0 * le[0] * g,
-                                fo1 * le[1] * g,
-                                fo2 * le[2] * g,
+                                fo[0] * le[0] * g,
+                                fo[1] * le[1] * g,
+                                fo[2] * le[2] * g,
                             )
-                # ---- bounce: cosine-weighted about the shading normal (Duff et al. basis)
+                # ---- bounce
                 if use_ld:
-                    u1, u2 = _sobol2(ps_pix, sid[s], pair0)
+                    u1, u2 = _sobol2(pixel_seed, sid[s], pair0)
                 else:
                     u1 = _u01(base_s, salts[dim0])
                     u2 = _u01(base_s, salts[dim0 + 1])
-                sign = 1.0 if ns2 >= 0 else -1.0
-                a = -1.0 / (sign + ns2)
-                b = ns0 * ns1 * a
-                ta0 = 1 + sign * ns0 * ns0 * a
-                ta1 = sign * b
-                ta2 = -sign * ns0
-                tb0 = b
-                tb1 = sign + ns1 * ns1 * a
-                tb2 = -ns1
-                r = math.sqrt(u1)
-                phi = 2 * _PI * u2
-                zc = math.sqrt(max(0.0, 1 - u1))
-                rc = r * math.cos(phi)
-                rs = r * math.sin(phi)
-                wi0 = rc * ta0 + rs * tb0 + zc * ns0
-                wi1 = rc * ta1 + rs * tb1 + zc * ns1
-                wi2 = rc * ta2 + rs * tb2 + zc * ns2
-                below = wi0 * nf0 + wi1 * nf1 + wi2 * nf2
-                if below <= 0:
-                    wi0 -= 2 * below * nf0
-                    wi1 -= 2 * below * nf1
-                    wi2 -= 2 * below * nf2
-                ln = math.sqrt(wi0 * wi0 + wi1 * wi1 + wi2 * wi2)
-                if ln > 1e-20:
-                    wi0, wi1, wi2 = wi0 / ln, wi1 / ln, wi2 / ln
-                else:
-                    wi0, wi1, wi2 = nf0, nf1, nf2
-                pdf = max(ns0 * wi0 + ns1 * wi1 + ns2 * wi2, 1e-12) * _INV_PI
+                wi0, wi1, wi2, pdf = _cosine_sample(nf, ns, u1, u2)
                 if depth + 1 > rr_depth:  # Russian roulette for the next segment
                     q = min(max(f0, max(f1, f2)), 0.95)
                     if not (_u01(base_s, salts[dim0 + 5]) < q):
@@ -928,7 +1078,7 @@ def trace_paths(
                     f0 /= q
                     f1 /= q
                     f2 /= q
-                ox, oy, oz = so0, so1, so2
+                ox, oy, oz = so
                 dx, dy, dz = wi0, wi1, wi2
                 t0, t1, t2 = f0, f1, f2
                 pdf_prev = pdf
@@ -966,8 +1116,10 @@ def _log_ray(log, kind, ox, oy, oz, dx, dy, dz, tf):
 
 
 @nb.njit(inline="always", **_JIT)
-def _visible(rtc, fn_occl, ray, log, ox, oy, oz, dx, dy, dz, tf):
-    """Shadow ray from the float32 origin along the unit (dx, dy, dz) up to ``tf``: unblocked?"""
+def _visible(rtc, fn_occl, ray, log, so, dx, dy, dz, tf):
+    """Shadow ray from the float32 origin ``so`` (3-tuple) along the unit (dx, dy, dz) up to
+    ``tf``: unblocked?"""
+    ox, oy, oz = so
     _log_ray(log, 1, ox, oy, oz, dx, dy, dz, tf)
     dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
     return not _occluded(rtc, fn_occl, ray, ox, oy, oz, dx32, dy32, dz32, tf)

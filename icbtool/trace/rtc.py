@@ -23,12 +23,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from icbtool.trace.layout import INVALID_ID, RAYHIT_WORDS
+
 if TYPE_CHECKING:  # pragma: no cover
     from icbtool.scene import Scene
-
-#: Words of one RTCRayHit (80 bytes in Embree 4.4; room for a larger hit record).
-RAYHIT_WORDS = 32
-INVALID_ID = 0xFFFFFFFF
 
 _RTC_SCENE_FLAG_ROBUST = 1 << 2
 _RTC_BUILD_QUALITY_HIGH = 2
@@ -226,4 +224,4 @@ def _self_check() -> None:
     _CHECKED = True
 
 
-__all__ = ["RAYHIT_WORDS", "RtcScene", "library_path"]
+__all__ = ["INVALID_ID", "RAYHIT_WORDS", "RtcScene", "library_path"]

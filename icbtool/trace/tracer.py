@@ -12,9 +12,10 @@ process.
 Light transport: two-sided Lambertian surfaces (textured albedo), one-sided emissive faces, a
 directional sun, point and spot lights (delta lights: next-event estimation only), emissive
 triangles (next-event estimation sampled by power, combined with BSDF sampling by multiple
-importance sampling, power heuristic) and a sky (one light sample per vertex drawn from a table
-of its luminance, :class:`SkyTable`, combined with BSDF sampling by MIS; or BSDF sampling alone
-for a smooth sky, see ``TraceConfig.sky_sampling``).
+importance sampling, power heuristic) and a sky, uniform, gradient or a lat-long environment map
+(one light sample per vertex drawn from a table of its luminance, :class:`SkyTable`, combined
+with BSDF sampling by MIS; or BSDF sampling alone for a smooth sky, see
+``TraceConfig.sky_sampling``).
 
 The DL/GI split (fixed system-wide): ``direct`` = emission of the first visible surface + direct
 light at the first hit from the scene's directional, point, spot and *area* lights (the emissive
@@ -283,17 +284,28 @@ class SkyTable:
     column. Sampling inverts the marginal (rows) and conditional (columns) CDFs, reusing the
     remainder of each uniform number for the position within the cell; ``pdf`` is exact for it.
 
+    An environment map (``Sky.kind == 'envmap'``) gets the table of its own texel grid
+    (:meth:`of_envmap`): rows are the latitude bands between its texel rows (equal in the polar
+    angle, ``rows == 1``), columns the azimuth bands between its texel columns (starting at
+    ``phi0``), each cell weighted by its mean luminance times its solid angle (the sin(theta)
+    Jacobian of the lat-long parametrisation, integrated over the band).
+
     Attributes:
         frame: (3, 3) rows t1, t2, up.
         marg_cdf: (nc,) CDF over rows (last = 1).
         cond_cdf: (nc, nphi) CDF over columns per row (last = 1).
         pdf: (nc, nphi) density per unit solid angle of a direction in each cell.
+        rows: 0: rows equal in c = d . up, from c = -1 up; 1: equal in the polar angle, from
+            the pole along ``up`` down.
+        phi0: azimuth where the first column starts.
     """
 
     frame: np.ndarray
     marg_cdf: np.ndarray
     cond_cdf: np.ndarray
     pdf: np.ndarray
+    rows: int = 0
+    phi0: float = 0.0
 
     @staticmethod
     def empty() -> SkyTable:
@@ -302,6 +314,8 @@ class SkyTable:
     @staticmethod
     def of(sky: Any, nc: int = 256, nphi: int | None = None, supersample: int = 4) -> SkyTable:
         """The table of ``sky`` (``sky.radiance(dirs)``, ``sky.up``, ``sky.kind``)."""
+        if sky.kind == "envmap":
+            return SkyTable.of_envmap(sky.envmap, sky.world_from_map)
         up = np.asarray(sky.up, np.float64)
         up = up / np.linalg.norm(up)
         a = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
@@ -337,6 +351,74 @@ class SkyTable:
             np.ascontiguousarray(pdf),
         )
 
+    @staticmethod
+    def of_envmap(envmap: np.ndarray, world_from_map: np.ndarray) -> SkyTable:
+        """The table of a lat-long map (H, W, 3) in Mitsuba's convention (see
+        :class:`icbtool.scene.Sky`): (H - 1) x W cells between texel centres."""
+        from icbtool.scene.types import envmap_periodic
+
+        m = envmap_periodic(envmap).astype(np.float64) @ _LUM  # (H, W + 1)
+        h, w = m.shape[0], m.shape[1] - 1
+        cell = 0.25 * (m[:-1, :-1] + m[:-1, 1:] + m[1:, :-1] + m[1:, 1:])  # (H - 1, W)
+        th = np.arange(h) * (np.pi / (h - 1))
+        band = np.cos(th[:-1]) - np.cos(th[1:])  # (H - 1,) solid angle / (2 pi) of each row
+        solid = band[:, None] * (2.0 * np.pi / w)
+        v = np.maximum(cell, 0.0) * solid
+        total = v.sum()
+        r = np.asarray(world_from_map, np.float64)
+        frame = np.ascontiguousarray(np.stack([-r[:, 2], r[:, 0], r[:, 1]]))
+        if not total > 0:
+            return SkyTable.empty()
+        p = v / total
+        marg = p.sum(1)
+        marg_cdf = np.cumsum(marg)
+        marg_cdf /= marg_cdf[-1]
+        cond = np.where(marg[:, None] > 0, p / np.maximum(marg[:, None], 1e-300), 1.0 / w)
+        cond_cdf = np.cumsum(cond, axis=1)
+        cond_cdf /= cond_cdf[:, -1:]
+        pdf = p / solid
+        return SkyTable(
+            frame,
+            np.ascontiguousarray(marg_cdf),
+            np.ascontiguousarray(cond_cdf),
+            np.ascontiguousarray(pdf),
+            rows=1,
+            phi0=float(np.pi / w),
+        )
+
+    def params(self, sky: Any = None, mis: bool = False) -> Any:
+        """The kernels' :data:`~icbtool.trace.kernels.SkyParams` of this table and ``sky`` (an
+        :class:`icbtool.scene.Sky` or None)."""
+        K = _kernels()
+        kind, rad = K.SKY_NONE, np.zeros((4, 3))
+        env, rot, scale = np.zeros((3, 2, 3), np.float32), np.eye(3), 1.0
+        if sky is not None:
+            kind = {"uniform": K.SKY_UNIFORM, "gradient": K.SKY_GRADIENT}.get(
+                sky.kind, K.SKY_ENVMAP
+            )
+            if sky.kind == "envmap":
+                from icbtool.scene.types import envmap_periodic
+
+                env = envmap_periodic(sky.envmap)
+                rot = np.ascontiguousarray(sky.world_from_map, np.float64)
+                scale = float(sky.envmap_scale)
+            else:
+                rad = np.array([sky.zenith, sky.horizon, sky.ground, sky.up], np.float64)
+        return K.SkyParams(
+            kind,
+            rad,
+            env,
+            rot,
+            scale,
+            np.ascontiguousarray(self.frame, np.float64),
+            np.ascontiguousarray(self.marg_cdf[None], np.float64),
+            np.ascontiguousarray(self.cond_cdf, np.float64),
+            np.ascontiguousarray(self.pdf, np.float64),
+            int(self.rows),
+            float(self.phi0),
+            int(bool(mis)),
+        )
+
     @property
     def peak(self) -> float:
         """Brightest cell's luminance over the mean over the sphere (1 = uniform)."""
@@ -344,21 +426,17 @@ class SkyTable:
 
     def sample(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Directions (N, 3) and their pdf (N,) for uniform numbers u (N, 2) (as the kernels)."""
-        from icbtool.trace.kernels import sky_sample_batch
-
         u = np.ascontiguousarray(u, np.float64)
         d = np.empty((len(u), 3))
         pdf = np.empty(len(u))
-        sky_sample_batch(self.frame, self.marg_cdf[None], self.cond_cdf, self.pdf, u, d, pdf)
+        _kernels().sky_sample_batch(self.params(), u, d, pdf)
         return d, pdf
 
     def pdf_of(self, d: np.ndarray) -> np.ndarray:
         """Density (N,) of unit directions d (N, 3) (as the kernels evaluate it for MIS)."""
-        from icbtool.trace.kernels import sky_pdf_batch
-
         d = np.ascontiguousarray(d, np.float64)
         out = np.empty(len(d))
-        sky_pdf_batch(self.frame, self.pdf, d, out)
+        _kernels().sky_pdf_batch(self.params(), d, out)
         return out
 
 
@@ -449,15 +527,9 @@ class _SceneData:
             else:
                 rows.append([*lt.position, *lt.intensity, 0, 0, 0, 1, 0, 0.0])
         self.k_punct = np.array(rows, np.float64).reshape(-1, 12)
-        self.k_sky_kind = 0
-        self.k_sky = np.zeros((4, 3))
-        self.k_sky_table = SkyTable.empty()
-        if self.sky is not None:
-            self.k_sky_kind = 1 if self.sky.kind == "uniform" else 2
-            self.k_sky = np.array(
-                [self.sky.zenith, self.sky.horizon, self.sky.ground, self.sky.up], np.float64
-            )
-            self.k_sky_table = SkyTable.of(self.sky)
+        self.k_sky_table = SkyTable.empty() if self.sky is None else SkyTable.of(self.sky)
+        # the kernels' sky parameters (an envmap's periodic copy made once per scene)
+        self.k_sky_params = self.k_sky_table.params(self.sky)
         assert self.k_tri.shape == (F, 3, 3)
 
     @classmethod
@@ -511,7 +583,59 @@ class _Tracer:
         self._salts = _salts(cfg.seed, n_dims)
         self._seed_mix = np.uint64(_mix_int(int(cfg.seed)))
         self._pixseed = np.uint64(_mix_int(int(cfg.seed) ^ 0x5851F42D4C957F2D))
+        self._params = self._kernel_params()
         stats.add_time("setup", time.perf_counter() - t0)
+
+    def _kernel_params(self) -> Any:
+        """The kernels' :data:`~icbtool.trace.kernels.TraceParams` (fixed for a render)."""
+        K = _kernels()
+        cfg, sd, cam, rs = self.cfg, self.sd, self.cam, self.rtc
+        sampler = K.SAMPLER_SOBOL if cfg.sampler == "sobol" else K.SAMPLER_INDEPENDENT
+        return K.TraceParams(
+            K.EmbreeFns(rs.ptr, rs.fn_intersect, rs.fn_occluded),
+            K.View(
+                np.array([cam.fx, cam.fy, cam.cx, cam.cy], np.float64),
+                np.ascontiguousarray(cam.world_from_cam[:3, :3], np.float64),
+                np.ascontiguousarray(cam.position, np.float64),
+                int(cam.width),
+                int(bool(cfg.pixel_jitter)),
+            ),
+            K.Surfaces(
+                sd.k_tri,
+                sd.k_fn,
+                sd.k_vn,
+                sd.k_face_mat,
+                sd.k_face_uv,
+                sd.k_mat_albedo,
+                sd.k_mat_emission,
+                sd.k_tex,
+                sd.k_tex_lut,
+                sd.k_tex_off,
+                sd.k_tex_hw,
+                int(cfg.texture_filter == "nearest"),
+                int(bool(cfg.shading_normals)),
+                float(sd.diag),
+            ),
+            K.Lights(
+                sd.k_suns,
+                sd.k_punct,
+                sd.face_light_pmf,
+                sd.face_area,
+                sd.k_face_is_area,
+                sd.k_emit_faces,
+                sd.k_emit_cdf[None],  # (1, E): a one-row CDF
+            ),
+            sd.k_sky_params._replace(mis=int(self.sky_mis)),
+            K.Sampling(
+                self._seed_mix,
+                self._salts,
+                self._pixseed,
+                sampler,
+                int(cfg.depth_limit),
+                int(cfg.rr_depth),
+                int(bool(cfg.aux or cfg.denoise)),
+            ),
+        )
 
     # ------------------------------------------------------------------ one pass
     def trace(self, pix: np.ndarray, sid: np.ndarray, ray_log: dict | None = None):
@@ -525,7 +649,7 @@ class _Tracer:
             direct, gi (P, 3); hit (P,) bool; albedo, normal (P, 3) or None.
         """
         K = _kernels()
-        cfg, sd, st, cam = self.cfg, self.sd, self.stats, self.cam
+        cfg, st = self.cfg, self.stats
         P = len(pix)
         pix = np.ascontiguousarray(pix, np.int64)
         sid = np.ascontiguousarray(sid, np.int64)
@@ -537,16 +661,6 @@ class _Tracer:
         first_hit = ws.zeros("first_hit", (P,), np.bool_)
         alb_out = ws.zeros("alb", (P if want_aux else 1, 3), np.float64)
         nrm_out = ws.zeros("nrm", (P if want_aux else 1, 3), np.float64)
-        iparams = np.zeros(K.N_IPARAMS, np.int64)
-        iparams[K.IP_LIMIT] = cfg.depth_limit
-        iparams[K.IP_RR_DEPTH] = cfg.rr_depth
-        iparams[K.IP_SAMPLER] = K.SAMPLER_SOBOL if cfg.sampler == "sobol" else K.SAMPLER_INDEPENDENT
-        iparams[K.IP_NEAREST] = cfg.texture_filter == "nearest"
-        iparams[K.IP_SHADING_NORMALS] = cfg.shading_normals
-        iparams[K.IP_WANT_AUX] = want_aux
-        iparams[K.IP_JITTER] = cfg.pixel_jitter
-        iparams[K.IP_WIDTH] = cam.width
-        iparams[K.IP_SKY_MIS] = self.sky_mis
         if ray_log is None:
             log = (
                 np.zeros((1, 3), np.float32),
@@ -560,58 +674,16 @@ class _Tracer:
         n_blocks = -(-P // K.BLOCK)
         parts = 1 if ray_log is not None else max(1, min(cfg.threads, n_blocks))
         counts = np.zeros((parts, 3), np.int64)
-        rs = self.rtc
-        args = (
-            rs.ptr,
-            rs.fn_intersect,
-            rs.fn_occluded,
-            pix,
-            sid,
-            self._seed_mix,
-            self._salts,
-            np.array([cam.fx, cam.fy, cam.cx, cam.cy], np.float64),
-            np.ascontiguousarray(cam.world_from_cam[:3, :3], np.float64),
-            np.ascontiguousarray(cam.position, np.float64),
-            sd.k_tri,
-            sd.k_fn,
-            sd.k_vn,
-            sd.k_mat_albedo,
-            sd.k_mat_emission,
-            sd.k_face_mat,
-            sd.k_face_uv,
-            sd.k_tex,
-            sd.k_tex_lut,
-            sd.k_tex_off,
-            sd.k_tex_hw,
-            sd.face_light_pmf,
-            sd.face_area,
-            sd.k_face_is_area,
-            sd.k_emit_faces,
-            sd.k_emit_cdf,
-            sd.k_suns,
-            sd.k_punct,
-            sd.k_sky_kind,
-            sd.k_sky,
-            sd.k_sky_table.frame,
-            sd.k_sky_table.marg_cdf[None],
-            sd.k_sky_table.cond_cdf,
-            sd.k_sky_table.pdf,
-            iparams,
-            float(sd.diag),
-            self._pixseed,
-            direct,
-            gi,
-            first_hit,
-            alb_out,
-            nrm_out,
-        )
+        out = K.Outputs(direct, gi, first_hit, alb_out, nrm_out)
+        prm = self._params
         t0 = time.perf_counter()
         if parts == 1:
-            K.trace_paths(*args, counts[0], *log, 0, 1)
+            K.trace_paths(prm, out, counts[0], log, 0, 1, pix, sid)
         else:
             pool = _pool(parts)
             futs = [
-                pool.submit(K.trace_paths, *args, counts[i], *log, i, parts) for i in range(parts)
+                pool.submit(K.trace_paths, prm, out, counts[i], log, i, parts, pix, sid)
+                for i in range(parts)
             ]
             for f in futs:
                 f.result()

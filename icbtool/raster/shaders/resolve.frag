@@ -12,7 +12,7 @@
 //   HAS_TEX   some material is textured (sampler2DArray, per-material layer)
 //   N_DIR, N_POINT, N_SPOT, N_AREA   number of lights of each kind (0 = code compiled out)
 //   SHADOWS         shadow lookups on;  AREA_K  k x k shadow samples per area light
-//   SKY_UNIFORM / SKY_GRADIENT       the scene's sky (none: background DL is 0)
+//   SKY_UNIFORM / SKY_GRADIENT / SKY_ENVMAP   the scene's sky (none: background DL is 0)
 // Every output is 0 on background pixels except DL's colour; a non-zero alpha marks coverage.
 const float PI = 3.14159265358979;
 
@@ -62,7 +62,34 @@ vec2 barycentrics(vec3 d, vec3 v0, vec3 e1, vec3 e2) {
     return vec2(dot(tv, pv), dot(d, cross(tv, e1))) * inv;
 }
 
-#if defined(SKY_UNIFORM) || defined(SKY_GRADIENT)
+#if defined(SKY_UNIFORM) || defined(SKY_GRADIENT) || defined(SKY_ENVMAP)
+#define HAS_SKY
+#endif
+
+#ifdef SKY_ENVMAP
+uniform sampler2D u_env;            // lat-long map, RGB32F, H rows x (W + 1) (first column repeated)
+uniform mat3 u_map_from_world;
+uniform float u_env_scale;
+
+// Radiance of the map along the world direction d: Mitsuba's envmap lookup (bilinear between
+// texel centres at u = (i + 0.5) / W, v = j / (H - 1)), as icbtool.scene.Sky.radiance.
+vec3 envmap_radiance(vec3 d) {
+    vec3 l = u_map_from_world * normalize(d);
+    ivec2 res = textureSize(u_env, 0);  // (W + 1, H)
+    float u = atan(l.x, -l.z) * (0.5 / PI) - 0.5 / float(res.x - 1);
+    u -= floor(u);
+    float v = acos(clamp(l.y, -1.0, 1.0)) / PI;
+    vec2 xy = vec2(u * float(res.x - 1), v * float(res.y - 1));
+    ivec2 i = min(ivec2(xy), res - 2);
+    vec2 f = xy - vec2(i);
+    vec3 top = mix(texelFetch(u_env, i, 0).rgb, texelFetch(u_env, i + ivec2(1, 0), 0).rgb, f.x);
+    vec3 bot = mix(texelFetch(u_env, i + ivec2(0, 1), 0).rgb,
+                   texelFetch(u_env, i + ivec2(1, 1), 0).rgb, f.x);
+    return u_env_scale * mix(top, bot, f.y);
+}
+#endif
+
+#ifdef HAS_SKY
 uniform vec3 u_zenith;
 uniform vec3 u_horizon;
 uniform vec3 u_ground;
@@ -70,7 +97,9 @@ uniform vec3 u_up;
 
 // The sky radiance along this pixel's primary ray (icbtool.scene.Sky.radiance).
 vec3 sky_radiance() {
-#ifdef SKY_GRADIENT
+#if defined(SKY_ENVMAP)
+    return envmap_radiance(pixel_ray(0.0, 0.0));
+#elif defined(SKY_GRADIENT)
     vec3 d = normalize(pixel_ray(0.0, 0.0));
     float c = dot(d, u_up);
     float w = sqrt(clamp(c, 0.0, 1.0));
@@ -181,7 +210,7 @@ void main() {
         o_pos = vec4(0.0);
 #endif
 #ifdef LOC_DL
-#if defined(SKY_UNIFORM) || defined(SKY_GRADIENT)
+#ifdef HAS_SKY
         o_dl = vec4(sky_radiance(), 0.0);
 #else
         o_dl = vec4(0.0);
