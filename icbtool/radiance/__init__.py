@@ -35,6 +35,7 @@ _NAMES: dict[str, str] = {
     "IrradianceField": "models",
     "ProbeVolume": "models",
     "RadianceModel": "model",
+    "load": "model",
     "RadianceConfig": "training",
     "ProbeConfig": "training",
     "RadianceResult": "training",

@@ -214,4 +214,9 @@ class RadianceModel:
         return p
 
 
-__all__ = ["MODEL_FILE", "RadianceModel", "build_module", "save_model"]
+def load(run_dir: str | os.PathLike, device: str = "cpu") -> RadianceModel:
+    """:meth:`RadianceModel.load` (``icb.radiance.load(run)``)."""
+    return RadianceModel.load(run_dir, device)
+
+
+__all__ = ["MODEL_FILE", "RadianceModel", "build_module", "load", "save_model"]

@@ -121,6 +121,10 @@ def corner_lookup(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Table indices and trilinear weights of the 8 vertices around points, at every level.
 
+    Both the dense index and the (sum) hash are linear in the vertex coordinates, so a corner's
+    index is the cell's base index plus a per-level constant ``corner . stride`` (taken modulo
+    the level's size): no (N, L, 8, 3) integer tensor is ever formed.
+
     Args:
         x: (N, 3) points normalised to [0, 1] per axis of the box (clamped here).
         cells: (L, 3) float cells per axis; strides, sizes, offsets: int64 :class:`LevelLayout`.
@@ -134,12 +138,16 @@ def corner_lookup(
     pos = x[:, None, :] * cells[None]  # (N, L, 3)
     i0 = torch.minimum(torch.floor(pos), cells[None] - 1.0)
     frac = pos - i0
-    vert = i0.long()[:, :, None, :] + corners[None, None]  # (N, L, 8, 3)
-    lin = (vert * strides[None, :, None, :]).sum(-1)
-    lin = torch.remainder(lin, sizes[None, :, None]) + offsets[None, :, None]
-    pick = corners.bool()[None, None]  # (1, 1, 8, 3)
-    f = frac[:, :, None, :]
-    w = torch.where(pick, f, 1.0 - f).prod(-1)  # (N, L, 8)
+    base = (i0.long() * strides[None]).sum(-1)  # (N, L)
+    corner_step = (corners[None] * strides[:, None, :]).sum(-1)  # (L, 8)
+    lin = torch.remainder(base[:, :, None] + corner_step[None], sizes[None, :, None])
+    lin = lin + offsets[None, :, None]
+    two = torch.stack([1.0 - frac, frac], -1)  # (N, L, 3, 2)
+    w = (
+        two[:, :, 0].index_select(2, corners[:, 0])
+        * two[:, :, 1].index_select(2, corners[:, 1])
+        * two[:, :, 2].index_select(2, corners[:, 2])
+    )  # (N, L, 8)
     return lin, w
 
 

@@ -80,8 +80,10 @@ def _check_common(cfg: Any) -> None:
     _check_int(cls, "max_train_pixels", cfg.max_train_pixels, 0)
     _check_int(cls, "eval_views", cfg.eval_views, 0)
     _check_int(cls, "seed", cfg.seed, 0)
-    if not isinstance(cfg.train_path, str) or not cfg.train_path:
-        raise ValueError(f"{cls}.train_path must be a non-empty string, got {cfg.train_path!r}")
+    tp = (cfg.train_paths,) if isinstance(cfg.train_paths, str) else tuple(cfg.train_paths)
+    if not tp or not all(isinstance(p, str) and p for p in tp) or len(set(tp)) != len(tp):
+        raise ValueError(f"{cls}.train_paths must be distinct path names, got {cfg.train_paths!r}")
+    object.__setattr__(cfg, "train_paths", tp)
     paths = tuple(cfg.eval_paths)
     if not all(isinstance(p, str) and p for p in paths) or len(set(paths)) != len(paths):
         raise ValueError(f"{cls}.eval_paths must be distinct path names, got {cfg.eval_paths!r}")
@@ -145,8 +147,9 @@ class RadianceConfig(_ConfigIO):
     """Demodulation floor: targets are GI / max(albedo, floor), weighted by min(albedo/floor, 1)."""
     max_train_pixels: int = 0
     """Keep at most this many train pixels (a seeded uniform draw; 0: all)."""
-    train_path: str = "train"
-    """Camera-path tag of the training records."""
+    train_paths: tuple[str, ...] = ("train",)
+    """Camera-path tags of the training records (e.g. the train path and views baked to cover
+    what it missed)."""
     eval_paths: tuple[str, ...] = ("test",)
     """Camera-path tags evaluated (whole views: SSIM/MSE of albedo * E against the GI)."""
     eval_every: int = 500
@@ -214,8 +217,9 @@ class ProbeConfig(_ConfigIO):
     """Conjugate gradients stop at this relative residual of the normal equations."""
     cg_maxiter: int = 2000
     """...or after this many iterations (a warning then gives the residual reached)."""
-    train_path: str = "train"
-    """Camera-path tag of the training records."""
+    train_paths: tuple[str, ...] = ("train",)
+    """Camera-path tags of the training records (e.g. the train path and views baked to cover
+    what it missed)."""
     eval_paths: tuple[str, ...] = ("test",)
     """Camera-path tags evaluated (whole views)."""
     eval_views: int = 0
@@ -353,13 +357,16 @@ def _eval_sets(store: Any, cfg: Any, scene: Any) -> dict[str, list[int]]:
 
 
 def _train_samples(store: Any, cfg: Any, scene: Any) -> PixelSamples:
-    ids = records_of_path(store, cfg.train_path, scene)
-    if not ids:
-        raise ValueError(
-            f"the store has no records on the train path {cfg.train_path!r} (with albedo, "
-            "normal_world, position, mask and gi); bake it first (icbtool bake ... --path "
-            f"{cfg.train_path})"
-        )
+    ids = []
+    for path in cfg.train_paths:
+        got = records_of_path(store, path, scene)
+        if not got:
+            raise ValueError(
+                f"the store has no records on the train path {path!r} (with albedo, "
+                f"normal_world, position, mask and gi); bake it first (icbtool bake ... --path "
+                f"{path})"
+            )
+        ids += got
     return pixels_from_records(store, ids, cfg.max_train_pixels, cfg.seed)
 
 
@@ -392,6 +399,10 @@ def _second_differences(probes: tuple[int, int, int]) -> Any:
     return sp.vstack(ops, format="csr")
 
 
+#: Probe fits with at most this many unknowns (probes x basis terms) are solved directly.
+DIRECT_UNKNOWNS = 8000
+
+
 def fit_probe_volume(
     samples: PixelSamples,
     spec: ProbeSpec,
@@ -406,9 +417,11 @@ def fit_probe_volume(
     smoothness * |D x_c|^2 / P`` (``D``: second differences between neighbouring probes, ``P``
     probes) over the coefficients ``x_c``, with ``E`` the trilinear interpolation of the probes'
     bases, ``e`` the demodulated targets and ``w`` their weights (:func:`demodulate`). The normal
-    equations (plus a 1e-9 relative ridge) are solved by Jacobi-preconditioned conjugate
-    gradients to relative residual ``cg_rtol`` (a direct sparse solve of a 3D probe grid fills
-    in: 16^3 probes took over a minute; CG takes about a second).
+    equations (plus a 1e-9 relative ridge) are solved directly (sparse LU) up to
+    :data:`DIRECT_UNKNOWNS` unknowns, above that by Jacobi-preconditioned conjugate gradients to
+    relative residual ``cg_rtol`` (a direct solve of a 3D probe grid fills in: 16^3 probes x 4
+    took over a minute; CG's iterations are cheap but converge slowly where only the smoothness
+    term reaches).
 
     Returns:
         (P, K, 3) float32 coefficients.
@@ -417,7 +430,7 @@ def fit_probe_volume(
         ValueError: no samples.
     """
     import scipy.sparse as sp
-    from scipy.sparse.linalg import LinearOperator, cg
+    from scipy.sparse.linalg import LinearOperator, cg, spsolve
 
     if len(samples) == 0:
         raise ValueError("no train pixels to fit the probe volume on")
@@ -446,6 +459,9 @@ def fit_probe_volume(
         ridge = 1e-9 * max(float(diag.mean()), 1e-30)
         m = m + sp.identity(pc * k, format="csr") * ridge
         rhs = wa.T @ e[:, c].astype(np.float64)
+        if pc * k <= DIRECT_UNKNOWNS:
+            out[:, :, c] = spsolve(m.tocsc(), rhs).reshape(pc, k)
+            continue
         inv = 1.0 / (diag + ridge)
         pre = LinearOperator(m.shape, matvec=lambda v, inv=inv: v * inv)
         sol, info = cg(m, rhs, rtol=cg_rtol, maxiter=cg_maxiter, M=pre)
@@ -543,8 +559,8 @@ def train(
     """Fit a world-space irradiance model on a store's train path; evaluate on other paths.
 
     Args:
-        store: an open :class:`~icbtool.store.Store` whose records are tagged with
-            ``config.train_path`` and every ``config.eval_paths`` (:func:`icbtool.bake.bake`).
+        store: an open :class:`~icbtool.store.Store` whose records are tagged with every
+            ``config.train_paths`` and ``config.eval_paths`` (:func:`icbtool.bake.bake`).
         config: :class:`RadianceConfig` (grid + MLP, trained) or :class:`ProbeConfig` (probe
             volume, one least-squares fit).
         out_dir: the run directory (module doc).
