@@ -1,6 +1,5 @@
 """GI learned in world space: a static scene's diffuse indirect irradiance as a function of
-surface position and normal, fitted from the cloud's CRT-buffers (docs/design.md, "World-space
-GI").
+surface position and normal, fitted from the cloud's CRT-buffers (docs/radiance.md).
 
 Two models with one API: the multi-resolution grid + MLP (``RadianceConfig``; instant-ngp's
 encoding, trained with Adam) and the classical irradiance probe volume (``ProbeConfig``; fitted

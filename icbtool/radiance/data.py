@@ -1,7 +1,7 @@
 """Surface pixels of a store's CRT-buffers as world-space samples of diffuse irradiance.
 
 Every surface pixel of a record is one sample ``(position, normal) -> E`` of the scene's
-indirect irradiance, with ``E = GI / albedo`` per channel (demodulation, docs/design.md: the GI
+indirect irradiance, with ``E = GI / albedo`` per channel (demodulation, docs/radiance.md: the GI
 of a diffuse surface is its albedo times the irradiance arriving there). Where the albedo is
 dark that division amplifies noise and is undefined at 0, so the target divides by the albedo
 floored at ``albedo_floor`` and each channel carries a weight ``min(albedo / albedo_floor, 1)``:

@@ -9,7 +9,7 @@ every surface pixel and returns ``GI = albedo * E`` (0 on the background), at an
 ONNX: :meth:`RadianceModel.export_onnx` writes the per-point model: inputs ``position`` (N, 3)
 and ``normal`` (N, 3) float32 (world space; N dynamic: the client passes its surface pixels
 only), output ``irradiance`` (N, 3); the client multiplies by its albedo. Only elementwise ops,
-one Gather per table, MatMul/Gemm and Relu/Exp (docs/design.md).
+one Gather per table, MatMul/Gemm and Relu/Exp (docs/radiance.md).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """World-space irradiance models (torch): a multi-resolution grid + MLP and a probe volume.
 
 Both map a surface point ``(position (N, 3), normal (N, 3))`` in world space to the indirect
-irradiance ``E (N, 3)`` arriving there; the client's GI is ``albedo * E`` (docs/design.md).
+irradiance ``E (N, 3)`` arriving there; the client's GI is ``albedo * E`` (docs/radiance.md).
 
 :class:`GridEncoding` is the learned multi-resolution grid of instant-ngp (Mueller et al. 2022):
 ``L`` levels whose resolutions grow geometrically from ``base_resolution`` to
