@@ -10,7 +10,8 @@ Methods (rows), all fitted on the train path's pixels only (``--train-paths``):
   trained for ``--iterations`` (resumable: the run directory is reused).
 
 For every evaluation path (``--eval-paths``; those missing from the store are skipped and
-named): mean SSIM / MSE (display scale 0-255, :mod:`icbtool.metrics`) over ALL its views, and
+named): mean SSIM / MSE (display scale 0-255, :mod:`icbtool.metrics`) and FLIP (LDR, when
+flip-evaluator is installed: extra ``metrics``) over ALL its views, and
 per view its coverage: the median distance from its surface pixels to the nearest train pixel
 (a 200k subsample, scipy cKDTree) as a fraction of the scene's bounding-box diagonal. A binned
 plot shows how per-pixel SSIM and GI error depend on that distance; the JSON says which share
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import time
 from pathlib import Path
@@ -129,7 +131,8 @@ def main() -> None:
         if not (probe_dir / "radiance.pt").exists():
             train(st, ProbeConfig(resolution=args.probe_resolution, train_paths=train_paths,
                                   eval_paths=()), probe_dir, progress=False)  # fmt: skip
-            results["probe_fit_s"] = time.perf_counter() - t0
+        # reading the train records + the least-squares fit
+        results["probe_fit_s"] = json.loads((probe_dir / "config.json").read_text())["fit_seconds"]
         grid_cfg = RadianceConfig(
             iterations=args.iterations,
             batch_size=args.batch_size,
@@ -162,6 +165,13 @@ def main() -> None:
 
         # -- coverage and scores
         cov = TrainCoverage(samples.position, diag)
+        try:
+            import flip_evaluator  # noqa: F401
+
+            has_flip = True
+        except ImportError:  # extra "metrics": the FLIP column is left out, and said so
+            has_flip = False
+        results["flip"] = "on (LDR, display transform)" if has_flip else "off: no flip-evaluator"
         rows, per_pixel = [], {n: {p: [] for p in eval_paths} for n in names}
         dist_px = {p: [] for p in eval_paths}
         for p in eval_paths:
@@ -175,6 +185,8 @@ def main() -> None:
                     pred = make(n, v)
                     row[f"{n}_ssim"] = metrics.ssim(pred, v.gi)
                     row[f"{n}_mse"] = metrics.mse(pred, v.gi)
+                    if has_flip:
+                        row[f"{n}_flip"] = metrics.flip(v.gi, pred)
                     smap = metrics.ssim_map(pred, v.gi, padding="same")
                     err = np.abs(to_display(pred).astype(float) - to_display(v.gi)).mean(-1)
                     per_pixel[n][p].append((d_map[v.surface], smap[v.surface], err[v.surface]))
@@ -189,6 +201,8 @@ def main() -> None:
                     "ssim": float(np.mean([r[f"{n}_ssim"] for r in sel])),
                     "mse": float(np.mean([r[f"{n}_mse"] for r in sel])),
                 }
+                if has_flip:
+                    table[n][p]["flip"] = float(np.mean([r[f"{n}_flip"] for r in sel]))
         results["table"] = table
         results["coverage"] = {
             p: {
@@ -274,7 +288,9 @@ def main() -> None:
     _plot(OUT / f"world_{args.tag}_coverage.png", binned, rows, names, eval_paths)
     for n in names:
         line = "  ".join(
-            f"{p}: SSIM {table[n][p]['ssim']:.3f} MSE {table[n][p]['mse']:.0f}" for p in eval_paths
+            f"{p}: SSIM {table[n][p]['ssim']:.3f} MSE {table[n][p]['mse']:.0f} "
+            f"FLIP {table[n][p].get('flip', float('nan')):.3f}"
+            for p in eval_paths
         )
         print(f"{n:>11}: {line}  {speed.get(n, {})}")
     print("coverage:", results["coverage"])

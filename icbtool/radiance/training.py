@@ -488,6 +488,7 @@ def _fit_probes_run(
         samples, spec, cfg.albedo_floor, cfg.smoothness, cfg.cg_rtol, cfg.cg_maxiter
     )
     module = ProbeVolume(spec, coef)
+    fit_s = time.perf_counter() - t0
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "samples").mkdir(exist_ok=True)
     write_json(
@@ -501,6 +502,7 @@ def _fit_probes_run(
             "train_records": list(samples.record_ids),
             "train_pixels": len(samples),
             "eval_records": eval_ids,
+            "fit_seconds": fit_s,
             "run": run_info(),
         },
     )
