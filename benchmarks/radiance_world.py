@@ -314,8 +314,12 @@ def _plot(path: Path, binned: dict, rows: list, names: list, paths: list) -> Non
         for n in names[:2]:
             ax[2].scatter([100 * r["coverage"] for r in sel], [r[f"{n}_ssim"] for r in sel],
                           marker=mk, label=f"{n} ({p})", s=14)  # fmt: skip
-    ax[0].set_xscale("log")
-    ax[1].set_xscale("log")
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+    for a in ax[:2]:
+        a.set_xscale("log")
+        a.xaxis.set_major_formatter(ScalarFormatter())
+        a.xaxis.set_minor_formatter(NullFormatter())
     ax[0].set_xlabel("distance to nearest train pixel (% of scene diagonal, bin centre)")
     ax[1].set_xlabel(ax[0].get_xlabel())
     ax[0].set_ylabel("mean per-pixel SSIM")
