@@ -28,6 +28,7 @@ _SUBMODULES = (
     "cli",
     "pipeline",
     "gan",
+    "radiance",
     "lpm",
     "net",
 )

@@ -87,9 +87,10 @@ class LoopConfig(PathConfig):
     truth_spp: int = 128
     """Samples per pixel of the ground truth."""
     generator: str | None = None
-    """A trained GAN run directory (:func:`icbtool.gan.train`): the client makes its GI with it
-    (the paper's rule) and asks the cloud only when the generator cannot answer
-    (:class:`icbtool.system.GeneratorSource`). None: every GI map comes from the cloud."""
+    """A trained GAN run directory (:func:`icbtool.gan.train`) or world-space radiance run
+    (:func:`icbtool.radiance.train`): the client makes its GI with it (the paper's rule) and asks
+    the cloud only when it cannot answer (:class:`icbtool.system.GeneratorSource`). None: every
+    GI map comes from the cloud."""
     compare_cloud: bool = True
     """With a generator: on the frames that get a truth, also ask the cloud for its (warped) GI
     and write cloud GI | generated GI | truth GI side by side (``frames/NNN_gi.png``; the SSIM in
@@ -475,9 +476,21 @@ def _gi_source(cfg: LoopConfig, cloud: Any) -> Any:
 
     if cfg.generator is None:
         return contextlib.nullcontext(cloud)
+    return system.GeneratorSource(load_client_model(cfg.generator), fallback=cloud)
+
+
+def load_client_model(run: str | Path) -> Any:
+    """The model a client makes its GI with: a world-space radiance run (it holds
+    ``radiance.pt``: :class:`icbtool.radiance.RadianceModel`) or a GAN run
+    (:class:`icbtool.gan.Generator`)."""
+    p = Path(run)
+    if (p / "radiance.pt").is_file() or (p.is_file() and p.name.endswith("radiance.pt")):
+        from icbtool.radiance import RadianceModel
+
+        return RadianceModel.load(p)
     from icbtool.gan import Generator
 
-    return system.GeneratorSource(Generator.load(cfg.generator), fallback=cloud)
+    return Generator.load(p)
 
 
 def _comparison_client(cfg: LoopConfig, scene: Any, cloud: Any, rz: Any) -> Any:

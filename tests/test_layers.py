@@ -32,6 +32,7 @@ LAYERS: dict[str, int] = {
     "store": 3,
     "bake": 4,
     "gan": 4,
+    "radiance": 4,
     "lpm": 4,
     "system": 5,
     "pipeline": 6,

@@ -55,7 +55,9 @@ class GeneratorSource(GISource):
 
     Args:
         generator: a loaded generator (anything with ``inputs`` (buffer names) and
-            ``generate(buffers) -> (H, W, 3)``).
+            ``generate(buffers) -> (H, W, 3)``): a GAN :class:`icbtool.gan.Generator` or a
+            world-space :class:`icbtool.radiance.RadianceModel` (its ``size_multiple``, when it
+            has one, replaces ``multiple``).
         fallback: where to ask when the generator cannot answer (a
             :class:`~icbtool.system.cloud.Cloud`); None raises instead. Not closed by
             :meth:`close` (its owner closes it).
@@ -81,7 +83,8 @@ class GeneratorSource(GISource):
             )
         self.generator = generator
         self.fallback = fallback
-        self.multiple = int(multiple)
+        # a model that takes any size (a world-space model: size_multiple 1) is not padded
+        self.multiple = int(getattr(generator, "size_multiple", multiple))
         self.generated = 0
         self.fell_back: list[tuple[int, str]] = []
 
