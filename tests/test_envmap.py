@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -295,3 +296,17 @@ def test_toml_envmap_errors_name_the_problem(tmp_path, sky, match):
     write_exr(tmp_path / "sky.exr", _sky_map(8, 16))
     with pytest.raises(SceneError, match=match):
         read_description(_toml(tmp_path, sky))
+
+
+def test_skies_without_a_map_keep_the_light_hash_stores_were_written_with(tmp_path):
+    """Adding environment maps must not change the hash of a uniform or gradient sky: records are
+    looked up by it, so a changed hash would silently turn every stored record of such a scene
+    into a miss. The values are the hashes before environment maps existed."""
+    assert icb.scene.boxes_on_floor().light_hash == "12f0bc78b0d32112"  # uniform sky
+    repo = Path(__file__).resolve().parents[1]
+    (tmp_path / "s.toml").write_text(
+        f'[scene]\nname = "s"\nmesh = "{repo}/tests/data/scenes/cornell_style.obj"\n'
+        '[sky]\ntype = "gradient"\nzenith = [0.3, 0.45, 0.8]\nhorizon = [0.7, 0.75, 0.8]\n'
+        "ground = [0.2, 0.18, 0.15]\n"
+    )
+    assert icb.scene.load(tmp_path / "s.toml").light_hash == "1f1dafc0bc58cfb1"  # gradient

@@ -697,11 +697,17 @@ def _readonly(a: np.ndarray) -> np.ndarray:
     return a
 
 
+#: A Sky's environment-map fields: left out of the light hash of a sky without a map.
+_ENVMAP_FIELDS = ("envmap", "envmap_scale", "world_from_map")
+
+
 def _light_key(obj: Any) -> tuple:
     items = []
     for k, v in sorted(vars(obj).items()):
         if k == "shape" and v == "parallelogram":
             continue  # the default shape: the light hashes of older scenes stay valid
+        if k in _ENVMAP_FIELDS and getattr(obj, "envmap", 0) is None:
+            continue  # a sky without a map hashes as before maps existed: stores stay valid
         if isinstance(v, np.ndarray) and v.size > 64:  # an envmap: its content's digest
             v = ("sha256", v.shape, hashlib.sha256(np.ascontiguousarray(v).tobytes()).hexdigest())
         elif isinstance(v, np.ndarray):
