@@ -68,7 +68,8 @@ VARIANTS: dict[str, tuple[str, dict]] = {
         {"crop": 128, "batch_size": 2},
     ),  # fmt: skip
     "base 32": ("twice the width (the cpu preset before)", {"base": 32}),
-    "input I": ("configuration I (depth instead of position)", {"inputs": "I"}),
+    "input I": ("configuration I (depth instead of position: no position features either)",
+                {"inputs": "I", "position_octaves": 0}),  # fmt: skip
     "no position features": ("no Fourier features of the position", {"position_octaves": 0}),
 }
 

@@ -850,6 +850,7 @@ def block_gan_figure8(results: Path) -> str:
     for rel, what in (
         ("gan/figure8.json", "the paper's generator (Figure 7's best)"),
         ("gan/demodulated/figure8.json", "with albedo demodulation (our addition)"),
+        ("gan/recipe/figure8.json", "the `cpu` recipe (issue 17; on the current store)"),
     ):
         if not (results / rel).is_file():
             continue

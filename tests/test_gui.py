@@ -364,7 +364,9 @@ def test_the_trainers_default_crop_fits_the_stores_images(window):
     from icbtool_gui.trainer import default_config
 
     assert window.trainer.form.value().crop == SIZE  # the store's images are 32x32, not 128
-    assert default_config(64).crop == 64 and default_config(100).crop == 96
+    preset = icb.gan.TrainConfig.preset("cpu").crop  # 64: a larger store keeps the preset's
+    assert default_config(preset).crop == preset and default_config(preset + 36).crop == preset
+    assert default_config(preset - 1).crop == preset - 32 and default_config(40).crop == 32
     assert default_config(None) == icb.gan.TrainConfig.preset("cpu")
 
 
