@@ -5,7 +5,8 @@ normals, world positions) with Fourier features of the position computed inside 
 demodulated targets, the full-resolution skip, width 16, L1 + SSIM
 loss without the critic, cosine learning rate, weight averaging, 64-pixel crops in batches of 8,
 trained on the train path plus the coverage views (``train,cover``: benchmarks/gan_coverage.py).
-Each variant changes exactly one thing. Runs train round-robin in chunks (resumable: a rerun
+Each variant changes exactly one thing. The best of them, "constant lr", is what the ``cpu``
+preset became (the recipe with a constant learning rate). Runs train round-robin in chunks (resumable: a rerun
 continues), then every run is scored on ALL views of the test path and of the held-out walk.
 
     ICBTOOL_GL_BACKEND=osmesa ICBTOOL_GAN_STORE=STORE .venv/bin/python benchmarks/gan_ablation.py \\
@@ -52,7 +53,7 @@ RECIPE = dict(
 
 #: name -> (what changes, the fields that change)
 VARIANTS: dict[str, tuple[str, dict]] = {
-    "recipe": ("the recipe", {}),
+    "recipe": ("the recipe (cosine learning rate)", {}),
     "no cover": ("train path only (no coverage views)", {"train_path": "train"}),
     "no demodulation": ("targets are GI, not GI / albedo", {"demodulate": False}),
     "no full-res skip": ("the paper's U-Net (no full-resolution skip)", {"full_res_skip": False}),
@@ -61,7 +62,7 @@ VARIANTS: dict[str, tuple[str, dict]] = {
         "L_a + L_c (WGAN-GP critic, weights 1 / 1)",
         {"weight_adv": 1.0, "weight_l1": 1.0, "weight_ssim": 0.0},
     ),  # fmt: skip
-    "constant lr": ("no cosine schedule", {"lr_schedule": "constant"}),
+    "constant lr": ("no cosine schedule: the cpu preset", {"lr_schedule": "constant"}),
     "no averaging": ("no weight averaging", {"ema": 0.0}),
     "crop 128": (
         "whole 128 x 128 images (no crop augmentation), batch 2",

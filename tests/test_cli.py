@@ -430,8 +430,8 @@ def test_ctrl_c_exits_130_with_one_line_and_the_store_committed(tmp_path, capsys
 
     real_bake = B.bake
 
-    def bake_then_interrupt(scene, path, store, cfg):
-        real_bake(scene, path, store, dataclasses.replace(cfg, limit=1))
+    def bake_then_interrupt(scene, path, store, cfg, **kw):
+        real_bake(scene, path, store, dataclasses.replace(cfg, limit=1), **kw)
         raise KeyboardInterrupt
 
     monkeypatch.setattr(B, "bake", bake_then_interrupt)

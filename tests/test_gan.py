@@ -332,7 +332,7 @@ def test_config_validation_and_presets():
     r = T.TrainConfig.preset("cpu")  # the measured recipe (docs/gan.md)
     assert (r.crop, r.base, r.inputs, r.demodulate, r.full_res_skip) == (64, 16, "J", True, True)
     assert r.position_octaves == 6
-    assert (r.weight_adv, r.weight_ssim, r.lr_schedule, r.ema) == (0.0, 20.0, "cosine", 0.999)
+    assert (r.weight_adv, r.weight_ssim, r.lr_schedule, r.ema) == (0.0, 20.0, "constant", 0.999)
     with pytest.raises(ValueError, match="multiple of 32"):
         T.TrainConfig(crop=100)
     with pytest.raises(ValueError, match="unknown TrainConfig field"):

@@ -36,7 +36,7 @@ from icbtool.net.server import Server, ServerConfig  # noqa: E402
 
 pytestmark = [pytest.mark.web, pytest.mark.network, pytest.mark.gl]
 
-TOKEN = "web-test-token"
+TOKEN = "web-test-token-0123456789abcdef-0123456789abcdef"
 SIZE = 128  # client image (small: SwiftShader renders on the CPU)
 CLOUD = system.CloudConfig(spp=4, denoise=False, max_depth=3)
 T_MS = 120_000  # every browser wait
@@ -353,7 +353,7 @@ def test_serve_web_prints_one_url_and_never_logs_the_token(tmp_path):
     import subprocess
     import sys
 
-    token = "cli-secret-7f3a"
+    token = "cli-secret-7f3a-0123456789abcdef-0123456789abcdef"
     cmd = [
         sys.executable,
         "-m",

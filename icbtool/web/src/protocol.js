@@ -25,7 +25,8 @@ export const KINDS = {
     camera: ["object", true, false], lpm: ["object", true, false],
     generator: ["object", true, true], codecs: ["array", true, false],
     sky: ["object", false, true], up: ["array", false, false],
-    default_camera: ["object", false, true], max_pending: ["integer", false, false]}},
+    default_camera: ["object", false, true], max_pending: ["integer", false, false],
+    limits: ["object", false, false]}},
   lpm_request: {sender: "client", sealed: true, payload: false, fields: {
     max_level: ["integer", true, false], min_level: ["integer", false, false]}},
   lpm_chunk: {sender: "server", sealed: true, payload: true, fields: {
