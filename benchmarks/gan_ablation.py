@@ -6,8 +6,9 @@ demodulated targets, the full-resolution skip, width 16, L1 + SSIM
 loss without the critic, cosine learning rate, weight averaging, 64-pixel crops in batches of 8,
 trained on the train path plus the coverage views (``train,cover``: benchmarks/gan_coverage.py).
 Each variant changes exactly one thing. The best of them, "constant lr", is what the ``cpu``
-preset became (the recipe with a constant learning rate). Runs train round-robin in chunks (resumable: a rerun
-continues), then every run is scored on ALL views of the test path and of the held-out walk.
+preset became (the recipe with a constant learning rate). Runs train round-robin in chunks
+(resumable: a rerun continues), then every run is scored on ALL views of the test path and of
+the held-out walk.
 
     ICBTOOL_GL_BACKEND=osmesa ICBTOOL_GAN_STORE=STORE .venv/bin/python benchmarks/gan_ablation.py \\
         --runs /work/runs/ablation --iterations 3000
@@ -69,8 +70,10 @@ VARIANTS: dict[str, tuple[str, dict]] = {
         {"crop": 128, "batch_size": 2},
     ),  # fmt: skip
     "base 32": ("twice the width (the cpu preset before)", {"base": 32}),
-    "input I": ("configuration I (depth instead of position: no position features either)",
-                {"inputs": "I", "position_octaves": 0}),  # fmt: skip
+    "input I": (
+        "configuration I (depth instead of position: no position features either)",
+        {"inputs": "I", "position_octaves": 0},
+    ),  # fmt: skip
     "no position features": ("no Fourier features of the position", {"position_octaves": 0}),
 }
 

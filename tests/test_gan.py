@@ -390,6 +390,8 @@ def test_cli_train_resume_export(store, tmp_path, capsys):
         return [
             "train",
             root,
+            "--preset",
+            "paper-cpu",
             "--inputs",
             "H",
             "--out",

@@ -463,7 +463,7 @@ class _Run:
         if c.position_octaves and pos is None:
             raise ValueError(
                 f"TrainConfig.position_octaves needs 'position' among the inputs, got "
-                f"{self.enc.inputs}"
+                f"{self.enc.inputs}: add it, or set position_octaves=0 (--position-octaves 0)"
             )
         self.g_cfg = GeneratorConfig(
             self.enc.n_channels, 3, c.base, c.norm, full_res_skip=c.full_res_skip,
