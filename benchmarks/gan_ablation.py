@@ -31,26 +31,9 @@ REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-#: The recipe's TrainConfig fields (over the ``cpu`` preset).
-RECIPE = dict(
-    inputs="J",
-    demodulate=True,
-    full_res_skip=True,
-    weight_adv=0.0,
-    weight_l1=100.0,
-    weight_ssim=20.0,
-    weight_perceptual=0.0,
-    lr=2e-4,
-    lr_schedule="cosine",
-    ema=0.999,
-    crop=64,
-    batch_size=8,
-    base=16,
-    hdr_scale=0.05,
-    hdr_max=4.0,
-    train_path="train,cover",
-    position_octaves=6,
-)
+#: The recipe: the ``cpu`` preset as it was first planned (a cosine learning rate; the ablation
+#: found the preset's constant one better), trained on the train path plus the coverage views.
+RECIPE = dict(lr_schedule="cosine", train_path="train,cover")
 
 #: name -> (what changes, the fields that change)
 VARIANTS: dict[str, tuple[str, dict]] = {
@@ -139,7 +122,7 @@ def main() -> None:
     if not args.score_only:
         train_round_robin(jobs, args.iterations, args.chunk, args.scene)
     ro = S.StoreConfig(readonly=True, record_hits=False)
-    res: dict = {"recipe": RECIPE, "variants": {}}
+    res: dict = {"recipe": config("recipe", args.iterations, args.chunk).to_dict(), "variants": {}}
     paths = [p for p in args.eval_paths.split(",") if p]
     with S.open(args.store, ro) as store:
         for n, (_, cfg, run) in jobs.items():
