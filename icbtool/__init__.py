@@ -21,6 +21,7 @@ _SUBMODULES = (
     "system",
     "buffers",
     "provenance",
+    "configdoc",
     "warp",
     "prefetch",
     "metrics",

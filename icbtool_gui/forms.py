@@ -9,48 +9,15 @@ config's own ``ValueError``.
 
 from __future__ import annotations
 
-import ast
 import dataclasses
-import inspect
 import json
-import textwrap
 import types
 import typing
 from typing import Any, Literal, get_args, get_origin
 
 from PySide6 import QtCore, QtWidgets
 
-
-def field_docs(cls: type) -> dict[str, str]:
-    """Each field's documentation: the string literal after its definition, else its entry in
-    the class docstring's ``Attributes:`` section; inherited fields from the base classes."""
-    docs: dict[str, str] = {}
-    for klass in reversed(cls.__mro__[:-1]):  # bases first: a subclass's own text wins
-        docs.update(_own_field_docs(klass))
-    return docs
-
-
-def _own_field_docs(cls: type) -> dict[str, str]:
-    docs: dict[str, str] = {}
-    for line in (cls.__doc__ or "").splitlines():  # "    name: text" lines of Attributes:
-        name, sep, text = line.strip().partition(": ")
-        if sep and name.isidentifier():
-            docs.setdefault(name, text.strip())
-    try:
-        tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
-    except (OSError, TypeError, SyntaxError):
-        return docs
-    body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
-    for a, b in zip(body, body[1:], strict=False):
-        if (
-            isinstance(a, ast.AnnAssign)
-            and isinstance(a.target, ast.Name)
-            and isinstance(b, ast.Expr)
-            and isinstance(b.value, ast.Constant)
-            and isinstance(b.value.value, str)
-        ):
-            docs[a.target.id] = " ".join(b.value.value.split())
-    return docs
+from icbtool.configdoc import field_docs
 
 
 def _is_optional(tp: Any) -> tuple[bool, Any]:

@@ -21,6 +21,7 @@ PKG = Path(__file__).resolve().parents[1] / "icbtool"
 LAYERS: dict[str, int] = {
     "buffers": 0,
     "provenance": 0,
+    "configdoc": 0,
     "imageio": 0,
     "camera": 1,
     "metrics": 1,
