@@ -274,6 +274,20 @@ def _salts(seed: int, n_dims: int) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------- sky
+def _piecewise_2d(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A piecewise-constant 2D distribution over the cells of ``v`` (R, C) (non-negative, sum >
+    0): the cell probabilities, the rows' marginal CDF (R,) and each row's conditional CDF
+    (R, C) (uniform in an empty row)."""
+    p = v / v.sum()
+    marg = p.sum(1)
+    marg_cdf = np.cumsum(marg)
+    marg_cdf /= marg_cdf[-1]
+    cond = np.where(marg[:, None] > 0, p / np.maximum(marg[:, None], 1e-300), 1.0 / v.shape[1])
+    cond_cdf = np.cumsum(cond, axis=1)
+    cond_cdf /= cond_cdf[:, -1:]
+    return p, marg_cdf, cond_cdf
+
+
 @dataclass(frozen=True)
 class SkyTable:
     """A piecewise-constant importance function over the sphere, proportional to a sky's luminance.
@@ -333,16 +347,9 @@ class SkyTable:
         dirs += C[..., None] * up
         lum = np.asarray(sky.radiance(dirs), np.float64) @ _LUM
         v = np.maximum(lum, 0.0).reshape(nc, ss, nphi, ss).mean(axis=(1, 3))
-        total = v.sum()
-        if not total > 0:
+        if not v.sum() > 0:
             return SkyTable.empty()
-        p = v / total
-        marg = p.sum(1)
-        marg_cdf = np.cumsum(marg)
-        marg_cdf /= marg_cdf[-1]
-        cond = np.where(marg[:, None] > 0, p / np.maximum(marg[:, None], 1e-300), 1.0 / nphi)
-        cond_cdf = np.cumsum(cond, axis=1)
-        cond_cdf /= cond_cdf[:, -1:]
+        p, marg_cdf, cond_cdf = _piecewise_2d(v)
         pdf = p / (4.0 * np.pi / (nc * nphi))
         return SkyTable(
             np.ascontiguousarray(np.stack([t1, t2, up])),
@@ -364,18 +371,11 @@ class SkyTable:
         band = np.cos(th[:-1]) - np.cos(th[1:])  # (H - 1,) solid angle / (2 pi) of each row
         solid = band[:, None] * (2.0 * np.pi / w)
         v = np.maximum(cell, 0.0) * solid
-        total = v.sum()
         r = np.asarray(world_from_map, np.float64)
         frame = np.ascontiguousarray(np.stack([-r[:, 2], r[:, 0], r[:, 1]]))
-        if not total > 0:
+        if not v.sum() > 0:
             return SkyTable.empty()
-        p = v / total
-        marg = p.sum(1)
-        marg_cdf = np.cumsum(marg)
-        marg_cdf /= marg_cdf[-1]
-        cond = np.where(marg[:, None] > 0, p / np.maximum(marg[:, None], 1e-300), 1.0 / w)
-        cond_cdf = np.cumsum(cond, axis=1)
-        cond_cdf /= cond_cdf[:, -1:]
+        p, marg_cdf, cond_cdf = _piecewise_2d(v)
         pdf = p / solid
         return SkyTable(
             frame,
