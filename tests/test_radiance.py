@@ -8,6 +8,7 @@ cameras inside it, with a checker albedo (black squares included) and a GI that 
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -399,3 +400,45 @@ def test_generator_source_serves_world_space_gi(tmp_path):
     assert reply.reference.gi.shape == (15, 9, 3)  # no padding to 32: any size
     np.testing.assert_array_equal(reply.reference.gi, model.generate(wrt))
     assert src.generated == 1
+
+
+# ------------------------------------------------------------------------------ command line
+def test_cli_world_probes_fit_generate_and_export(tmp_path, capsys):
+    """``icbtool world probes`` fits the exact field (known answer as above) and prints the
+    evaluation with its view count; ``icbtool export`` takes the run like a GAN run."""
+    from icbtool.cli import main
+    from icbtool.pipeline import load_client_model
+
+    st = make_store(tmp_path / "s", trilinear_l1_irradiance)
+    test_recs = [st.get(i) for i in D.records_of_path(st, "test")]
+    st.close()
+    run = tmp_path / "probes"
+    argv = ["world", "probes", str(tmp_path / "s"), "--out", str(run), "--resolution", "5",
+            "--sh-order", "1", "--normal-offset", "0", "--cg-rtol", "1e-12",
+            "--cg-maxiter", "20000", "--no-progress"]  # fmt: skip
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"test SSIM (0\.999\d|1\.0000) MSE \S+ \(4 views\)", out), out
+    model = load_client_model(run)
+    assert max(float(np.abs(model.generate(r) - r.gi).max()) for r in test_recs) < 2e-5
+    assert main(["export", str(run), "--onnx", str(tmp_path / "p.onnx")]) == 0
+    assert (tmp_path / "p.onnx").stat().st_size > 0
+    assert json.loads((tmp_path / "p.onnx.json").read_text())["inputs"].startswith("position")
+
+
+def test_cli_world_grid_resumes_and_rejects_a_bad_setting(tmp_path, capsys):
+    from icbtool.cli import main
+
+    make_store(tmp_path / "s", smooth_irradiance, n_train=4, n_test=1, size=16).close()
+    run = str(tmp_path / "grid")
+    base = ["world", "grid", str(tmp_path / "s"), "--out", run, "--levels", "4",
+            "--log2-table", "10", "--base-resolution", "2", "--max-resolution", "16",
+            "--hidden", "16", "--batch-size", "512", "--eval-every", "10",
+            "--checkpoint-every", "10", "--no-progress"]  # fmt: skip
+    assert main([*base, "--iterations", "10"]) == 0
+    assert "(10 steps)" in capsys.readouterr().out
+    assert main([*base, "--iterations", "20", "--resume"]) == 0
+    assert "(20 steps)" in capsys.readouterr().out
+    assert main([*base, "--lr", "-1"]) == 2
+    err = capsys.readouterr().err
+    assert "--lr" in err and err.count("\n") == 1, err

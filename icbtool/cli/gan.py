@@ -3,6 +3,8 @@
 - ``icbtool train STORE --scene S --inputs I --preset cpu --out runs/NAME [--resume]``
 - ``icbtool generate RUN SCENE --camera default|path:NAME --out DIR [--height H --width W]``
 - ``icbtool export RUN --onnx FILE [--height H --width W]``
+
+``generate`` and ``export`` also take a world-space run (``icbtool world``, docs/radiance.md).
 """
 
 from __future__ import annotations
@@ -40,9 +42,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "take the preset's value.",
     )
     add_command(
-        sub, "generate", _generate_options, help="generate GI maps with a trained generator"
+        sub,
+        "generate",
+        _generate_options,
+        help="generate GI maps with a trained generator or world model",
     )
-    add_command(sub, "export", _export_options, help="export a trained generator to ONNX")
+    add_command(
+        sub, "export", _export_options, help="export a trained generator or world model to ONNX"
+    )
 
 
 def _train_options(p: argparse.ArgumentParser) -> None:
@@ -79,7 +86,7 @@ def _train_options(p: argparse.ArgumentParser) -> None:
 
 
 def _generate_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("run", help="training run directory (or its generator.pt)")
+    p.add_argument("run", help="a run of `icbtool train` or `icbtool world` (or its .pt file)")
     add_scene_argument(p)
     p.add_argument(
         "--camera", default="default", help="'default' (the scene's camera) or 'path:NAME'"
@@ -99,11 +106,11 @@ def _generate_options(p: argparse.ArgumentParser) -> None:
 
 
 def _export_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("run", help="training run directory (or its generator.pt)")
+    p.add_argument("run", help="a run of `icbtool train` or `icbtool world` (or its .pt file)")
     p.add_argument(
         "--onnx", required=True, metavar="FILE", help="output .onnx file (+ .onnx.json sidecar)"
     )
-    add_size_arguments(p, default=(128, 128), what="input")
+    add_size_arguments(p, default=(128, 128), what="input (a GAN; a world model is per point)")
     p.set_defaults(func=_export)
 
 
@@ -141,11 +148,11 @@ def _generate(args: argparse.Namespace) -> int:
     import numpy as np
 
     from icbtool import raster
-    from icbtool.gan.generate import Generator
     from icbtool.imageio import to_display, write_exr, write_png
+    from icbtool.pipeline import load_client_model
 
     out = check_out_dir(args.out)  # before any work
-    gen = Generator.load(args.run)
+    gen = load_client_model(args.run)  # a GAN run or a world-space one (icbtool world)
     scene = load_scene(args.scene)
     cams = select_cameras(scene, args.camera, args.every, args.height, args.width)
     names = tuple(n for n in gen.inputs if n != "mask")
@@ -176,8 +183,12 @@ def _generate(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from icbtool.gan.generate import Generator
+    from icbtool.pipeline import load_client_model
 
-    path = Generator.load(args.run).export_onnx(args.onnx, args.height, args.width)
+    model = load_client_model(args.run)
+    if hasattr(model, "irradiance"):  # world space: per point, no image size
+        path = model.export_onnx(args.onnx)
+    else:
+        path = model.export_onnx(args.onnx, args.height, args.width)
     print(f"wrote {path} and {path}.json")
     return 0

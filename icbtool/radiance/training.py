@@ -108,7 +108,26 @@ class _ConfigIO:
 
 
 @dataclass(frozen=True)
-class RadianceConfig(_ConfigIO):
+class _FitConfig(_ConfigIO):
+    """The fields every world-space model's fit shares (what it learns from, how it is scored)."""
+
+    albedo_floor: float = 0.05
+    """Demodulation floor: targets are GI / max(albedo, floor), weighted by min(albedo/floor, 1)."""
+    train_paths: tuple[str, ...] = ("train",)
+    """Camera-path tags of the training records (e.g. the train path and views baked to cover
+    what it missed)."""
+    eval_paths: tuple[str, ...] = ("test",)
+    """Camera-path tags evaluated (whole views: SSIM/MSE of albedo * E against the GI)."""
+    eval_views: int = 0
+    """At most this many views per evaluation path (the first ones; 0: all)."""
+    display_exposure: float = 1.0
+    """Exposure of the display transform of the metrics."""
+    seed: int = 0
+    """Seed of the initialisation (if any) and of the pixel draws."""
+
+
+@dataclass(frozen=True)
+class RadianceConfig(_FitConfig):
     """The multi-resolution grid + MLP model and its training (written to ``config.json``)."""
 
     levels: int = 12
@@ -143,27 +162,14 @@ class RadianceConfig(_ConfigIO):
     """Adam epsilon (tiny, as instant-ngp: rarely touched hash entries still move)."""
     loss: Literal["l2", "l1"] = "l2"
     """Loss on the log-irradiance log1p(E / scale), weighted per channel by the albedo."""
-    albedo_floor: float = 0.05
-    """Demodulation floor: targets are GI / max(albedo, floor), weighted by min(albedo/floor, 1)."""
     max_train_pixels: int = 0
     """Keep at most this many train pixels (a seeded uniform draw; 0: all)."""
-    train_paths: tuple[str, ...] = ("train",)
-    """Camera-path tags of the training records (e.g. the train path and views baked to cover
-    what it missed)."""
-    eval_paths: tuple[str, ...] = ("test",)
-    """Camera-path tags evaluated (whole views: SSIM/MSE of albedo * E against the GI)."""
     eval_every: int = 500
     """Evaluate every this many iterations (and at the end)."""
-    eval_views: int = 0
-    """At most this many views per evaluation path (the first ones; 0: all)."""
     checkpoint_every: int = 500
     """Checkpoint every this many iterations (and at the end)."""
-    display_exposure: float = 1.0
-    """Exposure of the display transform of the metrics."""
     divergence_limit: float = 1e6
     """A loss above this stops training (as does NaN/Inf)."""
-    seed: int = 0
-    """Seed of the initialisation and of the pixel draws."""
     device: Literal["cpu", "cuda"] = "cpu"
     """Where to train."""
 
@@ -196,7 +202,7 @@ class RadianceConfig(_ConfigIO):
 
 
 @dataclass(frozen=True)
-class ProbeConfig(_ConfigIO):
+class ProbeConfig(_FitConfig):
     """The irradiance probe volume and its least-squares fit (written to ``config.json``)."""
 
     resolution: int = 24
@@ -209,25 +215,12 @@ class ProbeConfig(_ConfigIO):
     probes that no train pixel reaches. Its null space holds every trilinear field."""
     normal_offset: float = 0.25
     """Look the probes up this many probe spacings along the normal (light-leak bias)."""
-    albedo_floor: float = 0.05
-    """Demodulation floor: targets are GI / max(albedo, floor), weighted by min(albedo/floor, 1)."""
     max_train_pixels: int = 300_000
     """Fit on at most this many train pixels (a seeded uniform draw; 0: all)."""
     cg_rtol: float = 1e-6
     """Conjugate gradients stop at this relative residual of the normal equations."""
     cg_maxiter: int = 2000
     """...or after this many iterations (a warning then gives the residual reached)."""
-    train_paths: tuple[str, ...] = ("train",)
-    """Camera-path tags of the training records (e.g. the train path and views baked to cover
-    what it missed)."""
-    eval_paths: tuple[str, ...] = ("test",)
-    """Camera-path tags evaluated (whole views)."""
-    eval_views: int = 0
-    """At most this many views per evaluation path (0: all)."""
-    display_exposure: float = 1.0
-    """Exposure of the display transform of the metrics."""
-    seed: int = 0
-    """Seed of the pixel draw."""
 
     def __post_init__(self) -> None:
         _check_int("ProbeConfig", "resolution", self.resolution, 2)
