@@ -32,6 +32,7 @@ def write_gan_run(
     base: int = 4,
     inputs: tuple[str, ...] = GAN_INPUTS,
     demodulate: bool = True,
+    warped: bool = False,
 ) -> Path:
     """A U-Net of ``base`` width with random weights, reading every client buffer encoding
     (HDR dl, albedo, normals, depth, position), demodulated."""
@@ -47,6 +48,7 @@ def write_gan_run(
         position_center=tuple(float(v) for v in (lo + hi) / 2),
         position_half_extent=float((hi - lo).max() / 2),
         demodulate=demodulate,
+        warped=warped,
     )
     cfg = GeneratorConfig(enc.n_channels, base=base)
     torch.manual_seed(seed)

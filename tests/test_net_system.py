@@ -478,8 +478,8 @@ def test_model_runs_a_client_cannot_use_are_refused(scene, tmp_path):
     pytest.importorskip("onnx")
     with pytest.raises(FileNotFoundError, match="no generator.pt .* or radiance.pt"):
         Server(scene, tmp_path / "s", TOKEN, ServerConfig(models=(str(tmp_path),)), CLOUD)
-    run = write_gan_run(tmp_path / "g", np.asarray(scene.bounds), inputs=("albedo", "normal_view"))
-    with pytest.raises(ModelRunError, match="normal_view"):
+    run = write_gan_run(tmp_path / "g", np.asarray(scene.bounds), warped=True)
+    with pytest.raises(ModelRunError, match="warped reference"):
         Server(scene, tmp_path / "s", TOKEN, ServerConfig(models=(str(run),)), CLOUD)
 
 

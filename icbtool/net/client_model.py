@@ -39,10 +39,6 @@ log = logging.getLogger(__name__)
 #: Test SSIMs closer than this to the best count as equal; the cheaper model (ONNX bytes) wins.
 SSIM_TIE = 1e-3
 
-#: Client buffers a model may read: ``position`` (world), ``normal_world``, ``albedo``, ``dl``,
-#: ``depth`` (view z), ``mask`` are in every client's WRT-buffer (the browser's too).
-CLIENT_BUFFERS = ("dl", "albedo", "normal_world", "depth", "position", "mask")
-
 #: How each GAN input buffer is mapped into the network's range (docs/protocol.md, Client
 #: models): ``hdr`` = the HDR curve of ``encoding.hdr``, ``unit`` = 2a - 1, ``identity`` = a,
 #: ``depth`` = 2a / depth_max - 1, ``position`` = (a - position_center) / position_half_extent.
@@ -51,11 +47,21 @@ GAN_MAP_RULES = {
     "albedo": "unit",
     "mask": "unit",
     "normal_world": "identity",
+    "normal_view": "identity",
     "depth": "depth",
     "position": "position",
 }
-#: Channels of each client buffer.
-CHANNELS = {"dl": 3, "albedo": 3, "normal_world": 3, "depth": 1, "position": 3, "mask": 1}
+#: The client buffers a model may read (every client's WRT-buffer has them, the browser's too:
+#: ``normal_view`` is the world normal rotated into the camera's OpenCV axes), with channels.
+CHANNELS = {
+    "dl": 3,
+    "albedo": 3,
+    "normal_world": 3,
+    "normal_view": 3,
+    "depth": 1,
+    "position": 3,
+    "mask": 1,
+}
 
 
 class ModelRunError(ValueError):
