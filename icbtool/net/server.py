@@ -5,9 +5,9 @@ Per connection (the protocol is :mod:`icbtool.net.protocol`):
 1. handshake: ``hello`` -> ``welcome`` -> ``auth``; a client whose token does not verify gets one
    ``error`` (code ``auth``) and the connection closes; it never sees a byte of the scene.
 2. ``scene_info`` (sealed, like everything after the handshake): the scene's base (lights, paths),
-   the mesh levels, the codecs, the generator on offer.
+   the mesh levels, the codecs, the client model on offer (:mod:`icbtool.net.client_model`).
 3. on request: the mesh levels coarse to fine (``lpm_chunk`` ... ``lpm_done`` per level), the GI
-   of a client request (``gi_request`` -> ``gi_reply``), the generator (``generator_chunk``, once).
+   of a client request (``gi_request`` -> ``gi_reply``), the client model (``generator_chunk``).
 
 Threads and processes (docs/protocol.md, sections Scaling out and Limits). Cache hits never wait
 behind renders: every request is first looked up on its own thread over a *read-only* store
