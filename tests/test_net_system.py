@@ -483,6 +483,20 @@ def test_model_runs_a_client_cannot_use_are_refused(scene, tmp_path):
         Server(scene, tmp_path / "s", TOKEN, ServerConfig(models=(str(run),)), CLOUD)
 
 
+def test_served_model_refuses_an_announcement_it_cannot_follow():
+    from icbtool.net.client_model import ServedModel
+
+    a = {"kind": "gan", "format": "onnx", "inputs": ["dl"], "encoding": {"hdr": {}}}
+    for bad, match in (
+        ({"kind": "nerf"}, "kind 'nerf' is not 'gan' or 'radiance'"),
+        ({"format": "pt"}, "format 'pt' is not 'onnx'"),
+        ({"inputs": ["gi"]}, r"inputs \['gi'\] are not client buffers"),
+        ({"encoding": None}, "encoding is required"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            ServedModel(b"", {**a, **bad})
+
+
 def _gen_request(fields):
     """A generator_request sealed by hand (the encoder would refuse the invalid ones)."""
 
