@@ -230,6 +230,27 @@ def test_protocol_test_vectors_and_kinds_in_javascript(page):
     assert not page.errors()
 
 
+def test_client_model_vectors_in_javascript(page):
+    """docs/protocol.md section 10's client-model vectors through generator.js's rules."""
+    from test_net_protocol import client_model_vectors
+
+    v = client_model_vectors()
+    got = page.js(
+        """(v) => {
+          const G = window.icbModules.generator, enc = {};
+          for (const [name, x] of Object.entries(v.inputs)) {
+            enc[name] = x.map((val, c) => Math.fround(G.mapRule(name, c, v.encoding)(val)));
+          }
+          return {encoded: enc, decoded: v.outputs.map((y) => G.decodeOutput(y, v.encoding))};
+        }""",
+        v,
+    )
+    for name, want in v["encoded"].items():
+        np.testing.assert_allclose(got["encoded"][name], want, rtol=0, atol=1e-6, err_msg=name)
+    np.testing.assert_allclose(got["decoded"], v["decoded"], rtol=1e-6, atol=0)
+    assert not page.errors()
+
+
 def test_codecs_and_lpm_chunks_decode_like_python(page, scene):
     rng = np.random.default_rng(3)
     gi = (rng.gamma(1.0, 0.3, (12, 17, 3)) * np.array([1, 10, 1000])).astype(np.float32)

@@ -311,6 +311,37 @@ def offer(runs: Sequence[str | Path], chunk_bytes: int, tie: float = SSIM_TIE) -
 
 
 # ------------------------------------------------------------------------------ the client side
+def _hdr_norm(announce: Mapping[str, Any]) -> tuple[float, float, float]:
+    hdr = announce["encoding"]["hdr"]
+    return hdr["scale"], hdr["max_value"], math.log1p(hdr["max_value"] / hdr["scale"])
+
+
+def encode_map(name: str, a: np.ndarray, announce: Mapping[str, Any]) -> np.ndarray:
+    """One (H, W, C) client buffer of a "gan" model mapped by its rule (:data:`GAN_MAP_RULES`)
+    with the announced ``encoding`` (docs/protocol.md, Client models); float32."""
+    e = announce["encoding"]
+    a = np.asarray(a, np.float32)
+    rule = GAN_MAP_RULES[name]
+    if rule == "hdr":
+        scale, top, norm = _hdr_norm(announce)
+        a = 2.0 * np.log1p(np.clip(a, 0.0, top) / np.float32(scale)) / np.float32(norm) - 1.0
+    elif rule == "unit":
+        a = 2.0 * a - 1.0
+    elif rule == "depth":
+        a = 2.0 * a / np.float32(e["depth_max"]) - 1.0
+    elif rule == "position":
+        c = np.asarray(e["position_center"], np.float32)
+        a = (a - c) / np.float32(e["position_half_extent"])
+    return np.asarray(a, np.float32)
+
+
+def decode_output(y: np.ndarray, announce: Mapping[str, Any]) -> np.ndarray:
+    """A "gan" model's output (any shape, in [-1, 1]) -> linear radiance (before the albedo)."""
+    scale, _, norm = _hdr_norm(announce)
+    yc = np.clip(np.asarray(y, np.float32), -1.0, 1.0)
+    return (np.float32(scale) * np.expm1((yc + 1.0) * 0.5 * np.float32(norm))).astype(np.float32)
+
+
 def _check_announce(a: Mapping[str, Any]) -> None:
     kind = a.get("kind")
     if kind not in ("gan", "radiance"):
@@ -378,26 +409,12 @@ class ServedModel:
             ValueError: a missing or mis-shaped buffer, NaN/Inf, or a size not a multiple of
                 ``size_multiple``.
         """
-        e = self.announce["encoding"]
-        hdr = e["hdr"]
-        norm = math.log1p(hdr["max_value"] / hdr["scale"])
         parts = []
         for n in self.inputs:
             a = self._need(buffers, n)
             if not np.isfinite(a).all():
                 raise ValueError(f"buffers.{n} holds NaN or Inf values")
-            rule = GAN_MAP_RULES[n]
-            if rule == "hdr":
-                c = np.clip(a, 0.0, hdr["max_value"])
-                a = 2.0 * np.log1p(c / np.float32(hdr["scale"])) / np.float32(norm) - 1.0
-            elif rule == "unit":
-                a = 2.0 * a - 1.0
-            elif rule == "depth":
-                a = 2.0 * a / np.float32(e["depth_max"]) - 1.0
-            elif rule == "position":
-                c = np.asarray(e["position_center"], np.float32)
-                a = (a - c) / np.float32(e["position_half_extent"])
-            parts.append(np.asarray(a, np.float32))
+            parts.append(encode_map(n, a, self.announce))
         x = np.concatenate(parts, axis=2).transpose(2, 0, 1)[None]
         h, w = x.shape[2:]
         m = self.size_multiple
@@ -413,12 +430,7 @@ class ServedModel:
         """
         if self.kind == "gan":
             y = self.session.run(["gi_encoded"], {"maps": self.encode(buffers)})[0][0]
-            hdr = self.announce["encoding"]["hdr"]
-            norm = math.log1p(hdr["max_value"] / hdr["scale"])
-            yc = np.clip(y.transpose(1, 2, 0), -1.0, 1.0)
-            gi = (np.float32(hdr["scale"]) * np.expm1((yc + 1.0) * 0.5 * np.float32(norm))).astype(
-                np.float32
-            )
+            gi = decode_output(y.transpose(1, 2, 0), self.announce)
             if self.demodulated:
                 gi = gi * self._need(buffers, "albedo")
             return gi.astype(np.float32)
@@ -445,6 +457,8 @@ __all__ = [
     "SSIM_TIE",
     "ServedModel",
     "choose",
+    "decode_output",
+    "encode_map",
     "offer",
     "read_candidate",
 ]

@@ -13,6 +13,7 @@ import * as camera from "./camera.js";
 import {CameraPath, resized} from "./camera.js";
 import * as codec from "./codec.js";
 import {CODECS, decodeReply} from "./codec.js";
+import * as generator from "./generator.js";
 import {ClientModel, OnnxGenerator, sha256Hex} from "./generator.js";
 import * as lpm from "./lpm.js";
 import {LevelCollector} from "./lpm.js";
@@ -21,7 +22,7 @@ import {ProtocolError, Session} from "./protocol.js";
 import {WebRenderer} from "./render.js";
 
 // the modules, for the tests (tests/test_web.py runs the protocol's test vectors through them)
-globalThis.icbModules = {camera, codec, lpm, protocol, OnnxGenerator, ClientModel};
+globalThis.icbModules = {camera, codec, lpm, protocol, generator, OnnxGenerator, ClientModel};
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.hash.slice(1));

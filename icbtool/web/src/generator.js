@@ -53,6 +53,25 @@ export const CHANNELS = {dl: 3, albedo: 3, normal_world: 3, normal_view: 3, dept
 export const GAN_MAP_RULES = {dl: "hdr", albedo: "unit", mask: "unit", normal_world: "identity",
                               normal_view: "identity", depth: "depth", position: "position"};
 
+/** The mapping of one value of buffer `name`, channel `c`, by its rule with the announced
+ * encoding `e` (docs/protocol.md, Client models). */
+export function mapRule(name, c, e) {
+  const hdr = e.hdr, norm = Math.log1p(hdr.max_value / hdr.scale);
+  return {
+    hdr: (v) => 2 * Math.log1p(Math.min(Math.max(v, 0), hdr.max_value) / hdr.scale) / norm - 1,
+    unit: (v) => 2 * v - 1,
+    identity: (v) => v,
+    depth: (v) => 2 * v / e.depth_max - 1,
+    position: (v) => (v - e.position_center[c]) / e.position_half_extent,
+  }[GAN_MAP_RULES[name]];
+}
+
+/** A gan model's output value y -> linear radiance (before the albedo). */
+export function decodeOutput(y, e) {
+  const hdr = e.hdr, norm = Math.log1p(hdr.max_value / hdr.scale);
+  return Math.fround(hdr.scale * Math.expm1((Math.min(Math.max(y, -1), 1) + 1) * 0.5 * norm));
+}
+
 /** SHA-256 of bytes as lowercase hex (WebCrypto). */
 export async function sha256Hex(bytes) {
   const d = new Uint8Array(await crypto.subtle.digest("SHA-256", bytes));
@@ -95,20 +114,13 @@ export class ClientModel {
   async _gan(maps, h, w) {
     const info = this.info, e = info.encoding, m = info.size_multiple || 1;
     const H = Math.ceil(h / m) * m, W = Math.ceil(w / m) * m;  // padded by edge replication
-    const hdr = e.hdr, norm = Math.log1p(hdr.max_value / hdr.scale);
     const nc = info.inputs.reduce((s, n) => s + CHANNELS[n], 0);
     const x = new Float32Array(nc * H * W);
     let ch = 0;
     for (const name of info.inputs) {
-      const a = maps[name], k = CHANNELS[name], rule = GAN_MAP_RULES[name];
+      const a = maps[name], k = CHANNELS[name];
       for (let c = 0; c < k; c++, ch++) {
-        const f = {
-          hdr: (v) => 2 * Math.log1p(Math.min(Math.max(v, 0), hdr.max_value) / hdr.scale) / norm - 1,
-          unit: (v) => 2 * v - 1,
-          identity: (v) => v,
-          depth: (v) => 2 * v / e.depth_max - 1,
-          position: (v) => (v - e.position_center[c]) / e.position_half_extent,
-        }[rule];
+        const f = mapRule(name, c, e);
         const plane = ch * H * W;
         for (let i = 0; i < H; i++) {
           const si = Math.min(i, h - 1);
@@ -129,9 +141,8 @@ export class ClientModel {
     for (let c = 0; c < 3; c++) {
       for (let i = 0; i < h; i++) {
         for (let j = 0; j < w; j++) {
-          const v = Math.min(Math.max(y[(c * H + i) * W + j], -1), 1);
           const p = (i * w + j) * 3 + c;
-          const g = Math.fround(hdr.scale * Math.expm1((v + 1) * 0.5 * norm));
+          const g = decodeOutput(y[(c * H + i) * W + j], e);
           gi[p] = albedo ? g * albedo[p] : g;
         }
       }
