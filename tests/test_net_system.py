@@ -470,6 +470,24 @@ def test_client_model_choice_rule():
         choose([])
 
 
+def test_a_run_of_another_scene_is_logged(scene, tmp_path, caplog):
+    import json
+    import logging
+
+    from icbtool.net.client_model import offer
+
+    gan, _ = _runs(tmp_path, scene, 0.9, None)
+    (gan / "config.json").write_text(json.dumps({"scene": "sponza"}))
+    with caplog.at_level(logging.INFO, logger="icbtool.net.client_model"):
+        offer([gan], 2**20, scene=scene)
+    assert "trained on scene 'sponza', not on the served 'cornell_box'" in caplog.text
+    (gan / "config.json").write_text(json.dumps({"scene": scene.name}))
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="icbtool.net.client_model"):
+        offer([gan], 2**20, scene=scene)
+    assert "trained on scene" not in caplog.text and "CHOSEN" in caplog.text
+
+
 def test_model_runs_a_client_cannot_use_are_refused(scene, tmp_path):
     from client_models import write_gan_run
 

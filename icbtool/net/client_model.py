@@ -80,6 +80,8 @@ class Candidate:
         iteration: the training iteration of that evaluation.
         onnx: the model's ONNX file.
         announce: the ``scene_info.generator`` fields that describe the model (not the transport).
+        scene: the scene its training recorded (``config.json``'s ``scene``: a name, or
+            "name (content hash, light hash)"), or None.
     """
 
     run: Path
@@ -89,6 +91,7 @@ class Candidate:
     iteration: int
     onnx: bytes = field(repr=False)
     announce: dict[str, Any] = field(repr=False)
+    scene: str | None = None
 
     @property
     def bytes(self) -> int:
@@ -103,7 +106,19 @@ class Candidate:
             "views": self.views,
             "iteration": self.iteration,
             "onnx_bytes": self.bytes,
+            "scene": self.scene,
         }
+
+    def other_scene(self, scene: Any) -> bool:
+        """Whether its training recorded a scene other than ``scene`` (by name, and by content
+        and light hash where it recorded them)."""
+        if self.scene is None or scene is None:
+            return False
+        name = getattr(scene, "name", None)
+        if self.scene == name:
+            return False
+        hashes = (getattr(scene, "content_hash", ""), getattr(scene, "light_hash", ""))
+        return self.scene != f"{name} ({hashes[0]}, light {hashes[1]})"
 
 
 def _last_test_eval(run: Path, kind: str) -> dict[str, Any] | None:
@@ -204,6 +219,13 @@ def read_candidate(run: str | Path) -> Candidate:
             )
         onnx = out.read_bytes()
     ev = _last_test_eval(d, kind)
+    scene = None
+    if (d / "config.json").is_file():
+        try:
+            key = json.loads((d / "config.json").read_text()).get("scene")
+        except (ValueError, AttributeError):
+            key = None
+        scene = key if isinstance(key, str) else None
     return Candidate(
         run=d,
         kind=kind,
@@ -212,6 +234,7 @@ def read_candidate(run: str | Path) -> Candidate:
         iteration=int(ev.get("iteration", 0)) if ev else 0,
         onnx=onnx,
         announce=announce,
+        scene=scene,
     )
 
 
@@ -274,8 +297,12 @@ class OfferedModel:
         }
 
 
-def offer(runs: Sequence[str | Path], chunk_bytes: int, tie: float = SSIM_TIE) -> OfferedModel:
-    """Read every run, choose one (module doc) and log the choice with every candidate's numbers.
+def offer(
+    runs: Sequence[str | Path], chunk_bytes: int, tie: float = SSIM_TIE, scene: Any = None
+) -> OfferedModel:
+    """Read every run, choose one (module doc) and log the choice with every candidate's numbers
+    (a warning for a run whose training recorded another scene than ``scene``: its numbers are
+    not this scene's).
 
     Raises:
         FileNotFoundError, ModelRunError: a run that cannot be offered (see
@@ -287,6 +314,14 @@ def offer(runs: Sequence[str | Path], chunk_bytes: int, tie: float = SSIM_TIE) -
     cands = tuple(read_candidate(r) for r in runs)
     chosen = choose(cands, tie)
     for c in cands:
+        if c.other_scene(scene):
+            log.warning(
+                "client model run %s was trained on scene %r, not on the served %r: its test "
+                "SSIM is not this scene's",
+                c.run,
+                c.scene,
+                getattr(scene, "name", None),
+            )
         log.info(
             "client model candidate %s: %s",
             "CHOSEN" if c is chosen else "-",

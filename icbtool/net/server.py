@@ -360,7 +360,7 @@ class Server:
         if runs:
             from icbtool.net import client_model
 
-            self.model = client_model.offer(runs, self.config.chunk_bytes)
+            self.model = client_model.offer(runs, self.config.chunk_bytes, scene=scene)
         self.port: int | None = None
         self._cloud: Cloud | None = None  # the writer (store owner), on the _writer thread
         self._reader: Cloud | None = None  # lookups, read-only store, on the _lookup thread
