@@ -501,6 +501,25 @@ def test_model_runs_a_client_cannot_use_are_refused(scene, tmp_path):
         Server(scene, tmp_path / "s", TOKEN, ServerConfig(models=(str(run),)), CLOUD)
 
 
+def test_a_model_its_announcement_does_not_describe_is_refused(scene, tmp_path, monkeypatch):
+    """Were the generator's encoding to change beyond what the announcement states, the
+    server's self-check (the ONNX file run from the announcement against the run's own
+    generate) refuses the run instead of serving wrong GI."""
+    from icbtool.net import client_model
+
+    gan, _ = _runs(tmp_path, scene, 0.9, None)
+    right = client_model._gan_announce
+
+    def wrong(gen):
+        a = right(gen)
+        a["encoding"]["depth_max"] *= 2
+        return a
+
+    monkeypatch.setattr(client_model, "_gan_announce", wrong)
+    with pytest.raises(client_model.ModelRunError, match="does not describe this model"):
+        client_model.read_candidate(gan)
+
+
 def test_served_model_refuses_an_announcement_it_cannot_follow():
     from icbtool.net.client_model import ServedModel
 

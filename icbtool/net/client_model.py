@@ -181,6 +181,61 @@ def _radiance_announce() -> dict[str, Any]:
     }
 
 
+#: Largest difference allowed between the served file run from its announcement and the run's
+#: own ``generate`` on probe buffers, relative to the largest GI value (float32 round-off).
+VERIFY_REL = 1e-4
+
+
+def _probe_buffers(kind: str, model: Any, announce: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    """Seeded plausible client buffers (64 x 64) for :func:`_verify`."""
+    rng = np.random.default_rng(0)
+    h = w = 64
+
+    def unit(shape: tuple[int, ...]) -> np.ndarray:
+        v = rng.normal(size=shape).astype(np.float32)
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    if kind == "radiance":
+        b = model.module.spec.bounds
+        lo, hi = np.asarray(b.lo, np.float32), np.asarray(b.hi, np.float32)
+        mask = (rng.uniform(size=(h, w, 1)) > 0.1).astype(np.float32)
+        return {
+            "albedo": rng.uniform(0.05, 1.0, (h, w, 3)).astype(np.float32),
+            "normal_world": unit((h, w, 3)),
+            "position": (lo + (hi - lo) * rng.uniform(size=(h, w, 3))).astype(np.float32),
+            "mask": mask,
+        }
+    e = announce["encoding"]
+    c, half = np.asarray(e["position_center"], np.float32), e["position_half_extent"]
+    make = {
+        "dl": lambda: rng.uniform(0.0, 2.0, (h, w, 3)),
+        "albedo": lambda: rng.uniform(0.05, 1.0, (h, w, 3)),
+        "mask": lambda: rng.uniform(size=(h, w, 1)) > 0.1,
+        "normal_world": lambda: unit((h, w, 3)),
+        "normal_view": lambda: unit((h, w, 3)),
+        "depth": lambda: rng.uniform(0.1, 1.0, (h, w, 1)) * e["depth_max"],
+        "position": lambda: c + half * rng.uniform(-1.0, 1.0, (h, w, 3)),
+    }
+    return {n: np.asarray(make[n](), np.float32) for n in announce["inputs"]}
+
+
+def _verify(run: Path, kind: str, model: Any, onnx: bytes, announce: dict[str, Any]) -> None:
+    """The ONNX file run from its announcement alone (:class:`ServedModel`, what every client
+    does) must make the run's own GI: a model whose encoding the announcement does not describe
+    (say, a training change this module does not know) is refused, never served wrong."""
+    bufs = _probe_buffers(kind, model, announce)
+    want = np.asarray(model.generate(bufs), np.float32)
+    got = ServedModel(onnx, announce, threads=1).generate(bufs)
+    err = float(np.abs(got - want).max())
+    top = float(np.abs(want).max())
+    if not err <= VERIFY_REL * top + 1e-6:
+        raise ModelRunError(
+            f"model run {str(run)!r}: its ONNX file run from the announced encoding differs from "
+            f"the run's own generate by {err:.3g} (largest GI {top:.3g}): the announcement does "
+            "not describe this model (docs/protocol.md, Client models)"
+        )
+
+
 def read_candidate(run: str | Path) -> Candidate:
     """Read a client-model run and export its model to ONNX.
 
@@ -191,7 +246,9 @@ def read_candidate(run: str | Path) -> Candidate:
     Raises:
         FileNotFoundError: neither model file there.
         ModelRunError: a model no client can run (a warped-reference generator, inputs outside
-            the client's buffers), or an unreadable ``evals.json``.
+            the client's buffers), one whose ONNX file run from its announcement does not make
+            the run's own GI (:data:`VERIFY_REL`), or an unreadable ``evals.json``.
+        MissingOptionalDependency: onnx or onnxruntime is missing (extra ``gan``).
     """
     p = Path(run)
     d = p.parent if p.is_file() else p
@@ -200,17 +257,18 @@ def read_candidate(run: str | Path) -> Candidate:
         if (d / "radiance.pt").is_file() and not (p.is_file() and p.name == "generator.pt"):
             from icbtool.radiance import RadianceModel
 
-            RadianceModel.load(d).export_onnx(out)
+            model: Any = RadianceModel.load(d)
+            model.export_onnx(out)
             kind, announce = "radiance", _radiance_announce()
         elif (d / "generator.pt").is_file():
             from icbtool.gan import Generator
 
-            gen = Generator.load(d)
+            model = Generator.load(d)
             try:
-                announce = _gan_announce(gen)
+                announce = _gan_announce(model)
             except ModelRunError as e:
                 raise ModelRunError(f"model run {str(run)!r}: {e}") from None
-            gen.export_onnx(out, 2 * announce["size_multiple"], 2 * announce["size_multiple"])
+            model.export_onnx(out, 2 * announce["size_multiple"], 2 * announce["size_multiple"])
             kind = "gan"
         else:
             raise FileNotFoundError(
@@ -218,6 +276,7 @@ def read_candidate(run: str | Path) -> Candidate:
                 "radiance) there"
             )
         onnx = out.read_bytes()
+    _verify(d, kind, model, onnx, announce)
     ev = _last_test_eval(d, kind)
     scene = None
     if (d / "config.json").is_file():
