@@ -494,6 +494,29 @@ def test_the_documented_test_vectors():
     assert P.decode(h(m["frame"]), server) == Message(m["kind"], m["fields"])
 
 
+def client_model_vectors() -> dict:
+    """The client-model vectors of docs/protocol.md section 10."""
+    text = DOC.read_text()
+    raw = text.split("<!-- BEGIN CLIENT MODEL VECTORS -->", 1)[1]
+    raw = raw.split("<!-- END CLIENT MODEL VECTORS -->")[0]
+    return json.loads(raw.strip().removeprefix("```json").removesuffix("```"))
+
+
+def test_the_documented_client_model_vectors():
+    """Every normalisation rule and the output decoding, as docs/protocol.md states them."""
+    from icbtool.net.client_model import CHANNELS, GAN_MAP_RULES, decode_output, encode_map
+
+    v = client_model_vectors()
+    ann = {"encoding": v["encoding"]}
+    assert set(v["inputs"]) == set(GAN_MAP_RULES) == set(CHANNELS)
+    for name, x in v["inputs"].items():
+        a = np.asarray(x, np.float32).reshape(1, 1, CHANNELS[name])
+        got = encode_map(name, a, ann).ravel()
+        np.testing.assert_array_equal(got, np.asarray(v["encoded"][name], np.float32), name)
+    got = decode_output(np.asarray(v["outputs"], np.float32), ann)
+    np.testing.assert_array_equal(got, np.asarray(v["decoded"], np.float32))
+
+
 # ------------------------------------------------------------------------- GI / depth codecs
 def _gi_and_depth(seed: int = 0, h: int = 24, w: int = 32):
     rng = np.random.default_rng(seed)

@@ -383,54 +383,200 @@ def test_killed_server_restarts_with_every_committed_record(scene, tmp_path):
             proc.wait(T)
 
 
-# ---------------------------------------------------------------------------- the generator
-def write_tiny_generator(path: Path, seed: int = 0) -> Path:
-    """An untrained 4-channel-base U-Net saved as a generator file (the format
-    :meth:`icbtool.gan.Generator.load` reads): enough to test shipping and local generation."""
-    from dataclasses import asdict
+# ---------------------------------------------------------------------------- the client model
+def _runs(tmp_path: Path, scene, gan_ssim, radiance_ssim) -> tuple[Path, Path]:
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    pytest.importorskip("onnxruntime")
+    from client_models import write_gan_run, write_radiance_run
 
-    torch = pytest.importorskip("torch")
-    from icbtool.gan.data import InputEncoding
-    from icbtool.gan.models import GeneratorConfig, UNetGenerator
-
-    enc = InputEncoding(("albedo", "dl", "normal_world", "depth"), depth_max=8.0)
-    cfg = GeneratorConfig(enc.n_channels, base=4)
-    torch.manual_seed(seed)
-    g = UNetGenerator(cfg)
-    path.mkdir(parents=True, exist_ok=True)
-    torch.save(
-        {"generator": g.state_dict(), "generator_config": asdict(cfg), "encoding": enc.to_dict()},
-        path / "generator.pt",
+    b = np.asarray(scene.bounds)
+    return (
+        write_gan_run(tmp_path / "gan", b, ssim=gan_ssim),
+        write_radiance_run(tmp_path / "radiance", b, ssim=radiance_ssim),
     )
-    return path
 
 
-def test_generator_shipped_once_hash_checked_and_used_locally(scene, tmp_path):
+@pytest.mark.parametrize("winner", ["gan", "radiance"])
+def test_client_model_chosen_by_test_ssim_shipped_in_chunks_and_used_like_the_local_run(
+    scene, tmp_path, caplog, winner
+):
+    """Two runs; the one with the better recorded test SSIM is offered (and logged with both
+    candidates' numbers), sent in chunks, hash-checked, and makes the same GI as the run loaded
+    locally (onnxruntime against torch)."""
+    import logging
+
     from icbtool import raster
-    from icbtool.gan import Generator
+    from icbtool.pipeline import load_client_model
 
-    run = write_tiny_generator(tmp_path / "run")
-    srv = Server(scene, tmp_path / "store", TOKEN, ServerConfig(), CLOUD, generator=run).start()
+    gan, rad = _runs(tmp_path, scene, 0.9 if winner == "gan" else 0.8, 0.85)
+    chosen = gan if winner == "gan" else rad
+    cfg = ServerConfig(models=(str(gan), str(rad)), chunk_bytes=16384)
+    with caplog.at_level(logging.INFO, logger="icbtool.net.client_model"):
+        srv = Server(scene, tmp_path / "store", TOKEN, cfg, CLOUD).start()
+    log = caplog.text
+    gan_ssim = 0.9 if winner == "gan" else 0.8
+    assert "CHOSEN" in log and '"test_ssim": 0.85' in log and f'"test_ssim": {gan_ssim}' in log
+    assert f"client model offered: {winner} run {chosen}" in log
     try:
         with _client(srv) as src:
             info = src.scene_info["generator"]
-            assert info["bytes"] == (run / "generator.pt").stat().st_size
-            assert info["inputs"] == ["albedo", "dl", "normal_world", "depth"]
+            assert info["kind"] == winner and info["format"] == "onnx"
+            assert info["chunks"] == -(-info["bytes"] // 16384) and info["chunks"] >= 2
+            assert info["test_ssim"] == (0.9 if winner == "gan" else 0.85)
+            if winner == "gan":
+                assert info["inputs"] == ["dl", "albedo", "normal_world", "depth", "position"]
+                assert info["size_multiple"] == 32 and info["demodulated"] is True
+                assert set(info["encoding"]) == {
+                    "hdr", "depth_max", "position_center", "position_half_extent"
+                }  # fmt: skip
+            else:
+                assert info["inputs"] == ["position", "normal_world"] and info["encoding"] is None
             src.request_generator()
             assert src.wait_generator(T)
             assert src.generator_bytes == info["bytes"]
-            cam = _camera(scene, 0.5)
+            assert src.served_model.kind == winner
+            cam = _camera(scene, 0.5, size=48)  # not a multiple of 32: padded like the local
             with raster.Rasterizer(scene) as rz:
-                wrt = rz.render(cam, buffers=("dl", "albedo", "normal_world", "depth"))
+                wrt = rz.render(cam)
             sent = dict(src.bytes_sent)
-            reply = src.request(_request(scene, 0.5), wrt)
+            req = system.GIRequest(cam, time_s=0.5, seq=0, depth_range=(0.5, 8.0))
+            reply = src.request(req, wrt)
             assert src.bytes_sent == sent  # nothing asked of the server
             assert reply.timings_ms["generate"] > 0
-            local = system.GeneratorSource(Generator.load(run)).request(_request(scene, 0.5), wrt)
-            np.testing.assert_allclose(reply.reference.gi, local.reference.gi, rtol=0, atol=1e-6)
+            local = system.GeneratorSource(load_client_model(chosen)).request(req, wrt)
+            want = local.reference.gi
+            assert want.std() > 0  # the model's output varies over the view
+            np.testing.assert_allclose(reply.reference.gi, want, rtol=1e-5, atol=1e-5)
         assert srv.stats.generator_sent == 1
+        assert srv.stats.bytes_sent["generator_chunk"] > info["bytes"]
     finally:
         srv.stop()
+
+
+def test_client_model_choice_rule():
+    """Best test SSIM; within SSIM_TIE of it the fewest bytes; runs without numbers last."""
+    from icbtool.net.client_model import SSIM_TIE, Candidate, choose
+
+    def c(name, ssim, n):
+        return Candidate(Path(name), "gan", ssim, 3, 1, b"x" * n, {})
+
+    a, b, none = c("a", 0.90, 1000), c("b", 0.90 - SSIM_TIE / 2, 10), c("n", None, 1)
+    assert choose([a, b, none]).run.name == "b"  # tied: the smaller
+    far = c("far", 0.90 - 2 * SSIM_TIE, 5)
+    assert choose([a, far, none]).run.name == "a"  # better by more than the tie
+    assert choose([none, c("m", None, 7)]).run.name == "n"  # no numbers: the smallest
+    with pytest.raises(ValueError, match="no client-model candidates"):
+        choose([])
+
+
+def test_a_run_of_another_scene_is_logged(scene, tmp_path, caplog):
+    import json
+    import logging
+
+    from icbtool.net.client_model import offer
+
+    gan, _ = _runs(tmp_path, scene, 0.9, None)
+    (gan / "config.json").write_text(json.dumps({"scene": "sponza"}))
+    with caplog.at_level(logging.INFO, logger="icbtool.net.client_model"):
+        offer([gan], 2**20, scene=scene)
+    assert "trained on scene 'sponza', not on the served 'cornell_box'" in caplog.text
+    (gan / "config.json").write_text(json.dumps({"scene": scene.name}))
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="icbtool.net.client_model"):
+        offer([gan], 2**20, scene=scene)
+    assert "trained on scene" not in caplog.text and "CHOSEN" in caplog.text
+
+
+def test_model_runs_a_client_cannot_use_are_refused(scene, tmp_path):
+    from client_models import write_gan_run
+
+    from icbtool.net.client_model import ModelRunError
+
+    pytest.importorskip("onnx")
+    with pytest.raises(FileNotFoundError, match="no generator.pt .* or radiance.pt"):
+        Server(scene, tmp_path / "s", TOKEN, ServerConfig(models=(str(tmp_path),)), CLOUD)
+    run = write_gan_run(tmp_path / "g", np.asarray(scene.bounds), warped=True)
+    with pytest.raises(ModelRunError, match="warped reference"):
+        Server(scene, tmp_path / "s", TOKEN, ServerConfig(models=(str(run),)), CLOUD)
+
+
+def test_a_model_its_announcement_does_not_describe_is_refused(scene, tmp_path, monkeypatch):
+    """Were the generator's encoding to change beyond what the announcement states, the
+    server's self-check (the ONNX file run from the announcement against the run's own
+    generate) refuses the run instead of serving wrong GI."""
+    from icbtool.net import client_model
+
+    gan, _ = _runs(tmp_path, scene, 0.9, None)
+    right = client_model._gan_announce
+
+    def wrong(gen):
+        a = right(gen)
+        a["encoding"]["depth_max"] *= 2
+        return a
+
+    monkeypatch.setattr(client_model, "_gan_announce", wrong)
+    with pytest.raises(client_model.ModelRunError, match="does not describe this model"):
+        client_model.read_candidate(gan)
+
+
+def test_served_model_refuses_an_announcement_it_cannot_follow():
+    from icbtool.net.client_model import ServedModel
+
+    a = {"kind": "gan", "format": "onnx", "inputs": ["dl"], "encoding": {"hdr": {}}}
+    for bad, match in (
+        ({"kind": "nerf"}, "kind 'nerf' is not 'gan' or 'radiance'"),
+        ({"format": "pt"}, "format 'pt' is not 'onnx'"),
+        ({"inputs": ["gi"]}, r"inputs \['gi'\] are not client buffers"),
+        ({"encoding": None}, "encoding is required"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            ServedModel(b"", {**a, **bad})
+
+
+def _gen_request(fields):
+    """A generator_request sealed by hand (the encoder would refuse the invalid ones)."""
+
+    def frame(channel):
+        import json
+
+        h = {"v": 1, "kind": "generator_request", **fields, "ctr": channel.next_counter}
+        hb = json.dumps(h).encode()
+        _, ct = channel.seal(b"", hb)
+        return _header_frame(hb, ct)
+
+    return frame
+
+
+def test_model_requests_without_a_model_are_not_found(server):
+    frames = [_gen_request({}), _gen_request({"index": 0})]
+    got = asyncio.run(asyncio.wait_for(_raw_session(server.url, frames), T))
+    assert got[0].fields["generator"] is None
+    for m in got[1:]:
+        assert m.kind == "error" and m.fields["code"] == "not_found", m
+        assert "offers no client model" in m.fields["message"]
+
+
+def test_malformed_model_requests_get_the_documented_errors(scene, tmp_path):
+    gan, _ = _runs(tmp_path, scene, 0.9, None)
+    cfg = ServerConfig(models=(str(gan),), chunk_bytes=65536)
+    with Server(scene, tmp_path / "store", TOKEN, cfg, CLOUD) as srv:
+        n = srv.model.chunks
+        frames = [
+            _gen_request({"index": n}),  # no such chunk
+            _gen_request({"index": -1}),  # not an index
+            _gen_request({"index": "0"}),
+            _gen_request({"index": n - 1}),  # one chunk again: fine
+            _gen_request({"index": n - 1}),  # twice: refused
+        ]
+        got = asyncio.run(asyncio.wait_for(_raw_session(srv.url, frames), T))
+    assert got[0].fields["generator"]["chunks"] == n
+    codes = [m.fields.get("code") if m.kind == "error" else m.kind for m in got[1:]]
+    assert codes == ["not_found", "bad_field", "bad_field", "generator_chunk", "bad_field"]
+    assert f"no chunk {n}" in got[1].fields["message"]
+    assert "generator_request.index" in got[2].fields["message"]
+    last = got[4]
+    assert last.fields["index"] == n - 1 and last.payload == srv.model.chunk(n - 1)
 
 
 # ---------------------------------------------------------------------------- the command line

@@ -55,6 +55,7 @@ TOL = {
     "dl_p99": 0.05,  # |DL difference| 99th percentile (the DL mean is ~0.03)
     "ssim_final": 0.95,  # final frames vs the Python client's (display scale, valid padding)
     "onnx_max_abs": 1e-4,  # generator output (tanh range [-1, 1]) vs onnxruntime in Python
+    "model_rel": 1e-5,  # served model's GI, same buffers: |browser - Python| / max |Python GI|
 }
 
 
@@ -229,6 +230,27 @@ def test_protocol_test_vectors_and_kinds_in_javascript(page):
     assert not page.errors()
 
 
+def test_client_model_vectors_in_javascript(page):
+    """docs/protocol.md section 10's client-model vectors through generator.js's rules."""
+    from test_net_protocol import client_model_vectors
+
+    v = client_model_vectors()
+    got = page.js(
+        """(v) => {
+          const G = window.icbModules.generator, enc = {};
+          for (const [name, x] of Object.entries(v.inputs)) {
+            enc[name] = x.map((val, c) => Math.fround(G.mapRule(name, c, v.encoding)(val)));
+          }
+          return {encoded: enc, decoded: v.outputs.map((y) => G.decodeOutput(y, v.encoding))};
+        }""",
+        v,
+    )
+    for name, want in v["encoded"].items():
+        np.testing.assert_allclose(got["encoded"][name], want, rtol=0, atol=1e-6, err_msg=name)
+    np.testing.assert_allclose(got["decoded"], v["decoded"], rtol=1e-6, atol=0)
+    assert not page.errors()
+
+
 def test_codecs_and_lpm_chunks_decode_like_python(page, scene):
     rng = np.random.default_rng(3)
     gi = (rng.gamma(1.0, 0.3, (12, 17, 3)) * np.array([1, 10, 1000])).astype(np.float32)
@@ -236,24 +258,50 @@ def test_codecs_and_lpm_chunks_decode_like_python(page, scene):
     depth = rng.uniform(0.5, 9.0, (12, 17, 1)).astype(np.float32)
     depth[2:4, 5:9] = np.inf
     depth[0, :3] = 0.0
+    every_code = codec.log_values(np.arange(65536, dtype=np.uint16)).reshape(256, 256, 1)
     cases = []
-    for name in ("f16m7-diff-zstd", "f16-diff-zstd", "f16-zstd", "f32-zstd"):
+    for name in ("f16m7-diff-zstd", "f16-diff-zstd", "f16-zstd", "f32-zstd", "log-u16-png"):
         for a in (gi, depth):
             data = codec.encode(a, name)
             cases.append((name, a, base64.b64encode(data).decode()))
+    cases.append(
+        (
+            "log-u16-png",
+            every_code,
+            base64.b64encode(codec.encode(every_code, "log-u16-png")).decode(),
+        )
+    )
+    grey = depth[..., 0]  # a [H, W] part: a grey PNG too
+    cases.append(
+        ("log-u16-png", grey, base64.b64encode(codec.encode(grey, "log-u16-png")).decode())
+    )
+    for a in (gi, rng.uniform(0, 1e-30, (5, 7, 3)).astype(np.float32)):  # and tiny values: E = 0
+        cases.append(("rgbe-png", a, base64.b64encode(codec.encode(a, "rgbe-png")).decode()))
     out = page.js(
-        """(cases) => cases.map(([name, shape, data]) => {
-          const a = window.icbModules.codec.decodePart(window.icbModules.protocol.unb64(data),
-                                                       name, shape);
+        """(cases) => Promise.all(cases.map(async ([name, shape, data]) => {
+          const a = await window.icbModules.codec.decodePart(
+              window.icbModules.protocol.unb64(data), name, shape);
           const u8 = new Uint8Array(a.buffer, a.byteOffset, a.byteLength);
           return window.icbModules.protocol.b64(u8);
-        })""",
+        }))""",
         [[n, list(a.shape), d] for n, a, d in cases],
     )
     for (name, a, data), b in zip(cases, out, strict=True):
         got = np.frombuffer(base64.b64decode(b), np.float32).reshape(a.shape)
         want = codec.decode(base64.b64decode(data), name, a.shape)
         np.testing.assert_array_equal(got, want, err_msg=name)  # bit for bit, inf included
+    # every one of the 65536 log-u16-png codes decodes to Python's float32 (0 and inf too)
+    assert np.isinf(every_code).sum() == 1 and (every_code == 0).sum() == 1
+    # a corrupt PNG is "malformed", naming the codec
+    png = bytearray(codec.encode(gi, "rgbe-png"))
+    png[45] ^= 0xFF  # inside IDAT: its CRC-32 no longer matches
+    err = page.js(
+        """async (d) => { try { await window.icbModules.codec.decodePart(
+              window.icbModules.protocol.unb64(d), "rgbe-png", [12, 17, 3]); return null; }
+            catch (e) { return [e.code, e.message]; } }""",
+        base64.b64encode(bytes(png)).decode(),
+    )
+    assert err is not None and err[0] == "malformed" and "rgbe-png" in err[1], err
     # LPM: a level's chunks assemble to the Python arrays; a corrupt one names the chunk
     from icbtool.net import mesh_stream
 
@@ -513,6 +561,128 @@ def test_onnx_generator_in_the_browser_equals_onnxruntime(page, tmp_path):
     assert np.abs(y - want).max() <= TOL["onnx_max_abs"]
     assert got["isolated"] is True  # COOP/COEP: WebAssembly threads allowed
     assert not page.errors()
+
+
+# ---------------------------------------------------------------- the served client model
+@pytest.fixture(scope="module", params=["gan", "radiance"])
+def model_server(request, scene, tmp_path_factory):
+    """A server offering a client model: a GAN run and a radiance run (random weights), the
+    parameter's kind with the better recorded test SSIM."""
+    pytest.importorskip("onnx")
+    pytest.importorskip("onnxruntime")
+    from client_models import write_gan_run, write_radiance_run
+
+    _need_browser()
+    tmp = tmp_path_factory.mktemp("models")
+    b = np.asarray(scene.bounds)
+    win = request.param == "gan"
+    gan = write_gan_run(tmp / "gan", b, ssim=0.9 if win else 0.8)
+    rad = write_radiance_run(tmp / "radiance", b, ssim=0.8 if win else 0.9)
+    cfg = ServerConfig(web=True, models=(str(gan), str(rad)), chunk_bytes=65536)
+    srv = Server(scene, tmp / "store", TOKEN, cfg, CLOUD)
+    assert srv.model.candidate.kind == request.param
+    srv.start()
+    yield srv
+    srv.stop()
+
+
+def test_served_model_in_the_browser_equals_the_python_client(browser, model_server, scene):
+    """The page downloads the offered model (in chunks, SHA-256 checked) and runs it in
+    onnxruntime-web: on the same buffers its GI equals the Python client's (onnxruntime), and
+    its final frames along the test path match the Python client's with the served model."""
+    from icbtool.net.client import NetClientConfig, NetworkSource
+    from icbtool.net.client_model import ServedModel
+
+    srv = model_server
+    kind = srv.model.candidate.kind
+    info = srv.model.scene_info()
+    assert info["chunks"] >= 2 or kind == "radiance"
+    page = _open(browser, srv)
+    try:
+        page.ready()
+        page.page.wait_for_function("window.icb.state.model !== null")
+        assert page.js("window.icb.state.model.kind") == kind
+        # the same buffers (icbtool.raster's) through both: the encoding and the runtime
+        path = scene.paths["test"]
+        p = path.with_intrinsics(path.intrinsics.resized(SIZE, SIZE))
+        wrt = _wrt(scene, p.camera_at(0.4))
+        want = ServedModel(srv.model.data, info).generate(wrt)
+        maps = {
+            n: base64.b64encode(np.ascontiguousarray(getattr(wrt, n), np.float32)).decode()
+            for n in ("dl", "albedo", "normal_world", "normal_view", "depth", "position", "mask")
+        }
+        got = page.js(
+            """async (a) => {
+              const P = window.icbModules.protocol, maps = {};
+              for (const [k, v] of Object.entries(a.maps)) {
+                maps[k] = new Float32Array(P.unb64(v).buffer);
+              }
+              const r = await window.icb.state.model.generate(maps, a.h, a.w);
+              return P.b64(new Uint8Array(r.gi.buffer));
+            }""",
+            {"maps": maps, "h": SIZE, "w": SIZE},
+        )
+        gi = np.frombuffer(base64.b64decode(got), np.float32).reshape(SIZE, SIZE, 3)
+        assert want.std() > 0
+        rel = np.abs(gi - want).max() / np.abs(want).max()
+        assert rel <= TOL["model_rel"], rel
+        # frames along the path, the page's own buffers: against the Python client's
+        page.page.wait_for_function(
+            "(window.icb.client.requestFinerLevels(), "
+            "window.icb.state.level === Math.max(...window.icb.client.levelsOffered))"
+        )
+        times = np.linspace(path.times[0], path.times[-1], 3)
+        browser_final = []
+        for k, t in enumerate(times):
+            step = "(a) => window.icb.client.step({t: a[0], latency: 0.1, seq: a[1]})"
+            st = page.js(step + ".then(s => ({...s}))", [float(t), k])
+            assert st["bytes"] == 0 and st["generate_ms"] > 0  # made here, nothing asked
+            browser_final.append(page.read("final")[..., :3].copy())
+        assert page.js("window.icb.state.generated") == len(times)
+        assert page.js("window.icb.client.session.bytesSent.gi_request || 0") == 0
+        with NetworkSource(srv.url, TOKEN, NetClientConfig(timeout_s=T_MS / 1e3)) as src:
+            src.request_lpm()
+            src.wait_level(max(lv["level"] for lv in src.levels))
+            src.request_generator()
+            assert src.wait_generator(T_MS / 1e3)
+            with system.Client(src.best_scene()[1], src) as client:
+                for k, t in enumerate(times):
+                    req = system.GIRequest(p.camera_at(float(t)), time_s=float(t), seq=k)
+                    fr = client.frame(p.camera_at(float(t)), req)
+                    assert fr.reply.timings_ms.get("generate", 0) > 0
+                    s = metrics.ssim(browser_final[k], fr.final)
+                    assert s >= TOL["ssim_final"], (kind, k, s)
+            assert src.remote == 0
+        assert not page.errors(), page.errors()
+    finally:
+        page.close()
+    # the page as opened by a user: its own loop asks for GI until the model is here, then
+    # generates every frame and asks for none
+    auto = _open(browser, srv, extra="")
+    try:
+        auto.page.wait_for_function("window.icb && window.icb.state.generated >= 1")
+        asked = "window.icb.client.session.bytesSent.gi_request || 0"
+        before = auto.js(asked)
+        auto.page.wait_for_function("window.icb.state.generated >= 4")
+        assert auto.js(asked) == before
+        assert "client model: " + kind in auto.js("document.getElementById('overlay').textContent")
+        assert not auto.errors(), auto.errors()
+    finally:
+        auto.close()
+
+
+@pytest.mark.parametrize("gi_codec", ["log-u16-png", "rgbe-png"])
+def test_png_codec_replies_make_frames(browser, server, gi_codec):
+    p = _open(browser, server, extra=f"&test=1&codec={gi_codec}")
+    try:
+        p.ready()
+        st = p.js("window.icb.client.step({t: 0.5, latency: 0.1}).then(s => ({...s}))")
+        assert st["bytes"] > 0 and st["decode_ms"] >= 0
+        final = p.read("final")
+        assert np.isfinite(final).all() and final[..., :3].mean() > 0
+        assert not p.errors(), p.errors()
+    finally:
+        p.close()
 
 
 @pytest.mark.sponza

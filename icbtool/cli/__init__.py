@@ -40,6 +40,7 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
             and "default" not in text
             and d is not None
             and d is not False
+            and d != ()
             and d is not argparse.SUPPRESS
             and not action.required
         ):

@@ -76,6 +76,7 @@ CONCEPTS: dict[str, Spelling] = {
     "iterations": Spelling(type=positive_int),
     "n_cameras": Spelling(type=positive_int),
     "generator": Spelling(metavar="RUN"),
+    "models": Spelling(metavar="RUN[,RUN...]"),
 }
 
 

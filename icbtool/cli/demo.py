@@ -121,7 +121,7 @@ def run_network(
            "--port", "0", "--log-level", "WARNING"]  # fmt: skip
     cmd += config_argv(cfg.cloud, args.loop_options, "cloud")  # the same cloud settings
     if cfg.generator is not None:
-        cmd += ["--generator", cfg.generator]
+        cmd += ["--models", cfg.generator]
     if args.fresh and (out / "cache").exists():
         import shutil
 

@@ -4,7 +4,9 @@ Clients authenticate with a token: --token / $ICBTOOL_TOKEN (at least 32 charact
 --allow-weak-token), or none given: a fresh 256-bit token is generated and printed once. They
 receive the scene's mesh levels (never the full-detail
 mesh's source), ask for GI maps (answered from the store or path traced, coalesced, encoded) and
-the generator (--generator, sent once). SIGINT/SIGTERM stop it cleanly: every committed store
+the client model (--models RUN[,RUN...]: GAN and world-space radiance runs; the one whose
+recorded test SSIM is best, within 0.001 the smallest, is offered as ONNX and the choice logged
+with every candidate's numbers). SIGINT/SIGTERM stop it cleanly: every committed store
 record is kept. Prints ``listening on ws://HOST:PORT`` once it accepts connections.
 
 With --web the same host and port also serve the browser client (icbtool/web, built by
@@ -54,7 +56,6 @@ def _options(p: argparse.ArgumentParser) -> None:
         help="shared secret of the clients (default: $ICBTOOL_TOKEN, else a new 256-bit token "
         "printed once)",
     )
-    p.add_argument("--generator", default=None, metavar="RUN", help="a trained GAN run to offer")
     p.add_argument(
         "--log-level",
         default="INFO",
@@ -91,10 +92,12 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"{flag} {f!r}: no such file")
     if server_cfg.workers or server_cfg.scheduler:
         require("distributed", "render workers on Dask (--workers N / --scheduler)")
-    if args.generator is not None and not (
-        Path(args.generator).is_file() or (Path(args.generator) / "generator.pt").is_file()
-    ):
-        raise UsageError(f"--generator {args.generator!r}: no generator.pt there")
+    for run in server_cfg.models:
+        d = Path(run).parent if Path(run).is_file() else Path(run)
+        if not ((d / "generator.pt").is_file() or (d / "radiance.pt").is_file()):
+            raise UsageError(
+                f"--models: {run!r} holds no generator.pt (GAN run) or radiance.pt (radiance run)"
+            )
     if cloud_cfg.denoise:
         require("pyoidn", "denoising the served GI maps (--no-denoise skips it)")
     if server_cfg.web:
@@ -106,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--web: {e}") from None
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s: %(message)s")
     scene = load_scene(args.scene)
-    server = net.Server(scene, args.store, token, server_cfg, cloud_cfg, generator=args.generator)
+    server = net.Server(scene, args.store, token, server_cfg, cloud_cfg)
 
     def listening(url: str) -> None:
         print(f"listening on {url}", flush=True)

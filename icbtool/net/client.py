@@ -17,9 +17,11 @@ Timings of a reply (``GIReply.timings_ms``), the request -> reply time split:
   mask on the client;
 * ``request``: the whole request -> reply time seen by the client.
 
-Once the client holds the generator (docs/design.md section 6), a request whose client
-buffers hold the generator's inputs is answered by the generator locally
-(:class:`~icbtool.system.GeneratorSource`, with this source as its fallback) and never sent.
+Once the client holds the served client model (docs/design.md section 6; docs/protocol.md,
+section Client models: a GAN generator or a world-space radiance model, as ONNX, run by
+:class:`icbtool.net.client_model.ServedModel` from its announcement), a request whose client
+buffers hold the model's inputs is answered by it locally (:class:`~icbtool.system.GeneratorSource`,
+with this source as its fallback) and never sent.
 """
 
 from __future__ import annotations
@@ -30,12 +32,10 @@ import hashlib
 import itertools
 import json
 import logging
-import tempfile
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -67,12 +67,20 @@ class NetClientConfig:
     max_message_bytes: int = 64 * 2**20
     """Largest message accepted from the server."""
     use_generator: bool = True
-    """Fetch the generator when the server offers one and generate locally once it is here."""
+    """Fetch the client model when the server offers one (``scene_info.generator``: a GAN
+    generator or a world-space radiance model, ONNX) and make GI with it locally, through
+    onnxruntime (:class:`icbtool.net.client_model.ServedModel`), once it is here."""
+    model_threads: int = 0
+    """onnxruntime threads of the served model (0: onnxruntime's choice)."""
     ca_file: str | None = None
     """``wss://`` servers: the PEM certificate(s) to trust (e.g. a self-signed server's own
     certificate); None: the system's trust store."""
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.model_threads, int) and self.model_threads >= 0):
+            raise ValueError(
+                f"NetClientConfig.model_threads must be an integer >= 0, got {self.model_threads!r}"
+            )
         if not self.timeout_s > 0:
             raise ValueError(f"NetClientConfig.timeout_s must be > 0, got {self.timeout_s}")
         if not isinstance(self.shaper, ShaperConfig):
@@ -154,8 +162,7 @@ class NetworkSource(GISource):
         self._gen_ready = threading.Event()
         self._gen_error: str | None = None
         self._gen_source: Any = None
-        self._gen_path: Path | None = None
-        self._gen_tmp: tempfile.TemporaryDirectory[str] | None = None
+        self._gen_bytes = 0
         self._fatal: NetError | None = None
         self._ws: Any = None
         self._channel: Any = None
@@ -412,44 +419,54 @@ class NetworkSource(GISource):
     def generator_offered(self) -> bool:
         return self.scene_info.get("generator") is not None
 
-    def request_generator(self) -> None:
-        """Ask for the generator on offer; it arrives in the background (:meth:`has_generator`)."""
+    def request_generator(self, index: int | None = None) -> None:
+        """Ask for the client model on offer (every chunk, or the one chunk ``index``); it
+        arrives in the background (:meth:`wait_generator`, :meth:`has_generator`)."""
         if not self.generator_offered:
-            raise NetError("the server offers no generator", "not_found")
-        self._call(self._send_raw(protocol.Message("generator_request", {}, b"")))
+            raise NetError("the server offers no client model", "not_found")
+        fields = {} if index is None else {"index": int(index)}
+        self._call(self._send_raw(protocol.Message("generator_request", fields, b"")))
 
     def _generator_complete(self) -> None:
         data = b"".join(self._gen_pieces[i] for i in range(len(self._gen_pieces)))
         self._gen_pieces.clear()
-        want = self.scene_info["generator"]["sha256"]
+        info = self.scene_info["generator"]
+        want = info["sha256"]
         got = hashlib.sha256(data).hexdigest()
-        if got != want or len(data) != self.scene_info["generator"]["bytes"]:
-            self._gen_error = f"generator hash mismatch: got {got}, scene_info says {want}"
+        if got != want or len(data) != info["bytes"]:
+            self._gen_error = (
+                f"client model: {len(data)} bytes hashing to {got}; scene_info.generator says "
+                f"{info['bytes']} bytes, {want}"
+            )
             log.warning("%s; not used", self._gen_error)
             self._gen_ready.set()
             return
-        self._gen_tmp = tempfile.TemporaryDirectory(prefix="icb-generator-")
-        path = Path(self._gen_tmp.name) / "generator.pt"
-        path.write_bytes(data)
-        self._gen_path = path
-        # loading torch takes a while: not on the network thread
-        threading.Thread(target=self._load_generator, name="icb-gen-load", daemon=True).start()
+        # creating the onnxruntime session takes a while: not on the network thread
+        threading.Thread(
+            target=self._load_generator, args=(data, info), name="icb-gen-load", daemon=True
+        ).start()
 
-    def _load_generator(self) -> None:
+    def _load_generator(self, data: bytes, info: dict[str, Any]) -> None:
         try:
-            from icbtool.gan import Generator
+            from icbtool.net.client_model import ServedModel
             from icbtool.system import GeneratorSource
 
-            assert self._gen_path is not None
-            self._gen_source = GeneratorSource(Generator.load(self._gen_path), fallback=None)
+            model = ServedModel(data, info, threads=self.config.model_threads)
+            self._gen_source = GeneratorSource(model, fallback=None)
+            self._gen_bytes = len(data)
         except Exception as e:
-            self._gen_error = f"generator received but not loadable: {e!r}"
+            self._gen_error = f"client model received but not usable: {e!r}"
             log.warning("%s", self._gen_error)
         finally:
             self._gen_ready.set()
 
+    @property
+    def served_model(self) -> Any:
+        """The served model in use (:class:`icbtool.net.client_model.ServedModel`), or None."""
+        return self._gen_source.generator if self._gen_source is not None else None
+
     def wait_generator(self, timeout_s: float | None = None) -> bool:
-        """Wait for the generator requested; True when it is loaded and in use."""
+        """Wait for the client model requested; True when it is loaded and in use."""
         self._gen_ready.wait(self.config.timeout_s if timeout_s is None else timeout_s)
         return self._gen_source is not None
 
@@ -459,7 +476,7 @@ class NetworkSource(GISource):
 
     @property
     def generator_bytes(self) -> int:
-        return self._gen_path.stat().st_size if self._gen_path is not None else 0
+        return self._gen_bytes
 
     # ------------------------------------------------------------------ GISource
     @property
@@ -558,9 +575,6 @@ class NetworkSource(GISource):
         self._thread.join(10)
         if not self._thread.is_alive():
             self._loop.close()
-        if self._gen_tmp is not None:
-            self._gen_tmp.cleanup()
-            self._gen_tmp = None
 
 
 Progress = Callable[[str], None]

@@ -33,7 +33,7 @@ ERROR_CODES: dict[str, str] = {
     "internal": "the peer failed while handling a valid message (e.g. a render worker was lost "
     "twice); the request may be sent again",
     "not_found": "the message names something that does not exist (an LPM level range with no "
-    "level offered, the generator of a server that offers none)",
+    "level offered, a client model or model chunk not on offer)",
 }
 
 

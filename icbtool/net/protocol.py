@@ -222,6 +222,78 @@ _LIMIT_FIELDS = (
     ),
 )
 
+_MODEL_FIELDS = (
+    _f("kind", "string", '"gan" (image in, image out) or "radiance" (per surface point)'),
+    _f("format", "string", 'file format of the model: "onnx"'),
+    _f("sha256", "hex", "SHA-256 of the whole model file", length=32),
+    _f("bytes", "integer", "size of the model file, bytes", **_NAT),
+    _f("chunks", "integer", "number of generator_chunk messages of the file", minimum=1),
+    _f(
+        "inputs",
+        "array",
+        "the client buffers the model reads, in input order (section Client models)",
+        items=Field("", "string", ""),
+    ),
+    _f(
+        "demodulated",
+        "boolean",
+        "true: the model's GI is divided by the albedo, the client multiplies by its albedo",
+    ),
+    _f(
+        "size_multiple",
+        "integer",
+        "image height and width the model takes are multiples of this (pad by edge "
+        "replication, crop back)",
+        minimum=1,
+    ),
+    _f(
+        "encoding",
+        "object",
+        "how the gan model's inputs are normalised and its output decoded (section Client "
+        "models); null for radiance",
+        nullable=True,
+        fields=(
+            _f(
+                "hdr",
+                "object",
+                "the HDR curve of dl and of the output",
+                fields=(
+                    _f(
+                        "scale",
+                        "number",
+                        "radiance where the curve turns logarithmic",
+                        minimum=0,
+                        exclusive=True,
+                    ),  # fmt: skip
+                    _f(
+                        "max_value",
+                        "number",
+                        "largest radiance represented",
+                        minimum=0,
+                        exclusive=True,
+                    ),  # fmt: skip
+                ),
+            ),
+            _f("depth_max", "number", "view depth mapped to +1", minimum=0, exclusive=True),
+            _f("position_center", "array", "world point mapped to 0", **_VEC3),
+            _f(
+                "position_half_extent",
+                "number",
+                "world distance mapped to 1",
+                minimum=0,
+                exclusive=True,
+            ),
+        ),
+    ),
+    _f(
+        "test_ssim",
+        "number",
+        "the recorded test SSIM it was chosen by (section Client models), or null",
+        nullable=True,
+        required=False,
+    ),
+)
+
 #: Every message kind, by name.
 KINDS: dict[str, KindSpec] = {
     s.kind: s
@@ -304,18 +376,10 @@ KINDS: dict[str, KindSpec] = {
                 _f(
                     "generator",
                     "object",
-                    "the trained generator on offer, or null",
+                    "the client model on offer (a GAN generator or a world-space radiance "
+                    "model, as ONNX; section Client models), or null",
                     nullable=True,
-                    fields=(
-                        _f("sha256", "hex", "SHA-256 of the whole generator file", length=32),
-                        _f("bytes", "integer", "size of the generator file, bytes", **_NAT),
-                        _f(
-                            "inputs",
-                            "array",
-                            "the generator's input buffers, in order",
-                            items=Field("", "string", ""),
-                        ),
-                    ),
+                    fields=_MODEL_FIELDS,
                 ),
                 _f(
                     "codecs",
@@ -468,11 +532,25 @@ KINDS: dict[str, KindSpec] = {
             ),
             payload="the parts' encoded bytes, concatenated in the order of parts",
         ),
-        KindSpec("generator_request", "client", "asks for the generator on offer"),
+        KindSpec(
+            "generator_request",
+            "client",
+            "asks for the client model on offer: every chunk, or the one chunk index",
+            (
+                _f(
+                    "index",
+                    "integer",
+                    "only this chunk (0 .. scene_info.generator.chunks - 1), e.g. to fetch one "
+                    "again; absent: every chunk",
+                    required=False,
+                    **_NAT,
+                ),
+            ),
+        ),
         KindSpec(
             "generator_chunk",
             "server",
-            "one piece of the generator file",
+            "one piece of the client model's file",
             (
                 _f("index", "integer", "index of this chunk, from 0", **_NAT),
                 _f("count", "integer", "number of chunks", minimum=1),

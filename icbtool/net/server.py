@@ -5,9 +5,9 @@ Per connection (the protocol is :mod:`icbtool.net.protocol`):
 1. handshake: ``hello`` -> ``welcome`` -> ``auth``; a client whose token does not verify gets one
    ``error`` (code ``auth``) and the connection closes; it never sees a byte of the scene.
 2. ``scene_info`` (sealed, like everything after the handshake): the scene's base (lights, paths),
-   the mesh levels, the codecs, the generator on offer.
+   the mesh levels, the codecs, the client model on offer (:mod:`icbtool.net.client_model`).
 3. on request: the mesh levels coarse to fine (``lpm_chunk`` ... ``lpm_done`` per level), the GI
-   of a client request (``gi_request`` -> ``gi_reply``), the generator (``generator_chunk``, once).
+   of a client request (``gi_request`` -> ``gi_reply``), the client model (``generator_chunk``).
 
 Threads and processes (docs/protocol.md, sections Scaling out and Limits). Cache hits never wait
 behind renders: every request is first looked up on its own thread over a *read-only* store
@@ -134,6 +134,11 @@ class ServerConfig:
     """PEM private key file of ``tls_cert``."""
     allow_weak_token: bool = False
     """Accept a token shorter than :data:`MIN_TOKEN_CHARS` (tests, a trusted network only)."""
+    models: tuple[str, ...] = ()
+    """Client-model runs to choose from (GAN runs with ``generator.pt``, world-space radiance runs
+    with ``radiance.pt``): the server offers the one the scene's numbers favour, as ONNX
+    (:mod:`icbtool.net.client_model`: the best recorded test SSIM, ties within 0.001 to the
+    fewest bytes; docs/protocol.md, section Client models). Empty: none offered."""
     render_nice: int = 10
     """Added to the nice value (CPU priority) of the renders this server starts (its render
     thread or its local cluster's workers; capped at 19): hits then get a core at once while
@@ -169,6 +174,9 @@ class ServerConfig:
             raise ValueError(
                 f"ServerConfig.render_nice must be in [0, 19], got {self.render_nice!r}"
             )
+        object.__setattr__(self, "models", tuple(str(m) for m in self.models))
+        if any(not m for m in self.models):
+            raise ValueError(f"ServerConfig.models holds an empty run path: {self.models!r}")
         if self.max_render_side < self.max_request_side:
             raise ValueError(
                 f"ServerConfig.max_render_side ({self.max_render_side}) must be >= "
@@ -301,14 +309,16 @@ class Server:
             characters unless ``config.allow_weak_token``; :func:`new_token` makes one).
         config: :class:`ServerConfig`.
         cloud_config: :class:`~icbtool.system.CloudConfig` of the answers (spp, prefetch, ...).
-        generator: a trained GAN run directory (with ``generator.pt``) offered to clients, or
-            that file; None offers none.
+        generator: one more client-model run, as in :attr:`ServerConfig.models` (a GAN run
+            directory, its ``generator.pt``, or a radiance run); None adds none.
 
     Use :meth:`start` / :meth:`stop` (a background thread; also a context manager) or
     :meth:`serve_forever` (this thread, until SIGINT/SIGTERM).
 
     Raises:
-        ValueError: an empty or short token (see ``token``), a generator file that is not one.
+        ValueError: an empty or short token (see ``token``), a model run no client can use
+            (:class:`icbtool.net.client_model.ModelRunError`).
+        FileNotFoundError: a model run without a model file.
 
     Example:
         >>> with Server(scene, "out/cache", token=new_token()) as srv:  # doctest: +SKIP
@@ -344,19 +354,13 @@ class Server:
             send_full=self.config.send_full_mesh,
             max_chunk_bytes=self.config.chunk_bytes,
         )
-        self._generator: bytes | None = None
-        self._generator_sha = ""
-        self._generator_inputs: tuple[str, ...] = ()
-        if generator is not None:
-            g = Path(generator)
-            g = g / "generator.pt" if g.is_dir() else g
-            if not g.is_file():
-                raise FileNotFoundError(f"generator {generator}: no generator.pt there")
-            from icbtool.gan import Generator
+        runs = [*self.config.models, *([str(generator)] if generator is not None else [])]
+        #: The client model on offer (None: none), chosen among the runs at start.
+        self.model: Any = None
+        if runs:
+            from icbtool.net import client_model
 
-            self._generator_inputs = Generator.load(g).inputs  # checks the file too
-            self._generator = g.read_bytes()
-            self._generator_sha = hashlib.sha256(self._generator).hexdigest()
+            self.model = client_model.offer(runs, self.config.chunk_bytes, scene=scene)
         self.port: int | None = None
         self._cloud: Cloud | None = None  # the writer (store owner), on the _writer thread
         self._reader: Cloud | None = None  # lookups, read-only store, on the _lookup thread
@@ -387,7 +391,7 @@ class Server:
 
     @property
     def generator_offered(self) -> bool:
-        return self._generator is not None
+        return self.model is not None
 
     @property
     def workers_address(self) -> str:
@@ -594,15 +598,7 @@ class Server:
             "lights": base["lights"],
             "camera": protocol.camera_to_json(cam),
             "lpm": {"levels": self.mesh.info(self.config.chunk_bytes)},
-            "generator": (
-                {
-                    "sha256": self._generator_sha,
-                    "bytes": len(self._generator),
-                    "inputs": list(self._generator_inputs),
-                }
-                if self._generator is not None
-                else None
-            ),
+            "generator": self.model.scene_info() if self.model is not None else None,
             "codecs": self.codecs,
             # beyond the schema's required fields: what a client needs to shade and move
             "sky": base["sky"],
@@ -797,6 +793,7 @@ class _Connection:
         self.writer: asyncio.Task[None] | None = None
         self.streaming_lpm = False
         self.generator_sent = False
+        self.chunks_resent: set[int] = set()
         self.close_code = 1000
         self.close_reason = ""
 
@@ -931,13 +928,7 @@ class _Connection:
             self.streaming_lpm = True
             self._spawn(self.stream_lpm(msg.fields))
         elif msg.kind == "generator_request":
-            if srv._generator is None:
-                await self.error("not_found", "this server offers no generator")
-            elif self.generator_sent:
-                await self.error("bad_field", "the generator was already sent on this connection")
-            else:
-                self.generator_sent = True
-                self._spawn(self.send_generator())
+            await self.request_model(msg.fields)
         else:
             srv.stats.protocol_errors += 1
             await self.error("unknown_kind", f"a client does not send {msg.kind!r}")
@@ -1044,14 +1035,49 @@ class _Connection:
         finally:
             self.streaming_lpm = False
 
-    async def send_generator(self) -> None:
+    async def request_model(self, fields: dict[str, Any]) -> None:
+        """``generator_request``: every chunk (once per connection) or one chunk ``index`` (each
+        at most once more: a client re-fetches a piece, it does not stream the model twice)."""
+        model = self.server.model
+        if model is None:
+            await self.error(
+                "not_found",
+                "generator_request: this server offers no client model (scene_info.generator "
+                "is null)",
+            )
+            return
+        index = fields.get("index")
+        if index is None:
+            if self.generator_sent:
+                await self.error(
+                    "bad_field",
+                    "generator_request: the client model was already sent on this connection "
+                    "(ask for one chunk with index)",
+                )
+                return
+            self.generator_sent = True
+            self._spawn(self.send_model(range(model.chunks), full=True))
+        elif index >= model.chunks:
+            await self.error(
+                "not_found",
+                f"generator_request.index: no chunk {index}; the client model has "
+                f"{model.chunks} chunks (0 .. {model.chunks - 1}, scene_info.generator.chunks)",
+            )
+        elif index in self.chunks_resent:
+            await self.error(
+                "bad_field",
+                f"generator_request.index: chunk {index} was already sent again on this connection",
+            )
+        else:
+            self.chunks_resent.add(index)
+            self._spawn(self.send_model([index], full=False))
+
+    async def send_model(self, indices: Any, full: bool) -> None:
         srv = self.server
-        data = srv._generator
-        assert data is not None
-        step = srv.config.chunk_bytes
-        n = max(1, -(-len(data) // step))
-        for i in range(n):
-            piece = data[i * step : (i + 1) * step]
+        model = srv.model
+        n = model.chunks
+        for i in indices:
+            piece = model.chunk(i)
             await self.send(
                 protocol.Message(
                     "generator_chunk",
@@ -1059,7 +1085,8 @@ class _Connection:
                     piece,
                 )
             )
-        srv.stats.generator_sent += 1
+        if full:
+            srv.stats.generator_sent += 1
 
     async def cleanup(self) -> None:
         for t in list(self.tasks):

@@ -2,14 +2,19 @@
 // Connects with the token from the URL fragment (#token=...; never sent to the server in an
 // HTTP request), streams the LPM levels coarse to fine, rasterizes the WRT-buffer, asks for GI
 // with its camera and motion (the server places the prefetch camera), warps / combines / fills /
-// blends, and shows the frame with an overlay. Fragment options: token, size (client image
-// height = width, default 256), rtt (emulated round trip, ms), test=1 (no automatic loop: the
-// tests drive window.icb).
+// blends, and shows the frame with an overlay. When the server offers a client model
+// (scene_info.generator: a GAN generator or a world-space radiance model, ONNX), the page
+// downloads it once, checks its SHA-256 and makes its GI with it in onnxruntime-web instead of
+// asking (docs/protocol.md, section Client models). Fragment options: token, size (client image
+// height = width, default 256), rtt (emulated round trip, ms), codec (the GI codec asked for,
+// default f16m7-diff-zstd), model=0 (never use the served model), test=1 (no automatic loop:
+// the tests drive window.icb).
 import * as camera from "./camera.js";
 import {CameraPath, resized} from "./camera.js";
 import * as codec from "./codec.js";
 import {CODECS, decodeReply} from "./codec.js";
-import {OnnxGenerator} from "./generator.js";
+import * as generator from "./generator.js";
+import {ClientModel, OnnxGenerator, sha256Hex} from "./generator.js";
 import * as lpm from "./lpm.js";
 import {LevelCollector} from "./lpm.js";
 import * as protocol from "./protocol.js";
@@ -17,7 +22,7 @@ import {ProtocolError, Session} from "./protocol.js";
 import {WebRenderer} from "./render.js";
 
 // the modules, for the tests (tests/test_web.py runs the protocol's test vectors through them)
-globalThis.icbModules = {camera, codec, lpm, protocol, OnnxGenerator};
+globalThis.icbModules = {camera, codec, lpm, protocol, generator, OnnxGenerator, ClientModel};
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.hash.slice(1));
@@ -25,12 +30,14 @@ const token = params.get("token");
 const SIZE = parseInt(params.get("size") || "256", 10);
 const RTT = parseFloat(params.get("rtt") || "0");
 const TEST = params.get("test") === "1";
+const USE_MODEL = params.get("model") !== "0";
+const GI_CODEC = params.get("codec") || CODECS[0];
 const MODES = ["final", "DL", "GI", "holes"];
 
 const state = {
   errors: [], levels: new Set(), level: -1, frames: 0, hits: 0, misses: 0, pending: 0,
   nextId: 0, replies: new Map(), last: {}, t0: performance.now(), firstFrameMs: null,
-  mode: 0, playing: !TEST, pathT: 0, rxFrame: 0,
+  mode: 0, playing: !TEST, pathT: 0, rxFrame: 0, model: null, generated: 0,
 };
 
 export function showError(msg) {
@@ -124,6 +131,7 @@ class Controls {
 class WebClient {
   async start() {
     if (!token) throw new ProtocolError("auth", "no token in the URL: open the exact link `icbtool serve --web` printed");
+    if (!CODECS.includes(GI_CODEC)) throw new ProtocolError("bad_field", `codec=${GI_CODEC} in the URL is not one of ${CODECS.join(", ")}`);
     history.replaceState(null, "", location.pathname + (TEST ? "#test=1" : ""));  // token out of sight
     const url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/`;
     this.session = new Session(url, token, {codecs: CODECS, rttMs: RTT});
@@ -151,12 +159,51 @@ class WebClient {
     await this.session.send("lpm_request", {max_level: Math.min(...levels)});
     this.levelsOffered = levels;
     this.levelChain = Promise.resolve();
+    this.modelReady = this.info.generator && USE_MODEL ? this.fetchModel() : Promise.resolve(null);
+    this.modelReady.catch((e) => showError(`client model: ${e.message}`));
+  }
+
+  /** Ask for the served client model (every chunk), then for any chunk whose SHA-256 does not
+   * match its header once more; resolves with the loaded ClientModel (also state.model). */
+  async fetchModel() {
+    const info = this.info.generator;
+    this.modelPieces = new Array(info.chunks).fill(null);
+    this.modelRetried = new Set();
+    const done = new Promise((resolve, reject) => { this.modelWaiter = {resolve, reject}; });
+    await this.session.send("generator_request", {});
+    await done;
+    const bytes = protocol.concat(...this.modelPieces);
+    this.modelPieces = null;
+    const model = await ClientModel.load(bytes, info);
+    state.model = model;
+    return model;
+  }
+
+  async onModelChunk(f, payload) {
+    if (!this.modelPieces) return;
+    if (f.count !== this.modelPieces.length) {
+      this.modelWaiter.reject(new Error(`generator_chunk.count ${f.count}, scene_info.generator.chunks ${this.modelPieces.length}`));
+      return;
+    }
+    if (await sha256Hex(payload) !== f.sha256) {
+      if (this.modelRetried.has(f.index)) {
+        this.modelWaiter.reject(new Error(`chunk ${f.index} failed its SHA-256 twice`));
+        return;
+      }
+      this.modelRetried.add(f.index);
+      await this.session.send("generator_request", {index: f.index});
+      return;
+    }
+    this.modelPieces[f.index] = payload;
+    if (this.modelPieces.every((p) => p !== null)) this.modelWaiter.resolve();
   }
 
   onMessage(m) {
     state.rxFrame += m.bytes;
     if (m.kind === "lpm_chunk") {
       this.collector.add(m.fields, m.payload);
+    } else if (m.kind === "generator_chunk") {
+      this.onModelChunk(m.fields, m.payload).catch((e) => showError(`client model: ${e.message}`));
     } else if (m.kind === "lpm_done") {
       const k = m.fields.level;
       this.levelTimes[k] = performance.now() - state.t0;
@@ -176,6 +223,9 @@ class WebClient {
       const r = this.replies.get(id);
       if (r) { this.replies.delete(id); r.resolve(m); }
     } else if (m.kind === "error") {
+      if (this.modelPieces && m.fields.message.startsWith("generator_request")) {
+        this.modelWaiter.reject(new Error(`server error ${m.fields.code}: ${m.fields.message}`));
+      }
       showError(`server error ${m.fields.code}: ${m.fields.message}`);
     }
   }
@@ -207,14 +257,14 @@ class WebClient {
     const reply = new Promise((resolve) => state.replies.set(id, {resolve}));
     state.pending++;
     await this.session.send("gi_request", {
-      id, codec: CODECS[0], depth_codec: "f16-diff-zstd",
+      id, codec: GI_CODEC, depth_codec: "f16-diff-zstd",
       request: {camera: cam, velocity_t: vT, velocity_r: vR, time_s: tS, seq, depth_range: depthRange},
     });
     const m = await reply;
     state.pending--;
     const tReply = performance.now();
     if (m.kind === "error") throw new ProtocolError(m.fields.code, `gi_request ${id}: ${m.fields.message}`);
-    const parts = decodeReply(m.fields, m.payload);
+    const parts = await decodeReply(m.fields, m.payload);
     const decodeMs = performance.now() - tReply;
     const requestMs = performance.now() - t0;
     const server = m.fields.timings_ms.server || 0;
@@ -225,8 +275,41 @@ class WebClient {
                       render: m.fields.timings_ms.render || 0}};
   }
 
+  /** The client's buffers at the last renderWRT, by name (icbtool's row order, H x W x C). */
+  wrtMaps() {
+    const r = this.renderer, [h, w] = r.size, n = h * w;
+    const t = [0, 1, 2, 3].map((k) => r.read(r.gbuf, k));
+    const rgb = (a) => { const o = new Float32Array(n * 3); for (let i = 0; i < n; i++) { o[3 * i] = a[4 * i]; o[3 * i + 1] = a[4 * i + 1]; o[3 * i + 2] = a[4 * i + 2]; } return o; };
+    const depth = new Float32Array(n), mask = new Float32Array(n);
+    for (let i = 0; i < n; i++) { depth[i] = t[2][4 * i + 3]; mask[i] = depth[i] > 0 ? 1 : 0; }
+    const maps = {albedo: rgb(t[0]), normal_world: rgb(t[1]), position: rgb(t[2]), dl: rgb(t[3]), depth, mask};
+    // camera-space normals (OpenCV axes): cam_from_world's rotation = world_from_cam's transposed
+    const R = r.camera.world_from_cam, nw = maps.normal_world, nv = new Float32Array(n * 3);
+    for (let i = 0; i < n; i++) {
+      for (let c = 0; c < 3; c++) nv[3 * i + c] = R[0][c] * nw[3 * i] + R[1][c] * nw[3 * i + 1] + R[2][c] * nw[3 * i + 2];
+    }
+    maps.normal_view = nv;
+    return {maps, h, w, surface: mask.some((v) => v > 0)};
+  }
+
+  /** The served model's GI of the current view as the reference (its own camera, depth and
+   * mask: the warp is the identity, as icbtool.system.GeneratorSource); null when the client sees
+   * no surface (then the server is asked, as the Python client does). */
+  async generateGI(cam) {
+    const t0 = performance.now();
+    const {maps, h, w, surface} = this.wrtMaps();
+    if (!surface) return null;
+    const {gi, ms} = await state.model.generate(maps, h, w);
+    this.renderer.setReference(cam, {gi: {data: gi, shape: [h, w, 3]},
+                                     depth: {data: maps.depth, shape: [h, w, 1]},
+                                     mask: {data: maps.mask, shape: [h, w, 1]}});
+    state.generated++;
+    return {generate: performance.now() - t0, model: ms};
+  }
+
   /** One frame the way icbtool's Python loop makes it (pipeline.run_loop): the request for the
-   * camera at t - latency, its reply awaited, then the frame at t. */
+   * camera at t - latency, its reply awaited, then the frame at t; with the served model, its GI
+   * of the view at t instead of the request. */
   async step({t, latency = 0.1, size = SIZE, seq = null}) {
     const path = this.path;
     const intr = resized(path.intrinsics, size, size);
@@ -239,9 +322,15 @@ class WebClient {
     r.renderWRT(cam);
     r.finish(r.gbuf);
     const rasterMs = performance.now() - t0;
-    const dr = r.depthRange();
-    const reply = await this.requestGI(camReq, vT, vR, tReq, dr, seq);
-    r.setReference(reply.camera, reply.parts);
+    const gen = state.model ? await this.generateGI(cam) : null;
+    let reply;
+    if (gen) {
+      reply = {camera: cam, cacheHit: false, bytes: 0, timings: {generate: gen.generate, model: gen.model}};
+    } else {
+      const dr = r.depthRange();
+      reply = await this.requestGI(camReq, vT, vR, tReq, dr, seq);
+      r.setReference(reply.camera, reply.parts);
+    }
     t0 = performance.now();
     r.composite();
     r.finish();
@@ -298,7 +387,10 @@ class WebClient {
     r.finish(r.gbuf);
     const rasterMs = performance.now() - t0;
     const maxPending = this.info.max_pending || 4;
-    if (state.pending < Math.min(2, maxPending)) {  // keep a request in flight
+    const gen = state.model ? await this.generateGI(cam) : null;
+    if (gen) {
+      state.last.generate_ms = gen.generate;
+    } else if (state.pending < Math.min(2, maxPending)) {  // keep a request in flight
       const dr = r.depthRange();
       const tS = performance.now() / 1e3;
       this.requestGI(cam, vT, vR, tS, dr).then((reply) => {
@@ -336,7 +428,8 @@ function overlay() {
   const r = client?.renderer;
   o.textContent = [
     `${MODES[state.mode]} | LPM level ${state.level} of ${(client?.levelsOffered?.length ?? 0) - 1} | ${r?.size?.[1]}x${r?.size?.[0]}`,
-    `raster ${fmt(s.raster_ms)} | request ${fmt(s.request_ms)} (server ${fmt(s.server_ms)}, transfer ${fmt(s.transfer_ms)}) | decode ${fmt(s.decode_ms)} | warp ${fmt(s.warp_ms)} | generate - ms`,
+    `raster ${fmt(s.raster_ms)} | request ${fmt(s.request_ms)} (server ${fmt(s.server_ms)}, transfer ${fmt(s.transfer_ms)}) | decode ${fmt(s.decode_ms)} | warp ${fmt(s.warp_ms)} | generate ${fmt(s.generate_ms)} ms`,
+    `${state.model ? `client model: ${state.model.kind} (${(state.model.info.bytes / 1024).toFixed(0)} KiB, ${state.generated} frames)` : client?.info?.generator ? "client model: downloading" : "client model: none offered"}`,
     `holes ${fmt(100 * (s.hole_ratio ?? 1))} % | cache hit ${state.hits} / miss ${state.misses} | ${fmt((s.bytes || 0) / 1024)} KiB/reply`,
     `${r?.glRenderer ?? ""}`,
     "drag: orbit | wheel: dolly | WASD QE: fly | O: orbit/fly | P: play path | 1-4: final/DL/GI/holes",

@@ -42,7 +42,8 @@ export const KINDS = {
     id: ["integer", true, false], camera: ["object", true, false],
     cache_hit: ["boolean", true, false], coalesced: ["boolean", false, false],
     timings_ms: ["object", true, false], parts: ["array", true, false]}},
-  generator_request: {sender: "client", sealed: true, payload: false, fields: {}},
+  generator_request: {sender: "client", sealed: true, payload: false, fields: {
+    index: ["integer", false, false]}},
   generator_chunk: {sender: "server", sealed: true, payload: true, fields: {
     index: ["integer", true, false], count: ["integer", true, false],
     sha256: ["hex", true, false, 32]}},
