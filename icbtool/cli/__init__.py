@@ -25,6 +25,7 @@ RENAMED = {
     "--bandwidth-mbit": "--net-bandwidth-mbit",
     "--fast-embree": "--no-robust",
     "--no-generator": "--no-use-generator",
+    "--generator": "--models RUN[,RUN...] (serve: the client model offered, as ONNX)",
 }
 
 
