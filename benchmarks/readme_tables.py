@@ -206,9 +206,17 @@ def block_trace_throughput(results: Path) -> str:
             f"{k['bounce']:.1f} / {k['shadow']:.1f} Mrays/s |"
         )
     share = [f"{100 * by[s]['embree_share_of_tracer_time']:.0f} % ({label[s]})" for s in by]
+    after = ", ".join(f"{by[s]['load_average_1min']:.1f}" for s in by)
+    start = d.get("load_average_start")
+    load_txt = (
+        f"1-minute load {start[0]:.1f} at the start, {after} after each scene"
+        if start
+        else f"1-minute load {after} after each scene (not recorded at the start)"
+    )
     lines += [
         "",
-        "Embree's share of the tracer's time: " + ", ".join(share) + "; the rest is shading.",
+        f"Embree's share of the tracer's time: {', '.join(share)}; the rest is shading "
+        f"({load_txt}).",
         "The first numpy version's numbers are from its own run "
         "(`throughput_first_numpy_version.json`).",
         "",
