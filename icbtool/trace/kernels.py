@@ -865,7 +865,7 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
 
     Args:
         p: :data:`TraceParams`.
-        out: :data:`Outputs` (per-sample rows, added to).
+        out: :data:`Outputs` (per-sample rows; this part's rows are overwritten).
         counts: (3,) int64 rays traced by this part: primary, bounce, shadow (added to).
         log: ray log (benchmarks): o, d (C, 3), tfar (C,), kind (C,) 0 = camera, 1 = shadow,
             2 = bounce; n (1,) entries used; C <= 1 turns logging off.
@@ -903,6 +903,13 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
     n_blocks = (P + BLOCK - 1) // BLOCK
     for blk in range(part, n_blocks, n_parts):
         for s in range(blk * BLOCK, min(P, (blk + 1) * BLOCK)):
+            # this sample's output rows start at zero (here, in cache: no separate pass)
+            direct[s, 0] = direct[s, 1] = direct[s, 2] = 0.0
+            gi[s, 0] = gi[s, 1] = gi[s, 2] = 0.0
+            first_hit[s] = False
+            if want_aux:
+                alb_out[s, 0] = alb_out[s, 1] = alb_out[s, 2] = 0.0
+                nrm_out[s, 0] = nrm_out[s, 1] = nrm_out[s, 2] = 0.0
             pixel_seed = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD))
             base_s = _sample_base(seed_mix, pix[s], sid[s])
             dx, dy, dz = _camera_ray(
