@@ -305,10 +305,10 @@ TIME_ERROR_SCENES = {"cornell_box": "Cornell box", "sponza": "Sponza"}
 #: the commands that write the per-scene time/error files (each under ~10 min on this machine)
 TIME_ERROR_COMMANDS = {
     "cornell_box": "benchmarks/trace_time_error.py --size 256 --scenes cornell_box "
-    "--ref-spp 1024 --spps 1,2,4,8,16,32 --repeats 5 --out-name time_error_cornell_box "
-    "--wait-quiet 300",
+    "--ref-spp 1024 --spps 1,2,4,8,16,32,64 --repeats 5 --out-name time_error_cornell_box "
+    "--wait-quiet 120",
     "sponza": "benchmarks/trace_time_error.py --size 256 --scenes sponza --ref-spp 512 "
-    "--spps 1,2,4,8,16,32 --repeats 3 --out-name time_error_sponza --wait-quiet 300",
+    "--spps 1,2,4,8,16,32 --repeats 3 --out-name time_error_sponza --wait-quiet 120",
 }
 
 

@@ -29,7 +29,7 @@ seconds for the load to drop below 1 before starting (a previous run's load deca
 two). The README's numbers come from one run per scene, e.g.
 
     .venv/bin/python benchmarks/trace_time_error.py --size 256 --scenes cornell_box \
-        --out-name time_error_cornell_box --wait-quiet 300
+        --out-name time_error_cornell_box --wait-quiet 120
 
 Writes benchmarks/results/trace/<out-name>.{json,png} (default time_error). Mitsuba is a
 benchmark peer only.
