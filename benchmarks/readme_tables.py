@@ -858,6 +858,49 @@ def block_trace_refactor(results: Path) -> str:
     )
 
 
+#: paired A/B runs of the issue-22 speed changes: (results name, what B changed against A,
+#: kept in the code)
+TRACE_SPEED_AB = (
+    ("nrt", "megakernel without numba's reference counting (`_nrt=False`)", True),
+    ("zero_in_kernel", "per-sample outputs zeroed in the kernel, not in a separate pass", True),
+    ("branch", "both, against the branch's base", True),
+    ("bitrev", "LLVM's bitreverse in the Sobol scrambling", False),
+    ("tiles", "pixels walked in 8x8 tiles instead of rows", False),
+)
+
+
+def block_trace_speed(results: Path) -> str:
+    lines = [
+        "**Tracer speed changes** (`benchmarks/trace_ab.py`, paired A/B: one process per "
+        "checkout, renders alternating, 8 spp,",
+        "median ratio B/A of rays per second of process CPU time (quartiles); images "
+        "bit-identical, so the error per sample is unchanged):",
+        "",
+        "| change (B) | kept | Cornell box | Sponza | size, threads, rounds, 1-minute load |",
+        "|---|---|---|---|---|",
+    ]
+    for key, what, kept in TRACE_SPEED_AB:
+        cells, meta, rounds, loads = [], "", [], []
+        for scene in ("cornell_box", "sponza"):
+            found = sorted((results / "trace").glob(f"ab_{key}_{scene}*.json"))
+            if not found:
+                cells.append("n/a")
+                continue
+            d = json.loads(found[0].read_text())
+            q = d["cpu_ratio_quartiles"]
+            cells.append(f"{d['median_cpu_ratio_b_over_a']:.3f} ({q[0]:.3f}-{q[-1]:.3f})")
+            meta = f"{d['args']['size']}^2, {d['args']['threads']}"
+            rounds.append(str(len(d["rounds"])))
+            loads += d["load_1min"]
+        if loads:
+            meta += f", {'/'.join(rounds)}, {min(loads):.1f}-{max(loads):.1f}"
+        lines.append(
+            f"| {what} | {'yes' if kept else 'no'} | " + " | ".join(cells) + f" | {meta} |"
+        )
+    lines.append("")
+    return "\n".join(lines)
+
+
 def block_gan_figure7(results: Path) -> str:
     d = load("gan/figure7.json", results)
     cfg = load("gan/figure7_config.json", results)
@@ -1274,6 +1317,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "trace-throughput": block_trace_throughput,
     "trace-time-error": block_trace_time_error,
     "trace-profile": block_trace_profile,
+    "trace-speed": block_trace_speed,
     "denoise": block_denoise,
     "store": block_store,
     "warp": block_warp,
