@@ -886,12 +886,15 @@ def block_trace_speed(results: Path) -> str:
             if not found:
                 cells.append("n/a")
                 continue
-            d = json.loads(found[0].read_text())
-            q = d["cpu_ratio_quartiles"]
-            cells.append(f"{d['median_cpu_ratio_b_over_a']:.3f} ({q[0]:.3f}-{q[-1]:.3f})")
-            meta = f"{d['args']['size']}^2, {d['args']['threads']}"
-            rounds.append(str(len(d["rounds"])))
-            loads += d["load_1min"]
+            runs = []  # every run of this change (a rerun: ab_<key>_<scene>_rerun.json)
+            for path in found:
+                d = json.loads(path.read_text())
+                q = d["cpu_ratio_quartiles"]
+                runs.append(f"{d['median_cpu_ratio_b_over_a']:.3f} ({q[0]:.3f}-{q[-1]:.3f})")
+                meta = f"{d['args']['size']}^2, {d['args']['threads']}"
+                rounds.append(str(len(d["rounds"])))
+                loads += d["load_1min"]
+            cells.append("; rerun ".join(runs))
         if loads:
             meta += f", {'/'.join(rounds)}, {min(loads):.1f}-{max(loads):.1f}"
         lines.append(
