@@ -389,6 +389,11 @@ def block_trace_time_error(results: Path) -> str:
             row("RMSE, ours raw (default: Sobol, robust Embree)", ratios("target_rmse")),
             row("RMSE, ours raw, `robust=False`", ratios("target_rmse", "ours_raw_fast")),
             row("RMSE, ours with denoised GI (OIDN)", ratios("target_rmse", "ours_denoised")),
+            *(
+                [row("RMSE, denoised GI, OIDN 'fast'", ratios("target_rmse", "ours_denoised_fast"))]
+                if "ours_denoised_fast" in sc["target_rmse"]
+                else []
+            ),
             row("RMSE, Embree floor", sc["embree_floor"]["floor_ratio_per_mitsuba_point"], False),
             row("FLIP, ours raw", ratios("target_flip")),
             row("FLIP, ours with denoised GI (OIDN)", ratios("target_flip", "ours_denoised")),
