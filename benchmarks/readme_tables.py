@@ -287,9 +287,22 @@ def block_trace_profile(results: Path) -> str:
         + "; ".join(
             f"{n}: {span([p[k] for k in p], f2)}x the one-ray time" for n, p in zip(names, pk)
         )
-        + ", so a packet or wavefront tracer would save at most that share of Embree's part.",
-        "",
+        + ", so packets of the kernel's own ray order would save little.",
     ]
+    firsts = [r.get("embree_first_vertex_shadow_rays") for r in rows]
+    if all(firsts):
+        lines += [
+            "The shadow rays of the paths' first vertices alone, in sample order (neighbouring "
+            "pixels, as a wavefront would batch them), take "
+            + "; ".join(
+                f"{n}: {f['packet8_over_one_ray']:.2f}x ({f['rays']} rays; one by one "
+                f"{1e3 * f['one_ray_s']:.0f} ms, {100 * f['one_ray_s'] / r['render_cpu_s']:.1f} % "
+                "of the render)"
+                for n, f, r in zip(names, firsts, rows, strict=True)
+            )
+            + " in packets of 8.",
+        ]
+    lines.append("")
     return "\n".join(lines)
 
 

@@ -13,7 +13,8 @@ runs of each):
   (``rtcIntersect1`` / ``rtcOccluded1``, :func:`~icbtool.trace.kernels.rtc_intersect_batch`), and
   through Embree's 8-ray packet calls (``rtcIntersect8`` / ``rtcOccluded8``, 8 consecutive rays of
   the log per packet; the packet layout is checked on known rays first, as icbtool.trace.rtc does
-  for the one-ray layout).
+  for the one-ray layout). The same for the shadow rays of the paths' first vertices alone, in
+  sample order (neighbouring pixels: coherent rays, as a wavefront would batch them).
 - ``ray_generation``: the kernel's camera-ray helper (pixel sample, direction) for every sample.
 - ``hit_frame``, ``textures``, ``light_sampling``, ``bsdf_sampling``, ``sampler``: the kernel's own
   inlined helpers run on the replayed hits of the intersect rays (one vertex per hit), in
@@ -58,7 +59,7 @@ from icbtool.trace.rtc import RtcScene, _lib
 from icbtool.trace.tracer import TraceStats, _Tracer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from trace_throughput import record, sponza  # noqa: E402  (a sibling benchmark script)
+from trace_throughput import sponza  # noqa: E402  (a sibling benchmark script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -260,6 +261,35 @@ def mitsuba_cpu(scene, cam, spp: int, repeats: int) -> dict:
     return {"render_cpu_s": cpu, "render_wall_s": wall, "spp": spp}
 
 
+def record_with_first_shadow(scene, cam, cfg, capacity: int) -> tuple[dict, dict]:
+    """:func:`trace_throughput.record`'s rays by kind, and the shadow rays of each path's first
+    vertex (those between a camera ray and the path's first bounce ray), in sample order."""
+    log = {
+        "o": np.zeros((capacity, 3), np.float32),
+        "d": np.zeros((capacity, 3), np.float32),
+        "tfar": np.zeros(capacity, np.float32),
+        "kind": np.zeros(capacity, np.int8),
+        "n": np.zeros(1, np.int64),
+    }
+    icb.trace.render(scene, cam, cfg, ray_log=log)
+    n = int(log["n"][0])
+    if n >= capacity:
+        raise RuntimeError(f"ray log full ({capacity} rays): raise the capacity")
+    kind = log["kind"][:n]
+    # the kind of the last non-shadow ray before each ray (0 camera, 2 bounce)
+    idx = np.where(kind != 1, np.arange(n), -1)
+    last = np.maximum.accumulate(idx)
+    first = (kind == 1) & (last >= 0) & (kind[np.maximum(last, 0)] == 0)
+    by = {name: kind == k for name, k in (("primary", 0), ("bounce", 2), ("shadow", 1))}
+    by["first_shadow"] = first
+    out = {
+        name: {k: np.ascontiguousarray(log[k][:n][m]) for k in ("o", "d", "tfar")}
+        for name, m in by.items()
+    }
+    first_shadow = out.pop("first_shadow")
+    return out, first_shadow
+
+
 def cpu_min(fn, repeats: int) -> float:
     """Fastest process CPU time of ``repeats`` calls of ``fn`` (single-threaded work)."""
     best = np.inf
@@ -294,7 +324,9 @@ def profile(scene, cam, cfg: TraceConfig, repeats: int) -> dict:
             )
         )
     trace_s = cpu_min(lambda: [tr.trace(pp, ss) for pp, ss in passes], repeats)
-    rays = record(scene, cam, cfg1, capacity=int(st.total_rays * 1.05) + 1024)
+    rays, first_shadow = record_with_first_shadow(
+        scene, cam, cfg1, capacity=int(st.total_rays * 1.05) + 1024
+    )
     rs = RtcScene.of(scene, robust=cfg.robust)
     fi8, fo8 = packet_fns()
     stages: dict[str, float] = {}
@@ -339,6 +371,27 @@ def profile(scene, cam, cfg: TraceConfig, repeats: int) -> dict:
     )
     if not np.array_equal(t8 == -np.inf, blocked):
         raise RuntimeError("rtcOccluded8 and rtcOccluded1 disagree")
+    # the first vertex's shadow rays alone, in sample order (neighbouring pixels: coherent), as
+    # a wavefront that batched them would trace them
+    r = first_shadow
+    n = len(r["tfar"])
+    blocked, t8 = np.empty(n, np.bool_), np.empty(n, np.float32)
+    first = {
+        "rays": n,
+        "one_ray_s": cpu_min(
+            lambda: K.rtc_occluded_batch(
+                rs.ptr, rs.fn_occluded, r["o"], r["d"], r["tfar"], blocked, 0, n
+            ),
+            repeats,
+        ),
+        "packet8_s": cpu_min(
+            lambda: _packet_batch(
+                rs.ptr, fo8, True, r["o"], r["d"], r["tfar"], t8, np.zeros(0, np.int64), 0, n
+            ),
+            repeats,
+        ),
+    }
+    first["packet8_over_one_ray"] = first["packet8_s"] / max(first["one_ray_s"], 1e-12)
     # ray generation: the camera-ray helper for every sample of the render
     prm = tr._params
     pix = np.concatenate([pp for pp, _ in passes])
@@ -394,6 +447,7 @@ def profile(scene, cam, cfg: TraceConfig, repeats: int) -> dict:
         "stage_shares_of_render": {k: v / cpu_total for k, v in stages.items()},
         "embree_packet8_cpu_s": packets,
         "embree_packet8_over_one_ray": {k: packets[k] / stages[k] for k in packets},
+        "embree_first_vertex_shadow_rays": first,
         "shade_levels_cpu_s": dict(zip(names, levels, strict=True)),
         "oidn": oidn,
     }
@@ -460,6 +514,10 @@ def main() -> None:
             print(f"  Mitsuba llvm_ad_rgb, same spp: {mi['render_cpu_s']:.3f} CPU s (all threads)")
         ratio = {k: round(v, 2) for k, v in row["embree_packet8_over_one_ray"].items()}
         print("  Embree packets of 8 / one ray:", ratio)
+        fs = row["embree_first_vertex_shadow_rays"]
+        print(
+            f"  first-vertex shadow rays in sample order: packets {fs['packet8_over_one_ray']:.2f}x"
+        )
         rows.append(row)
     OUT.mkdir(parents=True, exist_ok=True)
     load_end = os.getloadavg()
