@@ -16,7 +16,6 @@ import argparse
 import difflib
 import json
 import re
-import statistics
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -181,15 +180,13 @@ def block_raster(results: Path) -> str:
 def block_trace_throughput(results: Path) -> str:
     d = load("trace/throughput.json", results)
     old = load("trace/throughput_first_numpy_version.json", results)
-    te = load("trace/time_error.json", results)["args"]
     by = {r["scene"]: r for r in d["results"]}
     first = {r["scene"]: r["tracer_Mrays_per_s"] for r in old["results"]}
     c = d["config"]
     label = {"cornell_box": "Cornell box", "sponza": "Sponza"}
     lines = [
-        "**Cloud path tracer** (`benchmarks/trace_throughput.py`, `benchmarks/trace_time_error.py",
-        f"--size {te['size']} --ref-spp {te['ref_spp']} --repeats {te['repeats']}`): one numba "
-        "kernel traces whole paths and calls Embree 4",
+        "**Cloud path tracer** (`benchmarks/trace_throughput.py`, `benchmarks/trace_profile.py`, "
+        "`benchmarks/trace_time_error.py`): one numba kernel traces whole paths and calls Embree 4",
         "directly (no Python per depth), on both cores. The throughput benchmark records the "
         "tracer's own",
         "rays and replays them through Embree alone.",
@@ -209,13 +206,103 @@ def block_trace_throughput(results: Path) -> str:
             f"{k['bounce']:.1f} / {k['shadow']:.1f} Mrays/s |"
         )
     share = [f"{100 * by[s]['embree_share_of_tracer_time']:.0f} % ({label[s]})" for s in by]
+    after = ", ".join(f"{by[s]['load_average_1min']:.1f}" for s in by)
+    start = d.get("load_average_start")
+    load_txt = (
+        f"1-minute load {start[0]:.1f} at the start, {after} after each scene"
+        if start
+        else f"1-minute load {after} after each scene (not recorded at the start)"
+    )
     lines += [
         "",
-        "Embree's share of the tracer's time: " + ", ".join(share) + "; the rest is shading.",
+        f"Embree's share of the tracer's time: {', '.join(share)}; the rest is shading "
+        f"({load_txt}).",
         "The first numpy version's numbers are from its own run "
         "(`throughput_first_numpy_version.json`).",
         "",
     ]
+    return "\n".join(lines)
+
+
+PROFILE_STAGES = {
+    "embree_intersect_primary": "Embree, camera rays",
+    "embree_intersect_bounce": "Embree, bounce rays",
+    "embree_occluded": "Embree, shadow rays",
+    "ray_generation": "ray generation",
+    "hit_frame": "hit point, normals",
+    "textures": "textures",
+    "light_sampling": "light sampling (no shadow ray)",
+    "bsdf_sampling": "BSDF sampling",
+    "sampler": "Sobol numbers",
+    "accumulate_python": "accumulation + Python driver",
+    "unattributed": "unattributed (megakernel glue)",
+}
+
+
+def block_trace_profile(results: Path) -> str:
+    d = load("trace/profile.json", results)
+    rows = d["results"]
+    label = {"cornell_box": "Cornell box", "sponza": "Sponza"}
+    names = [label.get(r["scene"], r["scene"]) for r in rows]
+    size = rows[0]["size"]
+    lines = [
+        f"Where the time goes (`benchmarks/trace_profile.py`, {size[1]}x{size[0]}, "
+        f"{rows[0]['spp']} spp, one thread, CPU seconds; 1-minute load "
+        f"{d['load_average_start'][0]:.1f} at the start: CPU time, not wall time, is what a "
+        "loaded machine leaves comparable). Stages are the kernel's own helpers and Embree "
+        "calls replayed on the render's recorded rays and hits (the script's docstring says "
+        "how each is obtained).",
+        "",
+        "| stage | " + " | ".join(names) + " |",
+        "|---" * (len(rows) + 1) + "|",
+    ]
+    for k, what in PROFILE_STAGES.items():
+        cells = [
+            f"{r['stages_cpu_s'][k]:.3f} s ({100 * r['stage_shares_of_render'][k]:.0f} %)"
+            for r in rows
+        ]
+        lines.append(f"| {what} | " + " | ".join(cells) + " |")
+    lines.append(
+        "| **render** | " + " | ".join(f"**{r['render_cpu_s']:.3f} s**" for r in rows) + " |"
+    )
+    peer = [r["mitsuba_llvm_ad_rgb"] for r in rows]
+    if all("render_cpu_s" in m for m in peer):
+        lines.append(
+            "| Mitsuba `llvm_ad_rgb`, same spp (CPU s of all its threads) | "
+            + " | ".join(f"{m['render_cpu_s']:.3f} s" for m in peer)
+            + " |"
+        )
+    pk = [r["embree_packet8_over_one_ray"] for r in rows]
+    emb = [
+        sum(r["stages_cpu_s"][k] for k in PROFILE_STAGES if k.startswith("embree"))
+        / r["render_cpu_s"]
+        for r in rows
+    ]
+    lines += [
+        "",
+        "Embree's one-ray calls take "
+        + ", ".join(f"{100 * e:.0f} % ({n})" for e, n in zip(emb, names, strict=True))
+        + " of the render. Embree's 8-ray packets (`rtcIntersect8` / `rtcOccluded8`) on the same "
+        "rays, 8 consecutive rays a packet, take "
+        + "; ".join(
+            f"{n}: {span([p[k] for k in p], f2)}x the one-ray time" for n, p in zip(names, pk)
+        )
+        + ", so packets of the kernel's own ray order would save little.",
+    ]
+    firsts = [r.get("embree_first_vertex_shadow_rays") for r in rows]
+    if all(firsts):
+        lines += [
+            "The shadow rays of the paths' first vertices alone, in sample order (neighbouring "
+            "pixels, as a wavefront would batch them), take "
+            + "; ".join(
+                f"{n}: {f['packet8_over_one_ray']:.2f}x ({f['rays']} rays; one by one "
+                f"{1e3 * f['one_ray_s']:.0f} ms, {100 * f['one_ray_s'] / r['render_cpu_s']:.1f} % "
+                "of the render)"
+                for n, f, r in zip(names, firsts, rows, strict=True)
+            )
+            + " in packets of 8.",
+        ]
+    lines.append("")
     return "\n".join(lines)
 
 
@@ -227,141 +314,133 @@ def _first_met(ratios: list[float | None], spps: list[int]) -> int | None:
     return None
 
 
+TIME_ERROR_SCENES = {"cornell_box": "Cornell box", "sponza": "Sponza"}
+#: the commands that write the per-scene time/error files (each under ~10 min on this machine)
+TIME_ERROR_COMMANDS = {
+    "cornell_box": "benchmarks/trace_time_error.py --size 256 --scenes cornell_box "
+    "--ref-spp 1024 --spps 1,2,4,8,16,32,64 --repeats 5 --out-name time_error_cornell_box "
+    "--wait-quiet 120",
+    "sponza": "benchmarks/trace_time_error.py --size 256 --scenes sponza --ref-spp 512 "
+    "--spps 1,2,4,8,16,32 --repeats 3 --out-name time_error_sponza --wait-quiet 120",
+}
+
+
+def time_error_runs(results: Path) -> dict[str, tuple[str, dict, dict]]:
+    """Per scene: (results file, its JSON, the scene's entry): ``trace/time_error_<scene>.json``
+    (one run per scene) where present, else the scene in ``trace/time_error.json``."""
+    out = {}
+    for name in TIME_ERROR_SCENES:
+        for rel in (f"trace/time_error_{name}.json", "trace/time_error.json"):
+            if (results / rel).is_file():
+                d = load(rel, results)
+                if name in d["results"]["scenes"]:
+                    out[name] = (rel, d, d["results"]["scenes"][name])
+                    break
+    return out
+
+
+def is_quiet(d: dict) -> bool:
+    """Whether a results file says its run was on a quiet machine (1-minute load < 1 at the
+    start, recorded by the benchmark); files without the flag are not."""
+    return d.get("quiet") is True and (d.get("load_average_start") or [9.9])[0] < 1.0
+
+
 def block_trace_time_error(results: Path) -> str:
-    d = load("trace/time_error.json", results)
-    earlier = load("trace/time_error_earlier_run.json", results)
-    sc = d["results"]["scenes"]
-    cb, sp = sc["cornell_box"], sc["sponza"]
-    spps = [p["spp"] for p in cb["curves"]["mitsuba"]]
-    show = [i for i, s in enumerate(spps) if s != 32]  # the table's columns (32 only in the plot)
-    mi_t = {n: [p["time_s"] for p in sc[n]["curves"]["mitsuba"]] for n in sc}
-
-    def tsec(x: float) -> str:
-        return f"{x:.2f}" if x < 1 else f"{x:.1f}"
-
-    def row(label: str, ratios: list[float | None], mark: bool = True) -> str:
-        cells = [
-            "n/a" if ratios[i] is None else bold(f2(ratios[i]), mark and ratios[i] <= 0.5)
-            for i in show
-        ]
-        return f"| {label} | " + " | ".join(cells) + " |"
-
-    def ratios(scene: dict, key: str, curve: str = "ours_raw") -> list[float | None]:
-        return scene[key][curve]["time_ratio_per_mitsuba_point"]
-
-    header = " | ".join(
-        f"{spps[i]} ({tsec(mi_t['cornell_box'][i])}/{tsec(mi_t['sponza'][i])})" for i in show
-    )
+    runs = time_error_runs(results)
     lines = [
         "Time against error (RMSE and FLIP of the full image against each renderer's own "
-        f"{cb['ref_spp']}-spp",
-        f"reference) next to Mitsuba 3 `{d['results']['mitsuba_variant']}`, same scene, camera "
-        f"and max depth ({d['max_depth']}) (plot:",
-        "`benchmarks/results/trace/time_error.png`). Our time to reach Mitsuba's error, divided by",
-        'Mitsuba\'s time (target <= 0.5; bold = met); "Embree floor" is the time Embree alone '
-        "needs for the",
-        "rays of our cheapest render that reaches Mitsuba's RMSE, over Mitsuba's time: above 0.5, "
-        "no",
-        "shading code could meet the target at that point with our sampling.",
-        "",
-        f"| Mitsuba spp (Cornell s / Sponza s) | {header} |",
-        "|---" * (len(show) + 1) + "|",
-        row("Cornell RMSE, ours raw (default: Sobol, robust Embree)", ratios(cb, "target_rmse")),
-        row(
-            "Cornell RMSE, ours raw, `robust=False` (Mitsuba's default)",
-            ratios(cb, "target_rmse", "ours_raw_fast"),
-        ),
-        row(
-            "Cornell RMSE, Embree floor",
-            cb["embree_floor"]["floor_ratio_per_mitsuba_point"],
-            mark=False,
-        ),
-        row("Cornell FLIP, ours raw", ratios(cb, "target_flip")),
-        row(
-            "Cornell FLIP, ours with denoised GI (OIDN)",
-            ratios(cb, "target_flip", "ours_denoised"),
-        ),
-        row("Sponza RMSE, ours raw", ratios(sp, "target_rmse")),
-        row("Sponza FLIP, ours raw", ratios(sp, "target_flip")),
-        row("Sponza RMSE, ours with denoised GI", ratios(sp, "target_rmse", "ours_denoised")),
-        row(
-            "Sponza RMSE, Embree floor",
-            sp["embree_floor"]["floor_ratio_per_mitsuba_point"],
-            mark=False,
-        ),
+        "high-spp reference)",
+        "next to Mitsuba 3 (same scene, camera and max depth; plots: "
+        "`benchmarks/results/trace/time_error*.png`).",
+        "Our time to reach Mitsuba's error, divided by Mitsuba's time (target <= 0.5; bold = met "
+        'on a quiet run); "Embree',
+        'floor" is the time Embree alone needs for the rays of our cheapest render that reaches '
+        "Mitsuba's",
+        "RMSE, over Mitsuba's time: above 0.5, no shading code could meet the target there with "
+        "our sampling.",
+        "Only runs on a quiet machine (1-minute load < 1 at the start, recorded in the results "
+        "file) make claims;",
+        "a run without that is labelled and its ratios are not bold.",
         "",
     ]
-    # the prose: where the target is met, per-sample speed and error at 1 spp
-    i_of = {s: i for i, s in enumerate(spps)}
-    sp_both = max(
-        _first_met(ratios(sp, "target_rmse"), spps) or 10**9,
-        _first_met(ratios(sp, "target_flip"), spps) or 10**9,
-    )
-    cb_rmse = _first_met(ratios(cb, "target_rmse"), spps)
-    cb_flip_dn = _first_met(ratios(cb, "target_flip", "ours_denoised"), spps)
-    raw_flip = [r for r in ratios(cb, "target_flip")[i_of[cb_rmse] :] if r is not None]
-    not_met = [s for s, r in zip(spps, ratios(cb, "target_rmse"), strict=True) if r > 0.5]
-    cur = {n: sc[n]["curves"] for n in sc}
-
-    def ms(n: str, curve: str, i: int = 0) -> str:
-        return f0(1e3 * cur[n][curve][i]["time_s"])
-
-    def err(n: str, curve: str, i: int = 0) -> float:
-        return cur[n][curve][i]["rmse"]
-
-    cb_lower = next(
-        s
-        for i, s in enumerate(spps)
-        if all(
-            err("cornell_box", "ours_raw", j) < err("cornell_box", "mitsuba", j)
-            for j in range(i, len(spps))
+    for name, (rel, d, sc) in runs.items():
+        quiet = is_quiet(d)
+        cur = sc["curves"]
+        spps = [p["spp"] for p in cur["mitsuba"]]
+        ld = d.get("load_average_start")
+        load_txt = (
+            f"1-minute load {ld[0]:.2f} at the start"
+            if ld
+            else f"load at the start not recorded (at the end: {sc['load_average_1min_end']:.1f})"
         )
-    )
-    sp_every = all(
-        err("sponza", "ours_raw", j) < err("sponza", "mitsuba", j) for j in range(len(spps))
-    )
-    floor_lo = min(
-        cb["embree_floor"]["floor_ratio_per_mitsuba_point"][i_of[s]] for s in not_met if s > 1
-    )
+        label = TIME_ERROR_SCENES[name]
+        lines += [
+            f"**{label}** (`{rel}`: {d['args']['size']}^2, reference {sc['ref_spp']} spp, minimum "
+            f"of {d['args']['repeats']} runs, Mitsuba `{d['results']['mitsuba_variant']}`, "
+            f"{load_txt}: " + ("quiet)." if quiet else "**not a quiet run: no claim**)."),
+            "",
+        ]
+
+        def row(what: str, ratios: list[float | None], mark: bool = True, quiet=quiet) -> str:
+            cells = [
+                "n/a" if r is None else bold(f2(r), quiet and mark and r <= 0.5) for r in ratios
+            ]
+            return f"| {what} | " + " | ".join(cells) + " |"
+
+        def ratios(key: str, curve: str = "ours_raw", sc=sc) -> list[float | None]:
+            return sc[key][curve]["time_ratio_per_mitsuba_point"]
+
+        mi_t = [p["time_s"] for p in cur["mitsuba"]]
+        per_sample = [o["time_s"] / m["time_s"] for o, m in zip(cur["ours_raw"], cur["mitsuba"])]
+        err_ratio = [o["rmse"] / m["rmse"] for o, m in zip(cur["ours_raw"], cur["mitsuba"])]
+        head = " | ".join(f"{s} ({t:.3g} s)" for s, t in zip(spps, mi_t, strict=True))
+        lines += [
+            f"| Mitsuba spp (its time) | {head} |",
+            "|---" * (len(spps) + 1) + "|",
+            row("per sample: our time / Mitsuba's, same spp", per_sample, mark=False),
+            row("RMSE per sample: ours / Mitsuba's, same spp", err_ratio, mark=False),
+            row("RMSE, ours raw (default: Sobol, robust Embree)", ratios("target_rmse")),
+            row("RMSE, ours raw, `robust=False`", ratios("target_rmse", "ours_raw_fast")),
+            row("RMSE, ours with denoised GI (OIDN)", ratios("target_rmse", "ours_denoised")),
+            *(
+                [row("RMSE, denoised GI, OIDN 'fast'", ratios("target_rmse", "ours_denoised_fast"))]
+                if "ours_denoised_fast" in sc["target_rmse"]
+                else []
+            ),
+            row("RMSE, Embree floor", sc["embree_floor"]["floor_ratio_per_mitsuba_point"], False),
+            row("FLIP, ours raw", ratios("target_flip")),
+            row("FLIP, ours with denoised GI (OIDN)", ratios("target_flip", "ours_denoised")),
+            "",
+        ]
+        if not quiet:
+            continue
+        slower = [s for s, r in zip(spps, per_sample, strict=True) if r > 1]
+
+        def met(key: str, spps: list[int] = spps, ratios=ratios) -> str:
+            first = _first_met(ratios(key), spps)
+            if first is not None:
+                return f"met from Mitsuba's {first} spp up"
+            some = [s for s, r in zip(spps, ratios(key)) if r is not None and r <= 0.5]
+            return f"met at {', '.join(map(str, some))} spp only" if some else "not met"
+
+        lines += [
+            f"{label}, quiet run: the RMSE target is {met('target_rmse')}, the FLIP target (raw) "
+            f"{met('target_flip')}. Per sample",
+            f"we take {span(per_sample, f2)} of Mitsuba's time"
+            + (
+                f" (slower than Mitsuba at {', '.join(map(str, slower))} spp)"
+                if slower
+                else " (faster at every spp)"
+            )
+            + f", with {span(err_ratio, f2)} of its RMSE.",
+            "",
+        ]
     lines += [
-        f"Sponza: met on both metrics from Mitsuba's {sp_both} spp "
-        f"({tsec(mi_t['sponza'][i_of[sp_both]])} s) up. Cornell: met on RMSE from {cb_rmse} spp",
-        f"({tsec(mi_t['cornell_box'][i_of[cb_rmse]])} s) up; on FLIP only with the denoised GI "
-        f"(from {cb_flip_dn} spp), the raw image needs {span(raw_flip, f2)} of",
-        f"Mitsuba's time. Not met at Mitsuba's 1 spp (both scenes) and "
-        f"{'-'.join(str(s) for s in not_met if s > 1)} spp (Cornell): there even",
-        f"Embree alone, on our rays, takes {f2(floor_lo)} of Mitsuba's time or more (Mitsuba "
-        "itself traces with",
-        f"Embree). Per sample we run at Mitsuba's speed (1 spp: Cornell "
-        f"{ms('cornell_box', 'ours_raw')} vs {ms('cornell_box', 'mitsuba')} ms, Sponza "
-        f"{ms('sponza', 'ours_raw')} vs {ms('sponza', 'mitsuba')} ms)",
-        f"with lower error (Cornell from {cb_lower} spp; Sponza "
-        + ("at every spp" if sp_every else "not at every spp")
-        + f": {f2(err('sponza', 'ours_raw'))} vs {f2(err('sponza', 'mitsuba'))} RMSE at 1 spp).",
+        "Commands (each about 10 min or less on this 2-core machine; `--wait-quiet` waits for "
+        "the load to settle):",
         "",
-    ]
-    # run-to-run spread against the earlier run (same arguments but 3 rounds instead of 5)
-    esc = earlier["results"]["scenes"]
-    moves = [
-        abs(a / b - 1)
-        for n in sc
-        for key in ("target_rmse", "target_flip")
-        for a, b in zip(ratios(sc[n], key), ratios(esc[n], key), strict=True)
-        if a is not None and b is not None
-    ]
-    e_cb = ratios(esc["cornell_box"], "target_rmse")
-    e_cb_from = _first_met(e_cb, spps)
-    e_sp = ratios(esc["sponza"], "target_rmse")
-    lines += [
-        "The machine is a shared VM, so the same render varies between minutes. Ours, Mitsuba "
-        "and the floor",
-        f"are timed in interleaved rounds, and the minimum of {d['args']['repeats']} is kept. "
-        "Single ratios still move between",
-        f"runs: by up to {100 * statistics.median(moves):.0f} % (median) and "
-        f"{100 * max(moves):.0f} % (max) against the earlier run",
-        f"(`time_error_earlier_run.json`, minimum of {earlier['args']['repeats']}), which had "
-        f"Cornell RMSE at {f2(e_cb[i_of[e_cb_from]])} from {e_cb_from} spp,",
-        f"and Sponza {f2(e_sp[i_of[2]])} at 2 spp.",
+        *[f"    .venv/bin/python {TIME_ERROR_COMMANDS[n]}" for n in TIME_ERROR_SCENES],
+        "",
         "First use on a new machine compiles the kernels "
         f"({cur_warmup(results):.0f} s in the throughput run, cached after).",
         "",
@@ -797,6 +876,52 @@ def block_trace_refactor(results: Path) -> str:
     )
 
 
+#: paired A/B runs of the issue-22 speed changes: (results name, what B changed against A,
+#: kept in the code)
+TRACE_SPEED_AB = (
+    ("nrt", "megakernel without numba's reference counting (`_nrt=False`)", True),
+    ("zero_in_kernel", "per-sample outputs zeroed in the kernel, not in a separate pass", True),
+    ("branch", "both, against the branch's base", True),
+    ("bitrev", "LLVM's bitreverse in the Sobol scrambling", False),
+    ("tiles", "pixels walked in 8x8 tiles instead of rows", False),
+)
+
+
+def block_trace_speed(results: Path) -> str:
+    lines = [
+        "**Tracer speed changes** (`benchmarks/trace_ab.py`, paired A/B: one process per "
+        "checkout, renders alternating, 8 spp,",
+        "median ratio B/A of rays per second of process CPU time (quartiles); images "
+        "bit-identical, so the error per sample is unchanged):",
+        "",
+        "| change (B) | kept | Cornell box | Sponza | size, threads, rounds, 1-minute load |",
+        "|---|---|---|---|---|",
+    ]
+    for key, what, kept in TRACE_SPEED_AB:
+        cells, meta, rounds, loads = [], "", [], []
+        for scene in ("cornell_box", "sponza"):
+            found = sorted((results / "trace").glob(f"ab_{key}_{scene}*.json"))
+            if not found:
+                cells.append("n/a")
+                continue
+            runs = []  # every run of this change (a rerun: ab_<key>_<scene>_rerun.json)
+            for path in found:
+                d = json.loads(path.read_text())
+                q = d["cpu_ratio_quartiles"]
+                runs.append(f"{d['median_cpu_ratio_b_over_a']:.3f} ({q[0]:.3f}-{q[-1]:.3f})")
+                meta = f"{d['args']['size']}^2, {d['args']['threads']}"
+                rounds.append(str(len(d["rounds"])))
+                loads += d["load_1min"]
+            cells.append("; rerun ".join(runs))
+        if loads:
+            meta += f", {'/'.join(rounds)}, {min(loads):.1f}-{max(loads):.1f}"
+        lines.append(
+            f"| {what} | {'yes' if kept else 'no'} | " + " | ".join(cells) + f" | {meta} |"
+        )
+    lines.append("")
+    return "\n".join(lines)
+
+
 def block_gan_figure7(results: Path) -> str:
     d = load("gan/figure7.json", results)
     cfg = load("gan/figure7_config.json", results)
@@ -1212,6 +1337,8 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "raster": block_raster,
     "trace-throughput": block_trace_throughput,
     "trace-time-error": block_trace_time_error,
+    "trace-profile": block_trace_profile,
+    "trace-speed": block_trace_speed,
     "denoise": block_denoise,
     "store": block_store,
     "warp": block_warp,

@@ -147,6 +147,7 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=8)
     ap.add_argument("--sampler", default="sobol", choices=["sobol", "independent"])
     args = ap.parse_args()
+    load_start = os.getloadavg()
     cfg = TraceConfig(spp=args.spp, spp_per_pass=4, max_depth=8, seed=0, sampler=args.sampler)
     rows = []
     scenes = [("cornell_box", icb.scene.cornell_box)]
@@ -175,7 +176,14 @@ def main() -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     write_json(
         OUT / "throughput.json",
-        {"config": cfg, "args": vars(args), "results": rows, "run_info": run_info()},
+        {
+            "config": cfg,
+            "args": vars(args),
+            "load_average_start": list(load_start),
+            "quiet": load_start[0] < 1.0,
+            "results": rows,
+            "run_info": run_info(),
+        },
     )
     import matplotlib
 

@@ -10,7 +10,8 @@ references is reported as `reference_gap`. Mitsuba cannot split DL/GI, so "full"
 
 Variants of ours: raw (default config: sobol sampler, robust Embree), raw_fast (robust=False, as
 Mitsuba's default), raw_independent (hash sampler), denoised (GI
-denoised with OIDN + albedo/normal, as the system uses it: DL comes from the raster), denoised_full
+denoised with OIDN + albedo/normal, as the system uses it: DL comes from the raster),
+denoised_fast (the same with OIDN's 'fast' quality), denoised_full
 (direct + GI denoised together) and adaptive. The first render (numba JIT or cache load) is a
 warm-up, not counted; Mitsuba's kernel cache is warmed by one untimed render per spp. The target
 check gives, per Mitsuba point (T, E), the time our curve needs to reach E, divided by T. The
@@ -22,7 +23,17 @@ The peer is Mitsuba's `llvm_ad_rgb` variant unless `--mitsuba-variant` names ano
 that cannot be loaded stops the benchmark with a message (`make bench-deps` installs Mitsuba and
 libLLVM), it is never silently replaced by a slower one.
 
-Writes benchmarks/results/trace/time_error.{json,png}. Mitsuba is a benchmark peer only.
+Quiet machine: the 1-minute load average is recorded at the start and the end of the run, and a
+run whose load at the start is 1 or more is marked ``"quiet": false`` in its results file
+(benchmarks/readme_tables.py then labels its numbers as no claim). ``--wait-quiet S`` waits up to S
+seconds for the load to drop below 1 before starting (a previous run's load decays in a minute or
+two). The README's numbers come from one run per scene, e.g.
+
+    .venv/bin/python benchmarks/trace_time_error.py --size 256 --scenes cornell_box \
+        --out-name time_error_cornell_box --wait-quiet 120
+
+Writes benchmarks/results/trace/<out-name>.{json,png} (default time_error). Mitsuba is a
+benchmark peer only.
 """
 
 from __future__ import annotations
@@ -283,8 +294,9 @@ def target_check(curves: dict, metric: str) -> dict:
     return out
 
 
-def plot(results: dict, size: int, path: Path) -> None:
-    """Error against time per scene (RMSE and FLIP), with the Embree floor of our raw curve."""
+def plot(results: dict, size: int, path: Path, note: str = "") -> None:
+    """Error against time per scene (RMSE and FLIP), with Mitsuba's curve and the Embree floor
+    of our raw curve; ``note`` (e.g. the load) goes into the titles."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -297,8 +309,8 @@ def plot(results: dict, size: int, path: Path) -> None:
         for i, metric in enumerate(("rmse", "flip")):
             ax = axes[i, j]
             for key, c in sc["curves"].items():
-                style = "s-" if key == "mitsuba" else "o-"
-                ax.loglog([p["time_s"] for p in c], [p[metric] for p in c], style, label=key, ms=4)
+                kw = dict(color="k", lw=2.5, marker="s") if key == "mitsuba" else dict(marker="o")
+                ax.loglog([p["time_s"] for p in c], [p[metric] for p in c], label=key, ms=4, **kw)
             floor = sc.get("embree_floor", {}).get("points")
             if floor:  # our raw errors at the time Embree alone needs for the same rays
                 raw = sc["curves"]["ours_raw"]
@@ -306,13 +318,30 @@ def plot(results: dict, size: int, path: Path) -> None:
                           label="Embree alone, ours_raw's rays")  # fmt: skip
             ax.set_xlabel("time (s)")
             ax.set_ylabel(f"{metric} of full")
-            ax.set_title(f"{name} {size}x{size}")
+            ax.set_title(f"{name} {size}x{size} {note}".strip(), fontsize=9)
         axes[0, j].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
 
 
 MITSUBA_VARIANT = "llvm_ad_rgb"
+#: a run is quiet when the 1-minute load average at its start is below this
+QUIET_LOAD = 1.0
+
+
+def _load_note(load: list[float] | None, quiet: bool | None) -> str:
+    if load is None:
+        return "(load not recorded)"
+    return f"(load {load[0]:.2f} at start: {'quiet' if quiet else 'NOT quiet'})"
+
+
+def wait_quiet(max_s: float, poll_s: float = 5.0) -> float:
+    """Wait until the 1-minute load average is below QUIET_LOAD, at most ``max_s`` seconds;
+    returns the seconds waited."""
+    t0 = time.perf_counter()
+    while os.getloadavg()[0] >= QUIET_LOAD and time.perf_counter() - t0 < max_s:
+        time.sleep(min(poll_s, max(max_s - (time.perf_counter() - t0), 0.0)))
+    return time.perf_counter() - t0
 
 
 class PeerMissingError(RuntimeError):
@@ -373,17 +402,39 @@ def main() -> None:
         help=f"the Mitsuba variant to compare with (default {MITSUBA_VARIANT}); a variant that "
         "cannot be loaded is an error, never replaced by another",
     )
+    ap.add_argument(
+        "--wait-quiet",
+        type=float,
+        default=0.0,
+        help="wait up to this many seconds for the 1-minute load average to drop below "
+        f"{QUIET_LOAD} before starting (0: start at once); the load at the start is recorded "
+        "either way and decides the results file's 'quiet' flag",
+    )
     args = ap.parse_args()
     if args.replot:
         saved = json.loads((OUT / f"{args.out_name}.json").read_text())
-        plot(saved["results"], saved["args"]["size"], OUT / f"{args.out_name}.png")
+        plot(
+            saved["results"],
+            saved["args"]["size"],
+            OUT / f"{args.out_name}.png",
+            _load_note(saved.get("load_average_start"), saved.get("quiet")),
+        )
         print(f"wrote {OUT / args.out_name}.png")
         return
+    t_run = time.perf_counter()
     try:
         mi = load_mitsuba(args.mitsuba_variant)
     except PeerMissingError as e:
         sys.exit(f"trace_time_error.py: {e}")
     spps = [int(s) for s in args.spps.split(",")]
+    waited = wait_quiet(args.wait_quiet)
+    load_start = os.getloadavg()
+    quiet = load_start[0] < QUIET_LOAD
+    print(
+        f"1-minute load at the start {load_start[0]:.2f} (waited {waited:.0f} s): "
+        + ("quiet" if quiet else "NOT quiet: the results file is marked quiet=false"),
+        flush=True,
+    )
     results = {"mitsuba_variant": mi.variant(), "scenes": {}}
     for name in args.scenes.split(","):
         scene = icb.scene.cornell_box() if name == "cornell_box" else sponza()
@@ -434,6 +485,7 @@ def main() -> None:
             "ours_raw_fast",
             "ours_raw_independent",
             "ours_denoised",
+            "ours_denoised_fast",
             "ours_denoised_full",
             "ours_adaptive",
             "mitsuba",
@@ -468,6 +520,18 @@ def main() -> None:
                 lambda r=r: icb.trace.denoise(r.gi_raw, r.albedo, r.normal), args.repeats
             )
             curves["ours_denoised"].append(
+                {
+                    "spp": spp,
+                    "time_s": r.stats.time_s["total"] + t_dn,
+                    **errors(ref_full, r.direct + gi_dn),
+                }
+            )
+            # the same with OIDN's 'fast' quality (about half its time)
+            gi_dn, t_dn = timed(
+                lambda r=r: icb.trace.denoise(r.gi_raw, r.albedo, r.normal, quality="fast"),
+                args.repeats,
+            )
+            curves["ours_denoised_fast"].append(
                 {
                     "spp": spp,
                     "time_s": r.stats.time_s["total"] + t_dn,
@@ -537,11 +601,24 @@ def main() -> None:
         for k, v in results["scenes"][name]["target_rmse"].items():
             print(f"  {k}: time ratio to reach Mitsuba's RMSE {v['time_ratio_per_mitsuba_point']}")
     OUT.mkdir(parents=True, exist_ok=True)
+    load_end = os.getloadavg()
     write_json(
         OUT / f"{args.out_name}.json",
-        {"args": vars(args), "max_depth": MAX_DEPTH, "results": results, "run_info": run_info()},
+        {
+            "args": vars(args),
+            "max_depth": MAX_DEPTH,
+            "quiet": bool(quiet),
+            "quiet_rule": f"1-minute load average at the start < {QUIET_LOAD}",
+            "load_average_start": list(load_start),
+            "load_average_end": list(load_end),
+            "waited_for_quiet_s": waited,
+            "wall_s": time.perf_counter() - t_run,
+            "mitsuba_version": mi.__version__,
+            "results": results,
+            "run_info": run_info(),
+        },
     )
-    plot(results, args.size, OUT / f"{args.out_name}.png")
+    plot(results, args.size, OUT / f"{args.out_name}.png", _load_note(load_start, quiet))
     print(f"wrote {OUT / args.out_name}.json")
 
 

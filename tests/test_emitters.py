@@ -293,3 +293,24 @@ def test_gi_split_against_brute_force(cornell, tmp_path):
     assert em.sum() >= 1
     assert np.all(prom.gi[em] < 0.05 * L)
     np.testing.assert_allclose(prom.full.mean((0, 1)), full.full.mean((0, 1)), rtol=0.03)
+
+
+def test_light_faces_of_many_lights_match_each_lights_own_test():
+    """light_faces tests each light only against faces near it: the answer is still every
+    emissive face whose corners all lie in some light (checked light by light here), for a
+    sphere promoted to one light per triangle, with half of those lights dropped."""
+    import dataclasses
+
+    from icbtool.scene import white_furnace
+
+    sphere = promote_emitters(white_furnace(subdivisions=2), max_triangles=10_000)
+    half = dataclasses.replace(sphere, lights=sphere.lights[::2])
+    for scene, n_lights in ((sphere, 320), (half, 160)):
+        lights = scene.lights_of("area")
+        assert len(lights) == n_lights
+        tri = scene.vertices[scene.faces[scene.emissive_faces]]
+        want = np.zeros(len(scene.faces), bool)
+        for light in lights:
+            want[scene.emissive_faces[light.contains(tri).all(axis=1)]] = True
+        got = light_faces(scene)
+        assert got.sum() == n_lights and np.array_equal(got, want)

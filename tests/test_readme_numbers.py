@@ -81,3 +81,27 @@ def test_span_formats_ranges():
     assert rt.span([84.26, 83.79]) == "84"
     assert rt.span([31.8, 37.0]) == "32-37"
     assert rt.span([0.494, 0.629], rt.f2) == "0.49-0.63"
+
+
+def test_trace_time_error_claims_only_from_quiet_runs(tmp_path):
+    """A time/error run whose 1-minute load at the start was >= 1 (or not recorded) is labelled
+    and makes no claim (no bold 'met' cells, no prose); the same numbers from a quiet run do."""
+    results = tmp_path / "results"
+    shutil.copytree(REPO / "benchmarks" / "results", results)
+    d = json.loads((results / "trace" / "time_error.json").read_text())
+    d["results"]["scenes"] = {"cornell_box": d["results"]["scenes"]["cornell_box"]}
+
+    def cornell_block(quiet: bool, load: float) -> str:
+        d.update(quiet=quiet, load_average_start=[load, load, load])
+        (results / "trace" / "time_error_cornell_box.json").write_text(json.dumps(d))
+        block = rt.block_trace_time_error(results)
+        return block[block.index("**Cornell box**") : block.index("**Sponza**")]
+
+    loaded = cornell_block(False, 2.5)
+    assert "time_error_cornell_box.json" in loaded and "not a quiet run: no claim" in loaded
+    assert "**0." not in loaded and "quiet run: the RMSE target" not in loaded
+    # a file that claims quiet but recorded a load >= 1 is not trusted either
+    assert "not a quiet run" in cornell_block(True, 1.2)
+    quiet = cornell_block(True, 0.4)
+    assert "not a quiet run" not in quiet and "quiet run: the RMSE target is met" in quiet
+    assert "**0." in quiet  # the ratios <= 0.5 are bold (met)

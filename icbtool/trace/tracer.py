@@ -656,11 +656,12 @@ class _Tracer:
         ws = self._ws
         want_aux = cfg.aux or cfg.denoise
         # per-sample outputs (workspace views: valid until the next call)
-        direct = ws.zeros("direct", (P, 3), np.float64)
-        gi = ws.zeros("gi", (P, 3), np.float64)
-        first_hit = ws.zeros("first_hit", (P,), np.bool_)
-        alb_out = ws.zeros("alb", (P if want_aux else 1, 3), np.float64)
-        nrm_out = ws.zeros("nrm", (P if want_aux else 1, 3), np.float64)
+        # (not zeroed here: the kernel zeroes each sample's rows as it starts the sample)
+        direct = ws.get("direct", (P, 3), np.float64)
+        gi = ws.get("gi", (P, 3), np.float64)
+        first_hit = ws.get("first_hit", (P,), np.bool_)
+        alb_out = ws.get("alb", (P if want_aux else 1, 3), np.float64)
+        nrm_out = ws.get("nrm", (P if want_aux else 1, 3), np.float64)
         if ray_log is None:
             log = (
                 np.zeros((1, 3), np.float32),
