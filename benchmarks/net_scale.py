@@ -102,9 +102,9 @@ class ServeProcess:
         env = {**ENV, "ICBTOOL_TOKEN": token}  # not on the command line (ps shows it)
         if repo is not None:  # another checkout's server (before / after)
             env["PYTHONPATH"] = str(repo)
-        self.proc = subprocess.Popen(
-            cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
-        )
+        # cwd too: `python -m` puts the working directory before PYTHONPATH on sys.path
+        self.proc = subprocess.Popen(cmd, env=env, cwd=repo or REPO, stdout=subprocess.PIPE,
+                                     stderr=subprocess.DEVNULL, text=True)  # fmt: skip
         deadline = time.monotonic() + T
         while time.monotonic() < deadline:
             line = self.proc.stdout.readline()
@@ -849,7 +849,8 @@ def plot(d: dict[str, Any], path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--part", choices=("profile", "hits", "bake", "attack", "all"), default="all")
+    parts = ("profile", "ab", "hits", "bake", "attack", "all")
+    ap.add_argument("--part", choices=parts, default="all", help="ab: not part of all")
     ap.add_argument("--hit-clients", type=int, default=32)
     ap.add_argument("--miss-clients", type=int, default=2)
     ap.add_argument("--misses", type=int, default=1, help="misses per miss client")
