@@ -900,9 +900,12 @@ class Server:
         if not self._hits or self._writer is None or self._cloud is None:
             return
         batch, self._hits = self._hits, {}
-        with contextlib.suppress(Exception):  # counts are advisory: never fail a request
+        try:
             await asyncio.wrap_future(self._writer.submit(self._cloud.store.add_hits, batch))
-            self.stats.hit_counts_flushed += sum(n for n, _ in batch.values())
+        except Exception as e:  # counts order evictions only: logged, never a request's failure
+            log.warning("hit counts of %d records not stored: %r", len(batch), e)
+            return
+        self.stats.hit_counts_flushed += sum(n for n, _ in batch.values())
 
     def encode_reference(
         self, ref: Any, gi_codec: str, depth_codec: str
