@@ -205,6 +205,24 @@ def test_store_add_hits_counts_and_refuses_a_reader(scene, tmp_path):
             s.add_hits({rid: (1, 1e9)})
 
 
+def test_the_servers_renders_run_at_its_render_nice(scene, tmp_path):
+    """ServerConfig.render_nice reaches the render pool: the render thread's priority is that
+    many nice levels below the server's (it was left at the server's: hits then competed with
+    the renders for the cores)."""
+    import os
+    import threading
+
+    if not hasattr(os, "getpriority"):
+        pytest.skip("no thread priorities on this OS")
+    me = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    with Server(scene, tmp_path / "s", TOKEN, ServerConfig(render_nice=7), CLOUD) as srv:
+        (miss,) = ask(srv.url, (_request(scene, 0.5), *CODECS))
+        assert not miss.fields["cache_hit"]
+        render = [t for t in threading.enumerate() if t.name.startswith("icb-render")]
+        assert len(render) == 1
+        assert os.getpriority(os.PRIO_PROCESS, render[0].native_id) == min(19, me + 7)
+
+
 # ------------------------------------------------------------------------ LPM manifests
 def test_lpm_manifest_names_files_without_the_servers_folders(scene):
     from icbtool.net.mesh_stream import MeshStream

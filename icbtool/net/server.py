@@ -540,7 +540,9 @@ class Server:
             # writer first: it creates the store and registers the scene the reader follows
             await asyncio.wrap_future(self._writer.submit(self._open_writer))
             await asyncio.wrap_future(self._lookup.submit(self._open_reader))
-            self._pool = await asyncio.to_thread(open_pool, self.scene, cfg.workers, cfg.scheduler)
+            self._pool = await asyncio.to_thread(
+                open_pool, self.scene, cfg.workers, cfg.scheduler, cfg.render_nice
+            )
             self._renders = _FairQueue(self._pool.capacity, cfg.max_queued_renders)
             async with serve(self._handle, cfg.host, cfg.port, **self.serve_options()) as ws:
                 self.port = int(next(iter(ws.sockets)).getsockname()[1])
