@@ -2,10 +2,17 @@
 memory under attack. Everything on loopback (127.0.0.1; the sockets are listed with ``ss -tnp``
 and checked).
 
+0. ``profile``: where a hit's time goes: each step of a hit alone (median microseconds: open the
+   request, prefetch camera, lookup, kept reply or payload read + encode, seal the reply; and a
+   client's), then hits alone for ``--profile-s`` with 1 and 32 lean clients and 32
+   ``NetworkSource`` clients: throughput, latency, CPU per hit of the server (its event-loop
+   thread apart) and of the clients.
 1. ``hits``: a server (``icbtool serve`` in a subprocess, ``--workers N`` local Dask workers)
-   with 32 clients replaying cache hits (64 x 64, prewarmed) while 2 clients each ask for
-   ``--misses`` cache misses at 1024 x 1024: hit latency p50/p99 during the misses, miss latency,
-   for N = 1 and 2.
+   with 32 clients replaying cache hits (64 x 64, prewarmed; ``--hit-client lean``: all on one
+   event loop, each reply opened and verified but its codecs not decoded, see
+   :class:`LeanHitClients`) while 2 clients each ask for ``--misses`` cache misses at 1024 x
+   1024: hit latency p50/p99 alone and during the misses, throughput and CPU per hit, miss
+   latency, for N = 1 and 2.
 2. ``bake``: the same path baked single-process, on 1 and 2 local Dask workers, and on a
    scheduler plus two worker processes started separately (``dask scheduler`` / ``dask worker``,
    127.0.0.1): records/min (after one warm-up view per worker, which compiles the tracer there)
@@ -13,10 +20,15 @@ and checked).
 3. ``attack``: the server's RSS before and after the malformed / oversized / abusive inputs of
    issue 18 (and 80 more malformed frames), and whether it still answers.
 
-Writes benchmarks/results/net/net_scale.json and net_scale.png; README's ``net-scale`` block is
-generated from them (benchmarks/readme_tables.py).
+``ab`` (not in ``all``): the server of an older checkout (``--ab-repo DIR``, e.g. ``git archive
+COMMIT | tar -x -C DIR``) and this one, alternately, ``--ab-rounds`` times, 32 lean clients, hits
+alone: before / after on the same machine state.
 
-    nice -n 10 .venv/bin/python benchmarks/net_scale.py [--part hits|bake|attack|all]
+Writes benchmarks/results/net/net_scale.json and net_scale.png; README's ``net-scale`` block is
+generated from them (benchmarks/readme_tables.py). Each part replaces its own entry only.
+
+    nice -n 10 .venv/bin/python benchmarks/net_scale.py [--part profile|hits|bake|attack|all]
+    nice -n 10 .venv/bin/python benchmarks/net_scale.py --part ab --ab-repo /tmp/net_before
 """
 
 from __future__ import annotations
