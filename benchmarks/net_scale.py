@@ -2,10 +2,17 @@
 memory under attack. Everything on loopback (127.0.0.1; the sockets are listed with ``ss -tnp``
 and checked).
 
+0. ``profile``: where a hit's time goes: each step of a hit alone (median microseconds: open the
+   request, prefetch camera, lookup, kept reply or payload read + encode, seal the reply; and a
+   client's), then hits alone for ``--profile-s`` with 1 and 32 lean clients and 32
+   ``NetworkSource`` clients: throughput, latency, CPU per hit of the server (its event-loop
+   thread apart) and of the clients.
 1. ``hits``: a server (``icbtool serve`` in a subprocess, ``--workers N`` local Dask workers)
-   with 32 clients replaying cache hits (64 x 64, prewarmed) while 2 clients each ask for
-   ``--misses`` cache misses at 1024 x 1024: hit latency p50/p99 during the misses, miss latency,
-   for N = 1 and 2.
+   with 32 clients replaying cache hits (64 x 64, prewarmed; ``--hit-client lean``: all on one
+   event loop, each reply opened and verified but its codecs not decoded, see
+   :class:`LeanHitClients`) while 2 clients each ask for ``--misses`` cache misses at 1024 x
+   1024: hit latency p50/p99 alone and during the misses, throughput and CPU per hit, miss
+   latency, for N = 1 and 2.
 2. ``bake``: the same path baked single-process, on 1 and 2 local Dask workers, and on a
    scheduler plus two worker processes started separately (``dask scheduler`` / ``dask worker``,
    127.0.0.1): records/min (after one warm-up view per worker, which compiles the tracer there)
@@ -13,10 +20,15 @@ and checked).
 3. ``attack``: the server's RSS before and after the malformed / oversized / abusive inputs of
    issue 18 (and 80 more malformed frames), and whether it still answers.
 
-Writes benchmarks/results/net/net_scale.json and net_scale.png; README's ``net-scale`` block is
-generated from them (benchmarks/readme_tables.py).
+``ab`` (not in ``all``): the server of an older checkout (``--ab-repo DIR``, e.g. ``git archive
+COMMIT | tar -x -C DIR``) and this one, alternately, ``--ab-rounds`` times, 32 lean clients, hits
+alone: before / after on the same machine state.
 
-    nice -n 10 .venv/bin/python benchmarks/net_scale.py [--part hits|bake|attack|all]
+Writes benchmarks/results/net/net_scale.json and net_scale.png; README's ``net-scale`` block is
+generated from them (benchmarks/readme_tables.py). Each part replaces its own entry only.
+
+    nice -n 10 .venv/bin/python benchmarks/net_scale.py [--part profile|hits|bake|attack|all]
+    nice -n 10 .venv/bin/python benchmarks/net_scale.py --part ab --ab-repo /tmp/net_before
 """
 
 from __future__ import annotations
@@ -95,14 +107,16 @@ def sockets_on_loopback(pids: list[int]) -> dict[str, Any]:
 class ServeProcess:
     """``icbtool serve`` in a subprocess, until :meth:`stop` (SIGTERM)."""
 
-    def __init__(self, store: Path, token: str, *extra: str) -> None:
+    def __init__(self, store: Path, token: str, *extra: str, repo: str | None = None) -> None:
         self.port = _free_port()
         cmd = [sys.executable, "-m", "icbtool", "serve", "cornell_box", "--store", str(store),
                "--port", str(self.port), "--no-lpm", *extra]  # fmt: skip
         env = {**ENV, "ICBTOOL_TOKEN": token}  # not on the command line (ps shows it)
-        self.proc = subprocess.Popen(
-            cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
-        )
+        if repo is not None:  # another checkout's server (before / after)
+            env["PYTHONPATH"] = str(repo)
+        # cwd too: `python -m` puts the working directory before PYTHONPATH on sys.path
+        self.proc = subprocess.Popen(cmd, env=env, cwd=repo or REPO, stdout=subprocess.PIPE,
+                                     stderr=subprocess.DEVNULL, text=True)  # fmt: skip
         deadline = time.monotonic() + T
         while time.monotonic() < deadline:
             line = self.proc.stdout.readline()
@@ -127,42 +141,348 @@ def _request(scene: Any, t: float, size: int, seq: int = 0) -> Any:
     return system.GIRequest(cam, time_s=t, seq=seq, depth_range=(0.5, 8.0))
 
 
+# ------------------------------------------------------------------------------- hit clients
+class LeanHitClients:
+    """``n`` hit clients on one asyncio loop (a thread of this process), each on its own
+    authenticated connection, each replaying one request: send it, wait for the reply, send it
+    again (closed loop, no think time).
+
+    A client does what any client must do with a reply and no more: open it (AES-GCM: decrypt
+    and verify the tag), parse and validate its header, check that it is the hit it asked for.
+    It does not decode the GI/depth/mask codecs: that is the client's own work on its own
+    machine (the profile, ``--part profile``, measures it), not the server's, and here it would
+    take the cores the server is measured on. A latency runs from sealing the request to the
+    opened reply. ``NetworkSource`` clients (a thread and an event loop each, codec decode)
+    are ``--hit-client full``.
+    """
+
+    def __init__(self, url: str, token: str, reqs: list[Any], n: int, max_hits: int) -> None:
+        from icbtool.net import codec as codec_mod
+
+        self.url, self.token, self.max_hits = url, token, max_hits
+        self.fields = [
+            {"request": protocol.request_to_json(reqs[i % len(reqs)]),
+             "codec": codec_mod.DEFAULT_GI_CODEC, "depth_codec": codec_mod.DEFAULT_DEPTH_CODEC}
+            for i in range(n)
+        ]  # fmt: skip
+        self.hits: list[tuple[float, float]] = []  # (sent at, ms)
+        self.server_ms: list[dict[str, float]] = []
+        self.errors: list[str] = []
+        self.loop = asyncio.new_event_loop()
+        self._stop: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._thread = threading.Thread(target=self._main, name="hit-clients", daemon=True)
+
+    def _main(self) -> None:
+        self.loop.run_until_complete(self._run())
+
+    async def _run(self) -> None:
+        from websockets.asyncio.client import connect
+
+        self._stop = asyncio.Event()
+        conns = []
+        for _ in self.fields:
+            ws = await connect(self.url, proxy=None, max_size=2**26, compression=None,
+                               open_timeout=T)  # fmt: skip
+            hs = crypto.ClientHandshake(self.token)
+            await ws.send(protocol.encode(protocol.Message("hello", hs.hello_fields())))
+            ch, auth = hs.finish(protocol.decode(await ws.recv()).fields)
+            await ws.send(protocol.encode(protocol.Message("auth", auth)))
+            info = protocol.decode(await ws.recv(), ch)
+            assert info.kind == "scene_info", info.kind
+            conns.append((ws, ch))
+        self._ready.set()
+        await asyncio.gather(*(self._client(ws, ch, f) for (ws, ch), f in zip(conns, self.fields)))
+        for ws, _ in conns:
+            await ws.close()
+
+    async def _client(self, ws: Any, ch: Any, fields: dict[str, Any]) -> None:
+        assert self._stop is not None
+        for rid in range(1, self.max_hits + 1):
+            if self._stop.is_set():
+                return
+            t0 = time.perf_counter()
+            msg = protocol.Message("gi_request", {"id": rid, **fields})
+            await ws.send(protocol.encode(msg, ch))
+            reply = protocol.decode(await ws.recv(), ch, max_bytes=2**26)
+            ms = 1e3 * (time.perf_counter() - t0)
+            f = reply.fields
+            if reply.kind != "gi_reply" or not f["cache_hit"] or f["id"] != rid:
+                self.errors.append(f"{reply.kind}: {str(f)[:80]}")
+                continue
+            self.hits.append((t0, ms))
+            self.server_ms.append(f["timings_ms"])
+
+    def start(self) -> LeanHitClients:
+        self._thread.start()
+        if not self._ready.wait(T):
+            raise RuntimeError("hit clients did not connect")
+        return self
+
+    def stop(self) -> None:
+        if self._stop is not None:
+            self.loop.call_soon_threadsafe(self._stop.set)
+        self._thread.join(T)
+
+
+class _FullHitClients:
+    """``n`` ``NetworkSource`` hit clients (a thread and an event loop each; they decode the
+    codecs as ``icbtool client`` does), with the interface of :class:`LeanHitClients`."""
+
+    def __init__(self, url: str, token: str, reqs: list[Any], n: int, max_hits: int) -> None:
+        self.hits: list[tuple[float, float]] = []
+        self.errors: list[str] = []
+        self._stop = threading.Event()
+        self._srcs = [NetworkSource(url, token, NetClientConfig(timeout_s=T)) for _ in range(n)]
+        self._threads = [
+            threading.Thread(target=self._client, args=(s, reqs[i % len(reqs)], max_hits))
+            for i, s in enumerate(self._srcs)
+        ]
+
+    def _client(self, src: Any, req: Any, max_hits: int) -> None:
+        for _ in range(max_hits):
+            if self._stop.is_set():
+                return
+            t0 = time.perf_counter()
+            try:
+                rep = src.request_remote(req)
+            except Exception as e:  # recorded, the loop goes on
+                self.errors.append(repr(e)[:80])
+                continue
+            if rep.cache_hit:
+                self.hits.append((t0, 1e3 * (time.perf_counter() - t0)))
+
+    def start(self) -> _FullHitClients:
+        for t in self._threads:
+            t.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(T)
+        for s in self._srcs:
+            s.close()
+
+
+# ------------------------------------------------------------------------------- 0. profile
+def _median_us(fn: Any, n: int) -> float:
+    fn()  # warm (imports, caches)
+    ts = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts) * 1e6)
+
+
+def _channels() -> tuple[Any, Any]:
+    """(client channel, server channel) of one handshake."""
+    tok = new_token()
+    c, s = crypto.ClientHandshake(tok), crypto.ServerHandshake(tok)
+    cch, auth = c.finish(s.welcome(c.hello_fields()))
+    return cch, s.verify(auth)
+
+
+def profile_steps(scene: Any, store_dir: Path, hit_reqs: list[Any], n: int) -> dict[str, Any]:
+    """Each step of a hit, alone, in this process (median microseconds of ``n`` runs): what the
+    server does between the request's bytes and the reply's, and what a client does."""
+    from icbtool import store as st
+    from icbtool.net import codec as codec_mod
+    from icbtool.net import server as server_mod
+    from icbtool.net.reply_cache import EncodedReply, ReplyCache
+    from icbtool.system.cloud import Cloud, CloudConfig
+
+    scfg = st.StoreConfig(readonly=True, create=False, refresh_interval_s=0.0)
+    reader = Cloud(scene, st.open(store_dir, scfg), CloudConfig())
+    req = hit_reqs[0]
+    gi_c, d_c = codec_mod.DEFAULT_GI_CODEC, codec_mod.DEFAULT_DEPTH_CODEC
+    rq = protocol.Message(
+        "gi_request",
+        {"id": 1, "request": protocol.request_to_json(req), "codec": gi_c, "depth_codec": d_c},
+    )
+    ref_cam = reader.reference_camera(req)
+    info, _ = reader.find(ref_cam)
+    rec = reader.store.get(info.record_id)
+    parts, payload = server_mod.encode_reference(rec, gi_c, d_c)
+    kept = ReplyCache(2**26)
+    key = (info.record_id, info.checksum, gi_c, d_c)
+    kept.put(key, EncodedReply(protocol.camera_to_json(rec.camera), parts, payload))
+    reply = protocol.Message(
+        "gi_reply",
+        {"id": 1, "camera": protocol.camera_to_json(rec.camera), "cache_hit": True,
+         "coalesced": False, "timings_ms": {"lookup": 0.1, "encode": 0.1, "server": 0.2},
+         "parts": parts},
+        payload,
+    )  # fmt: skip
+    tx, rx = _channels()
+
+    def opened_us(msg: Any) -> float:
+        """Median time to open + parse + validate ``msg`` (frames sealed in advance: the
+        receiver's replay check wants rising counters)."""
+        a, b = _channels()
+        frames = iter([protocol.encode(msg, a) for _ in range(n + 1)])
+        return _median_us(lambda: protocol.decode(next(frames), b), n)
+
+    def codec_decode() -> None:
+        off = 0
+        for p in parts:
+            blob = payload[off : off + p["bytes"]]
+            codec_mod.decode(blob, p["codec"], tuple(p["shape"]), p["dtype"])
+            off += p["bytes"]
+
+    server_us = {
+        "request: open + parse + validate": opened_us(rq),
+        "request_from_json": _median_us(
+            lambda: protocol.request_from_json(rq.fields["request"]), n
+        ),
+        "reference (prefetch) camera": _median_us(lambda: reader.reference_camera(req), n),
+        "coalescing key": _median_us(lambda: server_mod.camera_key(ref_cam), n),
+        "lookup: octree + covering check + index row": _median_us(lambda: reader.find(ref_cam), n),
+        "kept reply (reply cache get)": _median_us(lambda: kept.get(key), n),
+        "not kept: payload read + checksum + decode (all maps)": _median_us(
+            lambda: reader.store.get(info.record_id), n
+        ),
+        "not kept: encode gi/depth/mask": _median_us(
+            lambda: server_mod.encode_reference(rec, gi_c, d_c), n
+        ),
+        "reply: validate + header + seal": _median_us(lambda: protocol.encode(reply, tx), n),
+    }
+    client_us = {
+        "request: build + seal": _median_us(lambda: protocol.encode(rq, tx), n),
+        "reply: open + parse + validate": opened_us(reply),
+        "reply: codec decode (gi, depth, mask)": _median_us(codec_decode, n),
+    }
+    reader.store.close()
+    return {
+        "record": {
+            "height": rec.camera.height,
+            "width": rec.camera.width,
+            "stored_bytes": info.nbytes,
+            "reply_payload_bytes": len(payload),
+            "reply_bytes": len(protocol.encode(reply, tx)),
+            "request_bytes": len(protocol.encode(rq, tx)),
+        },  # fmt: skip
+        "server_us": server_us,
+        "client_us": client_us,
+        "repeats": n,
+    }
+
+
+def _cpu_s(pid: int) -> tuple[float, dict[int, float]]:
+    """(CPU seconds of process ``pid``, user + system, and per thread id)."""
+    import psutil
+
+    p = psutil.Process(pid)
+    t = p.cpu_times()
+    return t.user + t.system, {th.id: th.user_time + th.system_time for th in p.threads()}
+
+
+def _load_window(srv: ServeProcess, clients: Any, seconds: float) -> dict[str, Any]:
+    """Hits of ``clients`` for ``seconds``: latency, throughput, CPU per hit of the server
+    (its event loop thread, its other threads) and of this process (the clients)."""
+    time.sleep(1.0)  # every client is replaying
+    n0, t0 = len(clients.hits), time.perf_counter()
+    s0, th0 = _cpu_s(srv.proc.pid)
+    c0, _ = _cpu_s(os.getpid())
+    time.sleep(seconds)
+    n1, t1 = len(clients.hits), time.perf_counter()
+    s1, th1 = _cpu_s(srv.proc.pid)
+    c1, _ = _cpu_s(os.getpid())
+    lat = [ms for _, ms in clients.hits[n0:n1]]
+    n = max(1, n1 - n0)
+    pid = srv.proc.pid
+    loop_s = th1.get(pid, 0.0) - th0.get(pid, 0.0)
+    others = sorted((th1[k] - th0.get(k, 0.0) for k in th1 if k != pid), reverse=True)
+    out = {
+        "hits": n1 - n0,
+        "seconds": t1 - t0,
+        "hits_per_s": (n1 - n0) / (t1 - t0),
+        "p50_ms": float(np.percentile(lat, 50)) if lat else None,
+        "p99_ms": float(np.percentile(lat, 99)) if lat else None,
+        "mean_ms": float(np.mean(lat)) if lat else None,
+        "server_cpu_ms_per_hit": 1e3 * (s1 - s0) / n,
+        "server_event_loop_cpu_ms_per_hit": 1e3 * loop_s / n,
+        "server_other_threads_cpu_ms_per_hit": [1e3 * x / n for x in others[:4]],
+        "clients_cpu_ms_per_hit": 1e3 * (c1 - c0) / n,
+        "load_average": _load(),
+    }
+    sm = getattr(clients, "server_ms", None)
+    if sm:
+        win = sm[n0:n1] or sm
+        out["server_reported_ms_median"] = {
+            k: float(np.median([d.get(k, 0.0) for d in win])) for k in win[0]
+        }
+    return out
+
+
+def run_profile(scene: Any, args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
+    """Where a hit's time goes: each step alone (:func:`profile_steps`), then hits alone (no
+    misses): one lean client, ``hit_clients`` lean clients, as many ``NetworkSource`` ones."""
+    token = new_token()
+    store = tmp / "profile"
+    srv = ServeProcess(store, token, "--workers", "0", "--spp", str(args.spp),
+                       repo=args.server_repo)  # fmt: skip
+    try:
+        hit_reqs = [_request(scene, 0.5 + 1.2 * k, args.hit_size, seq=k) for k in range(4)]
+        with NetworkSource(srv.url, token, NetClientConfig(timeout_s=T)) as warm:
+            for r in hit_reqs:
+                warm.request_remote(r)
+        steps = profile_steps(scene, store, hit_reqs, args.profile_repeats)
+        loads = {}
+        runs = [("1 lean client", LeanHitClients, 1),
+                (f"{args.hit_clients} lean clients", LeanHitClients, args.hit_clients),
+                (f"{args.hit_clients} NetworkSource clients", _FullHitClients,
+                 args.hit_clients)]  # fmt: skip
+        for name, cls, n in runs:
+            c = cls(srv.url, token, hit_reqs, n, args.max_hits).start()
+            try:
+                loads[name] = _load_window(srv, c, args.profile_s)
+            finally:
+                c.stop()
+            print(name, loads[name], flush=True)
+    finally:
+        srv.stop()
+    return {**steps, "load": loads, "cores": os.cpu_count(), "load_average_end": _load()}
+
+
 # ------------------------------------------------------------------------------- 1. hits
+def _hit_clients(args: argparse.Namespace) -> Any:
+    return LeanHitClients if args.hit_client == "lean" else _FullHitClients
+
+
+def _cpu_window(srv: ServeProcess) -> tuple[float, float, float]:
+    return time.perf_counter(), _cpu_s(srv.proc.pid)[0], _cpu_s(os.getpid())[0]
+
+
+def _per_hit(a: tuple[float, float, float], b: tuple[float, float, float], n: int) -> dict:
+    n = max(1, n)
+    return {
+        "hits_per_s": n / (b[0] - a[0]),
+        "server_cpu_ms_per_hit": 1e3 * (b[1] - a[1]) / n,
+        "clients_cpu_ms_per_hit": 1e3 * (b[2] - a[2]) / n,
+    }
+
+
 def run_hits(scene: Any, workers: int, args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
+    """Hits alone for ``idle_s``, then the same hits while the miss clients' renders run."""
     token = new_token()
     srv = ServeProcess(tmp / f"hits{workers}", token, "--workers", str(workers),
-                       "--spp", str(args.spp), "--max-pending", "4")  # fmt: skip
-    cfg = NetClientConfig(timeout_s=T)
+                       "--spp", str(args.spp), "--max-pending", "4",
+                       repo=args.server_repo)  # fmt: skip
+    load_start = _load()
     miss_cfg = NetClientConfig(timeout_s=3 * T)  # niced renders on a loaded machine: slow
     try:
         hit_reqs = [_request(scene, 0.5 + 1.2 * k, args.hit_size, seq=k) for k in range(4)]
-        with NetworkSource(srv.url, token, cfg) as warm:
+        with NetworkSource(srv.url, token, NetClientConfig(timeout_s=T)) as warm:
             for r in hit_reqs:
                 warm.request_remote(r)  # rendered once: hits from now on
             assert all(warm.request_remote(r).cache_hit for r in hit_reqs)
-        clients = [NetworkSource(srv.url, token, cfg) for _ in range(args.hit_clients)]
         miss_clients = [NetworkSource(srv.url, token, miss_cfg) for _ in range(args.miss_clients)]
         window = {"start": float("inf"), "end": 0.0}
-        hits: list[tuple[float, float]] = []  # (sent at, ms)
         misses: list[float] = []
         errors: list[str] = []
-        stop = threading.Event()
         lock = threading.Lock()
-
-        def hitter(i: int) -> None:
-            src, req = clients[i], hit_reqs[i % len(hit_reqs)]
-            for _ in range(args.max_hits):
-                if stop.is_set():
-                    return
-                t0 = time.perf_counter()
-                try:
-                    rep = src.request_remote(req)
-                except Exception as e:  # recorded, the loop goes on
-                    errors.append(repr(e)[:80])
-                    continue
-                with lock:
-                    hits.append((t0, 1e3 * (time.perf_counter() - t0)))
-                assert rep.cache_hit
 
         def misser(i: int) -> None:
             for k in range(args.misses):
@@ -179,41 +499,48 @@ def run_hits(scene: Any, workers: int, args: argparse.Namespace, tmp: Path) -> d
             with lock:
                 window["end"] = max(window["end"], time.perf_counter())
 
-        threads = [threading.Thread(target=hitter, args=(i,)) for i in range(args.hit_clients)]
-        for t in threads:
-            t.start()
+        clients = _hit_clients(args)(srv.url, token, hit_reqs, args.hit_clients, args.max_hits)
+        clients.start()
         time.sleep(1.0)  # every hit client is replaying
-        t_idle = time.perf_counter()
+        a, n_a = _cpu_window(srv), len(clients.hits)
         time.sleep(args.idle_s)  # the baseline: the same hits, no miss rendering
-        with lock:
-            idle = [ms for t0, ms in hits if t0 >= t_idle]
+        b, n_b = _cpu_window(srv), len(clients.hits)
+        idle = [ms for t0, ms in clients.hits if a[0] <= t0 <= b[0]]
+        idle_cost = _per_hit(a, b, n_b - n_a)
         mthreads = [threading.Thread(target=misser, args=(i,)) for i in range(args.miss_clients)]
+        c = _cpu_window(srv)
         for t in mthreads:
             t.start()
         time.sleep(2.0)
         net = sockets_on_loopback([os.getpid(), *_tree_pids(srv.proc.pid)])
         for t in mthreads:
             t.join(T)
-        stop.set()
-        for t in threads:
-            t.join(T)
-        for c in clients + miss_clients:
-            c.close()
-        during = [ms for t0, ms in hits if window["start"] <= t0 <= window["end"]]
+        d = _cpu_window(srv)
+        clients.stop()
+        for m in miss_clients:
+            m.close()
+        errors += clients.errors
+        during = [ms for t0, ms in clients.hits if window["start"] <= t0 <= window["end"]]
+        during_cost = _per_hit(c, d, len(during))
         rss = _rss_mb(srv.proc.pid)
     finally:
         srv.stop()
+    pct = lambda x, q: float(np.percentile(x, q)) if x else None  # noqa: E731
     return {
         "workers": workers,
+        "hit_client": args.hit_client,
         "hit_clients": args.hit_clients,
         "miss_clients": args.miss_clients,
         "hits_without_misses": len(idle),
-        "idle_hit_p50_ms": float(np.percentile(idle, 50)) if idle else None,
-        "idle_hit_p99_ms": float(np.percentile(idle, 99)) if idle else None,
+        "idle_hit_p50_ms": pct(idle, 50),
+        "idle_hit_p99_ms": pct(idle, 99),
+        "idle": idle_cost,
         "hits_during_misses": len(during),
-        "hit_p50_ms": float(np.percentile(during, 50)) if during else None,
-        "hit_p99_ms": float(np.percentile(during, 99)) if during else None,
+        "hit_p50_ms": pct(during, 50),
+        "hit_p99_ms": pct(during, 99),
         "hit_max_ms": float(np.max(during)) if during else None,
+        # the server's CPU here includes receiving, storing and encoding the misses' renders
+        "during": during_cost,
         "misses": len(misses),
         "miss_ms": misses,
         "miss_median_ms": float(np.median(misses)) if misses else None,
@@ -221,8 +548,46 @@ def run_hits(scene: Any, workers: int, args: argparse.Namespace, tmp: Path) -> d
         "n_errors": len(errors),
         "sockets": net,
         "server_rss_mb": rss,
+        "load_average_start": load_start,
         "load_average_end": _load(),
     }
+
+
+def run_ab(scene: Any, args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
+    """Before / after on the same machine state: the server of ``--ab-repo`` (an older
+    checkout) and this one, alternately, ``ab_rounds`` times each, the same lean hit clients
+    for ``profile_s`` seconds (hits alone)."""
+    rounds = []
+    hit_reqs = [_request(scene, 0.5 + 1.2 * k, args.hit_size, seq=k) for k in range(4)]
+    for r in range(args.ab_rounds):
+        for label, repo in (("before", args.ab_repo), ("after", str(REPO))):
+            token = new_token()
+            srv = ServeProcess(tmp / f"ab_{label}_{r}", token, "--workers", "0",
+                               "--spp", str(args.spp), repo=repo)  # fmt: skip
+            try:
+                with NetworkSource(srv.url, token, NetClientConfig(timeout_s=T)) as warm:
+                    for q in hit_reqs:
+                        warm.request_remote(q)
+                c = LeanHitClients(srv.url, token, hit_reqs, args.hit_clients, args.max_hits)
+                c.start()
+                try:
+                    w = _load_window(srv, c, args.profile_s)
+                finally:
+                    c.stop()
+            finally:
+                srv.stop()
+            w.pop("server_reported_ms_median", None)
+            rounds.append({"server": label, "round": r, **w})
+            print(label, r, {k: w[k] for k in ("hits_per_s", "p50_ms", "p99_ms")}, flush=True)
+    summary = {}
+    for label in ("before", "after"):
+        xs = [x for x in rounds if x["server"] == label]
+        summary[label] = {
+            k: float(np.median([x[k] for x in xs]))
+            for k in ("hits_per_s", "p50_ms", "p99_ms", "server_cpu_ms_per_hit",
+                      "server_event_loop_cpu_ms_per_hit", "clients_cpu_ms_per_hit")
+        }  # fmt: skip
+    return {"before_repo": args.ab_repo, "rounds": rounds, "median": summary}
 
 
 # ------------------------------------------------------------------------------- 2. bake
@@ -496,7 +861,8 @@ def plot(d: dict[str, Any], path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--part", choices=("hits", "bake", "attack", "all"), default="all")
+    parts = ("profile", "ab", "hits", "bake", "attack", "all")
+    ap.add_argument("--part", choices=parts, default="all", help="ab: not part of all")
     ap.add_argument("--hit-clients", type=int, default=32)
     ap.add_argument("--miss-clients", type=int, default=2)
     ap.add_argument("--misses", type=int, default=1, help="misses per miss client")
@@ -508,6 +874,16 @@ def main() -> None:
     ap.add_argument("--bake-views", type=int, default=8)
     ap.add_argument("--bake-size", type=int, default=160)
     ap.add_argument("--bake-spp", type=int, default=16)
+    ap.add_argument("--profile-s", type=float, default=10.0, help="each load window")
+    ap.add_argument(
+        "--hit-client", choices=("lean", "full"), default="lean",
+        help="lean: 32 connections on one event loop, open + verify each reply, no codec "
+        "decode; full: NetworkSource clients (a thread each, codec decode)",
+    )  # fmt: skip
+    ap.add_argument("--server-repo", default=None, help="run the server from this checkout")
+    ap.add_argument("--ab-repo", default=None, help="--part ab: the older checkout")
+    ap.add_argument("--ab-rounds", type=int, default=3)
+    ap.add_argument("--profile-repeats", type=int, default=300, help="each step alone")
     ap.add_argument("--attack-rounds", type=int, default=3)
     ap.add_argument("--bake-repeats", type=int, default=3, help="interleaved rounds per mode")
     args = ap.parse_args()
@@ -521,8 +897,17 @@ def main() -> None:
     d.setdefault("config", {})
     with tempfile.TemporaryDirectory() as t:
         tmp = Path(t)
+        if args.part in ("profile", "all"):
+            d["profile"] = run_profile(scene, args, tmp)
+            write_json(path, d)
+        if args.part == "ab":
+            if not args.ab_repo:
+                ap.error("--part ab needs --ab-repo (a checkout of the version before)")
+            d["ab"] = run_ab(scene, args, tmp)
+            write_json(path, d)
         if args.part in ("hits", "all"):
-            keys = ("hit_clients", "miss_clients", "misses", "miss_size", "hit_size", "spp")
+            keys = ("hit_clients", "miss_clients", "misses", "miss_size", "hit_size", "spp",
+                    "idle_s", "hit_client")  # fmt: skip
             d["config"]["hits"] = {k: getattr(args, k) for k in keys}
             d["hits"] = [run_hits(scene, n, args, tmp) for n in (1, 2)]
             write_json(path, d)

@@ -1290,16 +1290,79 @@ def block_web(results: Path) -> str:
     return text
 
 
+def _net_profile(d: dict) -> str:
+    """The hit profile and the before/after runs of net_scale.json (--part profile / ab)."""
+    text = ""
+    p = d.get("profile")
+    if p:
+        su, cu, rec = p["server_us"], p["client_us"], p["record"]
+        steps = "; ".join(f"{k} {v:.0f}" for k, v in su.items())
+        lo = p["load"]
+        one = lo.get("1 lean client", {})
+        many = {k: v for k, v in lo.items() if k != "1 lean client"}
+        rows = "\n".join(
+            f"| {k} | {v['hits_per_s']:.0f} | {v['p50_ms']:.1f} / {v['p99_ms']:.1f} ms | "
+            f"{v['server_cpu_ms_per_hit']:.2f} ms ({v['server_event_loop_cpu_ms_per_hit']:.2f}) | "
+            f"{v['clients_cpu_ms_per_hit']:.2f} ms | {v['load_average']:.1f} |"
+            for k, v in lo.items()
+        )
+        text += (
+            f"\nWhere a hit's time goes (`--part profile`; a {rec['height']}x{rec['width']} "
+            f"record, {rec['stored_bytes'] / 1e3:.0f} kB stored, a {rec['reply_bytes'] / 1e3:.1f} "
+            f"kB reply). Each step alone, median microseconds on the server: {steps}. A client "
+            f"seals a request in {cu['request: build + seal']:.0f}, opens a reply in "
+            f"{cu['reply: open + parse + validate']:.0f} and decodes its codecs in "
+            f"{cu['reply: codec decode (gi, depth, mask)']:.0f}. Hits alone (no misses), "
+            "closed loop; CPU per hit of the server process (of it, its event-loop thread) and of "
+            "the clients' process:\n\n"
+            "| clients | hits/s | p50 / p99 | server CPU / hit | clients CPU / hit | load avg |\n"
+            f"|---|---|---|---|---|---|\n{rows}\n"
+        )
+        if one and many:
+            text += (
+                f"\nOne client alone waits {one['p50_ms']:.1f} ms (p50) for a hit. With N "
+                "clients that send again as soon as they are answered, latency = N / throughput "
+                "(Little's law), and the server's event loop is one thread: at "
+                f"{max(v['server_event_loop_cpu_ms_per_hit'] for v in many.values()):.2f} ms "
+                "of it per hit, 32 clients wait at least 32 x that per round even with a whole "
+                "core for the server.\n"
+            )
+    ab = d.get("ab")
+    if ab:
+        b, a = ab["median"]["before"], ab["median"]["after"]
+        n = len(ab["rounds"]) // 2
+        text += (
+            f"\nBefore / after this hit path (`--part ab`: the previous server and this one, "
+            f"alternately, {n} rounds each, 32 lean clients, hits alone, medians): "
+            f"{b['hits_per_s']:.0f} -> {a['hits_per_s']:.0f} hits/s, p50 {b['p50_ms']:.0f} -> "
+            f"{a['p50_ms']:.0f} ms, p99 {b['p99_ms']:.0f} -> {a['p99_ms']:.0f} ms, server CPU "
+            f"per hit {b['server_cpu_ms_per_hit']:.2f} -> {a['server_cpu_ms_per_hit']:.2f} ms; "
+            "load average " + ", ".join(f"{x['load_average']:.1f}" for x in ab["rounds"]) + ".\n"
+        )
+    return text
+
+
 def block_net_scale(results: Path) -> str:
     d = load("net/net_scale.json", results)
     hc = d["config"]["hits"]
+
+    def cost(h: dict, k: str) -> str:
+        c = h.get(k)
+        return f"{c['hits_per_s']:.0f}/s, {c['server_cpu_ms_per_hit']:.2f} ms" if c else "-"
+
     rows = "\n".join(
         f"| {h['workers']} | {h['idle_hit_p50_ms']:.0f} / {h['idle_hit_p99_ms']:.0f} ms | "
-        f"{h['hits_during_misses']} | {h['hit_p50_ms']:.0f} ms | "
-        f"{h['hit_p99_ms']:.0f} ms | {h['miss_median_ms'] / 1e3:.1f} s ({h['misses']}) | "
-        f"{h['n_errors']} | {h['load_average_end']:.1f} |"
+        f"{cost(h, 'idle')} | {h['hits_during_misses']} | {h['hit_p50_ms']:.0f} ms | "
+        f"{h['hit_p99_ms']:.0f} ms | {cost(h, 'during')} | "
+        f"{h['miss_median_ms'] / 1e3:.1f} s ({h['misses']}) | {h['n_errors']} | "
+        f"{h.get('load_average_start', float('nan')):.1f} / {h['load_average_end']:.1f} |"
         for h in d["hits"]
     )
+    client = {
+        "lean": "one event loop for all of them: each reply opened and verified, its codecs not "
+        "decoded",
+        "full": "NetworkSource clients, a thread each, codecs decoded",
+    }[hc.get("hit_client", "full")]
     b = d["bake"]
     brows = "\n".join(
         f"| {r['mode']} | {r['records_per_min']:.1f} | "
@@ -1312,12 +1375,16 @@ def block_net_scale(results: Path) -> str:
     return (
         f"**The cloud at scale** (`benchmarks/net_scale.py`, cornell_box, `icbtool serve` in its "
         f"own process, local Dask workers, {hc['spp']} spp denoised GI). {hc['hit_clients']} "
-        f"clients replay cache hits ({hc['hit_size']}^2) while {hc['miss_clients']} clients ask "
-        f"for {hc['miss_size']}^2 misses; hit latency measured while the misses render (before "
-        "this design a miss held every hit behind it: 32-37 s, issue 18):\n\n"
-        "| render workers | hits alone p50 / p99 | hits during the misses | hit p50 | hit p99 | "
-        "miss (count) | errors | load avg |\n|---|---|---|---|---|---|---|---|\n"
-        f"{rows}\n\n"
+        f"clients replay cache hits ({hc['hit_size']}^2; {client}) while {hc['miss_clients']} "
+        f"clients ask for {hc['miss_size']}^2 misses; hit latency measured while the misses "
+        "render (before this design a miss held every hit behind it: 32-37 s, issue 18), "
+        "throughput and server CPU per hit alone and during the misses:\n\n"
+        "| render workers | hits alone p50 / p99 | alone: hits/s, server CPU / hit | "
+        "hits during the misses | hit p50 | hit p99 | during: hits/s, server CPU / hit | "
+        "miss (count) | errors | load avg start / end |\n"
+        "|---|---|---|---|---|---|---|---|---|---|\n"
+        f"{rows}\n"
+        f"{_net_profile(d)}\n"
         f"Bake throughput, {b['views']} views of the test path at {b['size']}^2, {b['spp']} spp "
         f"(after one warm-up view per worker; median of {b['repeats']} interleaved rounds), and "
         "whether every record equals the single-process bake bit for bit:\n\n"

@@ -34,15 +34,22 @@ def _as_vec3(x: ArrayLike, name: str) -> np.ndarray:
     return a
 
 
+_EYE3 = np.eye(3)
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
 def _check_rigid(m: np.ndarray, name: str) -> None:
     if m.shape != (4, 4):
         raise ValueError(f"{name} must be 4x4, got shape {m.shape}")
     if not np.all(np.isfinite(m)):
         raise ValueError(f"{name} contains NaN or Inf")
     r = m[:3, :3]
-    if not np.allclose(r.T @ r, np.eye(3), atol=1e-4) or abs(np.linalg.det(r) - 1.0) > 1e-4:
+    # np.allclose's test (|a - b| <= atol + rtol |b|, rtol 1e-5) written out: m is finite
+    # here, and allclose's own overhead was most of a camera's construction (every request)
+    orthonormal = (np.abs(r.T @ r - _EYE3) <= 1e-4 + 1e-5 * _EYE3).all()
+    if not orthonormal or abs(np.linalg.det(r) - 1.0) > 1e-4:
         raise ValueError(f"{name} rotation part is not a proper rotation (orthonormal, det +1)")
-    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
+    if not (np.abs(m[3] - _LAST_ROW) <= 1e-8 + 1e-5 * _LAST_ROW).all():
         raise ValueError(f"{name} last row must be [0, 0, 0, 1], got {m[3].tolist()}")
 
 

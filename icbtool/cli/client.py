@@ -4,7 +4,8 @@ Connects to an ``icbtool serve`` server, receives the mesh levels (renders from 
 rasterizes its WRT-buffer, asks for GI (or generates it once it holds the server's generator),
 warps, combines, blends and writes the frames like ``icbtool demo``, plus the latency split
 (latency.csv, latency.png) and the bytes received by kind (net_summary.json). --net-latency-ms and
---net-bandwidth-mbit emulate a network on both directions.
+--net-bandwidth-mbit emulate a network on both directions. A ``wss://`` server whose certificate
+is not in the system's trust store (e.g. self-signed): --tls-ca FILE names the PEM to trust.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ def _options(p: argparse.ArgumentParser) -> None:
     from icbtool.net import NetClientConfig
     from icbtool.pipeline import LoopConfig
 
-    p.add_argument("url", help="the server, ws://HOST:PORT")
+    p.add_argument("url", help="the server, ws://HOST:PORT (wss:// with TLS)")
     p.add_argument("--token", default=None, help="shared secret (default: $ICBTOOL_TOKEN)")
     add_out_argument(p, default="out/client")
     p.add_argument(
@@ -65,6 +66,8 @@ def _options(p: argparse.ArgumentParser) -> None:
         spell={  # the emulated network: the same spelling as `icbtool demo --network`
             "shaper.latency_ms": Spelling(option="--net-latency-ms"),
             "shaper.bandwidth_mbit": Spelling(option="--net-bandwidth-mbit"),
+            # TLS options share their prefix with `icbtool serve --tls-cert/--tls-key`
+            "ca_file": Spelling(option="--tls-ca", metavar="FILE"),
         },
     )
     p.set_defaults(func=run, loop_options=loop, net_options=net)
@@ -81,6 +84,11 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"url {args.url!r} must start with ws:// or wss://")
     cfg = args.loop_options.build(args)
     ncfg = args.net_options.build(args)
+    if ncfg.ca_file is not None:
+        if not args.url.startswith("wss://"):
+            raise UsageError(f"--tls-ca applies to wss:// servers, not {args.url!r}")
+        if not os.path.isfile(ncfg.ca_file):
+            raise UsageError(f"--tls-ca {ncfg.ca_file!r}: no such file")
     out = check_out_dir(args.out)
     truth = load_scene(args.truth_scene) if args.truth_scene else None
     if truth is None:

@@ -14,7 +14,9 @@ of the payload). Per part:
 
 * "materials" (one per level, first): the payload is UTF-8 JSON, the level's manifest: scene
   name, vertex and face counts, whether uvs exist, the materials (name, albedo, emission, texture
-  size and format or null, texture_path) and the list of every chunk name of the level.
+  size and format or null, texture_path) and the list of every chunk name of the level. The
+  scene's ``source`` and the materials' ``texture_path`` are file names only (no folders): a
+  level goes to clients, the server's file layout does not (:func:`file_name`).
 * "geometry": ``array`` (vertices, normals, uvs, faces, face_material), ``dtype`` ("<f4" or
   "<i4"), ``shape`` of the whole array, ``row0`` and ``rows``: the payload is rows ``row0 ..
   row0 + rows`` of the array, C order, little-endian.
@@ -27,6 +29,7 @@ Lights, sky and up are scene-level (:func:`scene_info`, JSON, sent once), not pa
 from __future__ import annotations
 
 import json
+import re
 import struct
 import zlib
 from collections.abc import Iterable
@@ -186,12 +189,12 @@ def level_chunks(level: Level, max_chunk_bytes: int) -> list[tuple[str, str, byt
                 "albedo": m.albedo.tolist(),
                 "emission": m.emission.tolist(),
                 "texture": tex,
-                "texture_path": m.texture_path,
+                "texture_path": file_name(m.texture_path),
             }
         )
     manifest = {
         "scene": s.name,
-        "source": s.source,
+        "source": file_name(s.source),
         "ratio": level.ratio,
         "n_vertices": int(len(s.vertices)),
         "n_faces": int(len(s.faces)),
@@ -208,6 +211,15 @@ def level_chunks(level: Level, max_chunk_bytes: int) -> list[tuple[str, str, byt
             f"max_chunk_bytes {max_chunk_bytes}"
         )
     return [head, *body]
+
+
+def file_name(path: str | None) -> str | None:
+    """The last component of a file path (``/srv/scenes/sponza/sp_luk.JPG`` -> ``sp_luk.JPG``,
+    either separator), what a manifest says of the server's files; None stays None and a name
+    without folders (``procedural:cornell_box``) is kept."""
+    if path is None:
+        return None
+    return re.split(r"[\\/]", str(path))[-1]
 
 
 # --------------------------------------------------------------------------- reading

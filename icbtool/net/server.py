@@ -67,8 +67,8 @@ from icbtool._optional import require
 from icbtool.net import codec as codec_mod
 from icbtool.net import crypto, protocol
 from icbtool.net.mesh_stream import MeshStream
+from icbtool.net.reply_cache import EncodedReply, ReplyCache
 from icbtool.system.cloud import Cloud, CloudConfig
-from icbtool.system.messages import GIReply
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +139,13 @@ class ServerConfig:
     with ``radiance.pt``): the server offers the one the scene's numbers favour, as ONNX
     (:mod:`icbtool.net.client_model`: the best recorded test SSIM, ties within 0.001 to the
     fewest bytes; docs/protocol.md, section Client models). Empty: none offered."""
+    reply_cache_bytes: int = 256 * 2**20
+    """Encoded replies of stored records kept in memory (payload bytes, least recently used
+    dropped first): a repeated hit skips reading, decoding and encoding the record. 0 keeps
+    none."""
+    hit_flush_s: float = 2.0
+    """The lookups' hit counts go to the store's writer in batches at most this often (LRU and
+    least-hit eviction see them; the read-only lookup connection cannot write)."""
     render_nice: int = 10
     """Added to the nice value (CPU priority) of the renders this server starts (its render
     thread or its local cluster's workers; capped at 19): hits then get a core at once while
@@ -159,7 +166,12 @@ class ServerConfig:
                 raise ValueError(f"ServerConfig.{k} must be an integer >= 1, got {v!r}")
         if not 0 <= self.port < 65536:
             raise ValueError(f"ServerConfig.port must be in [0, 65535], got {self.port}")
-        for k in ("send_timeout_s", "handshake_timeout_s"):
+        if not isinstance(self.reply_cache_bytes, int) or self.reply_cache_bytes < 0:
+            raise ValueError(
+                f"ServerConfig.reply_cache_bytes must be an integer >= 0, got "
+                f"{self.reply_cache_bytes!r}"
+            )
+        for k in ("send_timeout_s", "handshake_timeout_s", "hit_flush_s"):
             if not getattr(self, k) > 0:
                 raise ValueError(f"ServerConfig.{k} must be > 0")
         if not isinstance(self.workers, int) or isinstance(self.workers, bool) or self.workers < 0:
@@ -200,6 +212,8 @@ class ServerStats:
     renders: int = 0
     render_failures: int = 0
     cache_hits: int = 0
+    reply_cache_hits: int = 0
+    hit_counts_flushed: int = 0
     generator_sent: int = 0
     dropped_slow: int = 0
     bytes_sent: dict[str, int] = field(default_factory=dict)
@@ -210,6 +224,68 @@ def camera_key(cam: Any) -> str:
     d = cam.to_dict()
     d = {k: np.round(np.asarray(v, np.float64), 6).tolist() for k, v in d.items()}
     return json.dumps(d, sort_keys=True)
+
+
+def encode_reference(
+    ref: Any, gi_codec: str, depth_codec: str
+) -> tuple[list[dict[str, Any]], bytes]:
+    """Encode a reference's GI, depth and mask for a ``gi_reply``.
+
+    Args:
+        ref: a CRT-buffer (or anything with ``gi`` (H, W, 3), ``depth`` (H, W, 1) and ``mask``
+            (H, W, 1) or None: then depth > 0).
+        gi_codec, depth_codec: codecs of :data:`icbtool.net.codec.CODECS`.
+
+    Returns:
+        (the ``parts`` descriptions, the payload: the parts' bytes one after the other).
+    """
+    parts, blobs = [], []
+    mask = ref.mask if ref.mask is not None else (ref.depth > 0).astype(np.float32)
+    for name, arr, c in (
+        ("gi", ref.gi, gi_codec),
+        ("depth", ref.depth, depth_codec),
+        ("mask", mask, depth_codec),
+    ):
+        arr = np.ascontiguousarray(arr, np.float32)
+        b = codec_mod.encode(arr, c)
+        parts.append(
+            {
+                "name": name,
+                "codec": c,
+                "shape": list(arr.shape),
+                "dtype": "float32",
+                "bytes": len(b),
+            }
+        )
+        blobs.append(b)
+    return parts, b"".join(blobs)
+
+
+@dataclass(frozen=True)
+class Answer:
+    """The cloud's answer to a GI request, before encoding (:meth:`Server.answer`).
+
+    Attributes:
+        cache_hit: found in the store (no render).
+        timings_ms: the cloud's stages (lookup, queue, render), ms.
+        record: the stored record's index entry (a hit's, or the render's once stored): its
+            id and checksum key the kept encoded replies.
+        reference: the rendered CRT-buffer (None for a hit: read from the store when its
+            encoded reply is not kept).
+    """
+
+    cache_hit: bool
+    timings_ms: dict[str, float]
+    record: Any = None
+    reference: Any = None
+
+
+class _Damaged(Exception):
+    """A stored record could not be read for its reply (damaged or gone): render it again."""
+
+    def __init__(self, record_id: int) -> None:
+        super().__init__(f"record {record_id} is damaged or gone")
+        self.record_id = record_id
 
 
 class _Closing(Exception):
@@ -371,6 +447,8 @@ class Server:
         self._renders: _FairQueue | None = None
         self._render_tasks: set[asyncio.Task[Any]] = set()
         self._inflight: dict[str, asyncio.Future[Any]] = {}
+        self._replies = ReplyCache(self.config.reply_cache_bytes)
+        self._hits: dict[int, tuple[int, float]] = {}  # record id: (hits, last), not yet flushed
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
         self._thread: threading.Thread | None = None
@@ -466,7 +544,9 @@ class Server:
             # writer first: it creates the store and registers the scene the reader follows
             await asyncio.wrap_future(self._writer.submit(self._open_writer))
             await asyncio.wrap_future(self._lookup.submit(self._open_reader))
-            self._pool = await asyncio.to_thread(open_pool, self.scene, cfg.workers, cfg.scheduler)
+            self._pool = await asyncio.to_thread(
+                open_pool, self.scene, cfg.workers, cfg.scheduler, cfg.render_nice
+            )
             self._renders = _FairQueue(self._pool.capacity, cfg.max_queued_renders)
             async with serve(self._handle, cfg.host, cfg.port, **self.serve_options()) as ws:
                 self.port = int(next(iter(ws.sockets)).getsockname()[1])
@@ -479,7 +559,9 @@ class Server:
                 self._ready.set()
                 if self.on_listening is not None:
                     self.on_listening(self.url)
+                flusher = asyncio.get_running_loop().create_task(self._flush_hits_every())
                 await self._stop.wait()
+                await flusher
                 log.info("shutting down: closing connections")
                 ws.close(close_connections=True)
                 await ws.wait_closed()
@@ -501,6 +583,7 @@ class Server:
         if self._pool is not None:
             await asyncio.to_thread(self._pool.close)
             self._pool = None
+        await self._flush_hits()  # the last counts, before the writer closes the store
         for ex, close in ((self._lookup, self._close_reader), (self._writer, self._close_writer)):
             if ex is not None:
                 with contextlib.suppress(Exception):
@@ -655,22 +738,26 @@ class Server:
             ref = ref.resized(max(1, int(ref.height * k)), max(1, int(ref.width * k)))
         return ref
 
-    async def answer(self, req: Any, client: int = 0) -> tuple[Any, bool]:
-        """The cloud's reply to ``req``, coalesced with an identical request in flight.
+    async def answer(
+        self, req: Any, client: int = 0, damaged: int | None = None
+    ) -> tuple[Answer, bool]:
+        """The cloud's answer to ``req``, coalesced with an identical request in flight.
 
         Args:
             req: the :class:`~icbtool.system.GIRequest`.
             client: the requesting connection (misses are queued fairly per client).
+            damaged: a stored record found damaged when it was read for this request: render
+                (no lookup) and replace it.
 
         Returns:
-            (reply, coalesced): ``coalesced`` is True when another request's answer was shared.
+            (answer, coalesced): ``coalesced`` is True when another request's answer was shared.
 
         Raises:
             ProtocolError: ``bad_field`` (limits), ``busy`` (render queue full) or ``internal``
                 (the render failed on the workers after their retries).
         """
         ref_cam = self.reference_camera(req)
-        key = camera_key(ref_cam)
+        key = camera_key(ref_cam) + ("" if damaged is None else f"#render {damaged}")
         fut = self._inflight.get(key)
         if fut is not None:
             self.stats.coalesced += 1
@@ -678,8 +765,8 @@ class Server:
         fut = asyncio.get_running_loop().create_future()
         self._inflight[key] = fut
         try:
-            reply = await self._lookup_or_render(req, ref_cam, client)
-            fut.set_result(reply)
+            ans = await self._lookup_or_render(req, ref_cam, client, damaged)
+            fut.set_result(ans)
         except BaseException as e:
             if isinstance(e, asyncio.CancelledError):
                 fut.cancel()
@@ -690,17 +777,22 @@ class Server:
         finally:
             if self._inflight.get(key) is fut:
                 del self._inflight[key]
-        return reply, False
+        return ans, False
 
-    async def _lookup_or_render(self, req: Any, ref_cam: Any, client: int) -> Any:
+    async def _lookup_or_render(
+        self, req: Any, ref_cam: Any, client: int, damaged: int | None
+    ) -> Answer:
         if self._lookup is None or self._reader is None:
             raise _Closing("server is shutting down")
-        found, damaged, lookup_ms = await asyncio.wrap_future(
-            self._lookup.submit(self._reader.lookup, ref_cam)
-        )
-        if found is not None:
-            self.stats.cache_hits += 1
-            return GIReply(found, True, {"lookup": lookup_ms, "render": 0.0}, req.seq)
+        lookup_ms = 0.0
+        if damaged is None:
+            info, lookup_ms = await asyncio.wrap_future(
+                self._lookup.submit(self._reader.find, ref_cam)
+            )
+            if info is not None:
+                self.stats.cache_hits += 1
+                self._count_hit(info.record_id)
+                return Answer(True, {"lookup": lookup_ms, "render": 0.0}, record=info)
         assert self._renders is not None
         self._renders.admit()  # busy when the queue is full, before any work
         job = self._reader.job(ref_cam, req.seq)
@@ -708,12 +800,12 @@ class Server:
         self._render_tasks.add(task)
         task.add_done_callback(self._render_tasks.discard)
         # shielded: a client that leaves does not cancel a render others may share, nor its put
-        ref, timings = await asyncio.shield(task)
-        return GIReply(ref, False, {"lookup": lookup_ms, **timings}, req.seq)
+        ref, info, timings = await asyncio.shield(task)
+        return Answer(False, {"lookup": lookup_ms, **timings}, record=info, reference=ref)
 
     async def _render_and_store(
         self, job: Any, damaged: int | None, client: int
-    ) -> tuple[Any, dict[str, float]]:
+    ) -> tuple[Any, Any, dict[str, float]]:
         assert self._renders is not None
         t_queued = time.perf_counter()
         await self._renders.acquire(client)
@@ -728,37 +820,96 @@ class Server:
                     "internal", "the render failed on the render workers; send the request again"
                 ) from None
             t1 = time.perf_counter()
-            assert self._writer is not None and self._cloud is not None
-            await asyncio.wrap_future(self._writer.submit(self._cloud.store_render, ref, damaged))
+            assert self._writer is not None
+            info, gone = await asyncio.wrap_future(self._writer.submit(self._put, ref, damaged))
+            self._replies.discard(gone)
             self.stats.renders += 1
         finally:
             self._renders.release()
-        return ref, {"queue": 1e3 * (t0 - t_queued), "render": 1e3 * (t1 - t0)}
+        return ref, info, {"queue": 1e3 * (t0 - t_queued), "render": 1e3 * (t1 - t0)}
+
+    def _put(self, ref: Any, damaged: int | None) -> tuple[Any, list[int]]:
+        """On the writer thread: store a render; (its index entry, the ids of the kept replies
+        whose records left the store with this put: a replaced damaged one, evicted ones)."""
+        assert self._cloud is not None
+        store = self._cloud.store
+        rid = self._cloud.store_render(ref, damaged)
+        gone = [i for i in self._replies.record_ids() if i not in store]
+        return store.info(rid), gone
+
+    async def encoded(self, ans: Answer, gi_codec: str, depth_codec: str) -> tuple[Any, bool]:
+        """The reply contents of ``ans`` in these codecs: kept ones for a stored record when
+        there are (:class:`~icbtool.net.reply_cache.ReplyCache`), else encoded now (a stored
+        record is read first) and kept.
+
+        Returns:
+            (:class:`~icbtool.net.reply_cache.EncodedReply`, whether it was kept from before).
+
+        Raises:
+            _Damaged: the stored record's payload is damaged or gone (the answer is a miss).
+        """
+        rec = ans.record
+        key = None if rec is None else (rec.record_id, rec.checksum, gi_codec, depth_codec)
+        if key is not None:
+            kept = self._replies.get(key)
+            if kept is not None:
+                self.stats.reply_cache_hits += 1
+                return kept, True
+        ref = ans.reference
+        if ref is None:  # a stored record: read it (its lookup connection, its thread)
+            if self._lookup is None or self._reader is None:
+                raise _Closing("server is shutting down")
+            ref = await asyncio.wrap_future(self._lookup.submit(self._load, rec.record_id))
+            if ref is None:
+                raise _Damaged(rec.record_id)
+        assert self._encoder is not None
+        parts, payload = await asyncio.wrap_future(
+            self._encoder.submit(encode_reference, ref, gi_codec, depth_codec)
+        )
+        out = EncodedReply(protocol.camera_to_json(ref.camera), parts, payload)
+        if key is not None:
+            self._replies.put(key, out)
+        return out, False
+
+    def _load(self, record_id: int) -> Any:
+        """On the lookup thread: a stored record, or None when damaged (logged) or gone."""
+        from icbtool.store import RecordNotFoundError
+
+        assert self._reader is not None
+        try:
+            return self._reader.store.get_intact(record_id)
+        except RecordNotFoundError:  # evicted since its lookup
+            return None
+
+    # ------------------------------------------------------------------ hit counts
+    def _count_hit(self, record_id: int) -> None:
+        n, _ = self._hits.get(record_id, (0, 0.0))
+        self._hits[record_id] = (n + 1, time.time())
+
+    async def _flush_hits_every(self) -> None:
+        assert self._stop is not None
+        while not self._stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), self.config.hit_flush_s)
+            await self._flush_hits()
+
+    async def _flush_hits(self) -> None:
+        """Hand the hit counts gathered since the last call to the store's writer (one batch)."""
+        if not self._hits or self._writer is None or self._cloud is None:
+            return
+        batch, self._hits = self._hits, {}
+        try:
+            await asyncio.wrap_future(self._writer.submit(self._cloud.store.add_hits, batch))
+        except Exception as e:  # counts order evictions only: logged, never a request's failure
+            log.warning("hit counts of %d records not stored: %r", len(batch), e)
+            return
+        self.stats.hit_counts_flushed += sum(n for n, _ in batch.values())
 
     def encode_reference(
         self, ref: Any, gi_codec: str, depth_codec: str
     ) -> tuple[list[dict[str, Any]], bytes]:
-        """Encode a reference's GI, depth and mask: (part descriptions, payload)."""
-        parts, blobs = [], []
-        mask = ref.mask if ref.mask is not None else (ref.depth > 0).astype(np.float32)
-        for name, arr, c in (
-            ("gi", ref.gi, gi_codec),
-            ("depth", ref.depth, depth_codec),
-            ("mask", mask, depth_codec),
-        ):
-            arr = np.ascontiguousarray(arr, np.float32)
-            b = codec_mod.encode(arr, c)
-            parts.append(
-                {
-                    "name": name,
-                    "codec": c,
-                    "shape": list(arr.shape),
-                    "dtype": "float32",
-                    "bytes": len(b),
-                }
-            )
-            blobs.append(b)
-        return parts, b"".join(blobs)
+        """Encode a reference's GI, depth and mask (:func:`encode_reference`)."""
+        return encode_reference(ref, gi_codec, depth_codec)
 
     # ------------------------------------------------------------------ connections
     async def _handle(self, ws: Any) -> None:
@@ -958,26 +1109,28 @@ class _Connection:
                     raise protocol.ProtocolError(
                         "bad_field", f"gi_request.codec: {c!r} is not one of {srv.codecs}", rid
                     )
-            reply, coalesced = await srv.answer(req, self.id)
+            ans, coalesced = await srv.answer(req, self.id)
             t0 = time.perf_counter()
-            assert srv._encoder is not None
-            parts, payload = await asyncio.wrap_future(
-                srv._encoder.submit(srv.encode_reference, reply.reference, gi_codec, depth_codec)
-            )
-            timings = dict(reply.timings_ms)
+            try:
+                enc, _ = await srv.encoded(ans, gi_codec, depth_codec)
+            except _Damaged as e:  # read for this reply and found damaged: a miss after all
+                ans, coalesced = await srv.answer(req, self.id, damaged=e.record_id)
+                t0 = time.perf_counter()
+                enc, _ = await srv.encoded(ans, gi_codec, depth_codec)
+            timings = dict(ans.timings_ms)
             timings["encode"] = 1e3 * (time.perf_counter() - t0)
             timings["server"] = 1e3 * (time.perf_counter() - t_in)
             out = protocol.Message(
                 "gi_reply",
                 {
                     "id": rid,
-                    "camera": protocol.camera_to_json(reply.reference.camera),
-                    "cache_hit": bool(reply.cache_hit),
+                    "camera": enc.camera,
+                    "cache_hit": bool(ans.cache_hit),
                     "coalesced": coalesced,
                     "timings_ms": timings,
-                    "parts": parts,
+                    "parts": enc.parts,
                 },
-                payload,
+                enc.payload,
             )
             srv.stats.gi_replies += 1
             self.pending.discard(rid)

@@ -172,8 +172,11 @@ def _rotvec_matrix(rv: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(th) * kx + (1 - math.cos(th)) * (kx @ kx)
 
 
-def _motions(v_t: np.ndarray, v_r: np.ndarray, t: float, model: str) -> list[np.ndarray]:
-    """Predicted client poses, as (4, 4) ``client_now_from_client_future`` transforms."""
+def _motion_parts(
+    v_t: np.ndarray, v_r: np.ndarray, t: float, model: str
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """(translations (3,), rotations as (4, 4) with the rotation in [:3, :3]) whose every
+    pairing is one predicted client pose (:func:`_motions`)."""
     if model == "velocity":
         trans = [np.zeros(3), v_t * t]
         rots = [np.zeros(3), v_r * t]
@@ -183,11 +186,21 @@ def _motions(v_t: np.ndarray, v_r: np.ndarray, t: float, model: str) -> list[np.
         rots = [np.zeros(3)] + [
             sg * abs(v_r[i]) * t * np.eye(3)[i] for i in range(3) for sg in (1, -1)
         ]
+    mats = []
+    for rv in rots:  # each rotation once (not once per translation)
+        m = np.eye(4)
+        m[:3, :3] = _rotvec_matrix(rv)
+        mats.append(m)
+    return trans, mats
+
+
+def _motions(v_t: np.ndarray, v_r: np.ndarray, t: float, model: str) -> list[np.ndarray]:
+    """Predicted client poses, as (4, 4) ``client_now_from_client_future`` transforms."""
+    trans, mats = _motion_parts(v_t, v_r, t, model)
     out = []
     for tr in trans:
-        for rv in rots:
-            m = np.eye(4)
-            m[:3, :3] = _rotvec_matrix(rv)
+        for r in mats:
+            m = r.copy()
             m[:3, 3] = tr
             out.append(m)
     return out
@@ -266,14 +279,16 @@ def prefetch_camera(
     if not (0 < near <= far and math.isfinite(far)):
         raise ValueError(f"prefetch_camera: need 0 < z_near <= z_far < inf, got {depth_range}")
     t = config.latency_s
-    motions = _motions(v_t, v_r, t, config.motion_model)
+    trans, mats = _motion_parts(v_t, v_r, t, config.motion_model)
     if config.pullback == "auto":
-        b = max(0.0, max(-m[2, 3] for m in motions))
+        b = max(0.0, max(-float(tr[2]) for tr in trans))
     else:
         b = float(config.pullback)
 
     corners = _frustum_corners(client_cam, near, far)  # client frame
-    pts = np.concatenate([corners @ m[:3, :3].T + m[:3, 3] for m in motions])
+    # every motion's corners: each rotation once, then each translation added to it
+    rotated = [corners @ m[:3, :3].T for m in mats]
+    pts = np.concatenate([c + tr for tr in trans for c in rotated])
     z = pts[:, 2] + b
     asp = client_cam.aspect * client_cam.fy / client_cam.fx  # width / height in angle terms
     max_half = math.radians(config.max_fov_deg) / 2
@@ -317,5 +332,5 @@ def prefetch_camera(
         clamped=clamped,
         latency_s=t,
         depth_range=(near, far),
-        n_motions=len(motions),
+        n_motions=len(trans) * len(mats),
     )

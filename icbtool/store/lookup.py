@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any, Protocol
@@ -324,6 +325,29 @@ class LookupMixin:
             self._last_refresh = now
             if self._db().execute("PRAGMA data_version").fetchone()[0] != self._data_version:
                 self.refresh()
+
+    def add_hits(self, hits: Mapping[int, tuple[int, float]]) -> None:
+        """Count lookups made elsewhere as hits: a read-only connection to this store (which
+        cannot write them) hands its counts to the writer, in batches.
+
+        Args:
+            hits: ``{record id: (hits, time.time() of the last)}``; ids no longer stored are
+                skipped. They go to the database with this connection's own counts (every few
+                seconds, before an eviction, which then sees them, and at close).
+
+        Raises:
+            ReadOnlyStoreError: this connection is read-only.
+        """
+        self._writable()
+        if not self.config.record_hits:
+            return
+        for rid, (n, t) in hits.items():
+            if rid not in self._ids:
+                continue
+            m, last = self._pending_hits.get(rid, (0, 0.0))
+            self._pending_hits[rid] = (m + int(n), max(last, float(t)))
+        if time.monotonic() - self._last_flush > 5.0:
+            self._flush_hits()
 
     def _flush_hits(self) -> None:
         self._last_flush = time.monotonic()

@@ -162,6 +162,19 @@ class Cloud(GISource):
         damaged = hit.record_id if (hit is not None and found is None) else None
         return found, damaged, 1e3 * (time.perf_counter() - t0)
 
+    def find(self, ref_cam: Camera) -> tuple[Any, float]:
+        """Look ``ref_cam`` up in the index only (no payload read): what a server that keeps
+        encoded replies of records needs first.
+
+        Returns:
+            (info, lookup_ms): the covering record's :class:`icbtool.store.RecordInfo` (its id,
+            camera and payload checksum), or None on a miss.
+        """
+        t0 = time.perf_counter()
+        hit = self._covering_hit(ref_cam)
+        info = None if hit is None else hit.info
+        return info, 1e3 * (time.perf_counter() - t0)
+
     def _covering_hit(self, ref_cam: Camera) -> Any:
         """The best stored camera that covers ``ref_cam`` with at least its pixel density (a
         64 x 64 record never answers a 1024 x 1024 request), or None."""
