@@ -31,9 +31,20 @@ REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
 sys.path.insert(0, str(REPO / "benchmarks"))
 
+#: The generator's architecture when the ablation began (full-resolution position features,
+#: 3 x 3 head): the recipe pins it, so the rows measured before the speed study keep their
+#: configs whatever the ``cpu`` preset becomes.
+FIRST_NET = dict(
+    position_resolution="full", head_kernel=3, skip_features=True, input_reduce=0, top_width=0
+)
+
 #: The recipe: the ``cpu`` preset as it was first planned (a cosine learning rate; the ablation
 #: found the preset's constant one better), trained on the train path plus the coverage views.
-RECIPE = dict(lr_schedule="cosine", train_path="train,cover")
+RECIPE = dict(lr_schedule="cosine", train_path="train,cover", **FIRST_NET)
+
+#: The ``cpu`` preset before the speed study (the recipe with a constant learning rate): the
+#: speed variants (issue 17: <= 15 ms at 256 x 256) each change one thing of it.
+CPU_BEFORE = {"lr_schedule": "constant"}
 
 #: name -> (what changes, the fields that change)
 VARIANTS: dict[str, tuple[str, dict]] = {
@@ -58,6 +69,36 @@ VARIANTS: dict[str, tuple[str, dict]] = {
         {"inputs": "I", "position_octaves": 0},
     ),  # fmt: skip
     "no position features": ("no Fourier features of the position", {"position_octaves": 0}),
+    # the speed study: one change from the cpu preset before it (benchmarks/gan_speed.py)
+    "seed 1": (
+        "the cpu preset before, another seed (run-to-run spread)",
+        {**CPU_BEFORE, "seed": 1},
+    ),  # fmt: skip
+    "4 octaves": (
+        "cpu preset before, 4 octaves of position features",
+        {**CPU_BEFORE, "position_octaves": 4},
+    ),  # fmt: skip
+    "1x1 reduction": (
+        "cpu preset before, a 1x1 reduction of input + features to 16 channels",
+        {**CPU_BEFORE, "input_reduce": 16},
+    ),  # fmt: skip
+    "half-res features": (
+        "cpu preset before, position features at half resolution",
+        {**CPU_BEFORE, "position_resolution": "half"},
+    ),  # fmt: skip
+    "skip without features": (
+        "cpu preset before, the full-res skip without the features",
+        {**CPU_BEFORE, "skip_features": False},
+    ),  # fmt: skip
+    "1x1 head": (
+        "cpu preset before, a 1x1 full-resolution head",
+        {**CPU_BEFORE, "head_kernel": 1},
+    ),  # fmt: skip
+    "top width 8": ("cpu preset before, the last level 8 wide", {**CPU_BEFORE, "top_width": 8}),
+    "half-res features + 1x1 head": (
+        "cpu preset before, both (the cpu preset after the speed study)",
+        {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1},
+    ),  # fmt: skip
 }
 
 
