@@ -1,11 +1,13 @@
 """The generator's frame time in onnxruntime, per architecture variant and per ONNX node.
 
 The client runs the generator in onnxruntime (docs/design.md section 6); issue 17 asks for
-<= 15 ms at 256 x 256 on one thread. For the ``cpu`` preset's generator and each variant that
-changes one architecture field (:class:`icbtool.gan.models.GeneratorConfig`), this script exports
+<= 15 ms at 256 x 256 on one thread. For the ``cpu`` preset's generator before the speed study
+and each ablation variant that changes its architecture (benchmarks/gan_ablation.py, one change
+at a time; :class:`icbtool.gan.models.GeneratorConfig`), this script exports
 the network (random weights: the time does not depend on them; ``--run`` adds trained runs),
-times ``session.run`` with 1 intra-op thread (median of ``--repeats`` after 3 warm-up calls) at
-each ``--sizes``, and profiles one session per variant at the largest size (onnxruntime's
+times ``session.run`` with 1 intra-op thread at each ``--sizes`` (median and min of ``--repeats``
+calls after 3 warm-up calls; the models take turns call by call, so a load that comes and goes
+hits them alike), and profiles one session per variant at the largest size (onnxruntime's
 profiler: median time per node over the profiled calls), so one sees which layers cost.
 
     .venv/bin/python benchmarks/gan_speed.py --repeats 30
@@ -19,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import tempfile
 import time
 from collections import defaultdict
@@ -29,39 +32,43 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
+sys.path.insert(0, str(REPO / "benchmarks"))
 
-#: The cpu preset's generator before this study: configuration J (12 channels, position in
-#: 9..12), 6 octaves at full resolution, full-resolution skip with a 3 x 3 head, base 16.
-BEFORE = dict(
-    in_channels=12,
-    base=16,
-    full_res_skip=True,
-    fourier_channels=(9, 12),
-    fourier_octaves=6,
+#: Ablation variants (benchmarks/gan_ablation.py) timed under their own names: the cpu preset
+#: before the speed study and each change to it.
+ABLATION = (
+    "constant lr",
+    "4 octaves",
+    "1x1 reduction",
+    "half-res features",
+    "skip without features",
+    "1x1 head",
+    "top width 8",
+    "half-res features + 1x1 head",
 )
-
-#: name -> GeneratorConfig fields changed from ``BEFORE``
-VARIANTS: dict[str, dict] = {
-    "before (6 octaves, full-res features, 3x3 head)": {},
-    "4 octaves": {"fourier_octaves": 4},
-    "1x1 reduction to 16": {"reduce": 16},
-    "features at half resolution": {"fourier_resolution": "half", "skip_features": False},
-    "skip without features": {"skip_features": False},
-    "1x1 head": {"head_kernel": 1},
-    "top width 8": {"top_width": 8},
+#: Further combinations, timed only: name -> TrainConfig fields changed from "constant lr".
+EXTRA: dict[str, dict] = {
     "1x1 head + skip without features": {"head_kernel": 1, "skip_features": False},
-    "half-res features + 1x1 head": {
-        "fourier_resolution": "half",
-        "skip_features": False,
-        "head_kernel": 1,
-    },  # fmt: skip
-    "half-res features + 1x1 head + top 8": {
-        "fourier_resolution": "half",
-        "skip_features": False,
+    "half-res features + 1x1 head + top width 8": {
+        "position_resolution": "half",
         "head_kernel": 1,
         "top_width": 8,
     },  # fmt: skip
 }
+
+
+def generator_config(name: str):
+    """The GeneratorConfig of an ablation variant or :data:`EXTRA` entry on Sponza's
+    configuration J (12 channels, positions in 9..12)."""
+    import dataclasses
+
+    from gan_ablation import config
+
+    if name in EXTRA:
+        tc = dataclasses.replace(config("constant lr", 3000, 500), **EXTRA[name])
+    else:
+        tc = config(name, 3000, 500)
+    return tc.generator_config(12, (9, 12))
 
 
 def _export(module, channels: int, side: int, path: Path) -> Path:
@@ -80,35 +87,45 @@ def _export(module, channels: int, side: int, path: Path) -> Path:
     return path
 
 
-def time_onnx(path: Path, channels: int, sides: list[int], repeats: int) -> dict:
-    """Median ms of one-thread ``session.run`` per side, and the per-node profile at the
-    largest side (node -> median ms)."""
+def _session(path: Path, profile_prefix: str | None = None):
     import onnxruntime as ort
 
-    def session(profile_prefix: str | None = None):
-        so = ort.SessionOptions()
-        so.intra_op_num_threads, so.inter_op_num_threads = 1, 1
-        if profile_prefix:
-            so.enable_profiling, so.profile_file_prefix = True, profile_prefix
-        return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    so = ort.SessionOptions()
+    so.intra_op_num_threads, so.inter_op_num_threads = 1, 1
+    if profile_prefix:
+        so.enable_profiling, so.profile_file_prefix = True, profile_prefix
+    return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
 
+
+def time_interleaved(models: dict[str, tuple[Path, int]], side: int, repeats: int) -> dict:
+    """ms of one-thread ``session.run`` at ``side`` x ``side`` for every model, the models taking
+    turns call by call (a load that comes and goes then hits them alike): {name: {median, min,
+    samples}}, after 3 warm-up calls each."""
     rng = np.random.default_rng(0)
-    out: dict = {"ms": {}, "load_1min": [os.getloadavg()[0]]}
-    s = session()
-    for side in sides:
-        x = rng.uniform(-1, 1, (1, channels, side, side)).astype(np.float32)
+    sess, xs, ts = {}, {}, {}
+    for name, (path, channels) in models.items():
+        sess[name] = _session(path)
+        xs[name] = rng.uniform(-1, 1, (1, channels, side, side)).astype(np.float32)
         for _ in range(3):
-            s.run(None, {"maps": x})
-        ts = []
-        for _ in range(repeats):
+            sess[name].run(None, {"maps": xs[name]})
+        ts[name] = []
+    for _ in range(repeats):
+        for name in models:
             t0 = time.perf_counter()
-            s.run(None, {"maps": x})
-            ts.append(1e3 * (time.perf_counter() - t0))
-        out["ms"][str(side)] = {"median": float(np.median(ts)), "min": float(np.min(ts))}
-    side = max(sides)
-    sp = session(str(path.with_suffix("")) + "_prof")
-    x = rng.uniform(-1, 1, (1, channels, side, side)).astype(np.float32)
-    for _ in range(3 + 10):
+            sess[name].run(None, {"maps": xs[name]})
+            ts[name].append(1e3 * (time.perf_counter() - t0))
+    return {
+        n: {"median": float(np.median(v)), "min": float(np.min(v)), "samples": len(v)}
+        for n, v in ts.items()
+    }
+
+
+def profile_nodes(path: Path, channels: int, side: int, calls: int = 10) -> dict:
+    """onnxruntime's per-node profile at ``side``: the 12 costliest nodes (median ms over
+    ``calls`` profiled calls after 3 warm-up calls) and the sum over all nodes."""
+    sp = _session(path, str(path.with_suffix("")) + "_prof")
+    x = np.random.default_rng(0).uniform(-1, 1, (1, channels, side, side)).astype(np.float32)
+    for _ in range(3 + calls):
         sp.run(None, {"maps": x})
     events = json.loads(Path(sp.end_profiling()).read_text())
     per: dict = defaultdict(list)
@@ -119,11 +136,11 @@ def time_onnx(path: Path, channels: int, sides: list[int], repeats: int) -> dict
         ((float(np.median(v[3:])) / 1e3, f"{op} {name}") for (name, op), v in per.items()),
         reverse=True,
     )
-    out["profile_side"] = side
-    out["profile_sum_ms"] = float(sum(m for m, _ in nodes))
-    out["profile_top"] = [{"ms": m, "node": n} for m, n in nodes[:12]]
-    out["load_1min"].append(os.getloadavg()[0])
-    return out
+    return {
+        "side": side,
+        "sum_ms": float(sum(m for m, _ in nodes)),
+        "top": [{"ms": m, "node": n} for m, n in nodes[:12]],
+    }
 
 
 def main() -> None:
@@ -139,32 +156,43 @@ def main() -> None:
     import torch
 
     from icbtool.gan import Generator
-    from icbtool.gan.models import GeneratorConfig, UNetGenerator, init_weights
+    from icbtool.gan.models import UNetGenerator, init_weights
     from icbtool.provenance import run_info, write_json
 
     torch.set_num_threads(1)
     tmp = Path(tempfile.mkdtemp(prefix="icb-speed-"))
-    res: dict = {"variants": {}, "runs": {}}
-    names = args.only or list(VARIANTS)
-    for k, name in enumerate(names):
-        cfg = GeneratorConfig(**{**BEFORE, **VARIANTS[name]})
+    res: dict = {"variants": {}, "runs": {}, "load_1min": [os.getloadavg()[0]]}
+    models: dict[str, tuple[Path, int]] = {}
+    for k, name in enumerate(args.only or [*ABLATION, *EXTRA]):
+        cfg = generator_config(name)
         m = UNetGenerator(cfg)
         init_weights(m, torch.Generator().manual_seed(0))
-        p = _export(m, cfg.in_channels, max(args.sizes), tmp / f"v{k}.onnx")
-        r = time_onnx(p, cfg.in_channels, args.sizes, args.repeats)
-        r["config"] = asdict(cfg)
-        r["parameters"] = sum(t.numel() for t in m.parameters())
-        res["variants"][name] = r
-        ms = "  ".join(f"{s}: {v['median']:.2f} ms" for s, v in r["ms"].items())
-        print(f"{name:48s} {ms}  (load {r['load_1min'][0]:.2f}-{r['load_1min'][1]:.2f})")
-    for run in args.run:
+        models[name] = (_export(m, cfg.in_channels, max(args.sizes), tmp / f"v{k}.onnx"), 12)
+        res["variants"][name] = {
+            "config": asdict(cfg),
+            "parameters": sum(t.numel() for t in m.parameters()),
+            "ms": {},
+        }
+    for k, run in enumerate(args.run):
         g = Generator.load(run)
-        p = g.export_onnx(tmp / f"run{len(res['runs'])}.onnx", max(args.sizes), max(args.sizes))
-        r = time_onnx(p, g.encoding.n_channels, args.sizes, args.repeats)
-        r["config"] = asdict(g.module.config)
-        res["runs"][str(run)] = r
-        ms = "  ".join(f"{s}: {v['median']:.2f} ms" for s, v in r["ms"].items())
-        print(f"{run:48s} {ms}  (load {r['load_1min'][0]:.2f}-{r['load_1min'][1]:.2f})")
+        p = g.export_onnx(tmp / f"run{k}.onnx", max(args.sizes), max(args.sizes))
+        models[f"run {run}"] = (p, g.encoding.n_channels)
+        res["runs"][str(run)] = {"config": asdict(g.module.config), "ms": {}}
+    for side in args.sizes:
+        load0 = os.getloadavg()[0]
+        ms = time_interleaved(models, side, args.repeats)
+        for name, v in ms.items():
+            entry = res["runs"][name[4:]] if name.startswith("run ") else res["variants"][name]
+            entry["ms"][str(side)] = {**v, "load_1min": [load0, os.getloadavg()[0]]}
+    for name, (path, channels) in models.items():
+        entry = res["runs"][name[4:]] if name.startswith("run ") else res["variants"][name]
+        entry["profile"] = profile_nodes(path, channels, max(args.sizes))
+        line = "  ".join(
+            f"{s}: {v['median']:.1f} (min {v['min']:.1f}) ms" for s, v in entry["ms"].items()
+        )
+        print(f"{name:48s} {line}")
+    res["load_1min"].append(os.getloadavg()[0])
+    print(f"1-minute load {res['load_1min'][0]:.2f} -> {res['load_1min'][1]:.2f}")
     out = Path(args.out)
     write_json(out / f"{args.name}.json", res)
     write_json(out / f"{args.name}_config.json", {"args": vars(args), "run": run_info()})

@@ -604,10 +604,12 @@ def block_mitsuba_xml(results: Path) -> str:
     )
 
 
-def _baseline_line(results: Path) -> str:
-    """One line: the trivial baselines on the current store's test path (gan/baselines_train.json),
-    appended to every older GAN table (issue 17: every table carries its baselines)."""
-    d = load("gan/baselines_train.json", results)
+def _baseline_line(results: Path, tag: str = "train") -> str:
+    """One line: the trivial baselines on the current store's test path (gan/baselines_TAG.json:
+    fitted on the train path, or on train + cover with ``tag="cover"``), appended to every GAN
+    table (issue 17: every table carries its baselines)."""
+    d = load(f"gan/baselines_{tag}.json", results)
+    fitted = "the train path" if tag == "train" else "the train path + the coverage views"
     t = d["paths"]["test"]
     m = t["methods"]
     names = ("constant", "albedo x k", "nearest irradiance", "warp + inpaint",
@@ -616,7 +618,7 @@ def _baseline_line(results: Path) -> str:
     return (
         f"Baselines on the test path of the current Sponza store (`benchmarks/gan_baselines.py`, "
         f"same scene, train path and bake settings; {t['views']} test views, every one scored; "
-        f"fitted on the train path): SSIM {cells}.\n"
+        f"fitted on {fitted}): SSIM {cells}.\n"
     )
 
 
@@ -801,13 +803,35 @@ def block_gan_figure7(results: Path) -> str:
     d = load("gan/figure7.json", results)
     cfg = load("gan/figure7_config.json", results)
     a, sm, ce = cfg["args"], d["summary"], d["noise_ceiling"]
+    tc = next(iter(cfg["train_configs"].values()))
     it = sm["common_iteration"]
     at = sm["at_common_iteration"]
+    fs = d.get("final_scores", {})
+    paths = [p for p in ("test", "walk") if any(p in v for v in fs.values())]
+    tag = "cover" if "cover" in tc["train_path"] else "train"
+
+    def scores(v: dict | None) -> str:
+        return " | ".join(
+            f"{v[p]['ssim']:.3f} / {v[p]['mse']:.0f}" if v and p in v else "-" for p in paths
+        )
+
     rows = "\n".join(
         f"| {c} | {at[c]['ssim']:.3f} | {at[c]['mse']:.0f} | "
         f"{sm['first_iteration_reaching_target'][c] or '-'} |"
+        + (f" {scores(fs.get(c))} |" if paths else "")
         for c in sorted(at)
     )
+    base_rows = ""
+    if paths and (results / f"gan/baselines_{tag}.json").is_file():
+        bl = load(f"gan/baselines_{tag}.json", results)["paths"]
+        names = ("constant", "albedo x k", "nearest irradiance", "warp + inpaint",
+                 "tracer 1 spp + OIDN")  # fmt: skip
+        base_rows = "\n" + "\n".join(
+            f"| {n} (no network) | - | - | - | "
+            + scores({p: bl[p]["methods"][n] for p in paths if n in bl[p]["methods"]})
+            + " |"
+            for n in names
+        )
     pairs = ", ".join(
         f"{p['world']} vs {p['view']} {p['ssim_world_minus_view']:+.3f}"
         for p in sm["world_vs_view_normals"]
@@ -818,16 +842,36 @@ def block_gan_figure7(results: Path) -> str:
         if ce
         else "no noise ceiling measured"
     )
+    preset = a.get("preset", "paper-cpu")
+    what = (
+        f"`{preset}` preset (position features in the configurations that have positions), "
+        f"trained on `{tc['train_path']}`, {tc['crop']}-pixel crops, base {tc['base']}"
+        if preset == "cpu"
+        else f"`paper-cpu` preset, {tc['crop']}-pixel crops, base {tc['base']}, no VGG19 file so "
+        "no perceptual term"
+    )
+    head = "| configuration | SSIM | MSE | reaches target at |"
+    sep = "|---|---|---|---|"
+    if paths:
+        head += " " + " | ".join(f"{p} (every view)" for p in paths) + " |"
+        sep += "---|" * len(paths)
+    n_test = next((v["test"]["views"] for v in fs.values() if "test" in v), None)
+    n_walk = next((v["walk"]["views"] for v in fs.values() if "walk" in v), None)
+    views = (
+        f" Last two columns: SSIM / MSE of the last checkpoint over every view of the test path "
+        f"({n_test}) and of the held-out walk ({n_walk}); the no-network rows are fitted on the "
+        f"same views (`benchmarks/gan_baselines.py --tag {tag}`)."
+        if paths
+        else ""
+    )
+    tail = "" if paths else _demodulated(results) + _baseline_line(results)
     return (
-        "**GAN pre-renderer, Figure 7** (`benchmarks/gan_figure7.py`, Sponza at 128x128, train "
-        f"path 150 views, test path every 3rd view;\n`cpu` preset, {a['crop']}-pixel crops, "
-        f"base {a['base']}, no VGG19 file so no perceptual term; {ceiling}).\nTest SSIM / MSE "
-        f"(display scale, 0-255) after {it} iterations, and the first evaluated iteration "
-        f"reaching SSIM {sm['target_ssim']}:\n\n"
-        "| configuration | SSIM | MSE | reaches target at |\n|---|---|---|---|\n"
-        f"{rows}\n\nBest: {sm['best']}. World normals minus view normals (SSIM): {pairs}.\n"
-        + _demodulated(results)
-        + _baseline_line(results)
+        "**GAN pre-renderer, Figure 7** (`benchmarks/gan_figure7.py`, Sponza at 128x128; "
+        f"{what}; {ceiling}).\nTest SSIM / MSE (display scale, 0-255, every test view) after "
+        f"{it} iterations, and the first evaluated iteration reaching SSIM "
+        f"{sm['target_ssim']}.{views}\n\n"
+        f"{head}\n{sep}\n{rows}{base_rows}\n\nBest: {sm['best']}. World normals minus view "
+        f"normals (SSIM): {pairs}.\n" + tail
     )
 
 

@@ -882,6 +882,8 @@ def test_fast_generator_trains_loads_and_exports_to_onnx_equal_to_torch(store, t
     c = gen.module.config
     assert (c.fourier_resolution, c.head_kernel, c.top_width) == ("half", 1, 2)
     assert gen.generate(make_record(9)).shape == (32, 32, 3)
+    r = T.TrainConfig.preset("cpu")
+    assert (r.position_resolution, r.head_kernel) == ("half", 1)
     with pytest.raises(ValueError, match="head_kernel"):
         T.TrainConfig.preset("cpu", head_kernel=5)
     ort = pytest.importorskip("onnxruntime", reason="onnxruntime not installed (extra 'gan')")

@@ -242,7 +242,9 @@ class TrainConfig:
 
         - ``cpu``: the recipe measured best on 2 CPU cores (docs/gan.md; README "Learned GI"):
           configuration J (albedo, DL, world normals, positions) with 6 octaves of Fourier
-          features of the position, demodulated targets, the full-resolution skip, width 16,
+          features of the position computed at half resolution, demodulated targets, the
+          full-resolution skip with a 1 x 1 head (the client's 256 x 256 frame budget:
+          benchmarks/gan_speed.py), width 16,
           L1 + SSIM without the critic, a constant learning rate of 2e-4 (measured better than a
           cosine decay over 3000 iterations), weight averaging,
           64-pixel crops in batches of 8, 3000 iterations. Give it the coverage views too
@@ -262,6 +264,8 @@ class TrainConfig:
                 demodulate=True,
                 full_res_skip=True,
                 position_octaves=6,
+                position_resolution="half",
+                head_kernel=1,
                 base=16,
                 crop=64,
                 batch_size=8,
