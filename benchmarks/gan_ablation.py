@@ -99,6 +99,14 @@ VARIANTS: dict[str, tuple[str, dict]] = {
         "cpu preset before, both (the cpu preset after the speed study)",
         {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1},
     ),  # fmt: skip
+    "half-res features + 1x1 head + base 8": (
+        "the same, half the width (the generator's cost falls about 4x)",
+        {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1, "base": 8},
+    ),  # fmt: skip
+    "half-res features + 1x1 head + base 8, seed 1": (
+        "the same, another seed (run-to-run spread)",
+        {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1, "base": 8, "seed": 1},
+    ),  # fmt: skip
     "half-res features + 1x1 head, 6000 iterations": (
         "the same trained twice as long (its iteration costs less)",
         {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1, "iterations": 6000},

@@ -45,10 +45,16 @@ ABLATION = (
     "1x1 head",
     "top width 8",
     "half-res features + 1x1 head",
+    "half-res features + 1x1 head + base 8",
 )
 #: Further combinations, timed only: name -> TrainConfig fields changed from "constant lr".
 EXTRA: dict[str, dict] = {
     "1x1 head + skip without features": {"head_kernel": 1, "skip_features": False},
+    "half-res features + 1x1 head + base 12": {
+        "position_resolution": "half",
+        "head_kernel": 1,
+        "base": 12,
+    },  # fmt: skip
     "half-res features + 1x1 head + top width 8": {
         "position_resolution": "half",
         "head_kernel": 1,
@@ -100,22 +106,29 @@ def _session(path: Path, profile_prefix: str | None = None):
 def time_interleaved(models: dict[str, tuple[Path, int]], side: int, repeats: int) -> dict:
     """ms of one-thread ``session.run`` at ``side`` x ``side`` for every model, the models taking
     turns call by call (a load that comes and goes then hits them alike): {name: {median, min,
-    samples}}, after 3 warm-up calls each."""
+    cpu_median, samples}}, after 3 warm-up calls each. ``cpu_median``: the process's CPU time
+    per call, which other processes on a shared machine inflate far less than wall time."""
     rng = np.random.default_rng(0)
-    sess, xs, ts = {}, {}, {}
+    sess, xs, ts, cpu = {}, {}, {}, {}
     for name, (path, channels) in models.items():
         sess[name] = _session(path)
         xs[name] = rng.uniform(-1, 1, (1, channels, side, side)).astype(np.float32)
         for _ in range(3):
             sess[name].run(None, {"maps": xs[name]})
-        ts[name] = []
+        ts[name], cpu[name] = [], []
     for _ in range(repeats):
         for name in models:
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             sess[name].run(None, {"maps": xs[name]})
             ts[name].append(1e3 * (time.perf_counter() - t0))
+            cpu[name].append(1e3 * (time.process_time() - c0))
     return {
-        n: {"median": float(np.median(v)), "min": float(np.min(v)), "samples": len(v)}
+        n: {
+            "median": float(np.median(v)),
+            "min": float(np.min(v)),
+            "cpu_median": float(np.median(cpu[n])),
+            "samples": len(v),
+        }
         for n, v in ts.items()
     }
 
@@ -188,7 +201,8 @@ def main() -> None:
         entry = res["runs"][name[4:]] if name.startswith("run ") else res["variants"][name]
         entry["profile"] = profile_nodes(path, channels, max(args.sizes))
         line = "  ".join(
-            f"{s}: {v['median']:.1f} (min {v['min']:.1f}) ms" for s, v in entry["ms"].items()
+            f"{s}: {v['median']:.1f} (min {v['min']:.1f}, cpu {v['cpu_median']:.1f}) ms"
+            for s, v in entry["ms"].items()
         )
         print(f"{name:48s} {line}")
     res["load_1min"].append(os.getloadavg()[0])

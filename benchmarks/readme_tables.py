@@ -678,18 +678,36 @@ def block_gan_ablation(results: Path) -> str:
     d = load("gan/ablation.json", results)
     v = d["variants"]
     paths = [p for p in ("test", "walk") if any(p in x for x in v.values())]
+    sp = load("gan/speed.json", results) if (results / "gan/speed.json").is_file() else None
+    side = "256"
+
+    def ms(n: str) -> str:
+        x = sp["variants"].get(n.split(", seed")[0].split(", 6000")[0]) if sp else None
+        return f"{x['ms'][side]['median']:.1f}" if x and side in x["ms"] else "-"
+
     rows = "\n".join(
         f"| {n} | {x['change']} | {x['iteration']} | "
         + " | ".join(f"{x[p]['ssim']:.3f} / {x[p]['mse']:.0f}" if p in x else "-" for p in paths)
         + f" | {x['seconds'] / 60:.0f} |"
+        + (f" {ms(n)} |" if sp else "")
         for n, x in v.items()
     )
+    ms_head, ms_sep, ms_txt = "", "", ""
+    if sp:
+        lo, hi = sp["load_1min"]
+        ms_head, ms_sep = f" ms at {side}^2 |", "---|"
+        ms_txt = (
+            f" Last column: the generator's median ms per {side}x{side} frame in onnxruntime on "
+            "one thread, random weights (`benchmarks/gan_speed.py`, the variants taking turns "
+            f"call by call, 1-minute load {lo:.1f} -> {hi:.1f}); - where the network is the "
+            "one above it or was not timed."
+        )
     return (
         "**What limits the generator** (`benchmarks/gan_ablation.py`: the `cpu` preset's recipe "
         "and one change at a time; SSIM / MSE over every view; minutes of training on this "
-        f"loaded 2-core machine, 1-minute load {d['load_1min'][0]:.1f} at the end):\n\n"
-        "| variant | change | iterations | " + " | ".join(paths) + " | minutes |\n"
-        "|---|---|---|" + "---|" * len(paths) + "---|\n" + rows + "\n"
+        f"loaded 2-core machine, 1-minute load {d['load_1min'][0]:.1f} at the end).{ms_txt}\n\n"
+        "| variant | change | iterations | " + " | ".join(paths) + " | minutes |" + ms_head + "\n"
+        "|---|---|---|" + "---|" * len(paths) + "---|" + ms_sep + "\n" + rows + "\n"
     )
 
 
@@ -1002,22 +1020,40 @@ def block_gan_warped(results: Path) -> str:
     it = d["evals_pure"][-1]["iteration"]
     ks = sorted(d["offsets"], key=int)
     methods = [m for m in d["offsets"][ks[0]] if isinstance(d["offsets"][ks[0]][m], dict)]
-    head = " | ".join(f"{d['offsets'][k]['frames_back']} frames back" for k in ks)
+
+    def frames(k: str) -> str:
+        f = d["offsets"][k]["frames_back"]
+        return f"{f:.0f}" if float(f).is_integer() else f"{f:.1f}"
+
+    head = " | ".join(f"{frames(k)} frames back" for k in ks)
     rows = "\n".join(
-        f"| {m} | " + " | ".join(f"{d['offsets'][k][m]['ssim_mean']:.3f}" for k in ks) + " |"
+        f"| {m} | "
+        + " | ".join(
+            f"{d['offsets'][k][m]['ssim_mean']:.3f} ({d['offsets'][k][m]['ssim_holes_mean']:.3f})"
+            for k in ks
+        )
+        + " |"
         for m in methods
     )
     holes = " / ".join(f"{d['offsets'][k]['holes_pct_mean']:.1f}" for k in ks)
+    tc = cfg["train_configs"]["pure"]
+    preset = cfg["args"].get("preset", "paper-cpu")
+    how = (
+        f"the `{preset}` preset on `{tc['train_path']}`"
+        if preset == "cpu"
+        else "the Figure 7 settings"
+    )
+    tag = "cover" if "cover" in tc["train_path"] else "train"
     return (
         "**Beyond the paper: the generator with the warped reference** "
         f"(`benchmarks/gan_warped.py`, configuration {cfg['args']['inputs']}, both generators "
-        f"trained {it} iterations with the Figure 7 settings; {d['views']} test views, the "
-        "reference k test views earlier; mean test SSIM of the frame (in brackets: of the hole "
-        "pixels alone); holes after warping "
+        f"trained {it} iterations with {how}; {d['views']} test views, the reference k test "
+        "views earlier (frames back: the median distance along the test path); mean test SSIM "
+        "of the frame (in brackets: of the hole pixels alone); holes after warping "
         f"{holes} % of the pixels):\n\n| method | {head} |\n|---|"
         + "---|" * len(ks)
         + f"\n{rows}\n"
-        + _baseline_line(results)
+        + _baseline_line(results, tag)
     )
 
 

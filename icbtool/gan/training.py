@@ -244,7 +244,7 @@ class TrainConfig:
           configuration J (albedo, DL, world normals, positions) with 6 octaves of Fourier
           features of the position computed at half resolution, demodulated targets, the
           full-resolution skip with a 1 x 1 head (the client's 256 x 256 frame budget:
-          benchmarks/gan_speed.py), width 16,
+          benchmarks/gan_speed.py), width 8,
           L1 + SSIM without the critic, a constant learning rate of 2e-4 (measured better than a
           cosine decay over 3000 iterations), weight averaging,
           64-pixel crops in batches of 8, 3000 iterations. Give it the coverage views too
@@ -266,7 +266,7 @@ class TrainConfig:
                 position_octaves=6,
                 position_resolution="half",
                 head_kernel=1,
-                base=16,
+                base=8,
                 crop=64,
                 batch_size=8,
                 weight_adv=0.0,
