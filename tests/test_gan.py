@@ -330,7 +330,7 @@ def test_config_validation_and_presets():
     c = T.TrainConfig.preset("paper-cpu")
     assert (c.crop, c.base, c.device, c.inputs, c.weight_adv) == (128, 32, "cpu", "I", 1.0)
     r = T.TrainConfig.preset("cpu")  # the measured recipe (docs/gan.md)
-    assert (r.crop, r.base, r.inputs, r.demodulate, r.full_res_skip) == (64, 16, "J", True, True)
+    assert (r.crop, r.base, r.inputs, r.demodulate, r.full_res_skip) == (64, 8, "J", True, True)
     assert r.position_octaves == 6
     assert (r.weight_adv, r.weight_ssim, r.lr_schedule, r.ema) == (0.0, 20.0, "constant", 0.999)
     with pytest.raises(ValueError, match="multiple of 32"):
