@@ -107,9 +107,25 @@ VARIANTS: dict[str, tuple[str, dict]] = {
         "the same, another seed (run-to-run spread)",
         {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1, "base": 8, "seed": 1},
     ),  # fmt: skip
-    "half-res features + 1x1 head, 6000 iterations": (
-        "the same trained twice as long (its iteration costs less)",
-        {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1, "iterations": 6000},
+    "half-res features + 1x1 head + base 8, 6000 iterations": (
+        "the same, trained twice as long (an iteration costs about half)",
+        {
+            **CPU_BEFORE,
+            "position_resolution": "half",
+            "head_kernel": 1,
+            "base": 8,
+            "iterations": 6000,
+        },
+    ),  # fmt: skip
+    "half-res features + 1x1 head + base 8, 12000 iterations": (
+        "the same, trained four times as long",
+        {
+            **CPU_BEFORE,
+            "position_resolution": "half",
+            "head_kernel": 1,
+            "base": 8,
+            "iterations": 12000,
+        },
     ),  # fmt: skip
     "half-res features + 1x1 head, seed 1": (
         "the same, another seed (run-to-run spread)",

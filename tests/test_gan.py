@@ -897,7 +897,7 @@ def test_fast_generator_trains_loads_and_exports_to_onnx_equal_to_torch(store, t
     assert np.abs(sess.run(None, {"maps": x})[0] - want).max() < 1e-5
 
 
-def test_demodulated_warped_reference_is_divided_by_the_views_albedo(plane_store):
+def test_demodulated_warped_reference_is_divided_by_the_views_albedo(plane_store, tmp_path):
     ds = S.Dataset(plane_store, split="train", inputs="H")
     refs = D.WarpedReferences(plane_store, ds.record_ids)
     enc = D.InputEncoding.fit(
@@ -922,3 +922,10 @@ def test_demodulated_warped_reference_is_divided_by_the_views_albedo(plane_store
     assert D.InputEncoding.from_dict(enc.to_dict()) == enc
     with pytest.raises(ValueError, match="demodulate_warped needs demodulate and warped"):
         D.InputEncoding(("albedo", "dl"), demodulate=True, demodulate_warped=True)
+    # a run trains and generates with it
+    cfg = tiny(inputs="H", iterations=2, warped_reference=True, demodulate=True,
+               reference_offsets=(1,))  # fmt: skip
+    T.train(plane_store, cfg, tmp_path / "run", progress=False)
+    gen = Generator.load(tmp_path / "run")
+    assert gen.encoding.demodulate_warped
+    assert gen.generate({**maps, "warped_gi": img, "warp_holes": holes}).shape == (32, 32, 3)

@@ -335,7 +335,7 @@ class PairData:
         if len(shapes) > 1:
             raise ValueError(f"the {dataset.split!r} split mixes image sizes {sorted(shapes)}")
         xs, ys = [], []
-        base = replace(encoding, warped=False)  # x holds the store's buffers only
+        base = replace(encoding, warped=False, demodulate_warped=False)  # the buffers only
         for s in samples:
             maps = {}
             for n, sl in base.channel_slices().items():
