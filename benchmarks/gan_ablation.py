@@ -6,7 +6,10 @@ demodulated targets, the full-resolution skip, width 16, L1 + SSIM
 loss without the critic, cosine learning rate, weight averaging, 64-pixel crops in batches of 8,
 trained on the train path plus the coverage views (``train,cover``: benchmarks/gan_coverage.py).
 Each variant changes exactly one thing. The best of them, "constant lr", is what the ``cpu``
-preset became (the recipe with a constant learning rate). Runs train round-robin in chunks
+preset became (the recipe with a constant learning rate); the speed study (issue 17: <= 15 ms
+per 256 x 256 frame, benchmarks/gan_speed.py) then changed one thing at a time from that preset,
+with seed replicates for the run-to-run spread, and the ``cpu`` preset is now its last row
+("half-res features + 1x1 head + base 8, 12000 iterations"). Runs train round-robin in chunks
 (resumable: a rerun continues), then every run is scored on ALL views of the test path and of
 the held-out walk.
 
@@ -31,11 +34,16 @@ REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-#: The generator's architecture when the ablation began (full-resolution position features,
-#: 3 x 3 head): the recipe pins it, so the rows measured before the speed study keep their
+#: The generator's architecture when the ablation began (width 16, full-resolution position
+#: features, 3 x 3 head): the recipe pins it, so the rows measured before the speed study keep their
 #: configs whatever the ``cpu`` preset becomes.
 FIRST_NET = dict(
-    position_resolution="full", head_kernel=3, skip_features=True, input_reduce=0, top_width=0
+    base=16,
+    position_resolution="full",
+    head_kernel=3,
+    skip_features=True,
+    input_reduce=0,
+    top_width=0,
 )
 
 #: The recipe: the ``cpu`` preset as it was first planned (a cosine learning rate; the ablation
@@ -57,7 +65,10 @@ VARIANTS: dict[str, tuple[str, dict]] = {
         "L_a + L_c (WGAN-GP critic, weights 1 / 1)",
         {"weight_adv": 1.0, "weight_l1": 1.0, "weight_ssim": 0.0},
     ),  # fmt: skip
-    "constant lr": ("no cosine schedule: the cpu preset", {"lr_schedule": "constant"}),
+    "constant lr": (
+        "no cosine schedule: the cpu preset before the speed study",
+        {"lr_schedule": "constant"},
+    ),
     "no averaging": ("no weight averaging", {"ema": 0.0}),
     "crop 128": (
         "whole 128 x 128 images (no crop augmentation), batch 2",
@@ -118,7 +129,7 @@ VARIANTS: dict[str, tuple[str, dict]] = {
         },
     ),  # fmt: skip
     "half-res features + 1x1 head + base 8, 12000 iterations": (
-        "the same, trained four times as long",
+        "the same, trained four times as long: the cpu preset",
         {
             **CPU_BEFORE,
             "position_resolution": "half",
