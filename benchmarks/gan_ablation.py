@@ -107,8 +107,12 @@ VARIANTS: dict[str, tuple[str, dict]] = {
     ),  # fmt: skip
     "top width 8": ("cpu preset before, the last level 8 wide", {**CPU_BEFORE, "top_width": 8}),
     "half-res features + 1x1 head": (
-        "cpu preset before, both (the cpu preset after the speed study)",
+        "cpu preset before, both",
         {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1},
+    ),  # fmt: skip
+    "half-res features + 1x1 head, seed 1": (
+        "the same, another seed (run-to-run spread)",
+        {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1, "seed": 1},
     ),  # fmt: skip
     "half-res features + 1x1 head + base 8": (
         "the same, half the width (the generator's cost falls about 4x)",
@@ -137,10 +141,6 @@ VARIANTS: dict[str, tuple[str, dict]] = {
             "base": 8,
             "iterations": 12000,
         },
-    ),  # fmt: skip
-    "half-res features + 1x1 head, seed 1": (
-        "the same, another seed (run-to-run spread)",
-        {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1, "seed": 1},
     ),  # fmt: skip
 }
 

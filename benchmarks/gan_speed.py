@@ -12,6 +12,9 @@ profiler: median time per node over the profiled calls), so one sees which layer
 
     .venv/bin/python benchmarks/gan_speed.py --repeats 30
 
+With ``--store`` it also times one training iteration of the preset before and after the study
+(the new network trains more iterations, each cheaper).
+
 Writes benchmarks/results/gan/speed.json (and speed_config.json). Timings are taken on a shared
 machine: the 1-minute load before and after each variant is recorded next to its numbers.
 """
@@ -156,6 +159,41 @@ def profile_nodes(path: Path, channels: int, side: int, calls: int = 10) -> dict
     }
 
 
+def iteration_ms(store_dir: str, scene: str, names: list[str], n: int = 100) -> dict:
+    """Training cost per iteration of ablation variants on a store: wall and CPU ms of one
+    generator update (median conditions: one torch thread, after 5 warm-up updates, mean of
+    ``n``), from the training loop's own state (``icbtool.gan.training._Run``)."""
+    import tempfile as tf
+
+    import torch
+    from gan_ablation import config
+
+    import icbtool.store as S
+    from icbtool.gan.training import _Run
+
+    torch.set_num_threads(1)
+    out = {}
+    ro = S.StoreConfig(readonly=True, record_hits=False)
+    with S.open(store_dir, ro) as st:
+        for name in names:
+            run = _Run(st, config(name, 3000, 500), Path(tf.mkdtemp(prefix="icb-it-")), scene)
+            for _ in range(5):
+                run.iteration()
+            load0, c0, t0 = os.getloadavg()[0], time.process_time(), time.perf_counter()
+            for _ in range(n):
+                run.iteration()
+            out[name] = {
+                "ms": 1e3 * (time.perf_counter() - t0) / n,
+                "cpu_ms": 1e3 * (time.process_time() - c0) / n,
+                "iterations_timed": n,
+                "load_1min": [load0, os.getloadavg()[0]],
+            }
+            print(
+                f"{name:48s} {out[name]['ms']:.1f} ms ({out[name]['cpu_ms']:.1f} CPU) / iteration"
+            )
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
@@ -164,6 +202,12 @@ def main() -> None:
     ap.add_argument("--run", nargs="*", default=[], help="trained runs to time as they are")
     ap.add_argument("--out", default=str(OUT))
     ap.add_argument("--name", default="speed", help="output file stem")
+    ap.add_argument("--store", default=None, help="also time a training iteration on this store")
+    ap.add_argument("--scene", default="sponza")
+    ap.add_argument(
+        "--iteration-variants", nargs="*",
+        default=["constant lr", "half-res features + 1x1 head + base 8, 12000 iterations"],
+    )  # fmt: skip
     args = ap.parse_args()
 
     import torch
@@ -205,6 +249,8 @@ def main() -> None:
             for s, v in entry["ms"].items()
         )
         print(f"{name:48s} {line}")
+    if args.store:
+        res["iteration"] = iteration_ms(args.store, args.scene, args.iteration_variants)
     res["load_1min"].append(os.getloadavg()[0])
     print(f"1-minute load {res['load_1min'][0]:.2f} -> {res['load_1min'][1]:.2f}")
     out = Path(args.out)

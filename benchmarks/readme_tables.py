@@ -682,8 +682,8 @@ def block_gan_ablation(results: Path) -> str:
     side = "256"
 
     def ms(n: str) -> str:
-        x = sp["variants"].get(n.split(", seed")[0].split(", 6000")[0]) if sp else None
-        return f"{x['ms'][side]['median']:.1f}" if x and side in x["ms"] else "-"
+        x = sp["variants"].get(n.split(",")[0]) if sp else None  # seeds, iterations: same net
+        return f"{x['ms'][side]['min']:.1f}" if x and side in x["ms"] else "-"
 
     rows = "\n".join(
         f"| {n} | {x['change']} | {x['iteration']} | "
@@ -697,10 +697,12 @@ def block_gan_ablation(results: Path) -> str:
         lo, hi = sp["load_1min"]
         ms_head, ms_sep = f" ms at {side}^2 |", "---|"
         ms_txt = (
-            f" Last column: the generator's median ms per {side}x{side} frame in onnxruntime on "
-            "one thread, random weights (`benchmarks/gan_speed.py`, the variants taking turns "
-            f"call by call, 1-minute load {lo:.1f} -> {hi:.1f}); - where the network is the "
-            "one above it or was not timed."
+            f" Last column: the generator's ms per {side}x{side} frame in onnxruntime on one "
+            "thread, the least of "
+            f"{next(iter(sp['variants'].values()))['ms'][side]['samples']} calls (random "
+            "weights; `benchmarks/gan_speed.py`, the variants taking turns call by call, "
+            f"1-minute load {lo:.1f} -> {hi:.1f}; medians and CPU times in `gan/speed.json`); "
+            "- where the network is one timed above or was not timed."
         )
     return (
         "**What limits the generator** (`benchmarks/gan_ablation.py`: the `cpu` preset's recipe "
