@@ -914,7 +914,10 @@ def block_gan_figure8(results: Path) -> str:
     for rel, what in (
         ("gan/figure8.json", "the paper's generator (Figure 7's best)"),
         ("gan/demodulated/figure8.json", "with albedo demodulation (our addition)"),
-        ("gan/recipe/figure8.json", "the `cpu` recipe (issue 17; on the current store)"),
+        (
+            "gan/recipe/figure8.json",
+            "the `cpu` preset before the speed study (issue 17; current store)",
+        ),
     ):
         if not (results / rel).is_file():
             continue
@@ -984,7 +987,8 @@ def block_gan_time_error(results: Path) -> str:
         f"curve):\nthe generator ({e['generator']}) takes "
         f"{e['ms']:.1f} ms for SSIM {e['ssim']:.3f}; the path tracer at that SSIM: "
         f"{speed('raw')}; {speed('denoised')}.\nGenerator alone (1 / 2 threads), by size: "
-        f"{size_txt}.{load_txt}\n" + _baseline_line(results)
+        f"{size_txt}.{load_txt}\n"
+        + _baseline_line(results, "cover" if "cover" in d.get("train_path", "") else "train")
     )
 
 
