@@ -6,7 +6,10 @@ demodulated targets, the full-resolution skip, width 16, L1 + SSIM
 loss without the critic, cosine learning rate, weight averaging, 64-pixel crops in batches of 8,
 trained on the train path plus the coverage views (``train,cover``: benchmarks/gan_coverage.py).
 Each variant changes exactly one thing. The best of them, "constant lr", is what the ``cpu``
-preset became (the recipe with a constant learning rate). Runs train round-robin in chunks
+preset became (the recipe with a constant learning rate); the speed study (issue 17: <= 15 ms
+per 256 x 256 frame, benchmarks/gan_speed.py) then changed one thing at a time from that preset,
+with seed replicates for the run-to-run spread, and the ``cpu`` preset is now its last row
+("half-res features + 1x1 head + base 8, 12000 iterations"). Runs train round-robin in chunks
 (resumable: a rerun continues), then every run is scored on ALL views of the test path and of
 the held-out walk.
 
@@ -31,9 +34,25 @@ REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
 sys.path.insert(0, str(REPO / "benchmarks"))
 
+#: The generator's architecture when the ablation began (width 16, full-resolution position
+#: features, 3 x 3 head): the recipe pins it, so the rows measured before the speed study keep their
+#: configs whatever the ``cpu`` preset becomes.
+FIRST_NET = dict(
+    base=16,
+    position_resolution="full",
+    head_kernel=3,
+    skip_features=True,
+    input_reduce=0,
+    top_width=0,
+)
+
 #: The recipe: the ``cpu`` preset as it was first planned (a cosine learning rate; the ablation
 #: found the preset's constant one better), trained on the train path plus the coverage views.
-RECIPE = dict(lr_schedule="cosine", train_path="train,cover")
+RECIPE = dict(lr_schedule="cosine", train_path="train,cover", **FIRST_NET)
+
+#: The ``cpu`` preset before the speed study (the recipe with a constant learning rate): the
+#: speed variants (issue 17: <= 15 ms at 256 x 256) each change one thing of it.
+CPU_BEFORE = {"lr_schedule": "constant"}
 
 #: name -> (what changes, the fields that change)
 VARIANTS: dict[str, tuple[str, dict]] = {
@@ -46,7 +65,10 @@ VARIANTS: dict[str, tuple[str, dict]] = {
         "L_a + L_c (WGAN-GP critic, weights 1 / 1)",
         {"weight_adv": 1.0, "weight_l1": 1.0, "weight_ssim": 0.0},
     ),  # fmt: skip
-    "constant lr": ("no cosine schedule: the cpu preset", {"lr_schedule": "constant"}),
+    "constant lr": (
+        "no cosine schedule: the cpu preset before the speed study",
+        {"lr_schedule": "constant"},
+    ),
     "no averaging": ("no weight averaging", {"ema": 0.0}),
     "crop 128": (
         "whole 128 x 128 images (no crop augmentation), batch 2",
@@ -58,16 +80,78 @@ VARIANTS: dict[str, tuple[str, dict]] = {
         {"inputs": "I", "position_octaves": 0},
     ),  # fmt: skip
     "no position features": ("no Fourier features of the position", {"position_octaves": 0}),
+    # the speed study: one change from the cpu preset before it (benchmarks/gan_speed.py)
+    "seed 1": (
+        "the cpu preset before, another seed (run-to-run spread)",
+        {**CPU_BEFORE, "seed": 1},
+    ),  # fmt: skip
+    "4 octaves": (
+        "cpu preset before, 4 octaves of position features",
+        {**CPU_BEFORE, "position_octaves": 4},
+    ),  # fmt: skip
+    "1x1 reduction": (
+        "cpu preset before, a 1x1 reduction of input + features to 16 channels",
+        {**CPU_BEFORE, "input_reduce": 16},
+    ),  # fmt: skip
+    "half-res features": (
+        "cpu preset before, position features at half resolution",
+        {**CPU_BEFORE, "position_resolution": "half"},
+    ),  # fmt: skip
+    "skip without features": (
+        "cpu preset before, the full-res skip without the features",
+        {**CPU_BEFORE, "skip_features": False},
+    ),  # fmt: skip
+    "1x1 head": (
+        "cpu preset before, a 1x1 full-resolution head",
+        {**CPU_BEFORE, "head_kernel": 1},
+    ),  # fmt: skip
+    "top width 8": ("cpu preset before, the last level 8 wide", {**CPU_BEFORE, "top_width": 8}),
+    "half-res features + 1x1 head": (
+        "cpu preset before, both",
+        {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1},
+    ),  # fmt: skip
+    "half-res features + 1x1 head, seed 1": (
+        "the same, another seed (run-to-run spread)",
+        {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1, "seed": 1},
+    ),  # fmt: skip
+    "half-res features + 1x1 head + base 8": (
+        "the same, half the width (the generator's cost falls about 4x)",
+        {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1, "base": 8},
+    ),  # fmt: skip
+    "half-res features + 1x1 head + base 8, seed 1": (
+        "the same, another seed (run-to-run spread)",
+        {**CPU_BEFORE, "position_resolution": "half", "head_kernel": 1, "base": 8, "seed": 1},
+    ),  # fmt: skip
+    "half-res features + 1x1 head + base 8, 6000 iterations": (
+        "the same, trained twice as long (an iteration costs about half)",
+        {
+            **CPU_BEFORE,
+            "position_resolution": "half",
+            "head_kernel": 1,
+            "base": 8,
+            "iterations": 6000,
+        },
+    ),  # fmt: skip
+    "half-res features + 1x1 head + base 8, 12000 iterations": (
+        "the same, trained four times as long: the cpu preset",
+        {
+            **CPU_BEFORE,
+            "position_resolution": "half",
+            "head_kernel": 1,
+            "base": 8,
+            "iterations": 12000,
+        },
+    ),  # fmt: skip
 }
 
 
 def config(name: str, iterations: int, chunk: int):
+    """A variant's TrainConfig: ``iterations`` unless the variant sets its own."""
     from icbtool import gan
 
-    fields = {**RECIPE, **VARIANTS[name][1]}
-    return gan.TrainConfig.preset(
-        "cpu", iterations=iterations, eval_every=chunk, checkpoint_every=chunk, **fields
-    )
+    fields = {"iterations": iterations, "eval_every": chunk, "checkpoint_every": chunk,
+              **RECIPE, **VARIANTS[name][1]}  # fmt: skip
+    return gan.TrainConfig.preset("cpu", **fields)
 
 
 def score(store, scene, run: Path, paths: list[str], exposure: float) -> dict:
@@ -120,7 +204,9 @@ def main() -> None:
         for n in names
     }
     if not args.score_only:
-        train_round_robin(jobs, args.iterations, args.chunk, args.scene)
+        for its in sorted({cfg.iterations for _, cfg, _ in jobs.values()}):
+            group = {n: j for n, j in jobs.items() if j[1].iterations == its}
+            train_round_robin(group, its, args.chunk, args.scene)
     ro = S.StoreConfig(readonly=True, record_hits=False)
     res: dict = {"recipe": config("recipe", args.iterations, args.chunk).to_dict(), "variants": {}}
     paths = [p for p in args.eval_paths.split(",") if p]

@@ -84,6 +84,7 @@ def main() -> None:
     ap.add_argument("--inputs", default="J")
     ap.add_argument("--iterations", type=int, default=1000)
     add_training_arguments(ap)
+    ap.set_defaults(preset="paper-cpu")  # its committed results: the first Figure 7 settings
     ap.add_argument("--runs", default=str(REPO / "out" / "gan_spp"))
     ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args()

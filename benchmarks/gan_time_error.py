@@ -89,7 +89,9 @@ def main() -> None:
         return ort.InferenceSession(str(onnx_path), so, providers=["CPUExecutionProvider"])
 
     ro = S.StoreConfig(readonly=True, record_hits=False)
-    res: dict = {"run": str(run), "inputs": list(gen.inputs), "frames": []}
+    train_path = json.loads((run / "config.json").read_text())["train_config"]["train_path"]
+    res: dict = {"run": str(run), "train_path": train_path, "inputs": list(gen.inputs),
+                 "frames": []}  # fmt: skip
     gen_pts: dict[str, list[tuple[float, float]]] = {}
     tracer_pts: dict[str, list[tuple[float, float]]] = {"raw": [], "denoised": []}
     with S.open(args.store, ro) as store:

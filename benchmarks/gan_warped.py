@@ -5,9 +5,12 @@ holes where the reference did not see. This experiment trains the paper's best c
 twice on the same Sponza store and settings as Figure 7 (``benchmarks/gan_figure7.py``): once as
 the paper does (pure generation from the client's buffers) and once with the warped reference GI
 and its hole mask as 4 more input channels (``TrainConfig.warped_reference``: references drawn at
-random offsets of 1-6 views along the train path). Then along the whole test path, with the
-reference ``k`` test views earlier (k = 1, 2, 4; the test path keeps every 3rd camera, so 3, 6 and
-12 frames), it compares (display-scale SSIM / MSE against the traced truth):
+random offsets of 1-6 views along the train path; with demodulated targets the reference is
+demodulated by the view's albedo too). ``--preset cpu`` (default) trains both with the measured
+recipe on the train and coverage views, ``--preset paper-cpu`` as the first runs were. Then along
+the whole test path, with the reference ``k`` test views earlier (k = 1, 2, 4; the JSON gives the
+median number of path frames between them), it compares (display-scale SSIM / MSE against the
+traced truth):
 
 - ``generate``: the paper's pure generator;
 - ``warp+inpaint``: the warped reference, holes filled by OpenCV inpainting (what the loop does
@@ -86,9 +89,10 @@ def compare(args: argparse.Namespace, runs: Path) -> dict:
     examples = {}
     for k in args.offsets:
         rows = {m: {"ssim": [], "mse": [], "ssim_holes": []} for m in METHODS}
-        holes_pct = []
+        holes_pct, frames = [], []
         for i, rec in enumerate(recs):
             j = refs.reference(i, k)
+            frames.append(abs(int(rec.meta.tags["index"]) - int(recs[j].meta.tags["index"])))
             img, holes = refs.warped(i, j)
             geo = rec.mask[..., 0] > 0.5
             holes_pct.append(100.0 * holes[geo].mean() if geo.any() else 0.0)
@@ -111,7 +115,8 @@ def compare(args: argparse.Namespace, runs: Path) -> dict:
             if k == args.offsets[-1] and (not examples or holes_pct[-1] > examples["holes"]):
                 examples = {"i": i, "holes": holes_pct[-1], "truth": rec.gi, **preds}
         out["offsets"][str(k)] = {
-            "frames_back": 3 * k,
+            # path frames between a view and its reference (the test path's stride may vary)
+            "frames_back": float(np.median(frames)),
             "holes_pct_mean": float(np.mean(holes_pct)),
             "holes_pct_max": float(np.max(holes_pct)),
             **{

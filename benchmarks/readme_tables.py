@@ -683,10 +683,12 @@ def block_mitsuba_xml(results: Path) -> str:
     )
 
 
-def _baseline_line(results: Path) -> str:
-    """One line: the trivial baselines on the current store's test path (gan/baselines_train.json),
-    appended to every older GAN table (issue 17: every table carries its baselines)."""
-    d = load("gan/baselines_train.json", results)
+def _baseline_line(results: Path, tag: str = "train") -> str:
+    """One line: the trivial baselines on the current store's test path (gan/baselines_TAG.json:
+    fitted on the train path, or on train + cover with ``tag="cover"``), appended to every GAN
+    table (issue 17: every table carries its baselines)."""
+    d = load(f"gan/baselines_{tag}.json", results)
+    fitted = "the train path" if tag == "train" else "the train path + the coverage views"
     t = d["paths"]["test"]
     m = t["methods"]
     names = ("constant", "albedo x k", "nearest irradiance", "warp + inpaint",
@@ -695,7 +697,7 @@ def _baseline_line(results: Path) -> str:
     return (
         f"Baselines on the test path of the current Sponza store (`benchmarks/gan_baselines.py`, "
         f"same scene, train path and bake settings; {t['views']} test views, every one scored; "
-        f"fitted on the train path): SSIM {cells}.\n"
+        f"fitted on {fitted}): SSIM {cells}.\n"
     )
 
 
@@ -755,18 +757,38 @@ def block_gan_ablation(results: Path) -> str:
     d = load("gan/ablation.json", results)
     v = d["variants"]
     paths = [p for p in ("test", "walk") if any(p in x for x in v.values())]
+    sp = load("gan/speed.json", results) if (results / "gan/speed.json").is_file() else None
+    side = "256"
+
+    def ms(n: str) -> str:
+        x = sp["variants"].get(n.split(",")[0]) if sp else None  # seeds, iterations: same net
+        return f"{x['ms'][side]['min']:.1f}" if x and side in x["ms"] else "-"
+
     rows = "\n".join(
         f"| {n} | {x['change']} | {x['iteration']} | "
         + " | ".join(f"{x[p]['ssim']:.3f} / {x[p]['mse']:.0f}" if p in x else "-" for p in paths)
         + f" | {x['seconds'] / 60:.0f} |"
+        + (f" {ms(n)} |" if sp else "")
         for n, x in v.items()
     )
+    ms_head, ms_sep, ms_txt = "", "", ""
+    if sp:
+        lo, hi = sp["load_1min"]
+        ms_head, ms_sep = f" ms at {side}^2 |", "---|"
+        ms_txt = (
+            f" Last column: the generator's ms per {side}x{side} frame in onnxruntime on one "
+            "thread, the least of "
+            f"{next(iter(sp['variants'].values()))['ms'][side]['samples']} calls (random "
+            "weights; `benchmarks/gan_speed.py`, the variants taking turns call by call, "
+            f"1-minute load {lo:.1f} -> {hi:.1f}; medians and CPU times in `gan/speed.json`); "
+            "- where the network is one timed above or was not timed."
+        )
     return (
         "**What limits the generator** (`benchmarks/gan_ablation.py`: the `cpu` preset's recipe "
         "and one change at a time; SSIM / MSE over every view; minutes of training on this "
-        f"loaded 2-core machine, 1-minute load {d['load_1min'][0]:.1f} at the end):\n\n"
-        "| variant | change | iterations | " + " | ".join(paths) + " | minutes |\n"
-        "|---|---|---|" + "---|" * len(paths) + "---|\n" + rows + "\n"
+        f"loaded 2-core machine, 1-minute load {d['load_1min'][0]:.1f} at the end).{ms_txt}\n\n"
+        "| variant | change | iterations | " + " | ".join(paths) + " | minutes |" + ms_head + "\n"
+        "|---|---|---|" + "---|" * len(paths) + "---|" + ms_sep + "\n" + rows + "\n"
     )
 
 
@@ -926,13 +948,35 @@ def block_gan_figure7(results: Path) -> str:
     d = load("gan/figure7.json", results)
     cfg = load("gan/figure7_config.json", results)
     a, sm, ce = cfg["args"], d["summary"], d["noise_ceiling"]
+    tc = next(iter(cfg["train_configs"].values()))
     it = sm["common_iteration"]
     at = sm["at_common_iteration"]
+    fs = d.get("final_scores", {})
+    paths = [p for p in ("test", "walk") if any(p in v for v in fs.values())]
+    tag = "cover" if "cover" in tc["train_path"] else "train"
+
+    def scores(v: dict | None) -> str:
+        return " | ".join(
+            f"{v[p]['ssim']:.3f} / {v[p]['mse']:.0f}" if v and p in v else "-" for p in paths
+        )
+
     rows = "\n".join(
         f"| {c} | {at[c]['ssim']:.3f} | {at[c]['mse']:.0f} | "
         f"{sm['first_iteration_reaching_target'][c] or '-'} |"
+        + (f" {scores(fs.get(c))} |" if paths else "")
         for c in sorted(at)
     )
+    base_rows = ""
+    if paths and (results / f"gan/baselines_{tag}.json").is_file():
+        bl = load(f"gan/baselines_{tag}.json", results)["paths"]
+        names = ("constant", "albedo x k", "nearest irradiance", "warp + inpaint",
+                 "tracer 1 spp + OIDN")  # fmt: skip
+        base_rows = "\n" + "\n".join(
+            f"| {n} (no network) | - | - | - | "
+            + scores({p: bl[p]["methods"][n] for p in paths if n in bl[p]["methods"]})
+            + " |"
+            for n in names
+        )
     pairs = ", ".join(
         f"{p['world']} vs {p['view']} {p['ssim_world_minus_view']:+.3f}"
         for p in sm["world_vs_view_normals"]
@@ -943,16 +987,36 @@ def block_gan_figure7(results: Path) -> str:
         if ce
         else "no noise ceiling measured"
     )
+    preset = a.get("preset", "paper-cpu")
+    what = (
+        f"`{preset}` preset (position features in the configurations that have positions), "
+        f"trained on `{tc['train_path']}`, {tc['crop']}-pixel crops, base {tc['base']}"
+        if preset == "cpu"
+        else f"`paper-cpu` preset, {tc['crop']}-pixel crops, base {tc['base']}, no VGG19 file so "
+        "no perceptual term"
+    )
+    head = "| configuration | SSIM | MSE | reaches target at |"
+    sep = "|---|---|---|---|"
+    if paths:
+        head += " " + " | ".join(f"{p} (every view)" for p in paths) + " |"
+        sep += "---|" * len(paths)
+    n_test = next((v["test"]["views"] for v in fs.values() if "test" in v), None)
+    n_walk = next((v["walk"]["views"] for v in fs.values() if "walk" in v), None)
+    views = (
+        f" Last two columns: SSIM / MSE of the last checkpoint over every view of the test path "
+        f"({n_test}) and of the held-out walk ({n_walk}); the no-network rows are fitted on the "
+        f"same views (`benchmarks/gan_baselines.py --tag {tag}`)."
+        if paths
+        else ""
+    )
+    tail = "" if paths else _demodulated(results) + _baseline_line(results)
     return (
-        "**GAN pre-renderer, Figure 7** (`benchmarks/gan_figure7.py`, Sponza at 128x128, train "
-        f"path 150 views, test path every 3rd view;\n`cpu` preset, {a['crop']}-pixel crops, "
-        f"base {a['base']}, no VGG19 file so no perceptual term; {ceiling}).\nTest SSIM / MSE "
-        f"(display scale, 0-255) after {it} iterations, and the first evaluated iteration "
-        f"reaching SSIM {sm['target_ssim']}:\n\n"
-        "| configuration | SSIM | MSE | reaches target at |\n|---|---|---|---|\n"
-        f"{rows}\n\nBest: {sm['best']}. World normals minus view normals (SSIM): {pairs}.\n"
-        + _demodulated(results)
-        + _baseline_line(results)
+        "**GAN pre-renderer, Figure 7** (`benchmarks/gan_figure7.py`, Sponza at 128x128; "
+        f"{what}; {ceiling}).\nTest SSIM / MSE (display scale, 0-255, every test view) after "
+        f"{it} iterations, and the first evaluated iteration reaching SSIM "
+        f"{sm['target_ssim']}.{views}\n\n"
+        f"{head}\n{sep}\n{rows}{base_rows}\n\nBest: {sm['best']}. World normals minus view "
+        f"normals (SSIM): {pairs}.\n" + tail
     )
 
 
@@ -975,7 +1039,10 @@ def block_gan_figure8(results: Path) -> str:
     for rel, what in (
         ("gan/figure8.json", "the paper's generator (Figure 7's best)"),
         ("gan/demodulated/figure8.json", "with albedo demodulation (our addition)"),
-        ("gan/recipe/figure8.json", "the `cpu` recipe (issue 17; on the current store)"),
+        (
+            "gan/recipe/figure8.json",
+            "the `cpu` preset before the speed study (issue 17; current store)",
+        ),
     ):
         if not (results / rel).is_file():
             continue
@@ -1045,7 +1112,8 @@ def block_gan_time_error(results: Path) -> str:
         f"curve):\nthe generator ({e['generator']}) takes "
         f"{e['ms']:.1f} ms for SSIM {e['ssim']:.3f}; the path tracer at that SSIM: "
         f"{speed('raw')}; {speed('denoised')}.\nGenerator alone (1 / 2 threads), by size: "
-        f"{size_txt}.{load_txt}\n" + _baseline_line(results)
+        f"{size_txt}.{load_txt}\n"
+        + _baseline_line(results, "cover" if "cover" in d.get("train_path", "") else "train")
     )
 
 
@@ -1083,22 +1151,40 @@ def block_gan_warped(results: Path) -> str:
     it = d["evals_pure"][-1]["iteration"]
     ks = sorted(d["offsets"], key=int)
     methods = [m for m in d["offsets"][ks[0]] if isinstance(d["offsets"][ks[0]][m], dict)]
-    head = " | ".join(f"{d['offsets'][k]['frames_back']} frames back" for k in ks)
+
+    def frames(k: str) -> str:
+        f = d["offsets"][k]["frames_back"]
+        return f"{f:.0f}" if float(f).is_integer() else f"{f:.1f}"
+
+    head = " | ".join(f"{frames(k)} frames back" for k in ks)
     rows = "\n".join(
-        f"| {m} | " + " | ".join(f"{d['offsets'][k][m]['ssim_mean']:.3f}" for k in ks) + " |"
+        f"| {m} | "
+        + " | ".join(
+            f"{d['offsets'][k][m]['ssim_mean']:.3f} ({d['offsets'][k][m]['ssim_holes_mean']:.3f})"
+            for k in ks
+        )
+        + " |"
         for m in methods
     )
     holes = " / ".join(f"{d['offsets'][k]['holes_pct_mean']:.1f}" for k in ks)
+    tc = cfg["train_configs"]["pure"]
+    preset = cfg["args"].get("preset", "paper-cpu")
+    how = (
+        f"the `{preset}` preset on `{tc['train_path']}`"
+        if preset == "cpu"
+        else "the Figure 7 settings"
+    )
+    tag = "cover" if "cover" in tc["train_path"] else "train"
     return (
         "**Beyond the paper: the generator with the warped reference** "
         f"(`benchmarks/gan_warped.py`, configuration {cfg['args']['inputs']}, both generators "
-        f"trained {it} iterations with the Figure 7 settings; {d['views']} test views, the "
-        "reference k test views earlier; mean test SSIM of the frame (in brackets: of the hole "
-        "pixels alone); holes after warping "
+        f"trained {it} iterations with {how}; {d['views']} test views, the reference k test "
+        "views earlier (frames back: the median distance along the test path); mean test SSIM "
+        "of the frame (in brackets: of the hole pixels alone); holes after warping "
         f"{holes} % of the pixels):\n\n| method | {head} |\n|---|"
         + "---|" * len(ks)
         + f"\n{rows}\n"
-        + _baseline_line(results)
+        + _baseline_line(results, tag)
     )
 
 

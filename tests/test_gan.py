@@ -330,7 +330,7 @@ def test_config_validation_and_presets():
     c = T.TrainConfig.preset("paper-cpu")
     assert (c.crop, c.base, c.device, c.inputs, c.weight_adv) == (128, 32, "cpu", "I", 1.0)
     r = T.TrainConfig.preset("cpu")  # the measured recipe (docs/gan.md)
-    assert (r.crop, r.base, r.inputs, r.demodulate, r.full_res_skip) == (64, 16, "J", True, True)
+    assert (r.crop, r.base, r.inputs, r.demodulate, r.full_res_skip) == (64, 8, "J", True, True)
     assert r.position_octaves == 6
     assert (r.weight_adv, r.weight_ssim, r.lr_schedule, r.ema) == (0.0, 20.0, "constant", 0.999)
     with pytest.raises(ValueError, match="multiple of 32"):
@@ -811,3 +811,121 @@ def test_fourier_features_of_the_position_channels_are_computed_inside_the_netwo
     gen = Generator.load(tmp_path / "run")
     assert gen.module.config.fourier_octaves == 2
     assert gen.generate(make_record(9)).shape == (32, 32, 3)
+
+
+# ------------------------------------------------------------------------------ client frame time
+def test_generator_config_saved_before_the_speed_fields_builds_the_first_network():
+    old = {"in_channels": 12, "out_channels": 3, "base": 4, "norm": "batch",
+           "full_res_skip": True, "fourier_channels": [9, 12], "fourier_octaves": 2}  # fmt: skip
+    cfg = M.GeneratorConfig(**old)
+    assert (cfg.fourier_resolution, cfg.head_kernel, cfg.skip_features) == ("full", 3, True)
+    assert (cfg.reduce, cfg.top_width) == (0, 0)
+    g = M.UNetGenerator(cfg)
+    # the first network: 12 + 12 feature channels into the first level, a 3x3 head over
+    # base + 24 channels, no other modules
+    assert g.down[0][0].weight.shape == (4, 24, 4, 4)
+    assert g.head[0].weight.shape == (3, 4 + 24, 3, 3)
+    assert g.reduce is None and g.half_features is None
+    with pytest.raises(ValueError, match="head_kernel must be 1 or 3"):
+        M.GeneratorConfig(in_channels=3, head_kernel=2)
+    with pytest.raises(ValueError, match="fourier_resolution must be 'full' or 'half'"):
+        M.GeneratorConfig(in_channels=3, fourier_resolution="quarter")
+    with pytest.raises(ValueError, match="reduce maps full-resolution features"):
+        M.GeneratorConfig(in_channels=3, reduce=8, fourier_resolution="half")
+
+
+def test_half_resolution_features_are_those_of_the_2x2_mean_position():
+    """With every weight zero but the features' 1x1 convolution (all ones), the first level's
+    output is LeakyReLU of the sum of sin / cos of the 2x2-averaged position."""
+    cfg = M.GeneratorConfig(in_channels=4, base=4, norm="none", full_res_skip=True,
+                            fourier_channels=(1, 2), fourier_octaves=2,
+                            fourier_resolution="half", head_kernel=1)  # fmt: skip
+    g = M.UNetGenerator(cfg).eval()
+    assert cfg.full_features == 0 and g.down[0][0].weight.shape[1] == 4  # raw input only
+    assert g.head[0].weight.shape == (3, 4 + 4, 1, 1)  # skip: the input maps alone
+    seen = {}
+    g.down[0][2].register_forward_hook(lambda m, i, o: seen.setdefault("first", o))
+    with torch.no_grad():
+        for p in g.parameters():
+            p.zero_()
+        g.half_features.weight.fill_(1.0)
+        x = torch.zeros(1, 4, 32, 32)
+        x[0, 1] = torch.rand(32, 32, generator=torch.Generator().manual_seed(0)) - 0.5
+        g(x)
+    p = x[0, 1].numpy().reshape(16, 2, 16, 2).mean((1, 3))
+    s = sum(f(np.pi * 2.0**k * p) for k in range(2) for f in (np.sin, np.cos))
+    want = np.where(s > 0, s, 0.2 * s)
+    got = seen["first"][0].numpy()
+    assert got.shape == (4, 16, 16)
+    np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=1e-5)
+
+
+def test_one_by_one_head_sees_only_its_own_pixel():
+    cfg = M.GeneratorConfig(in_channels=2, base=4, norm="none", full_res_skip=True, head_kernel=1)
+    g = M.UNetGenerator(cfg).eval()
+    with torch.no_grad():
+        for p in g.parameters():
+            p.zero_()
+        g.head[0].weight[:, 4 + 1] = 1.0  # the second input map
+        x = torch.zeros(1, 2, 32, 32)
+        x[0, 1, 7, 9] = 0.5
+        out = g(x)
+    assert float(out[0, 0, 7, 9]) == pytest.approx(np.tanh(0.5), abs=1e-6)
+    assert float(out.abs().sum()) == pytest.approx(3 * np.tanh(0.5), abs=1e-5)
+
+
+def test_fast_generator_trains_loads_and_exports_to_onnx_equal_to_torch(store, tmp_path):
+    cfg = tiny(inputs="J", position_octaves=2, full_res_skip=True, position_resolution="half",
+               head_kernel=1, top_width=2)  # fmt: skip
+    T.train(store, cfg, tmp_path / "run", progress=False)
+    gen = Generator.load(tmp_path / "run")
+    c = gen.module.config
+    assert (c.fourier_resolution, c.head_kernel, c.top_width) == ("half", 1, 2)
+    assert gen.generate(make_record(9)).shape == (32, 32, 3)
+    r = T.TrainConfig.preset("cpu")
+    assert (r.position_resolution, r.head_kernel) == ("half", 1)
+    with pytest.raises(ValueError, match="head_kernel"):
+        T.TrainConfig.preset("cpu", head_kernel=5)
+    ort = pytest.importorskip("onnxruntime", reason="onnxruntime not installed (extra 'gan')")
+    pytest.importorskip("onnx", reason="onnx not installed (extra 'gan')")
+    sess = ort.InferenceSession(
+        str(gen.export_onnx(tmp_path / "g.onnx", 32, 32)), providers=["CPUExecutionProvider"]
+    )
+    x = np.stack([gen.encode(make_record(k, size=64)) for k in (5, 6)])
+    with torch.no_grad():
+        want = gen.module(torch.from_numpy(x)).numpy()
+    assert np.abs(sess.run(None, {"maps": x})[0] - want).max() < 1e-5
+
+
+def test_demodulated_warped_reference_is_divided_by_the_views_albedo(plane_store, tmp_path):
+    ds = S.Dataset(plane_store, split="train", inputs="H")
+    refs = D.WarpedReferences(plane_store, ds.record_ids)
+    enc = D.InputEncoding.fit(
+        ("albedo", "dl", "normal_world"), HDRTransform(0.05, 4.0), list(ds),
+        demodulate=True, warped=True,
+    )  # fmt: skip
+    assert enc.demodulate_warped
+    img, holes = refs.warped(2, 1)
+    e = refs.encoded(2, 1, enc)
+    # the plane's albedo is 0.7: input and demodulated target agree where the reference saw
+    np.testing.assert_allclose(e[:3], enc.hdr.encode(img / 0.7).transpose(2, 0, 1), rtol=1e-6)
+    t = enc.encode_target(plane_record(2).gi, plane_record(2).albedo)
+    shift = plane_record(2).camera.fx * 0.1 / 2.0
+    inner = np.array([c + 0.5 + shift <= 31.5 for c in range(32)])  # between reference centres
+    assert np.abs(e[:3] - t)[:, :, inner].max() < 5e-3  # bilinear error only
+    rec = plane_record(2)
+    maps = {n: getattr(rec, n) for n in ("albedo", "dl", "normal_world")}
+    x = enc.encode({**maps, "warped_gi": img, "warp_holes": holes.astype(np.float32)})
+    np.testing.assert_allclose(x[9:12], e[:3], rtol=1e-6)
+    old = {k: v for k, v in enc.to_dict().items() if k != "demodulate_warped"}
+    assert not D.InputEncoding.from_dict(old).demodulate_warped  # runs written before it
+    assert D.InputEncoding.from_dict(enc.to_dict()) == enc
+    with pytest.raises(ValueError, match="demodulate_warped needs demodulate and warped"):
+        D.InputEncoding(("albedo", "dl"), demodulate=True, demodulate_warped=True)
+    # a run trains and generates with it
+    cfg = tiny(inputs="H", iterations=2, warped_reference=True, demodulate=True,
+               reference_offsets=(1,))  # fmt: skip
+    T.train(plane_store, cfg, tmp_path / "run", progress=False)
+    gen = Generator.load(tmp_path / "run")
+    assert gen.encoding.demodulate_warped
+    assert gen.generate({**maps, "warped_gi": img, "warp_holes": holes}).shape == (32, 32, 3)

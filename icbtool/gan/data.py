@@ -86,6 +86,10 @@ class InputEncoding:
             paper; needs "albedo" among the inputs).
         warped: the input also holds a reference GI map warped to this view and its hole mask
             (:data:`WARPED_INPUTS`, after the buffers of ``inputs``; module doc).
+        demodulate_warped: the warped reference GI is divided by this view's albedo (floored
+            as the target) before its HDR transform, so that where the reference saw, input and
+            demodulated target agree pixel for pixel (:meth:`fit` sets it when both
+            ``demodulate`` and ``warped`` are on; runs written before it: off).
     """
 
     inputs: tuple[str, ...]
@@ -95,6 +99,7 @@ class InputEncoding:
     position_half_extent: float = 1.0
     demodulate: bool = False
     warped: bool = False
+    demodulate_warped: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "inputs", resolve_inputs(tuple(self.inputs)))
@@ -102,6 +107,8 @@ class InputEncoding:
             raise ValueError(
                 f"InputEncoding.demodulate needs 'albedo' among the inputs, got {self.inputs}"
             )
+        if self.demodulate_warped and not (self.demodulate and self.warped):
+            raise ValueError("InputEncoding.demodulate_warped needs demodulate and warped on")
         for n in ("depth_max", "position_half_extent"):
             v = getattr(self, n)
             if not (np.isfinite(v) and v > 0):
@@ -147,6 +154,11 @@ class InputEncoding:
             t = t / np.maximum(np.asarray(albedo, np.float32), ALBEDO_FLOOR)
         return np.ascontiguousarray(self.hdr.encode(t).transpose(2, 0, 1))
 
+    def demodulate_map(self, gi: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+        """(H, W, 3) linear GI / its (H, W, 3) albedo floored at :data:`ALBEDO_FLOOR`."""
+        a = np.maximum(np.asarray(albedo, np.float32), ALBEDO_FLOOR)
+        return (np.asarray(gi, np.float32) / a).astype(np.float32)
+
     def remodulate(self, decoded: Any, albedo: Any) -> Any:
         """The network's decoded output (linear; numpy or torch, any layout matching ``albedo``)
         -> linear GI: times the albedo when :attr:`demodulate`, else unchanged."""
@@ -174,6 +186,8 @@ class InputEncoding:
                 raise ValueError(f"{where}.{n} is {a.shape[:2]}, other inputs are {hw}")
             if not np.isfinite(a).all():
                 raise ValueError(f"{where}.{n} holds NaN or Inf values")
+            if n == "warped_gi" and self.demodulate_warped:
+                a = self.demodulate_map(a, maps["albedo"])
             parts.append(self.encode_map(n, a))
         return np.ascontiguousarray(np.concatenate(parts, axis=2).transpose(2, 0, 1))
 
@@ -202,7 +216,7 @@ class InputEncoding:
                 lo, hi = p.min(0), p.max(0)
                 center = tuple(float(v) for v in (lo + hi) / 2)
                 half = float(max((hi - lo).max() / 2, 1e-6))
-        return cls(inputs, hdr, depth_max, center, half, demodulate, warped)
+        return cls(inputs, hdr, depth_max, center, half, demodulate, warped, demodulate and warped)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -220,6 +234,7 @@ class InputEncoding:
             float(d["position_half_extent"]),
             bool(d.get("demodulate", False)),  # runs written before the option: False
             bool(d.get("warped", False)),
+            bool(d.get("demodulate_warped", False)),  # runs written before it: False
         )
 
 
@@ -240,7 +255,7 @@ class WarpedReferences:
     """
 
     def __init__(self, store: Any, record_ids: list[int]) -> None:
-        self._views = []
+        self._views, self._albedo = [], []
         for rid in record_ids:
             rec = store.get(rid)
             for n in ("gi", "depth", "camera"):
@@ -248,6 +263,7 @@ class WarpedReferences:
                     raise ValueError(f"store record {rid} has no {n!r}: cannot warp its GI")
             m = rec.mask if rec.mask is not None else np.ones(rec.depth.shape, np.float32)
             self._views.append((rec.camera, np.asarray(rec.gi, np.float32), rec.depth, m))
+            self._albedo.append(getattr(rec, "albedo", None))
         self._cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     def __len__(self) -> int:
@@ -283,8 +299,13 @@ class WarpedReferences:
         return self._cache[key]
 
     def encoded(self, i: int, j: int, encoding: InputEncoding) -> np.ndarray:
-        """(4, H, W) encoded ``warped_gi`` + ``warp_holes`` of view ``j`` at view ``i``."""
+        """(4, H, W) encoded ``warped_gi`` + ``warp_holes`` of view ``j`` at view ``i`` (the GI
+        divided by view ``i``'s albedo when ``encoding.demodulate_warped``)."""
         img, holes = self.warped(i, j)
+        if encoding.demodulate_warped:
+            if self._albedo[i] is None:
+                raise ValueError(f"view {i} has no albedo: cannot demodulate its warped reference")
+            img = encoding.demodulate_map(img, self._albedo[i])
         a = encoding.encode_map("warped_gi", img)
         b = encoding.encode_map("warp_holes", holes[..., None].astype(np.float32))
         return np.ascontiguousarray(np.concatenate([a, b], axis=2).transpose(2, 0, 1))
@@ -314,7 +335,7 @@ class PairData:
         if len(shapes) > 1:
             raise ValueError(f"the {dataset.split!r} split mixes image sizes {sorted(shapes)}")
         xs, ys = [], []
-        base = replace(encoding, warped=False)  # x holds the store's buffers only
+        base = replace(encoding, warped=False, demodulate_warped=False)  # the buffers only
         for s in samples:
             maps = {}
             for n, sl in base.channel_slices().items():

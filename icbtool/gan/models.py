@@ -51,6 +51,19 @@ class GeneratorConfig:
             convolutional network represents a high-frequency function of position, such as a
             scene's irradiance, far better from such features; NeRF's positional encoding).
             Computed inside the network, so its ONNX export takes the same input.
+        fourier_resolution: where the Fourier features are computed (our addition, for the
+            client's frame budget): "full" (the input's resolution; they join the input of the
+            first convolution and the full-resolution skip) or "half" (of the 2x2-averaged
+            input channels, a quarter of the sines; a 1x1 convolution adds them to the first
+            level's output, and the full-resolution skip carries the input maps alone).
+        head_kernel: kernel side of the full-resolution head, 3 or 1 (1: a per-pixel mix of the
+            last level's features and the skip; at 256 x 256 the 3 x 3 head with its 3 output
+            channels is the slowest layer in onnxruntime).
+        skip_features: the full-resolution skip carries the full-resolution Fourier features
+            too (False: the input maps alone).
+        reduce: 0, or a 1 x 1 convolution maps the input and its full-resolution Fourier
+            features to this many channels (LeakyReLU 0.2) before the first level.
+        top_width: 0, or the width of the last up level's output (default ``base``).
     """
 
     in_channels: int
@@ -60,6 +73,11 @@ class GeneratorConfig:
     full_res_skip: bool = False
     fourier_channels: tuple[int, int] | None = None
     fourier_octaves: int = 0
+    fourier_resolution: Literal["full", "half"] = "full"
+    head_kernel: int = 3
+    skip_features: bool = True
+    reduce: int = 0
+    top_width: int = 0
 
     @property
     def n_features(self) -> int:
@@ -70,6 +88,11 @@ class GeneratorConfig:
         a, b = self.fourier_channels
         return 2 * self.fourier_octaves * (b - a)
 
+    @property
+    def full_features(self) -> int:
+        """Fourier feature channels computed at full resolution (0 when they are at half)."""
+        return self.n_features if self.fourier_resolution == "full" else 0
+
     def __post_init__(self) -> None:
         _check_int("GeneratorConfig", "in_channels", self.in_channels, 1)
         _check_int("GeneratorConfig", "out_channels", self.out_channels, 1)
@@ -77,6 +100,22 @@ class GeneratorConfig:
         if self.norm not in NORMS:
             raise ValueError(f"GeneratorConfig.norm must be one of {NORMS}, got {self.norm!r}")
         _check_int("GeneratorConfig", "fourier_octaves", self.fourier_octaves, 0)
+        _check_int("GeneratorConfig", "reduce", self.reduce, 0)
+        _check_int("GeneratorConfig", "top_width", self.top_width, 0)
+        if self.fourier_resolution not in ("full", "half"):
+            raise ValueError(
+                "GeneratorConfig.fourier_resolution must be 'full' or 'half', got "
+                f"{self.fourier_resolution!r}"
+            )
+        if self.head_kernel not in (1, 3) or isinstance(self.head_kernel, bool):
+            raise ValueError(
+                f"GeneratorConfig.head_kernel must be 1 or 3, got {self.head_kernel!r}"
+            )
+        if self.reduce and self.fourier_resolution == "half":
+            raise ValueError(
+                "GeneratorConfig.reduce maps full-resolution features: it needs "
+                "fourier_resolution='full'"
+            )
         if self.fourier_channels is not None:
             a, b = (int(v) for v in self.fourier_channels)
             if not 0 <= a < b <= self.in_channels:
@@ -133,17 +172,22 @@ class UNetGenerator(nn.Module):
         self.config = config
         b, n = config.base, config.norm
         widths = [b * m for m in (1, 2, 4, 8, 8)]
+        c_raw, c_full = config.in_channels, config.in_channels + config.full_features
+        c_skip = c_full if config.skip_features else c_raw
+        self.reduce = None
+        c_in = c_full
+        if config.reduce:
+            self.reduce = nn.Sequential(nn.Conv2d(c_full, config.reduce, 1), nn.LeakyReLU(0.2))
+            c_in = config.reduce
+        self.half_features = None
+        if config.n_features and config.fourier_resolution == "half":
+            self.half_features = nn.Conv2d(config.n_features, widths[0], 1, bias=False)
         self.down = nn.ModuleList()
-        c_in = config.in_channels + config.n_features
-        c_input = c_in
         for i, w in enumerate(widths):
             inner = 0 < i < LEVELS - 1  # no norm on the first level nor the 1/32 bottleneck
+            conv = nn.Conv2d(c_in, w, 4, 2, 1, bias=not inner or n == "none")
             self.down.append(
-                nn.Sequential(
-                    nn.Conv2d(c_in, w, 4, 2, 1, bias=not inner or n == "none"),
-                    _norm(n if inner else "none", w),
-                    nn.LeakyReLU(0.2),
-                )
+                nn.Sequential(conv, _norm(n if inner else "none", w), nn.LeakyReLU(0.2))
             )
             c_in = w
         self.up = nn.ModuleList()
@@ -158,13 +202,17 @@ class UNetGenerator(nn.Module):
             )
             c_in = 2 * w
         if config.full_res_skip:
+            top = config.top_width or b
             self.up.append(
                 nn.Sequential(
-                    nn.ConvTranspose2d(c_in, b, 4, 2, 1, bias=n == "none"), _norm(n, b), nn.ReLU()
+                    nn.ConvTranspose2d(c_in, top, 4, 2, 1, bias=n == "none"),
+                    _norm(n, top),
+                    nn.ReLU(),
                 )  # fmt: skip
             )
+            k = config.head_kernel
             self.head = nn.Sequential(
-                nn.Conv2d(b + c_input, config.out_channels, 3, 1, 1), nn.Tanh()
+                nn.Conv2d(top + c_skip, config.out_channels, k, 1, k // 2), nn.Tanh()
             )
         else:
             self.up.append(
@@ -172,24 +220,40 @@ class UNetGenerator(nn.Module):
             )
             self.head = None
 
-    def features(self, x: torch.Tensor) -> torch.Tensor:
-        """``x`` with the Fourier features of :class:`GeneratorConfig` appended."""
-        c = self.config
-        if not c.n_features:
-            return x
-        a, b = c.fourier_channels
-        p = x[:, a:b]
+    def fourier(self, p: torch.Tensor) -> torch.Tensor:
+        """(B, 2 * octaves * C, H, W): ``sin(2^k pi p)``, ``cos(2^k pi p)`` of (B, C, H, W)
+        ``p``, k = 0, 1, ... in that order."""
         feats = []
-        for k in range(c.fourier_octaves):
+        for k in range(self.config.fourier_octaves):
             w = math.pi * 2.0**k
             feats += [torch.sin(w * p), torch.cos(w * p)]
-        return torch.cat([x, *feats], dim=1)
+        return torch.cat(feats, dim=1)
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` with the full-resolution Fourier features of :class:`GeneratorConfig` appended
+        (``x`` itself when there are none at full resolution)."""
+        c = self.config
+        if not c.full_features:
+            return x
+        a, b = c.fourier_channels
+        return torch.cat([x, self.fourier(x[:, a:b])], dim=1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        c = self.config
+        raw = x
         x = self.features(x)
-        inp, skips = x, []
-        for layer in self.down:
-            x = layer(x)
+        inp = x if c.skip_features else raw
+        if self.reduce is not None:
+            x = self.reduce(x)
+        skips = []
+        for i, layer in enumerate(self.down):
+            if i == 0 and self.half_features is not None:
+                a, b = c.fourier_channels
+                p = nn.functional.avg_pool2d(raw[:, a:b], 2)
+                conv, rest = layer[0], layer[1:]
+                x = rest(conv(x) + self.half_features(self.fourier(p)))
+            else:
+                x = layer(x)
             skips.append(x)
         skips.pop()  # the bottleneck is not a skip
         for layer in self.up[:-1]:

@@ -106,6 +106,15 @@ class TrainConfig:
         position_octaves: the generator appends Fourier features (sin, cos at ``2^k pi``,
             k < ``position_octaves``) of its encoded world-position input (our addition; needs
             "position" among the inputs; 0: off; :class:`~icbtool.gan.models.GeneratorConfig`).
+        position_resolution, head_kernel, skip_features, input_reduce, top_width: the
+            generator's cost at the client (:class:`~icbtool.gan.models.GeneratorConfig`
+            ``fourier_resolution``, ``head_kernel``, ``skip_features``, ``reduce``,
+            ``top_width``; benchmarks/gan_speed.py): the Fourier features at "full" or "half"
+            resolution, the full-resolution head's kernel (3 or 1), whether the
+            full-resolution skip carries the full-resolution features, a 1 x 1 reduction of the
+            input to this many channels (0: none), the last level's width (0: ``base``). The
+            defaults are the network of the first runs (saved configs without these fields
+            load as that).
         ema: decay of an exponential moving average of the generator's weights, which is then
             what is evaluated and saved (our addition; 0: off, e.g. 0.999; at iteration t the
             decay is min(ema, (1 + t) / (10 + t)), so early averages forget the initial weights).
@@ -149,6 +158,11 @@ class TrainConfig:
     lr_schedule: Literal["constant", "cosine"] = "constant"
     lr_final: float = 0.05
     position_octaves: int = 0
+    position_resolution: Literal["full", "half"] = "full"
+    head_kernel: int = 3
+    skip_features: bool = True
+    input_reduce: int = 0
+    top_width: int = 0
     ema: float = 0.0
     eval_every: int = 250
     eval_frames: int = 0
@@ -161,8 +175,10 @@ class TrainConfig:
     def __post_init__(self) -> None:
         resolve_inputs(self.inputs)
         for n in ("iterations", "crop", "base", "batch_size", "n_critic", "eval_every",
-                  "eval_frames", "checkpoint_every", "position_octaves"):  # fmt: skip
-            v, lo = getattr(self, n), 0 if n in ("eval_frames", "position_octaves") else 1
+                  "eval_frames", "checkpoint_every", "position_octaves", "input_reduce",
+                  "top_width"):  # fmt: skip
+            zero_ok = ("eval_frames", "position_octaves", "input_reduce", "top_width")
+            v, lo = getattr(self, n), 0 if n in zero_ok else 1
             if not isinstance(v, int) or isinstance(v, bool) or v < lo:
                 raise ValueError(f"TrainConfig.{n} must be an integer >= {lo}, got {v!r}")
         if self.crop % MULTIPLE:
@@ -199,9 +215,22 @@ class TrainConfig:
                 raise ValueError(f"TrainConfig.{n} must be a number in [0, 1), got {v!r}")
         if self.device not in ("cpu", "cuda"):
             raise ValueError(f"TrainConfig.device must be 'cpu' or 'cuda', got {self.device!r}")
-        GeneratorConfig(1, base=self.base, norm=self.norm)
+        self.generator_config(1, (0, 1) if self.position_octaves else None)
         DiscriminatorConfig(1, base=self.base, norm=self.critic_norm)
         HDRTransform(self.hdr_scale, self.hdr_max)
+
+    def generator_config(
+        self, in_channels: int, position: tuple[int, int] | None
+    ) -> GeneratorConfig:
+        """The generator of this configuration for ``in_channels`` encoded input channels whose
+        world positions are the channels ``position`` (start, stop), or None."""
+        return GeneratorConfig(
+            in_channels, 3, self.base, self.norm, full_res_skip=self.full_res_skip,
+            fourier_channels=position if self.position_octaves else None,
+            fourier_octaves=self.position_octaves,
+            fourier_resolution=self.position_resolution, head_kernel=self.head_kernel,
+            skip_features=self.skip_features, reduce=self.input_reduce, top_width=self.top_width,
+        )  # fmt: skip
 
     @property
     def input_buffers(self) -> tuple[str, ...]:
@@ -213,11 +242,14 @@ class TrainConfig:
 
         - ``cpu``: the recipe measured best on 2 CPU cores (docs/gan.md; README "Learned GI"):
           configuration J (albedo, DL, world normals, positions) with 6 octaves of Fourier
-          features of the position, demodulated targets, the full-resolution skip, width 16,
+          features of the position computed at half resolution, demodulated targets, the
+          full-resolution skip with a 1 x 1 head (the client's 256 x 256 frame budget:
+          benchmarks/gan_speed.py), width 8,
           L1 + SSIM without the critic, a constant learning rate of 2e-4 (measured better than a
           cosine decay over 3000 iterations), weight averaging,
-          64-pixel crops in batches of 8, 3000 iterations. Give it the coverage views too
-          (``train_path="train,cover"``, benchmarks/gan_coverage.py).
+          64-pixel crops in batches of 8, 12000 iterations (the narrow network needs about four
+          times the iterations of the width-16 one for the same SSIM; each costs less). Give it
+          the coverage views too (``train_path="train,cover"``, benchmarks/gan_coverage.py).
         - ``paper-cpu``: the paper's design at CPU size (configuration I, L_a + 100 L_c with the
           WGAN-GP critic, base 32, 128-pixel crops, no VGG): what ``cpu`` was before.
         - ``paper``: 256 x 256, base 64, VGG19 perceptual loss (``vgg19_weights`` defaults to
@@ -233,7 +265,9 @@ class TrainConfig:
                 demodulate=True,
                 full_res_skip=True,
                 position_octaves=6,
-                base=16,
+                position_resolution="half",
+                head_kernel=1,
+                base=8,
                 crop=64,
                 batch_size=8,
                 weight_adv=0.0,
@@ -245,7 +279,7 @@ class TrainConfig:
                 ema=0.999,
                 hdr_scale=0.05,
                 hdr_max=4.0,
-                iterations=3000,
+                iterations=12000,
                 vgg19_weights=None,
             ),  # fmt: skip
             "paper-cpu": dict(crop=128, base=32, iterations=3000, vgg19_weights=None),
@@ -465,11 +499,9 @@ class _Run:
                 f"TrainConfig.position_octaves needs 'position' among the inputs, got "
                 f"{self.enc.inputs}: add it, or set position_octaves=0 (--position-octaves 0)"
             )
-        self.g_cfg = GeneratorConfig(
-            self.enc.n_channels, 3, c.base, c.norm, full_res_skip=c.full_res_skip,
-            fourier_channels=(pos.start, pos.stop) if c.position_octaves else None,
-            fourier_octaves=c.position_octaves,
-        )  # fmt: skip
+        self.g_cfg = c.generator_config(
+            self.enc.n_channels, None if pos is None else (pos.start, pos.stop)
+        )
         self.d_cfg = DiscriminatorConfig(self.enc.n_channels, 3, c.base, c.critic_norm)
         self.gen, self.critic = UNetGenerator(self.g_cfg), PatchDiscriminator(self.d_cfg)
         init_weights(self.gen, init_gen)
