@@ -1037,12 +1037,13 @@ def _demodulated(results: Path) -> str:
 def block_gan_figure8(results: Path) -> str:
     lines = []
     for rel, what in (
-        ("gan/figure8.json", "the paper's generator (Figure 7's best)"),
-        ("gan/demodulated/figure8.json", "with albedo demodulation (our addition)"),
+        ("gan/figure8.json", "Figure 7's best"),
+        ("gan/preset/figure8.json", "the `cpu` preset (the run of the time-against-error block)"),
         (
             "gan/recipe/figure8.json",
             "the `cpu` preset before the speed study (issue 17; current store)",
         ),
+        ("gan/demodulated/figure8.json", "an early study with albedo demodulation"),
     ):
         if not (results / rel).is_file():
             continue

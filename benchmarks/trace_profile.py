@@ -59,7 +59,7 @@ from icbtool.trace.rtc import RtcScene, _lib
 from icbtool.trace.tracer import TraceStats, _Tracer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from trace_throughput import sponza  # noqa: E402  (a sibling benchmark script)
+from trace_throughput import ray_log, sponza  # noqa: E402  (a sibling benchmark script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -264,17 +264,7 @@ def mitsuba_cpu(scene, cam, spp: int, repeats: int) -> dict:
 def record_with_first_shadow(scene, cam, cfg, capacity: int) -> tuple[dict, dict]:
     """:func:`trace_throughput.record`'s rays by kind, and the shadow rays of each path's first
     vertex (those between a camera ray and the path's first bounce ray), in sample order."""
-    log = {
-        "o": np.zeros((capacity, 3), np.float32),
-        "d": np.zeros((capacity, 3), np.float32),
-        "tfar": np.zeros(capacity, np.float32),
-        "kind": np.zeros(capacity, np.int8),
-        "n": np.zeros(1, np.int64),
-    }
-    icb.trace.render(scene, cam, cfg, ray_log=log)
-    n = int(log["n"][0])
-    if n >= capacity:
-        raise RuntimeError(f"ray log full ({capacity} rays): raise the capacity")
+    log, n = ray_log(scene, cam, cfg, capacity)
     kind = log["kind"][:n]
     # the kind of the last non-shadow ray before each ray (0 camera, 2 bounce)
     idx = np.where(kind != 1, np.arange(n), -1)

@@ -40,9 +40,9 @@ def sponza():
     return icb.scene.load(REPO / "data" / "scenes" / "sponza.toml")
 
 
-def record(scene, cam, cfg, capacity: int) -> dict[str, dict[str, np.ndarray]]:
-    """The rays of one render by kind (primary, bounce, shadow): contiguous o, d (N, 3) and
-    tfar (N,) float32, in tracing order within each kind."""
+def ray_log(scene, cam, cfg, capacity: int) -> tuple[dict[str, np.ndarray], int]:
+    """Every ray of one render in tracing order (the tracer's ``ray_log``: o, d, tfar, kind)
+    and how many there are."""
     log = {
         "o": np.zeros((capacity, 3), np.float32),
         "d": np.zeros((capacity, 3), np.float32),
@@ -54,6 +54,13 @@ def record(scene, cam, cfg, capacity: int) -> dict[str, dict[str, np.ndarray]]:
     n = int(log["n"][0])
     if n >= capacity:
         raise RuntimeError(f"ray log full ({capacity} rays): raise the capacity")
+    return log, n
+
+
+def record(scene, cam, cfg, capacity: int) -> dict[str, dict[str, np.ndarray]]:
+    """The rays of one render by kind (primary, bounce, shadow): contiguous o, d (N, 3) and
+    tfar (N,) float32, in tracing order within each kind."""
+    log, n = ray_log(scene, cam, cfg, capacity)
     sel = {name: log["kind"][:n] == kind for name, kind in KINDS}
     return {
         name: {k: np.ascontiguousarray(log[k][:n][m]) for k in ("o", "d", "tfar")}

@@ -193,6 +193,17 @@ def add_size_arguments(
         )
 
 
+def check_training_args(args: argparse.Namespace) -> Path:
+    """Before any training work: ``args.store`` is a directory, ``--resume`` names an existing
+    run, and ``--out`` is writable (:func:`check_out_dir`). Returns the run directory."""
+    if not Path(args.store).is_dir():
+        raise FileNotFoundError(f"store {args.store!r} does not exist (or is not a directory)")
+    out = Path(args.out)
+    if args.resume and not out.is_dir():
+        raise UsageError(f"--resume: --out {args.out!r} is not a run directory")
+    return check_out_dir(out)
+
+
 def add_out_argument(
     p: argparse.ArgumentParser, default: str | None = None, what: str = ""
 ) -> None:

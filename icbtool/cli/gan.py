@@ -12,15 +12,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
-from pathlib import Path
 
 from icbtool.cli._common import (
-    UsageError,
     add_command,
     add_out_argument,
     add_scene_argument,
     add_size_arguments,
     check_out_dir,
+    check_training_args,
     float_in,
     load_scene,
     positive_int,
@@ -122,12 +121,7 @@ def _train(args: argparse.Namespace) -> int:
 
     factory = lambda **kw: TrainConfig.preset(args.preset, **kw)  # noqa: E731
     cfg = args.train_options.call(factory, args)  # a bad setting: one line, exit 2
-    if not Path(args.store).is_dir():
-        raise FileNotFoundError(f"store {args.store!r} does not exist (or is not a directory)")
-    out = Path(args.out)
-    if args.resume and not out.is_dir():
-        raise UsageError(f"--resume: --out {args.out!r} is not a run directory")
-    check_out_dir(out)  # before any work
+    out = check_training_args(args)  # before any work
     with st.open(args.store, st.StoreConfig(readonly=True)) as store:
         try:
             res = train(store, cfg, out, scene=args.scene, resume=args.resume,

@@ -10,9 +10,8 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from icbtool.cli._common import UsageError, add_command, add_out_argument, check_out_dir
+from icbtool.cli._common import add_command, add_out_argument, check_training_args
 from icbtool.cli._options import add_config
 
 
@@ -64,12 +63,7 @@ def _fit(args: argparse.Namespace) -> int:
     from icbtool.radiance import train
 
     cfg = args.world_options.build(args)  # a bad setting: one line, exit 2
-    if not Path(args.store).is_dir():
-        raise FileNotFoundError(f"store {args.store!r} does not exist (or is not a directory)")
-    out = Path(args.out)
-    if args.resume and not out.is_dir():
-        raise UsageError(f"--resume: --out {args.out!r} is not a run directory")
-    check_out_dir(out)  # before any work
+    out = check_training_args(args)  # before any work
     with st.open(args.store, st.StoreConfig(readonly=True, create=False)) as store:
         res = train(store, cfg, out, scene=args.scene, resume=args.resume,
                     progress=args.progress)  # fmt: skip
