@@ -9,7 +9,7 @@ Each variant changes exactly one thing. The best of them, "constant lr", is what
 preset became (the recipe with a constant learning rate); the speed study (issue 17: <= 15 ms
 per 256 x 256 frame, benchmarks/gan_speed.py) then changed one thing at a time from that preset,
 with seed replicates for the run-to-run spread, and the ``cpu`` preset is now its last row
-("half-res features + 1x1 head + base 8, 12000 iterations"). Runs train round-robin in chunks
+("half-res features + 1x1 head + base 8, 20000 iterations"). Runs train round-robin in chunks
 (resumable: a rerun continues), then every run is scored on ALL views of the test path and of
 the held-out walk.
 
@@ -133,13 +133,23 @@ VARIANTS: dict[str, tuple[str, dict]] = {
         },
     ),  # fmt: skip
     "half-res features + 1x1 head + base 8, 12000 iterations": (
-        "the same, trained four times as long: the cpu preset",
+        "the same, trained four times as long",
         {
             **CPU_BEFORE,
             "position_resolution": "half",
             "head_kernel": 1,
             "base": 8,
             "iterations": 12000,
+        },
+    ),  # fmt: skip
+    "half-res features + 1x1 head + base 8, 20000 iterations": (
+        "the same, trained about seven times as long: the cpu preset",
+        {
+            **CPU_BEFORE,
+            "position_resolution": "half",
+            "head_kernel": 1,
+            "base": 8,
+            "iterations": 20000,
         },
     ),  # fmt: skip
 }

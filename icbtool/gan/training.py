@@ -247,9 +247,9 @@ class TrainConfig:
           benchmarks/gan_speed.py), width 8,
           L1 + SSIM without the critic, a constant learning rate of 2e-4 (measured better than a
           cosine decay over 3000 iterations), weight averaging,
-          64-pixel crops in batches of 8, 12000 iterations (the narrow network needs about four
-          times the iterations of the width-16 one for the same SSIM; each costs less). Give it
-          the coverage views too (``train_path="train,cover"``, benchmarks/gan_coverage.py).
+          64-pixel crops in batches of 8, 20000 iterations (the narrow network needs several
+          times the iterations of the width-16 one for the same SSIM; each costs about a third).
+          Give it the coverage views too (``train_path="train,cover"``, benchmarks/gan_coverage.py).
         - ``paper-cpu``: the paper's design at CPU size (configuration I, L_a + 100 L_c with the
           WGAN-GP critic, base 32, 128-pixel crops, no VGG): what ``cpu`` was before.
         - ``paper``: 256 x 256, base 64, VGG19 perceptual loss (``vgg19_weights`` defaults to
@@ -279,7 +279,7 @@ class TrainConfig:
                 ema=0.999,
                 hdr_scale=0.05,
                 hdr_max=4.0,
-                iterations=12000,
+                iterations=20000,
                 vgg19_weights=None,
             ),  # fmt: skip
             "paper-cpu": dict(crop=128, base=32, iterations=3000, vgg19_weights=None),
