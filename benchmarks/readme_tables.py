@@ -683,21 +683,23 @@ def block_mitsuba_xml(results: Path) -> str:
     )
 
 
-def _baseline_line(results: Path, tag: str = "train") -> str:
-    """One line: the trivial baselines on the current store's test path (gan/baselines_TAG.json:
+def _baseline_line(results: Path, tag: str = "train", paths: tuple[str, ...] = ("test",)) -> str:
+    """One line: the trivial baselines on the current store's ``paths`` (gan/baselines_TAG.json:
     fitted on the train path, or on train + cover with ``tag="cover"``), appended to every GAN
     table (issue 17: every table carries its baselines)."""
     d = load(f"gan/baselines_{tag}.json", results)
     fitted = "the train path" if tag == "train" else "the train path + the coverage views"
-    t = d["paths"]["test"]
-    m = t["methods"]
     names = ("constant", "albedo x k", "nearest irradiance", "warp + inpaint",
              "tracer 1 spp + OIDN")  # fmt: skip
-    cells = ", ".join(f"{n} {m[n]['ssim']:.3f}" for n in names if n in m)
+    parts = []
+    for p in paths:
+        t = d["paths"][p]
+        m = t["methods"]
+        cells = ", ".join(f"{n} {m[n]['ssim']:.3f}" for n in names if n in m)
+        parts.append(f"on the {p} path ({t['views']} views, every one scored): SSIM {cells}")
     return (
-        f"Baselines on the test path of the current Sponza store (`benchmarks/gan_baselines.py`, "
-        f"same scene, train path and bake settings; {t['views']} test views, every one scored; "
-        f"fitted on {fitted}): SSIM {cells}.\n"
+        "Baselines of the current Sponza store (`benchmarks/gan_baselines.py`, same scene, train "
+        f"path and bake settings; fitted on {fitted}) " + "; ".join(parts) + ".\n"
     )
 
 
@@ -788,7 +790,14 @@ def block_gan_ablation(results: Path) -> str:
         "and one change at a time; SSIM / MSE over every view; minutes of training on this "
         f"loaded 2-core machine, 1-minute load {d['load_1min'][0]:.1f} at the end).{ms_txt}\n\n"
         "| variant | change | iterations | " + " | ".join(paths) + " | minutes |" + ms_head + "\n"
-        "|---|---|---|" + "---|" * len(paths) + "---|" + ms_sep + "\n" + rows + "\n"
+        "|---|---|---|"
+        + "---|" * len(paths)
+        + "---|"
+        + ms_sep
+        + "\n"
+        + rows
+        + "\n\n"
+        + _baseline_line(results, "cover", tuple(paths))
     )
 
 
