@@ -17,7 +17,10 @@ traced truth):
   without a generator);
 - ``warp+generate``: the warped reference, holes filled by the pure generator's output;
 - ``warped generator``: the generator that reads the warped reference and its holes;
-- ``warp+warped generator``: the warped reference, holes filled by the warped generator.
+- ``warp+warped generator``: the warped reference, holes filled by the warped generator;
+- ``gated generator``: a third run, the warped generator with a learned per-pixel gate between
+  the warped reference and what it generates (``TrainConfig.reference_gate``; its generated
+  image is trained as a whole prediction too, ``weight_generated``).
 
 Scores: SSIM / MSE of the whole frame, and the per-pixel SSIM map averaged over the holes alone
 (how well each method fills what the reference did not see).
@@ -52,17 +55,18 @@ METHODS = (
     "warp+generate",
     "warped generator",
     "warp+warped generator",
+    "gated generator",
 )
 
 
 def configs(args: argparse.Namespace) -> dict:
     """The two runs' TrainConfig (one chunk; training raises ``iterations``)."""
     base = train_config(args, args.inputs)
+    warped = dataclasses.replace(base, warped_reference=True, test_reference_offset=args.offsets[0])
     return {
         "pure": base,
-        "warped": dataclasses.replace(
-            base, warped_reference=True, test_reference_offset=args.offsets[0]
-        ),
+        "warped": warped,
+        "gated": dataclasses.replace(warped, reference_gate=True),
     }
 
 
@@ -76,6 +80,7 @@ def compare(args: argparse.Namespace, runs: Path) -> dict:
     from icbtool.warp import inpaint_image
 
     pure, warped = Generator.load(runs / "pure"), Generator.load(runs / "warped")
+    gated = Generator.load(runs / "gated")
     exposure = float(
         json.loads((runs / "pure" / "config.json").read_text())["train_config"]["display_exposure"]
     )
@@ -98,13 +103,14 @@ def compare(args: argparse.Namespace, runs: Path) -> dict:
             holes_pct.append(100.0 * holes[geo].mean() if geo.any() else 0.0)
             maps = {n: getattr(rec, n) for n in warped.encoding.inputs}
             maps.update(warped_gi=img, warp_holes=holes.astype(np.float32))
-            wg = warped.generate(maps)
+            wg, gg = warped.generate(maps), gated.generate(maps)
             preds = {
                 "generate": gen_pure[i],
                 "warp+inpaint": inpaint_image(img, holes) if holes.any() else img,
                 "warp+generate": np.where(holes[..., None], gen_pure[i], img),
                 "warped generator": wg,
                 "warp+warped generator": np.where(holes[..., None], wg, img),
+                "gated generator": gg,
             }
             for m, p in preds.items():
                 rows[m]["ssim"].append(metrics.ssim(p, rec.gi, exposure))
@@ -192,7 +198,7 @@ def main() -> None:
     write_json(out / "warped_config.json", {"args": vars(args), "train_configs": cfgs,
                                             "run": run_info()})  # fmt: skip
     res = compare(args, runs)
-    for name in ("pure", "warped"):
+    for name in cfgs:
         ev = json.loads((runs / name / "evals.json").read_text())
         res[f"evals_{name}"] = ev
     res["wall_s_this_invocation"] = time.perf_counter() - t0

@@ -26,6 +26,11 @@ runs of each):
 - ``unattributed``: the kernel's time minus all of the above: the megakernel's own control flow,
   per-sample bookkeeping and what the isolated replays do not see (cache and branch behaviour of
   interleaved stages).
+- ``embree_ns_per_ray``: every kind of the render's rays, in ns per ray, through our one-ray
+  calls and packets of 8 and 16, with the scene built robust and not (Mitsuba builds its scene
+  without RTC_SCENE_FLAG_ROBUST), and through the peer's own Embree (Mitsuba's
+  ``ray_intersect_preliminary`` / ``ray_test``, one thread, packets of its JIT's width): how much
+  of the gap per sample the ray queries alone explain.
 - ``mitsuba_llvm_ad_rgb``: the peer's render of the same scene and spp in process CPU seconds
   (all its threads: it parallelises itself), so the two compare per sample on a loaded machine.
 - ``oidn_high`` / ``oidn_fast``: Open Image Denoise on the render's GI (only for denoised runs;
@@ -43,6 +48,7 @@ import ctypes
 import os
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import numba as nb
@@ -93,12 +99,11 @@ def _aligned(n):
 
 
 @nb.njit(nogil=True)
-def _packet_batch(rtc, fn, occluded, o, d, tfar, t, prim, lo, hi):
-    """Rays lo..hi-1 through rtcIntersect8 (occluded=False: t, prim) or rtcOccluded8 (t = -inf
-    where blocked), 8 consecutive rays per packet. RTCRayHit8 as 32-bit words (8 lanes each):
-    org x/y/z 0-2, tnear 3, dir 4-6, time 7, tfar 8, mask 9, id 10, flags 11, Ng 12-14, u 15,
-    v 16, primID 17, geomID 18."""
-    W = 8
+def _packet_batch(rtc, fn, occluded, o, d, tfar, t, prim, lo, hi, W=8):
+    """Rays lo..hi-1 through rtcIntersectW (occluded=False: t, prim) or rtcOccludedW (t = -inf
+    where blocked), W (8 or 16) consecutive rays per packet. RTCRayHitW as 32-bit words (W lanes
+    each): org x/y/z 0-2, tnear 3, dir 4-6, time 7, tfar 8, mask 9, id 10, flags 11, Ng 12-14,
+    u 15, v 16, primID 17, geomID 18."""
     w, f, k, addr = _aligned(W * 24)
     vw, _, vk, vaddr = _aligned(W)
     for i0 in range(lo, hi, W):
@@ -131,24 +136,28 @@ def _packet_batch(rtc, fn, occluded, o, d, tfar, t, prim, lo, hi):
                 prim[i0 + j] = -1 if g == _INVALID else np.int64(w[k + 17 * W + j])
 
 
-def packet_fns() -> tuple[int, int]:
-    """Addresses of rtcIntersect8 and rtcOccluded8, checked on known rays (else RuntimeError)."""
+def packet_fns(W: int = 8) -> tuple[int, int]:
+    """Addresses of rtcIntersectW and rtcOccludedW (W = 8 or 16), checked on known rays (else
+    RuntimeError)."""
     lib = _lib()
-    for name in ("rtcIntersect8", "rtcOccluded8"):
+    fns = []
+    for name in (f"rtcIntersect{W}", f"rtcOccluded{W}"):
         getattr(lib, name).restype = None
-    fi = int(ctypes.cast(lib.rtcIntersect8, ctypes.c_void_p).value)
-    fo = int(ctypes.cast(lib.rtcOccluded8, ctypes.c_void_p).value)
+        fns.append(int(ctypes.cast(getattr(lib, name), ctypes.c_void_p).value))
+    fi, fo = fns
     rs = RtcScene(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32), np.array([[0, 1, 2]]))
     o = np.array([[0.25, 0.5, 2.0], [2.0, 2.0, 2.0], [0.1, 0.1, 3.0]], np.float32)
     d = np.array([[0, 0, -1], [0, 0, -1], [0, 0, -1]], np.float32)
     tf = np.full(3, np.inf, np.float32)
     t, prim, t_occ = np.zeros(3, np.float32), np.zeros(3, np.int64), np.zeros(3, np.float32)
-    _packet_batch(rs.ptr, fi, False, o, d, tf, t, prim, 0, 3)
-    _packet_batch(rs.ptr, fo, True, o, d, tf, t_occ, prim[:0], 0, 3)
+    _packet_batch(rs.ptr, fi, False, o, d, tf, t, prim, 0, 3, W)
+    _packet_batch(rs.ptr, fo, True, o, d, tf, t_occ, prim[:0], 0, 3, W)
     ok = list(prim) == [0, -1, 0] and abs(t[0] - 2) < 1e-6 and abs(t[2] - 3) < 1e-6
     ok = ok and t_occ[0] == -np.inf and t_occ[1] == np.inf and t_occ[2] == -np.inf
     if not ok:
-        raise RuntimeError(f"rtcIntersect8/rtcOccluded8 layout check failed: {prim} {t} {t_occ}")
+        raise RuntimeError(
+            f"rtcIntersect{W}/rtcOccluded{W} layout check failed: {prim} {t} {t_occ}"
+        )
     return fi, fo
 
 
@@ -278,6 +287,76 @@ def record_with_first_shadow(scene, cam, cfg, capacity: int) -> tuple[dict, dict
     }
     first_shadow = out.pop("first_shadow")
     return out, first_shadow
+
+
+QUERIES = ("one_ray", "packet8", "packet16")
+
+
+def _query(rs, fns: dict, q: str, occluded: bool, r: dict) -> None:
+    """Rays ``r`` through one kind of Embree query ``q`` of :data:`QUERIES`."""
+    n = len(r["tfar"])
+    t, prim = np.empty(n, np.float32), np.empty(n, np.int64)
+    if q == "one_ray" and occluded:
+        blocked = np.empty(n, np.bool_)
+        K.rtc_occluded_batch(rs.ptr, rs.fn_occluded, r["o"], r["d"], r["tfar"], blocked, 0, n)
+    elif q == "one_ray":
+        p32, u, v = np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32)
+        K.rtc_intersect_batch(rs.ptr, rs.fn_intersect, r["o"], r["d"], t, p32, u, v, 0, n)
+    else:
+        W = int(q.removeprefix("packet"))
+        fi, fo = fns[W]
+        _packet_batch(rs.ptr, fo if occluded else fi, occluded, r["o"], r["d"], r["tfar"], t,
+                      prim, 0, n, W)  # fmt: skip
+
+
+def embree_variants(scene, rays: dict, repeats: int) -> dict:
+    """ns per ray of each kind of the render's rays through: our one-ray calls, packets of 8 and
+    16 (robust and not: Mitsuba builds its scene without RTC_SCENE_FLAG_ROBUST), and the peer's
+    own Embree (``Scene.ray_intersect_preliminary`` / ``ray_test`` of Mitsuba ``llvm_ad_rgb`` on
+    one thread, packets of its JIT's vector width, its kernel launch included) on the same rays.
+    Tells how much of the gap to the peer per sample is the ray queries themselves."""
+    out: dict = {}
+    fns = {W: packet_fns(W) for W in (8, 16)}
+    for robust in (True, False):
+        rs = RtcScene.of(scene, robust=robust)
+        tag = "robust" if robust else "not_robust"
+        for kind in ("primary", "bounce", "shadow"):
+            for q in QUERIES:
+                cpu = cpu_min(partial(_query, rs, fns, q, kind == "shadow", rays[kind]), repeats)
+                out[f"{tag}_{q}_{kind}"] = 1e9 * cpu / len(rays[kind]["tfar"])
+    try:
+        import drjit as dr
+        from trace_time_error import PeerMissingError, load_mitsuba, to_mitsuba
+
+        mi = load_mitsuba("llvm_ad_rgb")
+    except (ImportError, PeerMissingError) as e:
+        out["mitsuba_unavailable"] = str(e)
+        return out
+    cam = scene.default_camera.resized(8, 8)
+    msc = mi.load_dict(to_mitsuba(scene, cam, 1))
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    try:
+        for kind in ("primary", "bounce", "shadow"):
+            r = rays[kind]
+            n = len(r["tfar"])
+            o = mi.Point3f(*[mi.Float(np.ascontiguousarray(r["o"][:, i])) for i in range(3)])
+            d = mi.Vector3f(*[mi.Float(np.ascontiguousarray(r["d"][:, i])) for i in range(3)])
+            ray = mi.Ray3f(o, d, mi.Float(np.minimum(r["tfar"], 3e38)), 0.0, [])
+
+            def run(ray=ray, occ=kind == "shadow"):
+                if occ:
+                    dr.eval(msc.ray_test(ray))
+                else:
+                    pi = msc.ray_intersect_preliminary(ray)
+                    dr.eval(pi.t, pi.prim_index)
+                dr.sync_thread()
+
+            run()  # compiles (kernel cache)
+            out[f"mitsuba_{kind}"] = 1e9 * cpu_min(run, repeats) / n
+    finally:
+        dr.set_thread_count(threads)
+    return out
 
 
 def cpu_min(fn, repeats: int) -> float:
@@ -424,6 +503,7 @@ def profile(scene, cam, cfg: TraceConfig, repeats: int) -> dict:
     except ImportError as e:
         oidn["unavailable"] = str(e)
     peer = mitsuba_cpu(scene, cam, cfg.spp, repeats)
+    variants = embree_variants(scene, rays, repeats)
     return {
         "mitsuba_llvm_ad_rgb": peer,
         "scene": scene.name,
@@ -438,6 +518,7 @@ def profile(scene, cam, cfg: TraceConfig, repeats: int) -> dict:
         "embree_packet8_cpu_s": packets,
         "embree_packet8_over_one_ray": {k: packets[k] / stages[k] for k in packets},
         "embree_first_vertex_shadow_rays": first,
+        "embree_ns_per_ray": variants,
         "shade_levels_cpu_s": dict(zip(names, levels, strict=True)),
         "oidn": oidn,
     }
@@ -508,6 +589,15 @@ def main() -> None:
         print(
             f"  first-vertex shadow rays in sample order: packets {fs['packet8_over_one_ray']:.2f}x"
         )
+        ns = row["embree_ns_per_ray"]
+        for kind in ("primary", "bounce", "shadow"):
+            ours = ", ".join(
+                f"{tag} " + "/".join(f"{ns[f'{tag}_{q}_{kind}']:.0f}" for q in QUERIES)
+                for tag in ("robust", "not_robust")
+            )
+            peer = ns.get(f"mitsuba_{kind}")
+            peer_s = f"; Mitsuba's Embree {peer:.0f}" if peer is not None else ""
+            print(f"  ns/ray {kind:7s} (1 ray/packet 8/packet 16): {ours}{peer_s}")
         rows.append(row)
     OUT.mkdir(parents=True, exist_ok=True)
     load_end = os.getloadavg()

@@ -929,3 +929,74 @@ def test_demodulated_warped_reference_is_divided_by_the_views_albedo(plane_store
     gen = Generator.load(tmp_path / "run")
     assert gen.encoding.demodulate_warped
     assert gen.generate({**maps, "warped_gi": img, "warp_holes": holes}).shape == (32, 32, 3)
+
+
+def _gated(n_in=6, **kw):
+    """A U-Net whose input channels 2-5 are a warped reference (3) and its hole mask (1)."""
+    cfg = M.GeneratorConfig(in_channels=n_in, base=4, norm="none", full_res_skip=True,
+                            head_kernel=1, reference_gate=(2, 6), **kw)  # fmt: skip
+    return M.UNetGenerator(cfg).eval()
+
+
+def test_reference_gate_blends_the_warp_where_it_saw_and_generates_in_its_holes():
+    g = _gated()
+    with torch.no_grad():
+        for p in g.parameters():
+            p.zero_()
+        head = g.head[0]
+        assert head.out_channels == 4  # RGB + the gate's logit
+        head.bias[:3] = 0.25  # generated: tanh(0.25) everywhere
+        head.bias[3] = 1.5  # gate logit: sigmoid(1.5) where the reference saw
+        x = torch.zeros(1, 6, 32, 32)
+        x[:, 2:5] = torch.linspace(-0.9, 0.9, 32)  # the reference, in the output's range
+        x[:, 5] = -1.0  # no holes ...
+        x[:, 5, :, :8] = 1.0  # ... except the first 8 columns
+        out, gen, gate = g.parts(x)
+    a, t = float(1 / (1 + np.exp(-1.5))), float(np.tanh(0.25))
+    assert torch.allclose(gen, torch.full_like(gen, t))
+    assert torch.all(gate[..., :8] == 0) and torch.allclose(gate[..., 8:], torch.tensor(a))
+    want = a * x[:, 2:5] + (1 - a) * t
+    assert torch.allclose(out[..., 8:], want[..., 8:], atol=1e-6)  # the warp, trusted by a
+    assert torch.allclose(out[..., :8], torch.full_like(out[..., :8], t))  # holes: generated
+    assert torch.equal(g(x), out)
+    with torch.no_grad():
+        head.bias[3] = 40.0  # full trust: the reference itself where it saw
+        assert torch.allclose(g(x)[..., 8:], x[:, 2:5, :, 8:], atol=1e-6)
+    with pytest.raises(ValueError, match="reference_gate"):
+        M.GeneratorConfig(in_channels=5, reference_gate=(2, 6))
+    with pytest.raises(ValueError, match="reference_gate"):
+        M.GeneratorConfig(in_channels=8, reference_gate=(2, 5))
+    with pytest.raises(ValueError, match="reference_gate needs warped_reference"):
+        tiny(reference_gate=True)
+
+
+def test_gated_generator_trains_its_generated_image_too_resumes_and_exports(plane_store, tmp_path):
+    cfg = tiny(inputs="H", iterations=4, warped_reference=True, reference_gate=True,
+               demodulate=True, reference_offsets=(1, 2))  # fmt: skip
+    seen = []
+    T.train(plane_store, cfg, tmp_path / "full", progress=False,
+            on_step=lambda step, losses: seen.append(losses))  # fmt: skip
+    assert all("g_generated" in s for s in seen)
+    T.train(plane_store, T.TrainConfig.from_dict({**cfg.to_dict(), "iterations": 2}),
+            tmp_path / "cut", progress=False)  # fmt: skip
+    T.train(plane_store, cfg, tmp_path / "cut", resume=True, progress=False)
+    a = torch.load(tmp_path / "full" / "generator.pt", weights_only=False)["generator"]
+    b = torch.load(tmp_path / "cut" / "generator.pt", weights_only=False)["generator"]
+    assert all(torch.equal(v, b[k]) for k, v in a.items())
+    gen = Generator.load(tmp_path / "full")
+    assert gen.module.config.reference_gate == (9, 13)  # warped_gi, warp_holes after H's 9
+    rec = plane_record(5)
+    maps = {n: getattr(rec, n) for n in ("albedo", "dl", "normal_world")}
+    holes = np.zeros((32, 32), np.float32)
+    holes[:, :5] = 1.0
+    maps.update(warped_gi=rec.gi, warp_holes=holes)
+    assert gen.generate(maps).shape == (32, 32, 3)
+    ort = pytest.importorskip("onnxruntime", reason="onnxruntime not installed (extra 'gan')")
+    pytest.importorskip("onnx", reason="onnx not installed (extra 'gan')")
+    sess = ort.InferenceSession(
+        str(gen.export_onnx(tmp_path / "g.onnx", 32, 32)), providers=["CPUExecutionProvider"]
+    )
+    x = gen.encode(maps)[None]
+    with torch.no_grad():
+        want = gen.module(torch.from_numpy(x)).numpy()
+    assert np.abs(sess.run(None, {"maps": x})[0] - want).max() < 1e-5

@@ -64,6 +64,14 @@ class GeneratorConfig:
         reduce: 0, or a 1 x 1 convolution maps the input and its full-resolution Fourier
             features to this many channels (LeakyReLU 0.2) before the first level.
         top_width: 0, or the width of the last up level's output (default ``base``).
+        reference_gate: None, or (start, stop): the input channels of an encoded reference image
+            warped to the view (``out_channels`` channels, in the output's encoding) followed by
+            its hole mask (1 channel, 1 on holes, encoded 2 h - 1). The network then also
+            outputs a per-pixel gate logit and returns ``a * reference + (1 - a) * generated``
+            with ``a = sigmoid(logit)`` where the reference saw and 0 on its holes (our
+            addition, docs/gan.md "Warped reference": the network decides where to trust the
+            warp instead of regenerating it). :meth:`UNetGenerator.parts` gives the generated
+            image and the gate too.
     """
 
     in_channels: int
@@ -78,6 +86,7 @@ class GeneratorConfig:
     skip_features: bool = True
     reduce: int = 0
     top_width: int = 0
+    reference_gate: tuple[int, int] | None = None
 
     @property
     def n_features(self) -> int:
@@ -124,6 +133,15 @@ class GeneratorConfig:
                     f"{self.in_channels} input channels, got {self.fourier_channels}"
                 )
             object.__setattr__(self, "fourier_channels", (a, b))
+        if self.reference_gate is not None:
+            a, b = (int(v) for v in self.reference_gate)
+            if b - a != self.out_channels + 1 or not 0 <= a < b <= self.in_channels:
+                raise ValueError(
+                    f"GeneratorConfig.reference_gate must be (start, stop) of {self.out_channels}"
+                    f" reference channels and 1 hole channel within the {self.in_channels} input "
+                    f"channels, got {self.reference_gate}"
+                )
+            object.__setattr__(self, "reference_gate", (a, b))
 
 
 @dataclass(frozen=True)
@@ -174,6 +192,9 @@ class UNetGenerator(nn.Module):
         widths = [b * m for m in (1, 2, 4, 8, 8)]
         c_raw, c_full = config.in_channels, config.in_channels + config.full_features
         c_skip = c_full if config.skip_features else c_raw
+        gated = config.reference_gate is not None
+        c_out = config.out_channels + gated  # + the gate's logit
+        last = nn.Identity() if gated else nn.Tanh()  # no parameters: state dicts unchanged
         self.reduce = None
         c_in = c_full
         if config.reduce:
@@ -211,13 +232,9 @@ class UNetGenerator(nn.Module):
                 )  # fmt: skip
             )
             k = config.head_kernel
-            self.head = nn.Sequential(
-                nn.Conv2d(top + c_skip, config.out_channels, k, 1, k // 2), nn.Tanh()
-            )
+            self.head = nn.Sequential(nn.Conv2d(top + c_skip, c_out, k, 1, k // 2), last)
         else:
-            self.up.append(
-                nn.Sequential(nn.ConvTranspose2d(c_in, config.out_channels, 4, 2, 1), nn.Tanh())
-            )
+            self.up.append(nn.Sequential(nn.ConvTranspose2d(c_in, c_out, 4, 2, 1), last))
             self.head = None
 
     def fourier(self, p: torch.Tensor) -> torch.Tensor:
@@ -239,6 +256,23 @@ class UNetGenerator(nn.Module):
         return torch.cat([x, self.fourier(x[:, a:b])], dim=1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.parts(x)[0]
+
+    def parts(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """(output, generated, gate): the output of :meth:`forward`; the generated image alone
+        (the output itself without :attr:`GeneratorConfig.reference_gate`); the (B, 1, H, W)
+        gate in [0, 1] (None without one)."""
+        y = self._unet(x)
+        rg = self.config.reference_gate
+        if rg is None:
+            return y, y, None
+        n = self.config.out_channels
+        generated = torch.tanh(y[:, :n])
+        ref, holes = x[:, rg[0] : rg[0] + n], x[:, rg[0] + n : rg[1]]
+        gate = torch.sigmoid(y[:, n:]) * (0.5 - 0.5 * holes)
+        return generated + gate * (ref - generated), generated, gate
+
+    def _unet(self, x: torch.Tensor) -> torch.Tensor:
         c = self.config
         raw = x
         x = self.features(x)

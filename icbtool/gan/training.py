@@ -91,6 +91,13 @@ class TrainConfig:
         warped_reference: the generator also reads the GI of another view of the path warped to
             this view and its hole mask (:class:`~icbtool.gan.data.WarpedReferences`; our
             addition, off in the presets): what a client holds when it warps a cached reference.
+        reference_gate: with ``warped_reference``, the generator also outputs a per-pixel gate
+            and blends the warped reference with what it generates (``GeneratorConfig``
+            ``reference_gate``; our addition, off in the presets): where the reference saw, the
+            network only has to say how far to trust it.
+        weight_generated: with ``reference_gate``, the L_c and SSIM terms are also applied with
+            this weight to the generated image before the blend, so that it stays a whole
+            prediction (otherwise only the holes and the distrusted pixels would train it).
         reference_offsets: training draws the reference this many views away (uniformly from
             these, earlier or later along the train path).
         test_reference_offset: the test frames' reference is this many views earlier.
@@ -149,6 +156,8 @@ class TrainConfig:
     hdr_max: float = 64.0
     demodulate: bool = False
     warped_reference: bool = False
+    reference_gate: bool = False
+    weight_generated: float = 1.0
     reference_offsets: tuple[int, ...] = (1, 2, 3, 4, 6)
     test_reference_offset: int = 1
     train_path: str = "train"
@@ -184,7 +193,8 @@ class TrainConfig:
         if self.crop % MULTIPLE:
             raise ValueError(f"TrainConfig.crop must be a multiple of {MULTIPLE}, got {self.crop}")
         for n in ("lr", "lambda_gp", "gp_target", "weight_adv", "weight_l1", "weight_perceptual",
-                  "weight_ssim", "display_exposure", "divergence_limit"):  # fmt: skip
+                  "weight_ssim", "weight_generated", "display_exposure",
+                  "divergence_limit"):  # fmt: skip
             v = getattr(self, n)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"TrainConfig.{n} must be a finite number >= 0, got {v!r}")
@@ -213,23 +223,35 @@ class TrainConfig:
             v = getattr(self, n)
             if not (isinstance(v, (int, float)) and 0 <= v < 1) or isinstance(v, bool):
                 raise ValueError(f"TrainConfig.{n} must be a number in [0, 1), got {v!r}")
+        if self.reference_gate and not self.warped_reference:
+            raise ValueError("TrainConfig.reference_gate needs warped_reference on")
         if self.device not in ("cpu", "cuda"):
             raise ValueError(f"TrainConfig.device must be 'cpu' or 'cuda', got {self.device!r}")
-        self.generator_config(1, (0, 1) if self.position_octaves else None)
+        self.generator_config(
+            5 if self.reference_gate else 1,
+            (0, 1) if self.position_octaves else None,
+            (1, 5) if self.reference_gate else None,
+        )
         DiscriminatorConfig(1, base=self.base, norm=self.critic_norm)
         HDRTransform(self.hdr_scale, self.hdr_max)
 
     def generator_config(
-        self, in_channels: int, position: tuple[int, int] | None
+        self,
+        in_channels: int,
+        position: tuple[int, int] | None,
+        reference: tuple[int, int] | None = None,
     ) -> GeneratorConfig:
         """The generator of this configuration for ``in_channels`` encoded input channels whose
-        world positions are the channels ``position`` (start, stop), or None."""
+        world positions are the channels ``position`` (start, stop), or None, and whose warped
+        reference and its holes are the channels ``reference`` (start, stop; used by
+        ``reference_gate``)."""
         return GeneratorConfig(
             in_channels, 3, self.base, self.norm, full_res_skip=self.full_res_skip,
             fourier_channels=position if self.position_octaves else None,
             fourier_octaves=self.position_octaves,
             fourier_resolution=self.position_resolution, head_kernel=self.head_kernel,
             skip_features=self.skip_features, reduce=self.input_reduce, top_width=self.top_width,
+            reference_gate=reference if self.reference_gate else None,
         )  # fmt: skip
 
     @property
@@ -499,8 +521,10 @@ class _Run:
                 f"TrainConfig.position_octaves needs 'position' among the inputs, got "
                 f"{self.enc.inputs}: add it, or set position_octaves=0 (--position-octaves 0)"
             )
+        sl = self.enc.channel_slices()
+        ref = (sl["warped_gi"].start, sl["warp_holes"].stop) if c.reference_gate else None
         self.g_cfg = c.generator_config(
-            self.enc.n_channels, None if pos is None else (pos.start, pos.stop)
+            self.enc.n_channels, None if pos is None else (pos.start, pos.stop), ref
         )
         self.d_cfg = DiscriminatorConfig(self.enc.n_channels, 3, c.base, c.critic_norm)
         self.gen, self.critic = UNetGenerator(self.g_cfg), PatchDiscriminator(self.d_cfg)
@@ -587,9 +611,15 @@ class _Run:
         self, x: torch.Tensor, y: torch.Tensor, losses: dict[str, float]
     ) -> torch.Tensor:
         c = self.config
-        fake = self.gen(x)
+        fake, generated, _ = self.gen.parts(x)
         g_l1 = l1_loss(fake, y)
         g_loss = c.weight_l1 * g_l1
+        if generated is not fake and c.weight_generated > 0:
+            g_gen = c.weight_l1 * l1_loss(generated, y)
+            if c.weight_ssim > 0:
+                g_gen = g_gen + c.weight_ssim * ssim_loss(generated, y)
+            g_loss = g_loss + c.weight_generated * g_gen
+            losses["g_generated"] = float(g_gen.detach())
         if c.weight_adv > 0:
             g_adv = -critic_score(self.critic, x, fake).mean()
             g_loss = g_loss + c.weight_adv * g_adv

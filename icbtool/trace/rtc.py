@@ -63,6 +63,13 @@ def library_path() -> str:
     return found[0]
 
 
+def device_config() -> str:
+    """Embree's device configuration string: ``verbose=0``, then ``$ICBTOOL_EMBREE_CONFIG``
+    when set (e.g. ``frequency_level=simd512``; Embree's documentation lists the keys)."""
+    extra = os.environ.get("ICBTOOL_EMBREE_CONFIG", "").strip()
+    return "verbose=0" + (f",{extra}" if extra else "")
+
+
 def _lib() -> ctypes.CDLL:
     global _LIB
     with _LOCK:
@@ -131,7 +138,7 @@ class RtcScene:
         lib = _lib()
         self._lib = lib
         self.robust = bool(robust)
-        self._device = lib.rtcNewDevice(b"verbose=0")
+        self._device = lib.rtcNewDevice(device_config().encode())
         if not self._device:
             raise RuntimeError("Embree: rtcNewDevice failed")
         self.ptr = 0
