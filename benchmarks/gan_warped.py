@@ -20,7 +20,8 @@ traced truth):
 - ``warp+warped generator``: the warped reference, holes filled by the warped generator;
 - ``gated generator``: a third run, the warped generator with a learned per-pixel gate between
   the warped reference and what it generates (``TrainConfig.reference_gate``; its generated
-  image is trained as a whole prediction too, ``weight_generated``).
+  image is trained as a whole prediction too, ``weight_generated``, and a quarter of its training
+  samples have no reference at all, ``reference_dropout``, as its holes have none).
 
 Scores: SSIM / MSE of the whole frame, and the per-pixel SSIM map averaged over the holes alone
 (how well each method fills what the reference did not see).
@@ -66,7 +67,9 @@ def configs(args: argparse.Namespace) -> dict:
     return {
         "pure": base,
         "warped": warped,
-        "gated": dataclasses.replace(warped, reference_gate=True),
+        "gated": dataclasses.replace(
+            warped, reference_gate=True, reference_dropout=args.reference_dropout
+        ),
     }
 
 
@@ -180,6 +183,12 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=2000)
     add_training_arguments(ap)
     ap.add_argument("--offsets", type=int, nargs="+", default=[1, 2, 4])
+    ap.add_argument(
+        "--reference-dropout",
+        type=float,
+        default=0.25,
+        help="the gated generator's TrainConfig.reference_dropout",
+    )
     ap.add_argument("--report-only", action="store_true", help="compare the runs as they are")
     ap.add_argument("--runs", default=str(REPO / "out" / "gan_warped"))
     ap.add_argument("--out", default=str(OUT))

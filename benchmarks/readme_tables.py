@@ -302,8 +302,34 @@ def block_trace_profile(results: Path) -> str:
             )
             + " in packets of 8.",
         ]
+    ns = [r.get("embree_ns_per_ray") for r in rows]
+    if all(n and "mitsuba_bounce" in n for n in ns):
+        lines += [
+            "",
+            "The ray queries alone, ns per ray on one thread (the render's own rays; ours as one "
+            "ray / packets of 8 / packets of 16; robust: our scene flag, watertight; not robust: "
+            "as Mitsuba builds its scene; Mitsuba: its "
+            "`ray_intersect_preliminary` / `ray_test` on the same rays, packets of its JIT's "
+            "width, kernel launch included):",
+            "",
+            "| rays | "
+            + " | ".join(f"{n}, robust | {n}, not robust | {n}, Mitsuba's Embree" for n in names)
+            + " |",
+            "|---" * (3 * len(rows) + 1) + "|",
+        ]
+        for kind in ("primary", "bounce", "shadow"):
+            cells = []
+            for v in ns:
+                for t in ("robust", "not_robust"):
+                    cells.append(" / ".join(f"{v[f'{t}_{q}_{kind}']:.0f}" for q in PROFILE_QUERIES))
+                cells.append(f"**{v[f'mitsuba_{kind}']:.0f}**")
+            lines.append(f"| {kind} | " + " | ".join(cells) + " |")
     lines.append("")
     return "\n".join(lines)
+
+
+#: the Embree queries of trace_profile.py's ``embree_ns_per_ray``
+PROFILE_QUERIES = ("one_ray", "packet8", "packet16")
 
 
 def _first_met(ratios: list[float | None], spps: list[int]) -> int | None:

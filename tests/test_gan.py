@@ -1000,3 +1000,24 @@ def test_gated_generator_trains_its_generated_image_too_resumes_and_exports(plan
     with torch.no_grad():
         want = gen.module(torch.from_numpy(x)).numpy()
     assert np.abs(sess.run(None, {"maps": x})[0] - want).max() < 1e-5
+
+
+def test_reference_dropout_empties_whole_references_at_its_rate(plane_store):
+    ds = S.Dataset(plane_store, split="train", inputs="H")
+    enc = D.InputEncoding.fit(("albedo", "dl", "normal_world"), HDRTransform(0.05, 4.0),
+                              list(ds), warped=True)  # fmt: skip
+    data = D.PairData(ds, enc)
+    kept = D.BatchSampler(data, 400, 32, False, seed=3, reference_offsets=(1,))
+    dropped = D.BatchSampler(data, 400, 32, False, seed=3, reference_offsets=(1,),
+                             reference_dropout=0.3)  # fmt: skip
+    xk, yk = kept.next()
+    xd, yd = dropped.next()
+    assert np.array_equal(yk, yd) and np.array_equal(xk[:, :9], xd[:, :9])  # same draws
+    empty = (xd[:, 12] == 1.0).all(axis=(1, 2)) & (xd[:, 9:12] == -1.0).all(axis=(1, 2, 3))
+    assert 0.2 < empty.mean() < 0.4  # 400 draws at p = 0.3
+    assert np.array_equal(xd[~empty], xk[~empty])  # the others keep their reference
+    assert not ((xk[:, 12] == 1.0).all(axis=(1, 2))).any()  # the plane's references see
+    with pytest.raises(ValueError, match="reference_dropout"):
+        D.BatchSampler(data, 2, 32, False, seed=0, reference_dropout=1.0)
+    with pytest.raises(ValueError, match="reference_dropout"):
+        tiny(warped_reference=True, reference_dropout=-0.1)

@@ -400,6 +400,11 @@ class BatchSampler:
         crop: side of the square crop (<= the image's H and W).
         flip: random horizontal flips.
         seed: seed of the draws.
+        reference_offsets: with warped references, each sample's reference is drawn this many
+            views away (uniformly from these, earlier or later).
+        reference_dropout: with warped references, each sample's reference is replaced by an
+            empty one (every pixel a hole) with this probability, so that a generator that
+            reads references also learns to generate without one (its holes at test time).
     """
 
     def __init__(
@@ -410,6 +415,7 @@ class BatchSampler:
         flip: bool,
         seed: int,
         reference_offsets: tuple[int, ...] = (1,),
+        reference_dropout: float = 0.0,
     ) -> None:
         if crop > data.height or crop > data.width:
             raise ValueError(
@@ -421,6 +427,9 @@ class BatchSampler:
         if data.references is not None and (not reference_offsets or min(reference_offsets) < 1):
             raise ValueError(f"reference offsets must be integers >= 1, got {reference_offsets}")
         self.reference_offsets = tuple(int(k) for k in reference_offsets)
+        if not 0.0 <= reference_dropout < 1.0:
+            raise ValueError(f"reference_dropout must be in [0, 1), got {reference_dropout}")
+        self.reference_dropout = float(reference_dropout)
         sl = data.encoding.channel_slices()
         self._view_x = sl["normal_view"].start if "normal_view" in sl else None
 
@@ -435,12 +444,18 @@ class BatchSampler:
         if refs is not None:  # drawn only then: runs without references keep their streams
             offs = self.rng.choice(self.reference_offsets, self.batch_size)
             later = self.rng.random(self.batch_size) < 0.5
+            drop = np.zeros(self.batch_size, bool)
+            if self.reference_dropout > 0:  # drawn only then: earlier runs keep their streams
+                drop = self.rng.random(self.batch_size) < self.reference_dropout
         xs, ys = [], []
         for b, (i, t, l, f) in enumerate(zip(idx, top, left, flips)):
             x = d.x[i, :, t : t + c, l : l + c]
             if refs is not None:
                 j = refs.reference(int(i), int(offs[b]), later=bool(later[b]))
                 w = refs.encoded(int(i), j, d.encoding)[:, t : t + c, l : l + c]
+                if drop[b]:  # no reference: GI encoded as 0 (the value on holes), all holes
+                    w = np.concatenate([np.full_like(w[:3], d.encoding.hdr.encode(np.zeros(1))[0]),
+                                        np.ones_like(w[3:])])  # fmt: skip
                 x = np.concatenate([x, w], axis=0)
             y = d.y[i, :, t : t + c, l : l + c]
             if f:

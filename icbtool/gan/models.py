@@ -69,7 +69,7 @@ class GeneratorConfig:
             its hole mask (1 channel, 1 on holes, encoded 2 h - 1). The network then also
             outputs a per-pixel gate logit and returns ``a * reference + (1 - a) * generated``
             with ``a = sigmoid(logit)`` where the reference saw and 0 on its holes (our
-            addition, docs/gan.md "Warped reference": the network decides where to trust the
+            addition, docs/gan.md "The generator": the network decides where to trust the
             warp instead of regenerating it). :meth:`UNetGenerator.parts` gives the generated
             image and the gate too.
     """

@@ -98,6 +98,10 @@ class TrainConfig:
         weight_generated: with ``reference_gate``, the L_c and SSIM terms are also applied with
             this weight to the generated image before the blend, so that it stays a whole
             prediction (otherwise only the holes and the distrusted pixels would train it).
+        reference_dropout: with ``warped_reference``, the probability that a training sample's
+            reference is replaced by an empty one (all holes), so that the generator also
+            learns to generate without a reference, which is what it does in the holes
+            (:class:`~icbtool.gan.data.BatchSampler`; our addition; 0: off).
         reference_offsets: training draws the reference this many views away (uniformly from
             these, earlier or later along the train path).
         test_reference_offset: the test frames' reference is this many views earlier.
@@ -158,6 +162,7 @@ class TrainConfig:
     warped_reference: bool = False
     reference_gate: bool = False
     weight_generated: float = 1.0
+    reference_dropout: float = 0.0
     reference_offsets: tuple[int, ...] = (1, 2, 3, 4, 6)
     test_reference_offset: int = 1
     train_path: str = "train"
@@ -223,6 +228,9 @@ class TrainConfig:
             v = getattr(self, n)
             if not (isinstance(v, (int, float)) and 0 <= v < 1) or isinstance(v, bool):
                 raise ValueError(f"TrainConfig.{n} must be a number in [0, 1), got {v!r}")
+        v = self.reference_dropout
+        if not (isinstance(v, (int, float)) and 0 <= v < 1) or isinstance(v, bool):
+            raise ValueError(f"TrainConfig.reference_dropout must be a number in [0, 1), got {v!r}")
         if self.reference_gate and not self.warped_reference:
             raise ValueError("TrainConfig.reference_gate needs warped_reference on")
         if self.device not in ("cpu", "cuda"):
@@ -506,8 +514,9 @@ class _Run:
             self.test_data, c.eval_frames, c.test_reference_offset
         )
         self.sampler = BatchSampler(
-            self.train_data, c.batch_size, c.crop, c.flip, c.seed, c.reference_offsets
-        )
+            self.train_data, c.batch_size, c.crop, c.flip, c.seed, c.reference_offsets,
+            c.reference_dropout,
+        )  # fmt: skip
 
     def _build_models(self) -> None:
         c, dev = self.config, self.device
