@@ -200,6 +200,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=30)
     ap.add_argument("--only", nargs="*", default=None, help="variant names (default: all)")
     ap.add_argument("--run", nargs="*", default=[], help="trained runs to time as they are")
+    ap.add_argument("--runs-only", action="store_true", help="time the --run runs alone")
     ap.add_argument("--out", default=str(OUT))
     ap.add_argument("--name", default="speed", help="output file stem")
     ap.add_argument("--store", default=None, help="also time a training iteration on this store")
@@ -220,7 +221,8 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="icb-speed-"))
     res: dict = {"variants": {}, "runs": {}, "load_1min": [os.getloadavg()[0]]}
     models: dict[str, tuple[Path, int]] = {}
-    for k, name in enumerate(args.only or [*ABLATION, *EXTRA]):
+    variants = [] if args.runs_only else (args.only or [*ABLATION, *EXTRA])
+    for k, name in enumerate(variants):
         cfg = generator_config(name)
         m = UNetGenerator(cfg)
         init_weights(m, torch.Generator().manual_seed(0))

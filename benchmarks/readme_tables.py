@@ -723,8 +723,8 @@ def _baseline_line(results: Path, tag: str = "train", paths: tuple[str, ...] = (
         m = t["methods"]
         cells = ", ".join(f"{n} {m[n]['ssim']:.3f}" for n in names if n in m)
         parts.append(f"on the {p} path ({t['views']} views, every one scored): SSIM {cells}")
-    return (
-        "Baselines of the current Sponza store (`benchmarks/gan_baselines.py`, same scene, train "
+    return (  # after a blank line: a line right under a table would be one of its rows
+        "\nBaselines of the current Sponza store (`benchmarks/gan_baselines.py`, same scene, train "
         f"path and bake settings; fitted on {fitted}) " + "; ".join(parts) + ".\n"
     )
 
@@ -1181,6 +1181,18 @@ def block_lpm(results: Path) -> str:
     )
 
 
+def _gated_how(cfg: dict) -> str:
+    """How gan_warped's gated generator was trained (its runs before it had none)."""
+    g = cfg["train_configs"].get("gated")
+    if not g:
+        return ""
+    return (
+        " (gated generator: the warped generator with `reference_gate`, "
+        f"`weight_generated` {g['weight_generated']:g}, `reference_dropout` "
+        f"{g['reference_dropout']:g})"
+    )
+
+
 def block_gan_warped(results: Path) -> str:
     d = load("gan/warped/warped.json", results)
     cfg = load("gan/warped/warped_config.json", results)
@@ -1213,8 +1225,9 @@ def block_gan_warped(results: Path) -> str:
     tag = "cover" if "cover" in tc["train_path"] else "train"
     return (
         "**Beyond the paper: the generator with the warped reference** "
-        f"(`benchmarks/gan_warped.py`, configuration {cfg['args']['inputs']}, both generators "
-        f"trained {it} iterations with {how}; {d['views']} test views, the reference k test "
+        f"(`benchmarks/gan_warped.py`, configuration {cfg['args']['inputs']}, the generators "
+        f"trained {it} iterations with {how}{_gated_how(cfg)}; {d['views']} test views, the "
+        "reference k test "
         "views earlier (frames back: the median distance along the test path); mean test SSIM "
         "of the frame (in brackets: of the hole pixels alone); holes after warping "
         f"{holes} % of the pixels):\n\n| method | {head} |\n|---|"
