@@ -81,6 +81,17 @@ def tiny(**kw) -> T.TrainConfig:
     return T.TrainConfig.preset("paper-cpu", **{**base, **kw})
 
 
+def assert_cut_at_2_resumes_to(store, cfg, full, cut) -> None:
+    """Training ``cfg`` stopped after 2 iterations in ``cut`` and resumed there ends with the
+    generator weights of the uninterrupted run in ``full``, bit for bit."""
+    T.train(store, T.TrainConfig.from_dict({**cfg.to_dict(), "iterations": 2}), cut,
+            progress=False)  # fmt: skip
+    T.train(store, cfg, cut, resume=True, progress=False)
+    a = torch.load(full / "generator.pt", weights_only=False)["generator"]
+    b = torch.load(cut / "generator.pt", weights_only=False)["generator"]
+    assert all(torch.equal(v, b[k]) for k, v in a.items())
+
+
 # ------------------------------------------------------------------------------ lazy import
 def test_import_icbtool_and_gan_does_not_import_torch():
     code = "import sys, icbtool, icbtool.gan; icbtool.gan.__dir__(); print('torch' in sys.modules)"
@@ -599,12 +610,7 @@ def test_training_with_a_warped_reference_resumes_exactly_and_generates(plane_st
     )
     res = T.train(plane_store, cfg, tmp_path / "full", progress=False)
     assert res.step == 4 and len(res.evals) == 2
-    T.train(plane_store, T.TrainConfig.from_dict({**cfg.to_dict(), "iterations": 2}),
-            tmp_path / "cut", progress=False)  # fmt: skip
-    T.train(plane_store, cfg, tmp_path / "cut", resume=True, progress=False)
-    a = torch.load(tmp_path / "full" / "generator.pt", weights_only=False)["generator"]
-    b = torch.load(tmp_path / "cut" / "generator.pt", weights_only=False)["generator"]
-    assert all(torch.equal(v, b[k]) for k, v in a.items())
+    assert_cut_at_2_resumes_to(plane_store, cfg, tmp_path / "full", tmp_path / "cut")
     gen = Generator.load(tmp_path / "full")
     assert gen.inputs == ("albedo", "dl", "normal_world", "warped_gi", "warp_holes")
     assert gen.module.config.in_channels == 13
@@ -977,12 +983,7 @@ def test_gated_generator_trains_its_generated_image_too_resumes_and_exports(plan
     T.train(plane_store, cfg, tmp_path / "full", progress=False,
             on_step=lambda step, losses: seen.append(losses))  # fmt: skip
     assert all("g_generated" in s for s in seen)
-    T.train(plane_store, T.TrainConfig.from_dict({**cfg.to_dict(), "iterations": 2}),
-            tmp_path / "cut", progress=False)  # fmt: skip
-    T.train(plane_store, cfg, tmp_path / "cut", resume=True, progress=False)
-    a = torch.load(tmp_path / "full" / "generator.pt", weights_only=False)["generator"]
-    b = torch.load(tmp_path / "cut" / "generator.pt", weights_only=False)["generator"]
-    assert all(torch.equal(v, b[k]) for k, v in a.items())
+    assert_cut_at_2_resumes_to(plane_store, cfg, tmp_path / "full", tmp_path / "cut")
     gen = Generator.load(tmp_path / "full")
     assert gen.module.config.reference_gate == (9, 13)  # warped_gi, warp_holes after H's 9
     rec = plane_record(5)

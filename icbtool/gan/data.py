@@ -447,15 +447,18 @@ class BatchSampler:
             drop = np.zeros(self.batch_size, bool)
             if self.reference_dropout > 0:  # drawn only then: earlier runs keep their streams
                 drop = self.rng.random(self.batch_size) < self.reference_dropout
+            empty_reference = np.concatenate([
+                d.encoding.encode_map("warped_gi", np.zeros((c, c, 3))).transpose(2, 0, 1),
+                d.encoding.encode_map("warp_holes", np.ones((1, c, c))),
+            ]) if drop.any() else None  # fmt: skip
         xs, ys = [], []
         for b, (i, t, l, f) in enumerate(zip(idx, top, left, flips)):
             x = d.x[i, :, t : t + c, l : l + c]
             if refs is not None:
                 j = refs.reference(int(i), int(offs[b]), later=bool(later[b]))
                 w = refs.encoded(int(i), j, d.encoding)[:, t : t + c, l : l + c]
-                if drop[b]:  # no reference: GI encoded as 0 (the value on holes), all holes
-                    w = np.concatenate([np.full_like(w[:3], d.encoding.hdr.encode(np.zeros(1))[0]),
-                                        np.ones_like(w[3:])])  # fmt: skip
+                if drop[b]:  # no reference: every pixel a hole (GI 0, as on holes)
+                    w = empty_reference
                 x = np.concatenate([x, w], axis=0)
             y = d.y[i, :, t : t + c, l : l + c]
             if f:

@@ -224,13 +224,10 @@ class TrainConfig:
             raise ValueError(
                 f"TrainConfig.lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}"
             )
-        for n in ("lr_final", "ema"):
+        for n in ("lr_final", "ema", "reference_dropout"):
             v = getattr(self, n)
             if not (isinstance(v, (int, float)) and 0 <= v < 1) or isinstance(v, bool):
                 raise ValueError(f"TrainConfig.{n} must be a number in [0, 1), got {v!r}")
-        v = self.reference_dropout
-        if not (isinstance(v, (int, float)) and 0 <= v < 1) or isinstance(v, bool):
-            raise ValueError(f"TrainConfig.reference_dropout must be a number in [0, 1), got {v!r}")
         if self.reference_gate and not self.warped_reference:
             raise ValueError("TrainConfig.reference_gate needs warped_reference on")
         if self.device not in ("cpu", "cuda"):
