@@ -493,14 +493,14 @@ def test_cli_trace_writes_outputs(tmp_path):
         assert (tmp_path / f"{k}.exr").is_file() and (tmp_path / f"{k}.png").is_file()
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["config"]["spp"] == 2 and summary["views"][0]["stats"]["passes"] == 1
-    assert summary["config"]["sky_sampling"] == "auto" and summary["config"]["robust"] is True
-    opts = ["--sky-sampling", "mis", "--sampler", "independent", "--no-robust"]
+    assert summary["config"]["sky_sampling"] == "auto" and summary["config"]["robust"] is False
+    opts = ["--sky-sampling", "mis", "--sampler", "independent", "--robust"]
     rc = main(
         ["trace", "plane", "--out", str(tmp_path / "b"), "--spp", "1", "--height", "8", *opts]
     )
     assert rc == 0
     cfg = json.loads((tmp_path / "b" / "summary.json").read_text())["config"]
-    assert (cfg["sky_sampling"], cfg["sampler"], cfg["robust"]) == ("mis", "independent", False)
+    assert (cfg["sky_sampling"], cfg["sampler"], cfg["robust"]) == ("mis", "independent", True)
     assert main(["trace", "plane", "--out", str(tmp_path), "--camera", "path:nope"]) == 1
 
 

@@ -5,12 +5,14 @@ Embree 4's C API, see :mod:`icbtool.trace.rtc` and :func:`call3`), hit attribute
 emission with MIS, next-event estimation (sun, point/spot, emissive triangles, sky or environment
 map), cosine BSDF sampling and Russian roulette. It takes one parameter struct,
 :data:`TraceParams` (named tuples: Embree, camera, surfaces, lights, sky, sampling) and its
-outputs (:data:`Outputs`); its steps are inlined helpers: :func:`_camera_ray`,
+scratch outputs (:data:`Outputs`) and the per-pixel statistics it adds every sample to
+(:data:`PixelStats`); its steps are inlined helpers: :func:`_camera_ray`,
 :func:`_hit_frame`, the texture footprint, and one sample function per light type
 (:func:`_sun_sample`, :func:`_punctual_sample`, :func:`_emitter_point` + :func:`_emitter_sample`,
 :func:`_sky_sample` + :func:`_sky_light_weight`) whose shadow ray the loop traces. The driver in
-:mod:`icbtool.trace.tracer` runs it on a few Python threads (the kernels release the GIL) and
-merges the samples with :func:`accumulate_pass`.
+:mod:`icbtool.trace.tracer` runs it on a few Python threads (the kernels release the GIL), each
+on whole pixels, so the samples go straight into their pixels' statistics (:func:`_add_sample`)
+with no per-sample buffer and no serial merge.
 
 Random numbers are a pure function of (seed, pixel, sample index, dimension), never of the thread
 that computes them, so images do not depend on the number of threads. Two samplers:
@@ -593,9 +595,19 @@ Sampling = namedtuple(
 )
 #: Everything trace_paths reads.
 TraceParams = namedtuple("TraceParams", ["embree", "cam", "surf", "lights", "sky", "sampling"])
-#: Per-sample outputs (P rows): direct, gi (P, 3), first hit (P,), first-hit albedo and normal
-#: (P, 3) (or (1, 3) when not wanted).
+#: One sample's outputs, in a scratch row per part (``part * ROW_STRIDE``; n_parts * ROW_STRIDE
+#: rows): direct, gi (R, 3), first hit (R,), first-hit albedo and normal (R, 3) (or (1, 3) when
+#: not wanted).
 Outputs = namedtuple("Outputs", ["direct", "gi", "first_hit", "albedo", "normal"])
+#: Rows between two parts' scratch rows (192 bytes: no two threads write one cache line).
+ROW_STRIDE = 8
+#: Per-pixel statistics every sample is added to (:func:`_add_sample`): luminance weights (3,);
+#: Welford count, mean and M2 of gi rgb + luminance (N,), (N, 4), (N, 4) and of direct (N,),
+#: (N, 3), (N, 3); sums of the hit flag (N,), first-hit albedo and normal (N, 3) (or (1, 3)).
+PixelStats = namedtuple(
+    "PixelStats",
+    ["lum_w", "n_g", "mean_g", "m2_g", "n_d", "mean_d", "m2_d", "hit_sum", "alb_sum", "nrm_sum"],
+)
 
 SKY_NONE = 0
 SKY_UNIFORM = 1
@@ -819,10 +831,51 @@ def _sky_light_weight(psk, wi0, wi1, wi2, nf, ns):
     return True, c * (psk / (psk * psk + pb * pb))  # c * w / psk, w = power heuristic
 
 
+# Taylor coefficients of sin and cos up to x^17 / x^16: on |x| <= pi / 4 the truncation error is
+# below 1e-16 (x^19 / 19! < 1.3e-19, x^18 / 18! < 1.0e-17), as accurate as libm's sincos there.
+_S3, _S5, _S7, _S9, _S11, _S13, _S15, _S17 = (
+    (-1) ** k / math.factorial(2 * k + 1) for k in range(1, 9)
+)
+_C2, _C4, _C6, _C8, _C10, _C12, _C14, _C16 = (
+    (-1) ** k / math.factorial(2 * k) for k in range(1, 9)
+)
+
+
+@nb.njit(inline="always", **_JIT)
+def _sincos_quarter(x):
+    """(sin x, cos x) for |x| <= pi / 4: two short polynomials instead of a libm call (which took
+    6 % of the Cornell box's render time in cosine sampling alone)."""
+    z = x * x
+    s = _S13 + z * (_S15 + z * _S17)
+    s = _S7 + z * (_S9 + z * (_S11 + z * s))
+    s = x + x * z * (_S3 + z * (_S5 + z * s))
+    c = _C12 + z * (_C14 + z * _C16)
+    c = _C6 + z * (_C8 + z * (_C10 + z * c))
+    c = 1.0 + z * (_C2 + z * (_C4 + z * c))
+    return s, c
+
+
+@nb.njit(inline="always", **_JIT)
+def _concentric_disk(u1, u2):
+    """Shirley and Chiu's concentric map of the unit square onto the unit disk: area-preserving
+    like the polar map (r = sqrt(u1), phi = 2 pi u2) but with little distortion, so stratified
+    (Sobol) points stay well spread on the disk; its angles lie within pi / 4 of an axis."""
+    a = 2.0 * u1 - 1.0
+    b = 2.0 * u2 - 1.0
+    if a == 0.0 and b == 0.0:
+        return 0.0, 0.0
+    if abs(a) > abs(b):
+        s, c = _sincos_quarter((0.25 * _PI) * (b / a))
+        return a * c, a * s
+    s, c = _sincos_quarter((0.25 * _PI) * (a / b))
+    return b * s, b * c  # angle pi / 2 - x: (cos, sin) = (sin x, cos x)
+
+
 @nb.njit(inline="always", **_JIT)
 def _cosine_sample(nf, ns, u1, u2):
-    """A cosine-weighted direction about the shading normal (Duff et al. basis), mirrored above
-    the geometric surface, and its density: (wi0, wi1, wi2, pdf)."""
+    """A cosine-weighted direction about the shading normal (Duff et al. basis; Malley's method
+    on :func:`_concentric_disk`), mirrored above the geometric surface, and its density: (wi0,
+    wi1, wi2, pdf)."""
     ns0, ns1, ns2 = ns
     nf0, nf1, nf2 = nf
     sign = 1.0 if ns2 >= 0 else -1.0
@@ -834,11 +887,8 @@ def _cosine_sample(nf, ns, u1, u2):
     tb0 = b
     tb1 = sign + ns1 * ns1 * a
     tb2 = -ns1
-    r = math.sqrt(u1)
-    phi = 2 * _PI * u2
-    zc = math.sqrt(max(0.0, 1 - u1))
-    rc = r * math.cos(phi)
-    rs = r * math.sin(phi)
+    rc, rs = _concentric_disk(u1, u2)
+    zc = math.sqrt(max(0.0, 1 - (rc * rc + rs * rs)))
     wi0 = rc * ta0 + rs * tb0 + zc * ns0
     wi1 = rc * ta1 + rs * tb1 + zc * ns1
     wi2 = rc * ta2 + rs * tb2 + zc * ns2
@@ -860,22 +910,26 @@ def _cosine_sample(nf, ns, u1, u2):
 # otherwise incref/decref (atomically, on arrays both threads share) every array an inlined
 # helper receives: 12 % of the single-thread CPU time on the Cornell box, 7 % on Sponza.
 @nb.njit(_nrt=False, **_JIT)
-def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
-    """Trace one whole path per sample (every depth, shadow rays inline) for a share of samples.
+def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
+    """Trace one whole path per sample (every depth, shadow rays inline) for a share of samples
+    and add each sample to its pixel's statistics.
 
     Args:
         p: :data:`TraceParams`.
-        out: :data:`Outputs` (per-sample rows; this part's rows are overwritten).
+        out: :data:`Outputs` (scratch rows; this part's row is overwritten).
+        acc: :data:`PixelStats` (this part's pixels are updated in place).
         counts: (3,) int64 rays traced by this part: primary, bounce, shadow (added to).
         log: ray log (benchmarks): o, d (C, 3), tfar (C,), kind (C,) 0 = camera, 1 = shadow,
             2 = bounce; n (1,) entries used; C <= 1 turns logging off.
         part, n_parts: this part's share: blocks part, part + n_parts, ...
-        pix, sid: (P,) pixel index (row-major) and sample index of each sample.
+        pix, sid: (P,) pixel index (row-major, non-decreasing) and sample index of each sample.
+        bounds: (B + 1,) the blocks' first samples and P; every boundary lies between two pixels.
 
-    Outputs are per sample, so parts write disjoint rows: several threads can run parts at once
-    (the kernel releases the GIL). Per sample, contributions are added in a fixed order (emission
-    seen, then each light's shadow-tested sample: suns, point/spot, emitter, sky), so images do
-    not depend on the number of parts.
+    No pixel's samples span two blocks, so parts update disjoint pixels: several threads can run
+    parts at once (the kernel releases the GIL). Per sample, contributions are added in a fixed
+    order (emission seen, then each light's shadow-tested sample: suns, point/spot, emitter,
+    sky), and samples are added to their pixel in sample order, so images do not depend on the
+    number of parts.
     """
     # the struct's fields as locals, once (see the note above the shading helpers)
     rtc, fn_isect, fn_occl = p.embree
@@ -899,17 +953,17 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
     n_prim = 0
     n_bounce = 0
     n_shadow = 0
-    P = len(pix)
-    n_blocks = (P + BLOCK - 1) // BLOCK
+    row = part * ROW_STRIDE
+    n_blocks = len(bounds) - 1
     for blk in range(part, n_blocks, n_parts):
-        for s in range(blk * BLOCK, min(P, (blk + 1) * BLOCK)):
-            # this sample's output rows start at zero (here, in cache: no separate pass)
-            direct[s, 0] = direct[s, 1] = direct[s, 2] = 0.0
-            gi[s, 0] = gi[s, 1] = gi[s, 2] = 0.0
-            first_hit[s] = False
+        for s in range(bounds[blk], bounds[blk + 1]):
+            # this sample's scratch row starts at zero
+            direct[row, 0] = direct[row, 1] = direct[row, 2] = 0.0
+            gi[row, 0] = gi[row, 1] = gi[row, 2] = 0.0
+            first_hit[row] = False
             if want_aux:
-                alb_out[s, 0] = alb_out[s, 1] = alb_out[s, 2] = 0.0
-                nrm_out[s, 0] = nrm_out[s, 1] = nrm_out[s, 2] = 0.0
+                alb_out[row, 0] = alb_out[row, 1] = alb_out[row, 2] = 0.0
+                nrm_out[row, 0] = nrm_out[row, 1] = nrm_out[row, 2] = 0.0
             pixel_seed = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD))
             base_s = _sample_base(seed_mix, pix[s], sid[s])
             dx, dy, dz = _camera_ray(
@@ -939,9 +993,9 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                         else:
                             le = _sky_analytic(sky_kind, sky, dx, dy, dz)
                         if depth == 1:
-                            direct[s, 0] += le[0] * t0
-                            direct[s, 1] += le[1] * t1
-                            direct[s, 2] += le[2] * t2
+                            direct[row, 0] += le[0] * t0
+                            direct[row, 1] += le[1] * t1
+                            direct[row, 2] += le[2] * t2
                         else:
                             w = 1.0
                             if sky_mis:  # MIS weight of the BSDF sample against the sky sample
@@ -951,9 +1005,9 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                                     * pdf_prev
                                     / max(pdf_prev * pdf_prev + psk * psk, 1e-300)
                                 )
-                            gi[s, 0] += le[0] * t0 * w
-                            gi[s, 1] += le[1] * t1 * w
-                            gi[s, 2] += le[2] * t2 * w
+                            gi[row, 0] += le[0] * t0 * w
+                            gi[row, 1] += le[1] * t1 * w
+                            gi[row, 2] += le[2] * t2 * w
                     break
                 th = np.float64(h_t)
                 x, bary, cos_o, front, nf, ns = _hit_frame(
@@ -967,9 +1021,9 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                 e2 = mat_emission[m, 2]
                 if front and (e0 > 0 or e1 > 0 or e2 > 0):
                     if depth == 1:
-                        direct[s, 0] += e0 * t0
-                        direct[s, 1] += e1 * t1
-                        direct[s, 2] += e2 * t2
+                        direct[row, 0] += e0 * t0
+                        direct[row, 1] += e1 * t1
+                        direct[row, 2] += e2 * t2
                     else:
                         w = _emission_mis_weight(
                             face_light_pmf[prim], face_area[prim], th, cos_o, pdf_prev
@@ -978,7 +1032,7 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                             direct,
                             gi,
                             from_first and face_is_area[prim],
-                            s,
+                            row,
                             e0 * t0 * w,
                             e1 * t1 * w,
                             e2 * t2 * w,
@@ -1001,14 +1055,14 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                         al1 *= _bilerp(tex, lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd)
                         al2 *= _bilerp(tex, lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd)
                 if depth == 1:
-                    first_hit[s] = True
+                    first_hit[row] = True
                     if want_aux:
-                        alb_out[s, 0] = al0
-                        alb_out[s, 1] = al1
-                        alb_out[s, 2] = al2
-                        nrm_out[s, 0] = ns[0]
-                        nrm_out[s, 1] = ns[1]
-                        nrm_out[s, 2] = ns[2]
+                        alb_out[row, 0] = al0
+                        alb_out[row, 1] = al1
+                        alb_out[row, 2] = al2
+                        nrm_out[row, 0] = ns[0]
+                        nrm_out[row, 1] = ns[1]
+                        nrm_out[row, 2] = ns[2]
                 if depth >= limit:
                     break
                 f0 = t0 * al0
@@ -1037,7 +1091,7 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                                 direct,
                                 gi,
                                 to_direct_dl,
-                                s,
+                                row,
                                 fo[0] * suns[j, 3] * c,
                                 fo[1] * suns[j, 4] * c,
                                 fo[2] * suns[j, 5] * c,
@@ -1051,7 +1105,7 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                                 direct,
                                 gi,
                                 to_direct_dl,
-                                s,
+                                row,
                                 fo[0] * ii[0] * g,
                                 fo[1] * ii[1] * g,
                                 fo[2] * ii[2] * g,
@@ -1077,7 +1131,7 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                                 direct,
                                 gi,
                                 to_direct_dl and face_is_area[lf],
-                                s,
+                                row,
                                 fo[0] * mat_emission[me, 0] * g,
                                 fo[1] * mat_emission[me, 1] * g,
                                 fo[2] * mat_emission[me, 2] * g,
@@ -1101,7 +1155,7 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                                 direct,
                                 gi,
                                 False,
-                                s,
+                                row,
                                 fo[0] * le[0] * g,
                                 fo[1] * le[1] * g,
                                 fo[2] * le[2] * g,
@@ -1125,6 +1179,7 @@ def trace_paths(p, out, counts, log, part, n_parts, pix, sid):
                 t0, t1, t2 = f0, f1, f2
                 pdf_prev = pdf
                 from_first = depth == 1
+            _add_sample(acc, pix[s], direct, gi, first_hit, alb_out, nrm_out, row, want_aux)
     counts[0] += n_prim
     counts[1] += n_bounce
     counts[2] += n_shadow
@@ -1167,53 +1222,31 @@ def _visible(rtc, fn_occl, ray, log, so, dx, dy, dz, tf):
     return not _occluded(rtc, fn_occl, ray, ox, oy, oz, dx32, dy32, dz32, tf)
 
 
-@nb.njit(**_JIT)
-def accumulate_pass(
-    pix,
-    gi,
-    direct,
-    hit,
-    alb,
-    nrm,
-    want_aux,
-    lum_w,
-    n_g,
-    mean_g,
-    m2_g,
-    n_d,
-    mean_d,
-    m2_d,
-    hit_sum,
-    alb_sum,
-    nrm_sum,
-):
-    """One pass's samples into the per-pixel statistics (in place): Welford mean/M2 of
+@nb.njit(inline="always", **_JIT)
+def _add_sample(acc, p, direct, gi, hit, alb, nrm, row, want_aux):
+    """A sample's outputs (scratch ``row``) into pixel ``p``'s statistics: Welford mean/M2 of
     (gi rgb, gi luminance) and of direct, and sums of the hit flag, albedo and normal."""
-    x = np.empty(4)
-    for i in range(len(pix)):
-        p = pix[i]
-        x[0] = gi[i, 0]
-        x[1] = gi[i, 1]
-        x[2] = gi[i, 2]
-        x[3] = gi[i, 0] * lum_w[0] + gi[i, 1] * lum_w[1] + gi[i, 2] * lum_w[2]
-        n_g[p] += 1
-        inv = 1.0 / n_g[p]
-        for k in range(4):
-            delta = x[k] - mean_g[p, k]
-            mean_g[p, k] += delta * inv
-            m2_g[p, k] += delta * (x[k] - mean_g[p, k])
-        n_d[p] += 1
-        inv = 1.0 / n_d[p]
+    lum_w, n_g, mean_g, m2_g, n_d, mean_d, m2_d, hit_sum, alb_sum, nrm_sum = acc
+    g3 = gi[row, 0] * lum_w[0] + gi[row, 1] * lum_w[1] + gi[row, 2] * lum_w[2]
+    n_g[p] += 1
+    inv = 1.0 / n_g[p]
+    for k in range(4):
+        x = gi[row, k] if k < 3 else g3
+        delta = x - mean_g[p, k]
+        mean_g[p, k] += delta * inv
+        m2_g[p, k] += delta * (x - mean_g[p, k])
+    n_d[p] += 1
+    inv = 1.0 / n_d[p]
+    for k in range(3):
+        delta = direct[row, k] - mean_d[p, k]
+        mean_d[p, k] += delta * inv
+        m2_d[p, k] += delta * (direct[row, k] - mean_d[p, k])
+    if hit[row]:
+        hit_sum[p] += 1.0
+    if want_aux:
         for k in range(3):
-            delta = direct[i, k] - mean_d[p, k]
-            mean_d[p, k] += delta * inv
-            m2_d[p, k] += delta * (direct[i, k] - mean_d[p, k])
-        if hit[i]:
-            hit_sum[p] += 1.0
-        if want_aux:
-            for k in range(3):
-                alb_sum[p, k] += alb[i, k]
-                nrm_sum[p, k] += nrm[i, k]
+            alb_sum[p, k] += alb[row, k]
+            nrm_sum[p, k] += nrm[row, k]
 
 
 @nb.njit(**_JIT)

@@ -3,11 +3,11 @@
 Each pass traces one or more samples for a set of pixels. One numba kernel
 (:func:`icbtool.trace.kernels.trace_paths`) follows each sample's whole path, calling Embree 4's
 ``rtcIntersect1``/``rtcOccluded1`` itself (:mod:`icbtool.trace.rtc`), so no Python runs per depth
-or per ray batch; ``threads`` Python threads run it on interleaved blocks of samples (it releases
-the GIL). The driver here accumulates per-pixel statistics between passes and decides when to
-stop. The kernels are compiled on first use and cached on disk (numba ``cache=True``): about
-15-25 s once per machine (or per change of ``kernels.py``), ~1 s to load the cache in a new
-process.
+or per ray batch; ``threads`` Python threads run it on interleaved blocks of whole pixels (it
+releases the GIL), and it adds every sample to its pixel's running statistics as the sample ends.
+The driver here reads those statistics between passes and decides when to stop. The kernels are
+compiled on first use and cached on disk (numba ``cache=True``): about 15-25 s once per machine (or
+per change of ``kernels.py``), ~1 s to load the cache in a new process.
 
 Light transport: two-sided Lambertian surfaces (textured albedo), one-sided emissive faces, a
 directional sun, point and spot lights (delta lights: next-event estimation only), emissive
@@ -35,8 +35,8 @@ time budget changes how many samples are taken, not the samples themselves). The
 ``sampler='sobol'`` stratifies each pixel's samples (pixel area, BSDF direction and point on the
 light for the first vertices) with shuffled Owen-scrambled Sobol points; it stays unbiased, and
 the per-pixel variance estimate (``variance``, adaptive sampling, target error) becomes
-conservative (it assumes independent samples). ``sampler='independent'`` reproduces the earlier
-numpy tracer's images bit for bit.
+conservative (it assumes independent samples). ``sampler='independent'`` draws every dimension
+from its own hash (the random numbers of the earlier numpy tracer).
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ HARD_MAX_DEPTH = 1024
 #: ``sky_sampling='auto'`` samples the sky (MIS) when its peak/mean luminance exceeds this.
 SKY_MIS_PEAK = 2.5
 #: Samples traced per kernel call: a pass over a large image is split into calls of this many
-#: (the per-sample buffers take ~110 bytes a sample: ~115 MB at this size).
+#: (the split changes nothing: every pixel's samples are added in sample order).
 MAX_SAMPLES_PER_CALL = 1 << 20
 _LUM = np.array([0.2126, 0.7152, 0.0722])
 
@@ -117,8 +117,13 @@ class TraceConfig:
     """Texel lookup (textures repeat outside [0, 1])."""
     threads: int = 2
     """Threads for Embree queries (results do not depend on it)."""
-    robust: bool = True
-    """Embree robust (watertight) mode."""
+    robust: bool = False
+    """Embree's robust (watertight) traversal. Off by default, as in Mitsuba 3: it costs 20-45 %
+    of Embree's time per ray, and the rays a path tracer shoots hardly ever slip through an edge
+    without it (4 million random rays inside closed icospheres: 0 and 5 leaks, robust 0;
+    same-seed renders of the Cornell box and Sponza differ by 2e-7 and 2e-6 of their mean; see
+    docs/design.md, section 8). Turn it on for rays aimed exactly at shared edges or vertices:
+    about 10 % of those slip through without it, 0.1-0.2 % with it."""
     aux: bool = True
     """Compute the first-hit albedo and normal buffers (forced on by ``denoise``)."""
     sky_sampling: Literal["auto", "mis", "bsdf"] = "auto"
@@ -174,7 +179,8 @@ class TraceStats:
     """What a render cost and what it skipped."""
 
     time_s: dict[str, float] = field(default_factory=dict)
-    """Wall time per phase: setup, trace (paths: Embree + shading), accumulate, denoise."""
+    """Wall time per phase: setup, trace (paths: Embree, shading and the per-pixel statistics),
+    accumulate (the error estimate between passes and the output buffers), denoise."""
     rays: dict[str, int] = field(default_factory=lambda: {"primary": 0, "bounce": 0, "shadow": 0})
     """Rays traced by kind."""
     passes: int = 0
@@ -579,6 +585,7 @@ class _Tracer:
         for s in sk:
             log.info("trace: skipped %s", s)
         self._ws = _take_workspace()
+        self.acc = self._pixel_stats()
         n_dims = 2 + (cfg.depth_limit + 1) * _DIMS_PER_BOUNCE
         self._salts = _salts(cfg.seed, n_dims)
         self._seed_mix = np.uint64(_mix_int(int(cfg.seed)))
@@ -637,31 +644,58 @@ class _Tracer:
             ),
         )
 
+    def _pixel_stats(self) -> Any:
+        """Zeroed per-pixel statistics (:data:`~icbtool.trace.kernels.PixelStats`, workspace
+        buffers) for the kernel to add samples to."""
+        K = _kernels()
+        ws, npix = self._ws, self.cam.height * self.cam.width
+        n_aux = npix if (self.cfg.aux or self.cfg.denoise) else 1
+        return K.PixelStats(
+            _LUM,
+            ws.zeros("acc_gi_n", (npix,), np.int64),
+            ws.zeros("acc_gi_mean", (npix, 4), np.float64),  # rgb + luminance
+            ws.zeros("acc_gi_m2", (npix, 4), np.float64),
+            ws.zeros("acc_dir_n", (npix,), np.int64),
+            ws.zeros("acc_dir_mean", (npix, 3), np.float64),
+            ws.zeros("acc_dir_m2", (npix, 3), np.float64),
+            ws.zeros("hit_sum", (npix,), np.float64),
+            ws.zeros("alb_sum", (n_aux, 3), np.float64),
+            ws.zeros("nrm_sum", (n_aux, 3), np.float64),
+        )
+
     # ------------------------------------------------------------------ one pass
-    def trace(self, pix: np.ndarray, sid: np.ndarray, ray_log: dict | None = None):
-        """Trace one path for every (pixel, sample id) pair.
+    def trace(self, pix: np.ndarray, sid: np.ndarray, ray_log: dict | None = None) -> None:
+        """Trace one path for every (pixel, sample id) pair and add it to ``self.acc``.
 
         Args:
-            pix, sid: (P,) pixel index (row-major) and sample index.
+            pix, sid: (P,) pixel index (row-major, non-decreasing: a pixel's samples together)
+                and sample index.
             ray_log: see :func:`render` (forces one thread).
 
-        Returns:
-            direct, gi (P, 3); hit (P,) bool; albedo, normal (P, 3) or None.
+        Raises:
+            ValueError: ``pix`` is not sorted (two threads could then update one pixel).
         """
         K = _kernels()
         cfg, st = self.cfg, self.stats
         P = len(pix)
         pix = np.ascontiguousarray(pix, np.int64)
         sid = np.ascontiguousarray(sid, np.int64)
+        if P > 1 and not bool((pix[1:] >= pix[:-1]).all()):
+            raise ValueError("trace: pixel indices must be non-decreasing (samples by pixel)")
+        # blocks of about BLOCK samples, each boundary moved on to the next pixel's first sample
+        cut = np.searchsorted(pix, pix[np.arange(K.BLOCK, P, K.BLOCK) - 1], side="right")
+        bounds = np.unique(np.concatenate([[0], cut, [P]])).astype(np.int64)
+        n_blocks = len(bounds) - 1
+        parts = 1 if ray_log is not None else max(1, min(cfg.threads, n_blocks))
         ws = self._ws
         want_aux = cfg.aux or cfg.denoise
-        # per-sample outputs (workspace views: valid until the next call)
-        # (not zeroed here: the kernel zeroes each sample's rows as it starts the sample)
-        direct = ws.get("direct", (P, 3), np.float64)
-        gi = ws.get("gi", (P, 3), np.float64)
-        first_hit = ws.get("first_hit", (P,), np.bool_)
-        alb_out = ws.get("alb", (P if want_aux else 1, 3), np.float64)
-        nrm_out = ws.get("nrm", (P if want_aux else 1, 3), np.float64)
+        # one scratch row per part (the kernel zeroes it as each sample starts)
+        rows = parts * K.ROW_STRIDE
+        direct = ws.get("direct", (rows, 3), np.float64)
+        gi = ws.get("gi", (rows, 3), np.float64)
+        first_hit = ws.get("first_hit", (rows,), np.bool_)
+        alb_out = ws.get("alb", (rows if want_aux else 1, 3), np.float64)
+        nrm_out = ws.get("nrm", (rows if want_aux else 1, 3), np.float64)
         if ray_log is None:
             log = (
                 np.zeros((1, 3), np.float32),
@@ -672,18 +706,18 @@ class _Tracer:
             )
         else:
             log = (ray_log["o"], ray_log["d"], ray_log["tfar"], ray_log["kind"], ray_log["n"])
-        n_blocks = -(-P // K.BLOCK)
-        parts = 1 if ray_log is not None else max(1, min(cfg.threads, n_blocks))
         counts = np.zeros((parts, 3), np.int64)
         out = K.Outputs(direct, gi, first_hit, alb_out, nrm_out)
-        prm = self._params
+        prm, acc = self._params, self.acc
         t0 = time.perf_counter()
         if parts == 1:
-            K.trace_paths(prm, out, counts[0], log, 0, 1, pix, sid)
+            K.trace_paths(prm, out, acc, counts[0], log, 0, 1, pix, sid, bounds)
         else:
             pool = _pool(parts)
             futs = [
-                pool.submit(K.trace_paths, prm, out, counts[i], log, i, parts, pix, sid)
+                pool.submit(
+                    K.trace_paths, prm, out, acc, counts[i], log, i, parts, pix, sid, bounds
+                )
                 for i in range(parts)
             ]
             for f in futs:
@@ -693,9 +727,6 @@ class _Tracer:
         st.rays["primary"] += int(c[0])
         st.rays["bounce"] += int(c[1])
         st.rays["shadow"] += int(c[2])
-        if not want_aux:
-            alb_out = nrm_out = None
-        return direct, gi, first_hit, alb_out, nrm_out
 
 
 def _kernels():
@@ -760,15 +791,6 @@ def _pool(k: int) -> ThreadPoolExecutor:
 
 
 # ---------------------------------------------------------------------------------- driver
-class _Accum:
-    """Per-pixel running mean and M2 (Welford/Chan) of C channels (workspace buffers)."""
-
-    def __init__(self, npix: int, c: int, ws: _Workspace, name: str) -> None:
-        self.n = ws.zeros(name + "_n", (npix,), np.int64)
-        self.mean = ws.zeros(name + "_mean", (npix, c), np.float64)
-        self.m2 = ws.zeros(name + "_m2", (npix, c), np.float64)
-
-
 def render(
     scene: Scene,
     cam: Camera,
@@ -819,12 +841,8 @@ def render(
     npix = H * W
     K = _kernels()
     ws = tracer._ws
-    acc_gi = _Accum(npix, 4, ws, "acc_gi")  # rgb + luminance
-    acc_dir = _Accum(npix, 3, ws, "acc_dir")
-    hit_sum = ws.zeros("hit_sum", (npix,), np.float64)
+    acc = tracer.acc
     want_aux = cfg.aux or cfg.denoise
-    alb_sum = ws.zeros("alb_sum", (npix if want_aux else 1, 3), np.float64)
-    nrm_sum = ws.zeros("nrm_sum", (npix if want_aux else 1, 3), np.float64)
     rel = ws.get("rel", (npix,), np.float64)
     active = np.arange(npix)
     n_skipped_pixels = 0
@@ -834,47 +852,27 @@ def render(
 
         bar = tqdm(total=cfg.spp, desc=f"trace {W}x{H}", unit="spp", leave=False)
     while True:
-        remaining = cfg.spp - acc_gi.n[active]
+        remaining = cfg.spp - acc.n_g[active]
         active = active[remaining > 0]
         if len(active) == 0:
             stats.stop_reason = stats.stop_reason or "spp"
             break
-        k = np.minimum(cfg.spp_per_pass, cfg.spp - acc_gi.n[active])
+        k = np.minimum(cfg.spp_per_pass, cfg.spp - acc.n_g[active])
         pix = np.repeat(active, k).astype(np.int64)
-        start = np.repeat(acc_gi.n[active], k)
+        start = np.repeat(acc.n_g[active], k)
         sid = start + (np.arange(len(pix)) - np.repeat(np.cumsum(k) - k, k))
-        # a pass is traced in chunks of at most MAX_SAMPLES_PER_CALL samples (bounded memory at
-        # any image size); samples are merged in the same order, so chunking changes nothing
+        # a pass is traced in calls of at most MAX_SAMPLES_PER_CALL samples; each pixel's samples
+        # are added in the same order, so the split changes nothing
         for a in range(0, len(pix), MAX_SAMPLES_PER_CALL):
-            pc, sc_ = pix[a : a + MAX_SAMPLES_PER_CALL], sid[a : a + MAX_SAMPLES_PER_CALL]
-            direct, gi, hit, alb, nrm = tracer.trace(pc, sc_, ray_log)
-            t0 = time.perf_counter()
-            K.accumulate_pass(
-                pc,
-                gi,
-                direct,
-                hit,
-                alb if want_aux else gi,
-                nrm if want_aux else gi,
-                want_aux,
-                _LUM,
-                acc_gi.n,
-                acc_gi.mean,
-                acc_gi.m2,
-                acc_dir.n,
-                acc_dir.mean,
-                acc_dir.m2,
-                hit_sum,
-                alb_sum,
-                nrm_sum,
+            tracer.trace(
+                pix[a : a + MAX_SAMPLES_PER_CALL], sid[a : a + MAX_SAMPLES_PER_CALL], ray_log
             )
-            stats.add_time("accumulate", time.perf_counter() - t0)
         t0 = time.perf_counter()
         stats.passes += 1
-        mean_rel = float(K.rel_error_lum(acc_gi.n, acc_gi.mean, acc_gi.m2, hit_sum, rel))
+        mean_rel = float(K.rel_error_lum(acc.n_g, acc.mean_g, acc.m2_g, acc.hit_sum, rel))
         stats.rel_error = mean_rel
         elapsed = time.perf_counter() - t_start
-        stats.error_history.append((elapsed, int(acc_gi.n.sum()), mean_rel))
+        stats.error_history.append((elapsed, int(acc.n_g.sum()), mean_rel))
         stats.add_time("accumulate", time.perf_counter() - t0)
         if bar is not None:
             bar.n = round(stats.error_history[-1][1] / npix, 2)
@@ -909,13 +907,13 @@ def render(
     albedo = np.empty((H, W, 3), np.float32) if want_aux else None
     normal = np.empty((H, W, 3), np.float32) if want_aux else None
     K.finish(
-        acc_gi.n,
-        acc_gi.mean,
-        acc_gi.m2,
-        acc_dir.mean,
-        hit_sum,
-        alb_sum,
-        nrm_sum,
+        acc.n_g,
+        acc.mean_g,
+        acc.m2_g,
+        acc.mean_d,
+        acc.hit_sum,
+        acc.alb_sum,
+        acc.nrm_sum,
         want_aux,
         gi.reshape(npix, 3),
         direct.reshape(npix, 3),
@@ -924,8 +922,8 @@ def render(
         (albedo if want_aux else gi).reshape(npix, 3),
         (normal if want_aux else gi).reshape(npix, 3),
     )
-    spp = acc_gi.n.reshape(H, W).astype(np.int32)
-    stats.samples = int(acc_gi.n.sum())
+    spp = acc.n_g.reshape(H, W).astype(np.int32)
+    stats.samples = int(acc.n_g.sum())
     _give_workspace(ws)  # (lost on an exception: then it is simply garbage)
     stats.add_time("accumulate", time.perf_counter() - t0)
     gi_raw = gi
