@@ -289,6 +289,18 @@ def block_trace_profile(results: Path) -> str:
         )
         + ", so packets of the kernel's own ray order would save little.",
     ]
+    by_sampler = [r.get("render_cpu_s_by_sampler") for r in rows]
+    if all(by_sampler):
+        lines.append(
+            "Whole renders with the independent sampler (one hash per number) instead of Sobol "
+            "take "
+            + "; ".join(
+                f"{n}: {b['independent']:.3f} s against {b['sobol']:.3f} s"
+                for n, b in zip(names, by_sampler, strict=True)
+            )
+            + " (the replayed 'Sobol numbers' stage draws them at every vertex, the kernel at "
+            "the first two only: an upper bound)."
+        )
     firsts = [r.get("embree_first_vertex_shadow_rays") for r in rows]
     if all(firsts):
         lines += [
@@ -444,8 +456,8 @@ def block_trace_time_error(results: Path) -> str:
             "|---" * (len(spps) + 1) + "|",
             row("per sample: our time / Mitsuba's, same spp", per_sample, mark=False),
             row("RMSE per sample: ours / Mitsuba's, same spp", err_ratio, mark=False),
-            row("RMSE, ours raw (default: Sobol, robust Embree)", ratios("target_rmse")),
-            row("RMSE, ours raw, `robust=False`", ratios("target_rmse", "ours_raw_fast")),
+            row("RMSE, ours raw (default: Sobol, Embree not robust)", ratios("target_rmse")),
+            row("RMSE, ours raw, `robust=True`", ratios("target_rmse", "ours_raw_robust")),
             row("RMSE, ours with denoised GI (OIDN)", ratios("target_rmse", "ours_denoised")),
             *(
                 [row("RMSE, denoised GI, OIDN 'fast'", ratios("target_rmse", "ours_denoised_fast"))]
@@ -960,6 +972,19 @@ TRACE_SPEED_AB = (
     ("branch", "both, against the branch's base", True),
     ("bitrev", "LLVM's bitreverse in the Sobol scrambling", False),
     ("tiles", "pixels walked in 8x8 tiles instead of rows", False),
+    (
+        "concentric",
+        "cosine sampling on Shirley-Chiu's concentric disk, sin/cos by short polynomials "
+        "(other samples: RMSE per spp checked, `trace_rmse_ab.py`)",
+        True,
+    ),
+    (
+        "fused",
+        "samples added to their pixels' statistics in the kernel (no per-sample buffers, no "
+        "serial merge)",
+        True,
+    ),
+    ("fused2t", "the same, 2 threads", True),
 )
 
 
@@ -968,7 +993,7 @@ def block_trace_speed(results: Path) -> str:
         "**Tracer speed changes** (`benchmarks/trace_ab.py`, paired A/B: one process per "
         "checkout, renders alternating, 8 spp,",
         "median ratio B/A of rays per second of process CPU time (quartiles); images "
-        "bit-identical, so the error per sample is unchanged):",
+        "bit-identical, so the error per sample is unchanged, unless the change says otherwise):",
         "",
         "| change (B) | kept | Cornell box | Sponza | size, threads, rounds, 1-minute load |",
         "|---|---|---|---|---|",

@@ -1,11 +1,11 @@
 """Paired A/B timing of the path tracer in two checkouts (a refactor's "speed unchanged" check).
 
-On a shared, loaded machine two benchmark runs minutes apart differ by 2x; this runs one
-long-lived process per checkout (each imports its own ``icbtool`` and warms its numba cache) and
-alternates renders between them, so both see the same load: each round is one render in A and one
-in B; the result is the median of the per-round ratios B / A of the tracer's trace-phase Mrays/s
-(wall) and of its rays per second of process CPU time (less sensitive to other processes' load;
-single-threaded by default), with the 1-minute load recorded every render.
+On a shared, loaded machine two benchmark runs minutes apart differ by 2x; this runs one long-lived
+process per checkout (each imports its own ``icbtool`` and warms its numba cache) and alternates
+renders between them, so both see the same load: each round is one render in A and one in B; the
+result is the median of the per-round ratios B / A of the tracer's Mrays/s (whole render, wall) and
+of its rays per second of process CPU time (less sensitive to other processes' load; single-
+threaded by default), with the 1-minute load recorded every render.
 
     .venv/bin/python benchmarks/trace_ab.py --a /tmp/before --b . [--rounds 9] [--size 128]
 
@@ -31,29 +31,32 @@ import icbtool as icb
 from icbtool.trace import TraceConfig, render
 name, size, spp, root = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
 threads = int(sys.argv[5])
+robust = {} if sys.argv[6] == "default" else {"robust": sys.argv[6] == "1"}
 if name == "sponza":
     sc = icb.scene.load(os.path.join(root, "data", "scenes", "sponza.toml"))
 else:
     sc = getattr(icb.scene, name)()
 cam = sc.default_camera.resized(size, size)
-cfg = TraceConfig(spp=spp, spp_per_pass=4, max_depth=8, seed=0, threads=threads)
+cfg = TraceConfig(spp=spp, spp_per_pass=4, max_depth=8, seed=0, threads=threads, **robust)
 render(sc, cam, TraceConfig(spp=1))
 print("ready", flush=True)
 for _ in sys.stdin:
     c0 = time.process_time()
     st = render(sc, cam, cfg).stats
     cpu = time.process_time() - c0
-    print(json.dumps({"mrays": st.total_rays / st.time_s["trace"] / 1e6,
+    print(json.dumps({"mrays": st.total_rays / st.time_s["total"] / 1e6,
                       "mrays_per_cpu_s": st.total_rays / cpu / 1e6,
                       "rays": st.total_rays, "load": os.getloadavg()[0]}), flush=True)
 """
 
 
-def _start(root: Path, scene: str, size: int, spp: int, threads: int) -> subprocess.Popen:
+def _start(
+    root: Path, scene: str, size: int, spp: int, threads: int, robust: str
+) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(root))
     env.setdefault("ICBTOOL_SPONZA", str(REPO.parent / "shared" / "scenes" / "sponza"))
     p = subprocess.Popen(
-        [sys.executable, "-c", CHILD, scene, str(size), str(spp), str(root), str(threads)],
+        [sys.executable, "-c", CHILD, scene, str(size), str(spp), str(root), str(threads), robust],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
@@ -82,9 +85,15 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=9)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--name", default=None, help="results file ab_<name>.json (default: scene)")
+    ap.add_argument(
+        "--robust",
+        choices=("default", "0", "1"),
+        default="default",
+        help="Embree's robust mode in both (default: each checkout's TraceConfig default)",
+    )
     args = ap.parse_args()
-    a = _start(args.a.resolve(), args.scene, args.size, args.spp, args.threads)
-    b = _start(args.b.resolve(), args.scene, args.size, args.spp, args.threads)
+    a = _start(args.a.resolve(), args.scene, args.size, args.spp, args.threads, args.robust)
+    b = _start(args.b.resolve(), args.scene, args.size, args.spp, args.threads, args.robust)
     rows = []
     try:
         for r in range(args.rounds):

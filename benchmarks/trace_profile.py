@@ -48,6 +48,7 @@ import ctypes
 import os
 import sys
 import time
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
@@ -504,6 +505,15 @@ def profile(scene, cam, cfg: TraceConfig, repeats: int) -> dict:
         oidn["unavailable"] = str(e)
     peer = mitsuba_cpu(scene, cam, cfg.spp, repeats)
     variants = embree_variants(scene, rays, repeats)
+    # the sampler in the real kernel: whole renders with each (interleaved, fastest of repeats),
+    # next to the replayed 'sampler' stage, which draws Sobol numbers at every vertex
+    samplers = {"sobol": np.inf, "independent": np.inf}
+    for _ in range(repeats):
+        for name in samplers:
+            c_s = replace(cfg1, sampler=name)
+            c0 = time.process_time()
+            icb.trace.render(scene, cam, c_s)
+            samplers[name] = min(samplers[name], time.process_time() - c0)
     return {
         "mitsuba_llvm_ad_rgb": peer,
         "scene": scene.name,
@@ -520,6 +530,7 @@ def profile(scene, cam, cfg: TraceConfig, repeats: int) -> dict:
         "embree_first_vertex_shadow_rays": first,
         "embree_ns_per_ray": variants,
         "shade_levels_cpu_s": dict(zip(names, levels, strict=True)),
+        "render_cpu_s_by_sampler": samplers,
         "oidn": oidn,
     }
 
@@ -567,7 +578,9 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--scenes", default="cornell_box,sponza")
-    ap.add_argument("--robust", type=int, default=1, help="Embree robust mode (1/0)")
+    ap.add_argument(
+        "--robust", type=int, default=0, help="Embree robust mode (1/0; default 0, as TraceConfig)"
+    )
     ap.add_argument("--out-name", default="profile")
     args = ap.parse_args()
     load_start = os.getloadavg()

@@ -8,16 +8,15 @@ references is reported as `reference_gap`. Mitsuba cannot split DL/GI, so "full"
 
     .venv/bin/python benchmarks/trace_time_error.py [--size 256] [--ref-spp 1024]
 
-Variants of ours: raw (default config: sobol sampler, robust Embree), raw_fast (robust=False, as
-Mitsuba's default), raw_independent (hash sampler), denoised (GI
-denoised with OIDN + albedo/normal, as the system uses it: DL comes from the raster),
-denoised_fast (the same with OIDN's 'fast' quality), denoised_full
-(direct + GI denoised together) and adaptive. The first render (numba JIT or cache load) is a
-warm-up, not counted; Mitsuba's kernel cache is warmed by one untimed render per spp. The target
-check gives, per Mitsuba point (T, E), the time our curve needs to reach E, divided by T. The
-Embree floor gives, per Mitsuba point, the time Embree alone (no shading) needs for the rays of our
-cheapest raw render that reaches E, divided by T: above 0.5 no shading code could meet the target
-there.
+Variants of ours: raw (default config: sobol sampler, Embree not robust, as Mitsuba builds its
+scenes), raw_robust (Embree's robust, watertight traversal), raw_independent (hash sampler),
+denoised (GI denoised with OIDN + albedo/normal, as the system uses it: DL comes from the raster),
+denoised_fast (the same with OIDN's 'fast' quality), denoised_full (direct + GI denoised together)
+and adaptive. The first render (numba JIT or cache load) is a warm-up, not counted; Mitsuba's
+kernel cache is warmed by one untimed render per spp. The target check gives, per Mitsuba point (T,
+E), the time our curve needs to reach E, divided by T. The Embree floor gives, per Mitsuba point,
+the time Embree alone (no shading) needs for the rays of our cheapest raw render that reaches E,
+divided by T: above 0.5 no shading code could meet the target there.
 
 The peer is Mitsuba's `llvm_ad_rgb` variant unless `--mitsuba-variant` names another; a variant
 that cannot be loaded stops the benchmark with a message (`make bench-deps` installs Mitsuba and
@@ -179,6 +178,26 @@ def errors(ref: np.ndarray, img: np.ndarray) -> dict:
 def sponza():
     os.environ.setdefault("ICBTOOL_SPONZA", str(REPO.parent / "shared" / "scenes" / "sponza"))
     return icb.scene.load(REPO / "data" / "scenes" / "sponza.toml")
+
+
+def machine_probe() -> dict:
+    """Two numbers that tell this host from another: memory copy bandwidth (numpy, 1 GiB, best of
+    3) and scalar float throughput (Python-free: numpy's sin on 4M doubles, best of 3). Our
+    per-sample ratio to Mitsuba moved from 1.9 to 1.1 between two quiet hosts of the same CPU
+    model: Mitsuba's wavefronts (arrays of every lane's state) lean on memory much more than
+    our one-path-at-a-time kernel."""
+    a = np.ones(1 << 27)
+    b = np.empty_like(a)
+    x = np.random.default_rng(0).random(1 << 22)
+    copy_s, sin_s = np.inf, np.inf
+    for _ in range(3):
+        t0 = time.perf_counter()
+        np.copyto(b, a)
+        copy_s = min(copy_s, time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        np.sin(x)
+        sin_s = min(sin_s, time.perf_counter() - t0)
+    return {"copy_gb_per_s": 2 * a.nbytes / copy_s / 1e9, "sin_m_per_s": len(x) / sin_s / 1e6}
 
 
 def alignment(ours: np.ndarray, theirs: np.ndarray, max_shift: int = 2) -> dict:
@@ -482,7 +501,7 @@ def main() -> None:
         print(f"{name}: alignment best shift {align['full']['best_shift_dy_dx']}", flush=True)
         keys = (
             "ours_raw",
-            "ours_raw_fast",
+            "ours_raw_robust",
             "ours_raw_independent",
             "ours_denoised",
             "ours_denoised_fast",
@@ -492,7 +511,7 @@ def main() -> None:
         )
         curves = {k: [] for k in keys}
         embree_floor = []
-        rtc = RtcScene.of(scene)
+        rtc = RtcScene.of(scene, robust=TraceConfig().robust)  # as the default config traces
         for spp in tqdm(spps, desc=name):
             cfg = TraceConfig(spp=spp, seed=spp, **base)
             # ours (default config), Mitsuba and the Embree floor are timed in interleaved rounds
@@ -548,8 +567,8 @@ def main() -> None:
                     **errors(ref_full, full_dn),
                 }
             )
-            r = ours(scene, cam, replace(cfg, robust=False), args.repeats)
-            curves["ours_raw_fast"].append(
+            r = ours(scene, cam, replace(cfg, robust=True), args.repeats)
+            curves["ours_raw_robust"].append(
                 {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
             )
             r = ours(scene, cam, replace(cfg, sampler="independent"), args.repeats)
@@ -614,6 +633,7 @@ def main() -> None:
             "waited_for_quiet_s": waited,
             "wall_s": time.perf_counter() - t_run,
             "mitsuba_version": mi.__version__,
+            "machine_probe": machine_probe(),
             "results": results,
             "run_info": run_info(),
         },
