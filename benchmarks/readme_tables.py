@@ -985,6 +985,7 @@ TRACE_SPEED_AB = (
         True,
     ),
     ("fused2t", "the same, 2 threads", True),
+    ("divisions", "reciprocals instead of repeated divisions (normalising, RR, MIS)", False),
 )
 
 

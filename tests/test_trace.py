@@ -780,3 +780,22 @@ def test_kernels_and_rtc_do_not_import_each_other_at_module_level():
     assert "icbtool.trace.rtc" not in top_imports("kernels")
     assert "icbtool.trace.kernels" not in top_imports("rtc")
     assert "icbtool.trace.layout" in top_imports("kernels") & top_imports("rtc")
+
+
+def test_an_emitter_seen_edge_on_adds_nothing_rather_than_nan():
+    """A point on an emissive face seen almost edge-on (cosine at the light 1e-170) has a light
+    sample density near infinity; its MIS-weighted contribution must be 0, not inf / inf."""
+    import numba as nb
+
+    from icbtool.trace import kernels as K
+
+    @nb.njit
+    def sample(cl):
+        up = (0.0, 0.0, 1.0)
+        return K._emitter_sample((0.0, 0.0, 1.0), (0.0, 1.0, -cl), 1.0, 1.0, 1.0,
+                                 (0.0, 0.0, 0.0), up, up, 0.0)  # fmt: skip
+
+    ok, _, _, wz, _, g = sample(1e-170)
+    assert ok and wz == 1.0 and g == 0.0
+    ok, _, _, _, _, g = sample(0.5)  # an ordinary angle: pl = 2, pb = 1 / pi
+    assert ok and g == pytest.approx(2.0 / (4.0 + 1.0 / math.pi**2))

@@ -813,8 +813,9 @@ def _emitter_sample(y, nl, pmf, area, diag, x, nf, ns, eps):
         return False, wi0, wi1, wi2, np.float32(0.0), 0.0
     pl = pmf / area * dist * dist / cl
     pb = c * _INV_PI
-    w = pl * pl / (pl * pl + pb * pb)
-    g = c * w / pl
+    # c * w / pl with w = pl^2 / (pl^2 + pb^2), written so that a huge pl (an emitter seen edge-on)
+    # gives 0, not inf / inf
+    g = c * pl / (pl * pl + pb * pb)
     eps_l = _eps(y[0], y[1], y[2], dist, diag)
     tf = np.float32(max(dist - eps - eps_l, 0.0))
     return True, wi0, wi1, wi2, tf, g
