@@ -986,6 +986,12 @@ TRACE_SPEED_AB = (
     ),
     ("fused2t", "the same, 2 threads", True),
     ("divisions", "reciprocals instead of repeated divisions (normalising, RR, MIS)", False),
+    (
+        "stride",
+        "scratch rows 64 apart (8 apart, both threads' one-byte first-hit flags shared a cache "
+        "line)",
+        True,
+    ),
 )
 
 

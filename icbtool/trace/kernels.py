@@ -599,8 +599,10 @@ TraceParams = namedtuple("TraceParams", ["embree", "cam", "surf", "lights", "sky
 #: rows): direct, gi (R, 3), first hit (R,), first-hit albedo and normal (R, 3) (or (1, 3) when
 #: not wanted).
 Outputs = namedtuple("Outputs", ["direct", "gi", "first_hit", "albedo", "normal"])
-#: Rows between two parts' scratch rows (192 bytes: no two threads write one cache line).
-ROW_STRIDE = 8
+#: Rows between two parts' scratch rows: 64, so that no two threads write one cache line even in
+#: the one-byte ``first_hit`` (8 rows apart, both threads' flags shared a line: every sample wrote
+#: it).
+ROW_STRIDE = 64
 #: Per-pixel statistics every sample is added to (:func:`_add_sample`): luminance weights (3,);
 #: Welford count, mean and M2 of gi rgb + luminance (N,), (N, 4), (N, 4) and of direct (N,),
 #: (N, 3), (N, 3); sums of the hit flag (N,), first-hit albedo and normal (N, 3) (or (1, 3)).
