@@ -162,6 +162,26 @@ def test_vgg19_features_have_torchvision_keys_and_load(tmp_path):
         L.load_vgg19_features(tmp_path / "bad.pth")
 
 
+def test_a_vgg19_weights_file_turns_the_perceptual_loss_on_in_training(store, tmp_path):
+    """The paper preset's path: a VGG19 state-dict file (untrained weights here; the ImageNet file
+    cannot be fetched) builds the perceptual loss, which is 0 for equal images and > 0 otherwise,
+    and a training run uses it. (Building it from the loaded VGG19Features once failed: slicing
+    the Sequential subclass called its constructor with arguments; found on a GPU run.)"""
+    torch.manual_seed(0)
+    sd = {f"features.{k}": v for k, v in L.VGG19Features().state_dict().items()}
+    torch.save(sd, tmp_path / "vgg19.pth")
+    loss, status = L.build_perceptual(tmp_path / "vgg19.pth")
+    assert status == f"on: {tmp_path / 'vgg19.pth'}" and len(loss.features) == 30
+    x = torch.rand(1, 3, 32, 32) * 2 - 1
+    assert loss(x, x).item() == 0.0 and loss(x, -x).item() > 0.0
+    cfg = tiny(iterations=1, weight_perceptual=1.0, vgg19_weights=str(tmp_path / "vgg19.pth"))
+    T.train(store, cfg, tmp_path / "run", progress=False)
+    import json
+
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["perceptual"] == f"on: {tmp_path / 'vgg19.pth'}"
+
+
 def test_missing_vgg_file_warns_once_and_is_recorded(store, tmp_path):
     with pytest.warns(UserWarning, match=r"perceptual loss L_p is OFF.*TrainConfig.vgg19_weights"):
         loss, status = L.build_perceptual(tmp_path / "nope.pth")

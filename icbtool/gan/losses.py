@@ -179,7 +179,10 @@ class PerceptualLoss(nn.Module):
         bad = [i for i in layers if not (0 <= i < n)]
         if bad:
             raise ValueError(f"PerceptualLoss layers {bad} out of range for a {n}-layer network")
-        self.features = features[: max(layers) + 1].eval().requires_grad_(False)
+        # a plain Sequential of the layers used (slicing a Sequential subclass such as
+        # VGG19Features would call its own constructor with the layers, which takes none)
+        kept = list(features.children())[: max(layers) + 1]
+        self.features = nn.Sequential(*kept).eval().requires_grad_(False)
         self.layers = tuple(sorted(set(layers)))
         self.imagenet_input = imagenet_input
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1))
