@@ -457,7 +457,11 @@ def block_trace_time_error(results: Path) -> str:
             row("per sample: our time / Mitsuba's, same spp", per_sample, mark=False),
             row("RMSE per sample: ours / Mitsuba's, same spp", err_ratio, mark=False),
             row("RMSE, ours raw (default: Sobol, Embree not robust)", ratios("target_rmse")),
-            row("RMSE, ours raw, `robust=True`", ratios("target_rmse", "ours_raw_robust")),
+            *(  # (runs before the robust default changed have no such curve)
+                [row("RMSE, ours raw, `robust=True`", ratios("target_rmse", "ours_raw_robust"))]
+                if "ours_raw_robust" in sc["target_rmse"]
+                else []
+            ),
             row("RMSE, ours with denoised GI (OIDN)", ratios("target_rmse", "ours_denoised")),
             *(
                 [row("RMSE, denoised GI, OIDN 'fast'", ratios("target_rmse", "ours_denoised_fast"))]
@@ -1025,6 +1029,18 @@ def block_trace_speed(results: Path) -> str:
             meta += f", {'/'.join(rounds)}, {min(loads):.1f}-{max(loads):.1f}"
         lines.append(
             f"| {what} | {'yes' if kept else 'no'} | " + " | ".join(cells) + f" | {meta} |"
+        )
+    lines.append("")
+    # changes that alter the samples: their error per sample (trace_rmse_ab.py)
+    for path in sorted((results / "trace").glob("rmse_ab_*.json")):
+        d = json.loads(path.read_text())
+        a, rows = d["args"], d["rows"]
+        worst_se = max(max(r["se_a"], r["se_b"]) / r["rmse_a"] for r in rows)
+        lines.append(
+            f"- Error per sample, `{path.name}` (`benchmarks/trace_rmse_ab.py`, {a['scene']}, "
+            f"{a['size']}^2, {a['seeds']} seeds a point, robust Embree in both): RMSE B/A "
+            + ", ".join(f"{r['b_over_a']:.3f} at {r['spp']} spp" for r in rows)
+            + f" (standard errors up to {100 * worst_se:.1f} % of the RMSE)."
         )
     lines.append("")
     return "\n".join(lines)
