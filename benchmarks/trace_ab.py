@@ -75,12 +75,18 @@ def _one(p: subprocess.Popen) -> dict:
     return json.loads(p.stdout.readline())
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_checkout_args(ap: argparse.ArgumentParser) -> None:
+    """--a, --b (the two checkouts), --scene and --size (what both render): the arguments of
+    every two-checkout comparison (this script, trace_rmse_ab.py)."""
     ap.add_argument("--a", type=Path, required=True, help="checkout A (before)")
     ap.add_argument("--b", type=Path, default=REPO, help="checkout B (after)")
     ap.add_argument("--scene", default="cornell_box", help="a built-in scene name or 'sponza'")
     ap.add_argument("--size", type=int, default=128)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_checkout_args(ap)
     ap.add_argument("--spp", type=int, default=8)
     ap.add_argument("--rounds", type=int, default=9)
     ap.add_argument("--threads", type=int, default=1)

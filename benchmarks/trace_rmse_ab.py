@@ -22,6 +22,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from trace_ab import add_checkout_args
 
 from icbtool.cli._common import run_info, write_json
 
@@ -82,10 +83,7 @@ def run(root: Path, args: argparse.Namespace, ref: Path) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--a", type=Path, required=True, help="checkout A (before)")
-    ap.add_argument("--b", type=Path, default=REPO, help="checkout B (after)")
-    ap.add_argument("--scene", default="cornell_box", help="a built-in scene name or 'sponza'")
-    ap.add_argument("--size", type=int, default=128)
+    add_checkout_args(ap)
     ap.add_argument("--spps", default="1,2,4,8,16")
     ap.add_argument("--seeds", type=int, default=12)
     ap.add_argument("--ref-spp", type=int, default=2048)
