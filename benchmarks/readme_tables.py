@@ -418,6 +418,10 @@ def block_trace_time_error(results: Path) -> str:
         "Only runs on a quiet machine (1-minute load < 1 at the start, recorded in the results "
         "file) make claims;",
         "a run without that is labelled and its ratios are not bold.",
+        "Ratios against Mitsuba also depend on the host: the tracer of 2026-11-25 took 1.86x "
+        "Mitsuba's time per sample on the Cornell box (8 spp) in that day's quiet run and about "
+        "1.0-1.1x on the host of 2026-11-26 (both 'AMD EPYC', 2 cores), where Mitsuba needed 3.3x "
+        "its earlier CPU time and we 1.5x; each run names its host below.",
         "",
     ]
     for name, (rel, d, sc) in runs.items():
@@ -431,10 +435,20 @@ def block_trace_time_error(results: Path) -> str:
             else f"load at the start not recorded (at the end: {sc['load_average_1min_end']:.1f})"
         )
         label = TIME_ERROR_SCENES[name]
+        # the host: ratios against Mitsuba's vectorising JIT depend on it (trace_time_error.py's
+        # machine_probe docstring)
+        ri, probe = d.get("run_info", {}), d.get("machine_probe")
+        host = ""
+        if "cpu_simd" in ri and probe:
+            host = (
+                f" Host: {ri.get('cpu', '?')} (family {ri.get('cpu_family', '?')}, model "
+                f"{ri.get('cpu_model', '?')}, {ri['cpu_simd']}), {ri.get('cpu_count', '?')} "
+                f"cores, memory copy {probe['copy_gb_per_s']:.0f} GB/s."
+            )
         lines += [
             f"**{label}** (`{rel}`: {d['args']['size']}^2, reference {sc['ref_spp']} spp, minimum "
             f"of {d['args']['repeats']} runs, Mitsuba `{d['results']['mitsuba_variant']}`, "
-            f"{load_txt}: " + ("quiet)." if quiet else "**not a quiet run: no claim**)."),
+            f"{load_txt}: " + ("quiet)." if quiet else "**not a quiet run: no claim**).") + host,
             "",
         ]
 
