@@ -604,11 +604,12 @@ Outputs = namedtuple("Outputs", ["direct", "gi", "first_hit", "albedo", "normal"
 #: it).
 ROW_STRIDE = 64
 #: Per-pixel statistics every sample is added to (:func:`_add_sample`): luminance weights (3,);
-#: Welford count, mean and M2 of gi rgb + luminance (N,), (N, 4), (N, 4) and of direct (N,),
-#: (N, 3), (N, 3); sums of the hit flag (N,), first-hit albedo and normal (N, 3) (or (1, 3)).
+#: the sample count (N,); Welford mean and M2 of gi rgb + luminance (N, 4), (N, 4) and of direct
+#: (N, 3), (N, 3) (one count serves both: every sample adds to both); sums of the hit flag (N,),
+#: first-hit albedo and normal (N, 3) (or (1, 3)).
 PixelStats = namedtuple(
     "PixelStats",
-    ["lum_w", "n_g", "mean_g", "m2_g", "n_d", "mean_d", "m2_d", "hit_sum", "alb_sum", "nrm_sum"],
+    ["lum_w", "n", "mean_g", "m2_g", "mean_d", "m2_d", "hit_sum", "alb_sum", "nrm_sum"],
 )
 
 SKY_NONE = 0
@@ -1229,17 +1230,15 @@ def _visible(rtc, fn_occl, ray, log, so, dx, dy, dz, tf):
 def _add_sample(acc, p, direct, gi, hit, alb, nrm, row, want_aux):
     """A sample's outputs (scratch ``row``) into pixel ``p``'s statistics: Welford mean/M2 of
     (gi rgb, gi luminance) and of direct, and sums of the hit flag, albedo and normal."""
-    lum_w, n_g, mean_g, m2_g, n_d, mean_d, m2_d, hit_sum, alb_sum, nrm_sum = acc
+    lum_w, n, mean_g, m2_g, mean_d, m2_d, hit_sum, alb_sum, nrm_sum = acc
     g3 = gi[row, 0] * lum_w[0] + gi[row, 1] * lum_w[1] + gi[row, 2] * lum_w[2]
-    n_g[p] += 1
-    inv = 1.0 / n_g[p]
+    n[p] += 1
+    inv = 1.0 / n[p]
     for k in range(4):
         x = gi[row, k] if k < 3 else g3
         delta = x - mean_g[p, k]
         mean_g[p, k] += delta * inv
         m2_g[p, k] += delta * (x - mean_g[p, k])
-    n_d[p] += 1
-    inv = 1.0 / n_d[p]
     for k in range(3):
         delta = direct[row, k] - mean_d[p, k]
         mean_d[p, k] += delta * inv

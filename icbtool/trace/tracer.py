@@ -652,10 +652,9 @@ class _Tracer:
         n_aux = npix if (self.cfg.aux or self.cfg.denoise) else 1
         return K.PixelStats(
             _LUM,
-            ws.zeros("acc_gi_n", (npix,), np.int64),
+            ws.zeros("acc_n", (npix,), np.int64),
             ws.zeros("acc_gi_mean", (npix, 4), np.float64),  # rgb + luminance
             ws.zeros("acc_gi_m2", (npix, 4), np.float64),
-            ws.zeros("acc_dir_n", (npix,), np.int64),
             ws.zeros("acc_dir_mean", (npix, 3), np.float64),
             ws.zeros("acc_dir_m2", (npix, 3), np.float64),
             ws.zeros("hit_sum", (npix,), np.float64),
@@ -852,14 +851,14 @@ def render(
 
         bar = tqdm(total=cfg.spp, desc=f"trace {W}x{H}", unit="spp", leave=False)
     while True:
-        remaining = cfg.spp - acc.n_g[active]
+        remaining = cfg.spp - acc.n[active]
         active = active[remaining > 0]
         if len(active) == 0:
             stats.stop_reason = stats.stop_reason or "spp"
             break
-        k = np.minimum(cfg.spp_per_pass, cfg.spp - acc.n_g[active])
+        k = np.minimum(cfg.spp_per_pass, cfg.spp - acc.n[active])
         pix = np.repeat(active, k).astype(np.int64)
-        start = np.repeat(acc.n_g[active], k)
+        start = np.repeat(acc.n[active], k)
         sid = start + (np.arange(len(pix)) - np.repeat(np.cumsum(k) - k, k))
         # a pass is traced in calls of at most MAX_SAMPLES_PER_CALL samples; each pixel's samples
         # are added in the same order, so the split changes nothing
@@ -869,10 +868,10 @@ def render(
             )
         t0 = time.perf_counter()
         stats.passes += 1
-        mean_rel = float(K.rel_error_lum(acc.n_g, acc.mean_g, acc.m2_g, acc.hit_sum, rel))
+        mean_rel = float(K.rel_error_lum(acc.n, acc.mean_g, acc.m2_g, acc.hit_sum, rel))
         stats.rel_error = mean_rel
         elapsed = time.perf_counter() - t_start
-        stats.error_history.append((elapsed, int(acc.n_g.sum()), mean_rel))
+        stats.error_history.append((elapsed, int(acc.n.sum()), mean_rel))
         stats.add_time("accumulate", time.perf_counter() - t0)
         if bar is not None:
             bar.n = round(stats.error_history[-1][1] / npix, 2)
@@ -907,7 +906,7 @@ def render(
     albedo = np.empty((H, W, 3), np.float32) if want_aux else None
     normal = np.empty((H, W, 3), np.float32) if want_aux else None
     K.finish(
-        acc.n_g,
+        acc.n,
         acc.mean_g,
         acc.m2_g,
         acc.mean_d,
@@ -922,8 +921,8 @@ def render(
         (albedo if want_aux else gi).reshape(npix, 3),
         (normal if want_aux else gi).reshape(npix, 3),
     )
-    spp = acc.n_g.reshape(H, W).astype(np.int32)
-    stats.samples = int(acc.n_g.sum())
+    spp = acc.n.reshape(H, W).astype(np.int32)
+    stats.samples = int(acc.n.sum())
     _give_workspace(ws)  # (lost on an exception: then it is simply garbage)
     stats.add_time("accumulate", time.perf_counter() - t0)
     gi_raw = gi
