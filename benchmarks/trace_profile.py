@@ -579,7 +579,10 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--scenes", default="cornell_box,sponza")
     ap.add_argument(
-        "--robust", type=int, default=0, help="Embree robust mode (1/0; default 0, as TraceConfig)"
+        "--robust",
+        type=int,
+        default=int(TraceConfig().robust),
+        help="Embree robust mode (1/0; default: TraceConfig's)",
     )
     ap.add_argument("--out-name", default="profile")
     args = ap.parse_args()
