@@ -799,3 +799,16 @@ def test_an_emitter_seen_edge_on_adds_nothing_rather_than_nan():
     assert ok and wz == 1.0 and g == 0.0
     ok, _, _, _, _, g = sample(0.5)  # an ordinary angle: pl = 2, pb = 1 / pi
     assert ok and g == pytest.approx(2.0 / (4.0 + 1.0 / math.pi**2))
+
+
+def test_a_pass_with_pixels_out_of_order_is_refused():
+    """The kernel's threads share out whole pixels, which needs each pixel's samples together:
+    a pass whose pixel indices go back is an error, before any thread starts."""
+    from icbtool.trace.tracer import TraceStats, _Tracer
+
+    scene = icb.scene.cornell_box()
+    tr = _Tracer(scene, scene.default_camera.resized(8, 8), TraceConfig(spp=1), TraceStats())
+    with pytest.raises(ValueError, match="pixel indices must be non-decreasing"):
+        tr.trace(np.array([0, 1, 0]), np.array([0, 0, 1]))
+    tr.trace(np.array([0, 0, 1]), np.array([0, 1, 0]))  # in order: traced
+    assert tr.acc.n[:2].tolist() == [2, 1] and tr.stats.rays["primary"] == 3
