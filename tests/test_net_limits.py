@@ -354,6 +354,25 @@ def test_serve_without_a_token_prints_a_256_bit_one_once(tmp_path):
     assert token not in out  # printed once
 
 
+def test_new_tokens_never_start_with_a_dash_so_they_paste_after_token(monkeypatch):
+    # "--token -abc" is a missing value then an unknown option to argparse: a dash-led draw
+    # (one in 64) is redrawn. Force two of them first.
+    import secrets
+
+    from icbtool.cli import build_parser
+    from icbtool.net.server import new_token
+
+    draws = iter(["-" + "a" * 42, "-" + "b" * 42, "c" * 43])
+    monkeypatch.setattr(secrets, "token_urlsafe", lambda n: next(draws))
+    assert new_token() == "c" * 43
+    monkeypatch.undo()
+    tokens = [new_token() for _ in range(2000)]  # about 31 dash-led draws were redrawn
+    assert all(not t.startswith("-") and len(t) == 43 for t in tokens)
+    assert len(set(tokens)) == len(tokens)
+    args = build_parser().parse_args(["client", "ws://127.0.0.1:1", "--token", tokens[0]])
+    assert args.token == tokens[0]
+
+
 def _self_signed(tmp_path: Path) -> tuple[Path, Path]:
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization

@@ -108,15 +108,15 @@ def run_network(
     """Step 3: a server subprocess on a free loopback port, a client here, the server stopped
     with SIGTERM (its store kept in OUT/network/cache)."""
     import os
-    import secrets
     import signal
     import subprocess
     import sys
 
     from icbtool import net
+    from icbtool.net.server import new_token
 
     require("websockets", "the networked demo (--network)")
-    token = secrets.token_urlsafe(32)  # 256 bits: icbtool serve refuses short tokens
+    token = new_token()  # 256 bits: icbtool serve refuses short tokens
     cmd = [sys.executable, "-m", "icbtool", "serve", args.scene, "--store", str(out / "cache"),
            "--port", "0", "--log-level", "WARNING"]  # fmt: skip
     cmd += config_argv(cfg.cloud, args.loop_options, "cloud")  # the same cloud settings

@@ -80,8 +80,16 @@ MIN_TOKEN_CHARS = 32
 
 
 def new_token() -> str:
-    """A fresh 256-bit token (43 URL-safe base64 characters), what ``icbtool serve`` prints."""
-    return secrets.token_urlsafe(32)
+    """A fresh 256-bit token (43 URL-safe base64 characters), what ``icbtool serve`` prints.
+
+    It never starts with ``-``: a command line reads ``--token -abc...`` as a missing value
+    followed by an option (one token in 64 would not paste after ``--token``). Redrawing a
+    uniform draw whose first character is ``-`` leaves 6 + 252 random bits.
+    """
+    while True:
+        token = secrets.token_urlsafe(32)
+        if not token.startswith("-"):
+            return token
 
 
 @dataclass(frozen=True)
