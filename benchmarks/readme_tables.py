@@ -508,6 +508,16 @@ def block_trace_time_error(results: Path) -> str:
                 if "ours_raw_robust" in sc["target_rmse"]
                 else []
             ),
+            *(  # (runs before edge samples existed have no such curve)
+                [
+                    row(
+                        "RMSE, ours raw, `edge_samples=0`",
+                        ratios("target_rmse", "ours_raw_no_edge_samples"),
+                    )
+                ]
+                if "ours_raw_no_edge_samples" in sc["target_rmse"]
+                else []
+            ),
             row("RMSE, ours with denoised GI (OIDN)", ratios("target_rmse", "ours_denoised")),
             *(
                 [row("RMSE, denoised GI, OIDN 'fast'", ratios("target_rmse", "ours_denoised_fast"))]

@@ -9,7 +9,8 @@ references is reported as `reference_gap`. Mitsuba cannot split DL/GI, so "full"
     .venv/bin/python benchmarks/trace_time_error.py [--size 256] [--ref-spp 1024]
 
 Variants of ours: raw (default config: sobol sampler, Embree not robust, as Mitsuba builds its
-scenes), raw_robust (Embree's robust, watertight traversal), raw_independent (hash sampler),
+scenes, 8 extra emission samples on emitter and sky edges), raw_robust (Embree's robust,
+watertight traversal), raw_no_edge_samples (``edge_samples=0``), raw_independent (hash sampler),
 denoised (GI denoised with OIDN + albedo/normal, as the system uses it: DL comes from the raster),
 denoised_fast (the same with OIDN's 'fast' quality), denoised_full (direct + GI denoised together)
 and adaptive. The first render (numba JIT or cache load) is a warm-up, not counted; Mitsuba's
@@ -503,6 +504,7 @@ def main() -> None:
         keys = (
             "ours_raw",
             "ours_raw_robust",
+            "ours_raw_no_edge_samples",
             "ours_raw_independent",
             "ours_denoised",
             "ours_denoised_fast",
@@ -570,6 +572,11 @@ def main() -> None:
             )
             r = ours(scene, cam, replace(cfg, robust=True), args.repeats)
             curves["ours_raw_robust"].append(
+                {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
+            )
+            # without the extra emission samples on emitter/sky edges (TraceConfig.edge_samples)
+            r = ours(scene, cam, replace(cfg, edge_samples=0), args.repeats)
+            curves["ours_raw_no_edge_samples"].append(
                 {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
             )
             r = ours(scene, cam, replace(cfg, sampler="independent"), args.repeats)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import itertools
 import logging
 import math
@@ -246,7 +247,9 @@ def render_crt_buffer(
     if rasterizer is not None:
         rb = rasterizer.render(cam, buffers=tuple(b for b in buffers if b != "mask"))
         maps = {n: getattr(rb, n) for n in (*buffers, "mask")}
-        tr = trace.render(scene, cam, trace_config)
+        # DL comes from the raster: the tracer's `direct` is not kept, so the extra emission
+        # samples on emitter edges (which change only `direct`, never `gi`) would be wasted
+        tr = trace.render(scene, cam, dataclasses.replace(trace_config, edge_samples=0))
     else:
         tr = trace.render(scene, cam, trace_config)
         maps = _trace_gbuffers(scene, cam)

@@ -559,8 +559,9 @@ def sky_radiance_batch(sk, d, out):
 #: Embree 4: scene handle, addresses of rtcIntersect1 and rtcOccluded1.
 EmbreeFns = namedtuple("EmbreeFns", ["scene", "fn_intersect", "fn_occluded"])
 #: Camera: (fx, fy, cx, cy), world_from_cam rotation (3, 3), centre (3,), image width, jitter
-#: (1: box-filter the pixel, 0: its centre).
-View = namedtuple("View", ["intr", "r_wc", "pos", "width", "jitter"])
+#: (1: box-filter the pixel, 0: its centre), extra emission samples per sample of each pixel
+#: (N,) int32 (on the pixels an emitter's or the sky's edge crosses; empty: none anywhere).
+View = namedtuple("View", ["intr", "r_wc", "pos", "width", "jitter", "edge_extra"])
 #: Surfaces: per face (F) float32 corners (F, 3, 3), geometric normal (F, 3), corner normals
 #: (F, 3, 3), material (F,), corner uvs (F, 3, 2); per material (M) albedo and emission (M, 3)
 #: float64, texture offset into the texels (-1: untextured) and (h, w); texels (codes into
@@ -624,6 +625,9 @@ BLOCK = 256
 
 #: Sobol pairs of the sky light sample (vertices 1 .. LD_MAX_DEPTH): after the other dimensions
 SKY_PAIR0 = 1 + 3 * (LD_MAX_DEPTH + 1)
+#: Sobol pair of the extra emission samples' pixel positions (point ``sid * k + j`` for extra
+#: sample j of sample sid, k extras per sample: all of a pixel's extras are one Sobol prefix)
+EDGE_PAIR = SKY_PAIR0 + LD_MAX_DEPTH + 1
 
 
 # ---------------------------------------------------------------------------------- path steps
@@ -639,8 +643,15 @@ def _camera_ray(intr, r_wc, width, jitter, sampler, salts, pix_s, sid_s, ps_pix,
     else:
         jx = 0.5
         jy = 0.5
-    cxp = (np.float64(pix_s % width) + jx - intr[2]) / intr[0]
-    cyp = (np.float64(pix_s // width) + jy - intr[3]) / intr[1]
+    return _ray_through(intr, r_wc, np.float64(pix_s % width) + jx, np.float64(pix_s // width) + jy)
+
+
+@nb.njit(inline="always", **_JIT)
+def _ray_through(intr, r_wc, px, py):
+    """Unit world direction of the camera ray through the image point (px, py) (pixels, from the
+    top-left corner of the image)."""
+    cxp = (px - intr[2]) / intr[0]
+    cyp = (py - intr[3]) / intr[1]
     nrm = math.sqrt(cxp * cxp + cyp * cyp + 1.0)
     cxp /= nrm
     cyp /= nrm
@@ -649,6 +660,54 @@ def _camera_ray(intr, r_wc, width, jitter, sampler, salts, pix_s, sid_s, ps_pix,
     dy = r_wc[1, 0] * cxp + r_wc[1, 1] * cyp + r_wc[1, 2] * czp
     dz = r_wc[2, 0] * cxp + r_wc[2, 1] * cyp + r_wc[2, 2] * czp
     return dx, dy, dz
+
+
+@nb.njit(inline="always", **_JIT)
+def _emission_seen(fn, face_mat, mat_emission, sky_kind, sky, env, rot, scale, prim, dx, dy, dz):
+    """Radiance a camera ray along (dx, dy, dz) gets from what it reaches first, emission only:
+    the front of an emissive face ``prim`` (one-sided, as :func:`_hit_frame` decides front), the
+    sky when it misses (``prim < 0``), else 0."""
+    if prim < 0:
+        if sky_kind == SKY_NONE:
+            return 0.0, 0.0, 0.0
+        return _sky(sky_kind, sky, env, rot, scale, dx, dy, dz)
+    m = face_mat[prim]
+    e0 = mat_emission[m, 0]
+    e1 = mat_emission[m, 1]
+    e2 = mat_emission[m, 2]
+    if not (e0 > 0 or e1 > 0 or e2 > 0):
+        return 0.0, 0.0, 0.0
+    g0 = np.float64(fn[prim, 0])
+    g1 = np.float64(fn[prim, 1])
+    g2 = np.float64(fn[prim, 2])
+    if g0 * dx + g1 * dy + g2 * dz < 0 or (g0 == 0 and g1 == 0 and g2 == 0):
+        return e0, e1, e2
+    return 0.0, 0.0, 0.0
+
+
+@nb.njit(**_JIT)
+def emission_at(p, lum_w, pts, out, lo, hi):
+    """Luminance of the emission seen (:func:`_emission_seen`) along the camera rays through
+    the image points ``pts[lo:hi]`` ((N, 2) x, y in pixels) into ``out``: the tracer compares a
+    pixel's four corners to find the pixels an emitter's or the sky's edge crosses."""
+    rtc, fn_isect, _ = p.embree
+    intr, r_wc, pos = p.cam[:3]
+    fn, face_mat, mat_emission = p.surf.face_n, p.surf.face_mat, p.surf.mat_emission
+    sky_kind, sky, env, rot, scale = p.sky[:5]
+    pw, pf = _stack_words()
+    ray = (pw, pf, np.int64(0), _address(pw))
+    ox = np.float32(pos[0])
+    oy = np.float32(pos[1])
+    oz = np.float32(pos[2])
+    for n in range(lo, hi):
+        dx, dy, dz = _ray_through(intr, r_wc, pts[n, 0], pts[n, 1])
+        _, prim, _, _ = _intersect(
+            rtc, fn_isect, ray, ox, oy, oz, np.float32(dx), np.float32(dy), np.float32(dz)
+        )
+        e0, e1, e2 = _emission_seen(
+            fn, face_mat, mat_emission, sky_kind, sky, env, rot, scale, prim, dx, dy, dz
+        )
+        out[n] = e0 * lum_w[0] + e1 * lum_w[1] + e2 * lum_w[2]
 
 
 @nb.njit(inline="always", **_JIT)
@@ -937,7 +996,7 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
     """
     # the struct's fields as locals, once (see the note above the shading helpers)
     rtc, fn_isect, fn_occl = p.embree
-    intr, r_wc, pos, width, jitter = p.cam
+    intr, r_wc, pos, width, jitter, edge_extra = p.cam
     sf = p.surf
     tri, fn, vn, face_mat, face_uv = sf.tri, sf.face_n, sf.vn, sf.face_mat, sf.face_uv
     mat_albedo, mat_emission = sf.mat_albedo, sf.mat_emission
@@ -948,6 +1007,7 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
     seed_mix, salts, pixseed0, sampler, limit, rr_depth, want_aux = p.sampling
     direct, gi, first_hit, alb_out, nrm_out = out
     sky_mis = mis != 0 and sky_kind != SKY_NONE
+    any_extra = len(edge_extra) > 0
     n_s = suns.shape[0]
     n_q = punct.shape[0]
     n_e = len(emit_faces)
@@ -976,6 +1036,55 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
             ox = np.float32(pos[0])
             oy = np.float32(pos[1])
             oz = np.float32(pos[2])
+            # ---- extra emission samples on an edge pixel: the emission seen directly is the
+            # mean over them and this path's camera ray (each uniform over the pixel: unbiased)
+            w_seen = 1.0
+            k_extra = edge_extra[pix[s]] if any_extra else 0
+            if k_extra > 0:
+                w_seen = 1.0 / (k_extra + 1)
+                for j in range(k_extra):
+                    if sampler == SAMPLER_SOBOL:
+                        jx, jy = _sobol2(pixel_seed, sid[s] * k_extra + j, EDGE_PAIR)
+                    else:
+                        bj = _mix(base_s + np.uint64(j + 1) * _GOLD)
+                        jx = _u01(bj, salts[0])
+                        jy = _u01(bj, salts[1])
+                    ex, ey, ez = _ray_through(
+                        intr,
+                        r_wc,
+                        np.float64(pix[s] % width) + jx,
+                        np.float64(pix[s] // width) + jy,
+                    )
+                    _log_ray(log, 0, ox, oy, oz, ex, ey, ez, np.float32(np.inf))
+                    _, eprim, _, _ = _intersect(
+                        rtc,
+                        fn_isect,
+                        ray,
+                        ox,
+                        oy,
+                        oz,
+                        np.float32(ex),
+                        np.float32(ey),
+                        np.float32(ez),
+                    )
+                    n_prim += 1
+                    le = _emission_seen(
+                        fn,
+                        face_mat,
+                        mat_emission,
+                        sky_kind,
+                        sky,
+                        env,
+                        rot,
+                        scale,
+                        eprim,
+                        ex,
+                        ey,
+                        ez,
+                    )
+                    direct[row, 0] += le[0] * w_seen
+                    direct[row, 1] += le[1] * w_seen
+                    direct[row, 2] += le[2] * w_seen
             t0 = 1.0
             t1 = 1.0
             t2 = 1.0
@@ -997,9 +1106,9 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                         else:
                             le = _sky_analytic(sky_kind, sky, dx, dy, dz)
                         if depth == 1:
-                            direct[row, 0] += le[0] * t0
-                            direct[row, 1] += le[1] * t1
-                            direct[row, 2] += le[2] * t2
+                            direct[row, 0] += le[0] * w_seen
+                            direct[row, 1] += le[1] * w_seen
+                            direct[row, 2] += le[2] * w_seen
                         else:
                             w = 1.0
                             if sky_mis:  # MIS weight of the BSDF sample against the sky sample
@@ -1025,9 +1134,9 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                 e2 = mat_emission[m, 2]
                 if front and (e0 > 0 or e1 > 0 or e2 > 0):
                     if depth == 1:
-                        direct[row, 0] += e0 * t0
-                        direct[row, 1] += e1 * t1
-                        direct[row, 2] += e2 * t2
+                        direct[row, 0] += e0 * w_seen
+                        direct[row, 1] += e1 * w_seen
+                        direct[row, 2] += e2 * w_seen
                     else:
                         w = _emission_mis_weight(
                             face_light_pmf[prim], face_area[prim], th, cos_o, pdf_prev
