@@ -926,3 +926,20 @@ def test_edge_samples_are_skipped_where_nothing_emits_in_view_and_validated():
     for bad in (-1, 65, True, 2.5):
         with pytest.raises(ValueError, match="edge_samples"):
             TraceConfig(edge_samples=bad)
+
+
+def test_paint_boxes_adds_one_per_covering_box():
+    from icbtool.trace.tracer import _paint_boxes
+
+    rng = np.random.default_rng(3)
+    grid = np.zeros((20, 30), np.int32)
+    want = np.zeros_like(grid)
+    a = rng.integers(0, [30, 20], (40, 2))
+    b = rng.integers(0, [30, 20], (40, 2))
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    for (x0, y0), (x1, y1) in zip(lo, hi):
+        want[y0 : y1 + 1, x0 : x1 + 1] += 1
+    _paint_boxes(grid, lo, hi)
+    np.testing.assert_array_equal(grid, want)
+    _paint_boxes(grid, lo[:0], hi[:0])  # no boxes: unchanged
+    np.testing.assert_array_equal(grid, want)

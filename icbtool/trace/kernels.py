@@ -1392,11 +1392,12 @@ def rel_error_lum(n, mean, m2, hit_sum, rel):
 @nb.njit(**_JIT)
 def finish(
     n_g, mean_g, m2_g, mean_d, hit_sum, alb_sum, nrm_sum, want_aux,
-    gi, direct, var, mask, albedo, normal,
+    gi, direct, var, mask, albedo, normal, lo, hi,
 ):  # fmt: skip
-    """Per-pixel outputs (float32) from the statistics: gi and direct means, variance of the gi
-    mean, coverage mask, mean first-hit albedo and unit normal (0 where it cancels out)."""
-    for p in range(len(n_g)):
+    """Per-pixel outputs (float32) of pixels lo..hi-1 from the statistics: gi and direct means,
+    variance of the gi mean, coverage mask, mean first-hit albedo and unit normal (0 where it
+    cancels out)."""
+    for p in range(lo, hi):
         k = n_g[p]
         kk = max(k, 1)
         for c in range(3):

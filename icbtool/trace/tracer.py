@@ -315,13 +315,16 @@ def _paint_boxes(grid: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
     (B, 2) inclusive grid indices): a 2D difference array, O(B + grid size) whatever B is."""
     if len(lo) == 0:
         return
-    h, w = grid.shape
-    diff = np.zeros((h + 1, w + 1), np.int64)
+    x0, y0 = lo.min(0)  # work in the boxes' bounding box only
+    x1, y1 = hi.max(0)
+    lo = lo - (x0, y0)
+    hi = hi - (x0, y0)
+    diff = np.zeros((y1 - y0 + 2, x1 - x0 + 2), np.int64)
     np.add.at(diff, (lo[:, 1], lo[:, 0]), 1)
     np.add.at(diff, (lo[:, 1], hi[:, 0] + 1), -1)
     np.add.at(diff, (hi[:, 1] + 1, lo[:, 0]), -1)
     np.add.at(diff, (hi[:, 1] + 1, hi[:, 0] + 1), 1)
-    grid += diff.cumsum(0).cumsum(1)[:h, :w].astype(grid.dtype)
+    grid[y0 : y1 + 1, x0 : x1 + 1] += diff.cumsum(0).cumsum(1)[:-1, :-1].astype(grid.dtype)
 
 
 def _contrast_edges(corners: np.ndarray) -> np.ndarray:
@@ -1040,7 +1043,7 @@ def render(
     mask = np.empty((H, W, 1), np.float32)
     albedo = np.empty((H, W, 3), np.float32) if want_aux else None
     normal = np.empty((H, W, 3), np.float32) if want_aux else None
-    K.finish(
+    finish_args = (
         acc.n,
         acc.mean_g,
         acc.m2_g,
@@ -1056,6 +1059,14 @@ def render(
         (albedo if want_aux else gi).reshape(npix, 3),
         (normal if want_aux else gi).reshape(npix, 3),
     )
+    parts = max(1, min(cfg.threads, npix // 4096))  # the kernel releases the GIL
+    cuts = np.linspace(0, npix, parts + 1).astype(np.int64)
+    if parts == 1:
+        K.finish(*finish_args, 0, npix)
+    else:
+        pool = _pool(parts)
+        for f in [pool.submit(K.finish, *finish_args, a, b) for a, b in zip(cuts, cuts[1:])]:
+            f.result()
     spp = acc.n.reshape(H, W).astype(np.int32)
     stats.samples = int(acc.n.sum())
     _give_workspace(ws)  # (lost on an exception: then it is simply garbage)
