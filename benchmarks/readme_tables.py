@@ -34,6 +34,12 @@ class ReadmeBlockError(ValueError):
     """README.md's bench markers do not match the blocks this script writes."""
 
 
+def short_runs(d: dict) -> str:
+    """' (N for renders under S s)' where a time-error run repeated its short renders more."""
+    f, t = d.get("short_run_factor"), d.get("short_run_s")
+    return "" if not f else f" ({f * d['args']['repeats']} for renders under {t:g} s)"
+
+
 def load(rel: str, results: Path) -> Any:
     """The parsed JSON file ``results/rel``; a missing file names itself."""
     path = results / rel
@@ -479,7 +485,8 @@ def block_trace_time_error(results: Path) -> str:
             )
         lines += [
             f"**{label}** (`{rel}`: {d['args']['size']}^2, reference {sc['ref_spp']} spp, minimum "
-            f"of {d['args']['repeats']} runs, Mitsuba `{d['results']['mitsuba_variant']}`, "
+            f"of {d['args']['repeats']} runs{short_runs(d)}, "
+            f"Mitsuba `{d['results']['mitsuba_variant']}`, "
             f"{load_txt}: " + ("quiet)." if quiet else "**not a quiet run: no claim**).") + host,
             "",
         ]
