@@ -422,20 +422,25 @@ def _error_by_brightness(results: Path) -> list[str]:
         n_px = sum(r["pixels"] for r in ours)
         n_bright = sum(ours[i]["pixels"] for i in bright)
         share = sum(theirs[i]["share_of_squared_error"] for i in bright)
+        sq = [(ours[i]["rms_error"] ** 2 * ours[i]["pixels"], theirs[i]["rms_error"] ** 2 *
+               theirs[i]["pixels"]) for i in bright]  # fmt: skip
+        bright_rms = (sum(a for a, _ in sq) / max(sum(b for _, b in sq), 1e-300)) ** 0.5
         rms = [ours[i]["rms_error"] / theirs[i]["rms_error"] for i in rest]
         flip = [ours[i]["flip_mean"] / theirs[i]["flip_mean"] for i in rest]
         parts.append(
             f"{TIME_ERROR_SCENES[name]}: the {n_bright} pixels of display brightness >= 0.7 "
             f"({100 * n_bright / n_px:.1f} % of the image) hold {100 * share:.0f} % of Mitsuba's "
-            f"squared error; in the darker bins of 1000 pixels or more our RMS error is "
+            f"squared error, and our RMS error there is {bright_rms:.2f} of its; in the darker "
+            f"bins of 1000 pixels or more our RMS error is "
             f"{span(rms, f2)} of Mitsuba's and our mean FLIP {span(flip, f2)} of its"
         )
     return [
         f"Where the RMSE lead comes from (`benchmarks/trace_error_by_brightness.py`, "
         f"{d['args']['spp']} spp, each renderer against its own reference, pixels binned by the "
         "reference's display brightness): " + "; ".join(parts) + ". On the Cornell box the lead "
-        "is mostly at the light and its edges (probably the Sobol sampler's stratified pixel "
-        "area there), where FLIP's display mapping clips: hence its small FLIP lead.",
+        "is mostly at the light and its edges (the extra emission samples on the light's "
+        "outline, `TraceConfig.edge_samples`, and the Sobol sampler's stratified pixel area), "
+        "where FLIP's display mapping clips: hence its small FLIP lead.",
         "",
     ]
 
