@@ -445,6 +445,30 @@ def _error_by_brightness(results: Path) -> list[str]:
     ]
 
 
+def _error_split(results: Path) -> list[str]:
+    """Which half of the image (GI or direct light) carries the error (trace_error_split.py)."""
+    path = results / "trace" / "error_split.json"
+    if not path.is_file():
+        return []
+    d = json.loads(path.read_text())
+    parts = []
+    for name, rows in d["scenes"].items():
+        each = [
+            f"{r['spp']} spp: FLIP {r['whole render']['flip']:.3f}, with the GI's noise alone "
+            f"{r['GI noise only']['flip']:.3f}, with the direct light's alone "
+            f"{r['direct noise only']['flip']:.3f}"
+            for r in rows
+        ]
+        parts.append(f"{TIME_ERROR_SCENES[name]}: " + "; ".join(each))
+    return [
+        "Which half carries the error (`benchmarks/trace_error_split.py`, mean of "
+        f"{d['args']['seeds']} seeds; one half of our render swapped for the reference's): "
+        + "; ".join(parts)
+        + ". FLIP is the GI's noise: better light sampling at the first hit cannot move it.",
+        "",
+    ]
+
+
 def block_trace_time_error(results: Path) -> str:
     runs = time_error_runs(results)
     lines = [
@@ -565,6 +589,7 @@ def block_trace_time_error(results: Path) -> str:
             "",
         ]
     lines += _error_by_brightness(results)
+    lines += _error_split(results)
     lines += [
         "Commands (each about 10 min or less on this 2-core machine; `--wait-quiet` waits for "
         "the load to settle):",
