@@ -20,13 +20,12 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import dataclasses
 import itertools
 import logging
 import math
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -249,7 +248,7 @@ def render_crt_buffer(
         maps = {n: getattr(rb, n) for n in (*buffers, "mask")}
         # DL comes from the raster: the tracer's `direct` is not kept, so the extra emission
         # samples on emitter edges (which change only `direct`, never `gi`) would be wasted
-        tr = trace.render(scene, cam, dataclasses.replace(trace_config, edge_samples=0))
+        tr = trace.render(scene, cam, replace(trace_config, edge_samples=0))
     else:
         tr = trace.render(scene, cam, trace_config)
         maps = _trace_gbuffers(scene, cam)

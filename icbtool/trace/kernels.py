@@ -685,6 +685,24 @@ def _emission_seen(fn, face_mat, mat_emission, sky_kind, sky, env, rot, scale, p
     return 0.0, 0.0, 0.0
 
 
+@nb.njit(inline="always", **_JIT)
+def _emission_through(rtc, fn_isect, ray, log, p0, intr, r_wc, px, py, surf, sky_p):
+    """Emission seen (:func:`_emission_seen`) along the camera ray from the float32 origin
+    ``p0`` (3-tuple) through the image point (px, py): one closest hit, logged as a camera ray.
+    ``surf`` = (face normals, face materials, material emission), ``sky_p`` = the first five
+    fields of :data:`SkyParams`."""
+    ox, oy, oz = p0
+    dx, dy, dz = _ray_through(intr, r_wc, px, py)
+    _log_ray(log, 0, ox, oy, oz, dx, dy, dz, np.float32(np.inf))
+    dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
+    _, prim, _, _ = _intersect(rtc, fn_isect, ray, ox, oy, oz, dx32, dy32, dz32)
+    fn, face_mat, mat_emission = surf
+    sky_kind, sky, env, rot, scale = sky_p
+    return _emission_seen(
+        fn, face_mat, mat_emission, sky_kind, sky, env, rot, scale, prim, dx, dy, dz
+    )
+
+
 @nb.njit(**_JIT)
 def emission_at(p, lum_w, pts, out, lo, hi):
     """Luminance of the emission seen (:func:`_emission_seen`) along the camera rays through
@@ -692,20 +710,15 @@ def emission_at(p, lum_w, pts, out, lo, hi):
     pixel's four corners to find the pixels an emitter's or the sky's edge crosses."""
     rtc, fn_isect, _ = p.embree
     intr, r_wc, pos = p.cam[:3]
-    fn, face_mat, mat_emission = p.surf.face_n, p.surf.face_mat, p.surf.mat_emission
-    sky_kind, sky, env, rot, scale = p.sky[:5]
+    surf = (p.surf.face_n, p.surf.face_mat, p.surf.mat_emission)
     pw, pf = _stack_words()
     ray = (pw, pf, np.int64(0), _address(pw))
-    ox = np.float32(pos[0])
-    oy = np.float32(pos[1])
-    oz = np.float32(pos[2])
+    no_log = (np.zeros((1, 3), np.float32), np.zeros((1, 3), np.float32),
+              np.zeros(1, np.float32), np.zeros(1, np.int8), np.zeros(1, np.int64))  # fmt: skip
+    p0 = (np.float32(pos[0]), np.float32(pos[1]), np.float32(pos[2]))
     for n in range(lo, hi):
-        dx, dy, dz = _ray_through(intr, r_wc, pts[n, 0], pts[n, 1])
-        _, prim, _, _ = _intersect(
-            rtc, fn_isect, ray, ox, oy, oz, np.float32(dx), np.float32(dy), np.float32(dz)
-        )
-        e0, e1, e2 = _emission_seen(
-            fn, face_mat, mat_emission, sky_kind, sky, env, rot, scale, prim, dx, dy, dz
+        e0, e1, e2 = _emission_through(
+            rtc, fn_isect, ray, no_log, p0, intr, r_wc, pts[n, 0], pts[n, 1], surf, p.sky[:5]
         )
         out[n] = e0 * lum_w[0] + e1 * lum_w[1] + e2 * lum_w[2]
 
@@ -1049,39 +1062,13 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                         bj = _mix(base_s + np.uint64(j + 1) * _GOLD)
                         jx = _u01(bj, salts[0])
                         jy = _u01(bj, salts[1])
-                    ex, ey, ez = _ray_through(
-                        intr,
-                        r_wc,
-                        np.float64(pix[s] % width) + jx,
-                        np.float64(pix[s] // width) + jy,
-                    )
-                    _log_ray(log, 0, ox, oy, oz, ex, ey, ez, np.float32(np.inf))
-                    _, eprim, _, _ = _intersect(
-                        rtc,
-                        fn_isect,
-                        ray,
-                        ox,
-                        oy,
-                        oz,
-                        np.float32(ex),
-                        np.float32(ey),
-                        np.float32(ez),
-                    )
+                    px = np.float64(pix[s] % width) + jx
+                    py = np.float64(pix[s] // width) + jy
+                    le = _emission_through(
+                        rtc, fn_isect, ray, log, (ox, oy, oz), intr, r_wc, px, py,
+                        (fn, face_mat, mat_emission), (sky_kind, sky, env, rot, scale),
+                    )  # fmt: skip
                     n_prim += 1
-                    le = _emission_seen(
-                        fn,
-                        face_mat,
-                        mat_emission,
-                        sky_kind,
-                        sky,
-                        env,
-                        rot,
-                        scale,
-                        eprim,
-                        ex,
-                        ey,
-                        ez,
-                    )
                     direct[row, 0] += le[0] * w_seen
                     direct[row, 1] += le[1] * w_seen
                     direct[row, 2] += le[2] * w_seen

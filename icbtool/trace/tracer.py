@@ -659,17 +659,10 @@ class _Tracer:
     def _emission_at(self, pts: np.ndarray) -> np.ndarray:
         """Luminance (N,) of the emission seen through the image points ``pts`` (N, 2) (x, y in
         pixels), on the render's threads; counted in ``stats.rays['edge_probe']``."""
-        K = _kernels()
         pts = np.ascontiguousarray(pts, np.float64)
         out = np.empty(len(pts), np.float64)
-        parts = max(1, min(self.cfg.threads, len(pts) // 1024))
-        cuts = np.linspace(0, len(pts), parts + 1).astype(np.int64)
-        args = [(self._params, _LUM, pts, out, int(a), int(b)) for a, b in zip(cuts, cuts[1:])]
-        if parts == 1:
-            K.emission_at(*args[0])
-        else:
-            for f in [_pool(parts).submit(K.emission_at, *a) for a in args]:
-                f.result()
+        _in_parts(_kernels().emission_at, (self._params, _LUM, pts, out), len(pts),
+                  self.cfg.threads, 1024)  # fmt: skip
         self.stats.rays["edge_probe"] += len(pts)
         return out
 
@@ -927,6 +920,21 @@ def _pool(k: int) -> ThreadPoolExecutor:
     return _POOL
 
 
+def _in_parts(
+    kernel: Callable[..., None], args: tuple, n: int, threads: int, min_part: int
+) -> None:
+    """``kernel(*args, lo, hi)`` over [0, n) in up to ``threads`` contiguous parts of at least
+    ``min_part`` items each, on the shared pool (the kernels release the GIL)."""
+    parts = max(1, min(threads, n // min_part))
+    if parts == 1:
+        kernel(*args, 0, n)
+        return
+    cuts = np.linspace(0, n, parts + 1).astype(np.int64)
+    pool = _pool(parts)
+    for f in [pool.submit(kernel, *args, int(a), int(b)) for a, b in zip(cuts, cuts[1:])]:
+        f.result()
+
+
 # ---------------------------------------------------------------------------------- driver
 def render(
     scene: Scene,
@@ -1059,14 +1067,7 @@ def render(
         (albedo if want_aux else gi).reshape(npix, 3),
         (normal if want_aux else gi).reshape(npix, 3),
     )
-    parts = max(1, min(cfg.threads, npix // 4096))  # the kernel releases the GIL
-    cuts = np.linspace(0, npix, parts + 1).astype(np.int64)
-    if parts == 1:
-        K.finish(*finish_args, 0, npix)
-    else:
-        pool = _pool(parts)
-        for f in [pool.submit(K.finish, *finish_args, a, b) for a, b in zip(cuts, cuts[1:])]:
-            f.result()
+    _in_parts(K.finish, finish_args, npix, cfg.threads, 4096)
     spp = acc.n.reshape(H, W).astype(np.int32)
     stats.samples = int(acc.n.sum())
     _give_workspace(ws)  # (lost on an exception: then it is simply garbage)
