@@ -23,14 +23,14 @@ from icbtool.cli._common import run_info, write_json
 from icbtool.trace import TraceConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from trace_time_error import MAX_DEPTH, REF_CACHE, errors, sponza  # noqa: E402
+from trace_time_error import MAX_DEPTH, bench_scene, errors, reference_cache  # noqa: E402
 
 OUT = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "trace"
 QUALITIES = ("high", "balanced", "fast")
 
 
 def reference(name: str, scene, cam, ref_spp: int = 1024) -> np.ndarray:
-    cache = REF_CACHE / f"{name}_{cam.width}_{ref_spp}.npz"
+    cache = reference_cache(name, cam.width, ref_spp)
     if cache.is_file():
         return np.load(cache)["ours_full"]
     cfg = TraceConfig(spp=ref_spp, seed=1000, sampler="independent", max_depth=MAX_DEPTH,
@@ -47,7 +47,7 @@ def main() -> None:
     rows = []
     for name in ("cornell_box", "sponza"):
         try:
-            scene = icb.scene.cornell_box() if name == "cornell_box" else sponza()
+            scene = bench_scene(name)
         except (FileNotFoundError, ValueError) as e:
             print(f"{name} unavailable: {e}")
             continue

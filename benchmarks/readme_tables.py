@@ -410,10 +410,10 @@ def is_quiet(d: dict) -> bool:
 
 def _error_by_brightness(results: Path) -> list[str]:
     """Where our RMSE lead over Mitsuba comes from (trace_error_by_brightness.py), if run."""
-    path = results / "trace" / "error_by_brightness.json"
-    if not path.is_file():
+    rel = "trace/error_by_brightness.json"
+    if not (results / rel).is_file():
         return []
-    d = json.loads(path.read_text())
+    d = load(rel, results)
     parts = []
     for name, sc in d["scenes"].items():
         ours, theirs = sc["ours"], sc["mitsuba"]
@@ -447,10 +447,10 @@ def _error_by_brightness(results: Path) -> list[str]:
 
 def _error_split(results: Path) -> list[str]:
     """Which half of the image (GI or direct light) carries the error (trace_error_split.py)."""
-    path = results / "trace" / "error_split.json"
-    if not path.is_file():
+    rel = "trace/error_split.json"
+    if not (results / rel).is_file():
         return []
-    d = json.loads(path.read_text())
+    d = load(rel, results)
     parts = []
     for name, rows in d["scenes"].items():
         each = [

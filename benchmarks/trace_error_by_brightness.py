@@ -14,25 +14,22 @@ Writes benchmarks/results/trace/error_by_brightness.json.
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 from trace_time_error import (
     MAX_DEPTH,
     MITSUBA_VARIANT,
-    REF_CACHE,
+    bench_scene,
+    cached_references,
     load_mitsuba,
     mitsuba_render,
-    sponza,
+    write_results,
 )
 
 import icbtool as icb
-from icbtool.cli._common import run_info, write_json
 from icbtool.imageio import to_display
 from icbtool.trace import TraceConfig
 
-OUT = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "trace"
 #: bins of the reference's display brightness (mean of the 8-bit RGB / 255)
 BINS = (0.0, 0.1, 0.3, 0.5, 0.7, 0.9, 0.99, 1.01)
 
@@ -72,11 +69,8 @@ def main() -> None:
     ref_spp = dict(kv.split(":") for kv in args.ref_spp.split(","))
     out = {"args": vars(args), "scenes": {}}
     for name in args.scenes.split(","):
-        cache = REF_CACHE / f"{name}_{args.size}_{ref_spp[name]}.npz"
-        if not cache.is_file():
-            sys.exit(f"{cache} is missing: run trace_time_error.py for {name} first")
-        z = np.load(cache)
-        scene = icb.scene.cornell_box() if name == "cornell_box" else sponza()
+        z = cached_references(name, args.size, ref_spp[name])
+        scene = bench_scene(name)
         cam = scene.default_camera.resized(args.size, args.size)
         cfg = TraceConfig(spp=args.spp, seed=args.spp, max_depth=MAX_DEPTH, rr_depth=4)
         ours = icb.trace.render(scene, cam, cfg).full
@@ -94,10 +88,7 @@ def main() -> None:
                 f"share of squared error {ro['share_of_squared_error']:.2f} / "
                 f"{rm['share_of_squared_error']:.2f} (ours / Mitsuba)"
             )
-    out["run_info"] = run_info()
-    OUT.mkdir(parents=True, exist_ok=True)
-    write_json(OUT / "error_by_brightness.json", out)
-    print(f"wrote {OUT / 'error_by_brightness.json'}")
+    write_results(out, "error_by_brightness.json")
 
 
 if __name__ == "__main__":

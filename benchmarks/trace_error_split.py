@@ -15,18 +15,13 @@ Writes benchmarks/results/trace/error_split.json.
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
-from trace_time_error import MAX_DEPTH, REF_CACHE, errors, sponza
+from trace_time_error import MAX_DEPTH, bench_scene, cached_references, errors, write_results
 
 import icbtool as icb
-from icbtool.cli._common import run_info, write_json
 from icbtool.trace import TraceConfig
-
-OUT = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "trace"
 
 
 def main() -> None:
@@ -40,13 +35,10 @@ def main() -> None:
     ref_spp = dict(kv.split(":") for kv in args.ref_spp.split(","))
     out = {"args": vars(args), "scenes": {}}
     for name in args.scenes.split(","):
-        cache = REF_CACHE / f"{name}_{args.size}_{ref_spp[name]}.npz"
-        if not cache.is_file():
-            sys.exit(f"{cache} is missing: run trace_time_error.py for {name} first")
-        z = np.load(cache)
+        z = cached_references(name, args.size, ref_spp[name])
         ref_full, ref_direct = z["ours_full"], z["ours_direct"]
         ref_gi = ref_full - ref_direct
-        scene = icb.scene.cornell_box() if name == "cornell_box" else sponza()
+        scene = bench_scene(name)
         cam = scene.default_camera.resized(args.size, args.size)
         rows = []
         for spp in [int(s) for s in args.spps.split(",")]:
@@ -70,10 +62,7 @@ def main() -> None:
                 flush=True,
             )
         out["scenes"][name] = rows
-    out["run_info"] = run_info()
-    OUT.mkdir(parents=True, exist_ok=True)
-    write_json(OUT / "error_split.json", out)
-    print(f"wrote {OUT / 'error_split.json'}")
+    write_results(out, "error_split.json")
 
 
 if __name__ == "__main__":

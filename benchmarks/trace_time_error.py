@@ -181,6 +181,33 @@ def sponza():
     return icb.scene.load(REPO / "data" / "scenes" / "sponza.toml")
 
 
+def bench_scene(name: str):
+    """A benchmark scene by name: the built-in Cornell box, or Sponza (``$ICBTOOL_SPONZA``)."""
+    return icb.scene.cornell_box() if name == "cornell_box" else sponza()
+
+
+def reference_cache(name: str, size: int, ref_spp: int | str) -> Path:
+    """Where this script caches a scene's high-spp references (ours and Mitsuba's)."""
+    return REF_CACHE / f"{name}_{size}_{ref_spp}.npz"
+
+
+def cached_references(name: str, size: int, ref_spp: int | str):
+    """The references this script cached for a scene (``ours_full``, ``ours_direct``,
+    ``mitsuba``, ``mitsuba_direct``); exits naming the run that makes them when missing."""
+    cache = reference_cache(name, size, ref_spp)
+    if not cache.is_file():
+        sys.exit(f"{cache} is missing: run trace_time_error.py for {name} first")
+    return np.load(cache)
+
+
+def write_results(out: dict, file_name: str) -> None:
+    """``out`` with this machine's run info, as ``benchmarks/results/trace/<file_name>``."""
+    out["run_info"] = run_info()
+    OUT.mkdir(parents=True, exist_ok=True)
+    write_json(OUT / file_name, out)
+    print(f"wrote {OUT / file_name}")
+
+
 def machine_probe() -> dict:
     """Two numbers that tell this host from another, next to run_info's CPU family, model and
     widest SIMD: memory copy bandwidth (numpy, 1 GiB, best of 3) and numpy's sin on 4M doubles
@@ -467,7 +494,7 @@ def main() -> None:
     )
     results = {"mitsuba_variant": mi.variant(), "scenes": {}}
     for name in args.scenes.split(","):
-        scene = icb.scene.cornell_box() if name == "cornell_box" else sponza()
+        scene = bench_scene(name)
         cam = scene.default_camera.resized(args.size, args.size)
         base = dict(max_depth=MAX_DEPTH, rr_depth=4, spp_per_pass=4)
         # warm-up: the first render pays numba's JIT (or cache load); not counted in the curves
@@ -480,7 +507,7 @@ def main() -> None:
         # the reference uses the independent sampler: it must not share a (hypothetical) bias of
         # the default sampler it measures (the stored-reference z-test checks that separately)
         ref_cfg = TraceConfig(spp=args.ref_spp, seed=1000, sampler="independent", **base)
-        cache = REF_CACHE / f"{name}_{args.size}_{args.ref_spp}.npz"
+        cache = reference_cache(name, args.size, args.ref_spp)
         if cache.is_file():  # references are deterministic (seeded): reuse them across runs
             z = np.load(cache)
             ref_full, ref_mi, ref_mi_direct = z["ours_full"], z["mitsuba"], z["mitsuba_direct"]
