@@ -164,14 +164,25 @@ def packet_fns(W: int = 8) -> tuple[int, int]:
 
 # ------------------------------------------------------------------------------ stage replays
 @nb.njit(nogil=True)
-def _raygen(intr, r_wc, width, jitter, sampler, salts, seed_mix, pixseed0, pix, sid):
+def _raygen(intr, r_wc, width, jitter, sampling, pix, sid):
+    salts, seed_mix, pixseed0, sampler = (
+        sampling.salts,
+        sampling.seed_mix,
+        sampling.pixseed,
+        sampling.sampler,
+    )
+    log2spp, zshift = sampling.log2spp, sampling.zshift
     acc = 0.0
     for s in range(len(pix)):
         pixel_seed = K._mix(pixseed0 ^ (np.uint64(pix[s]) * K._GOLD))
         base_s = K._sample_base(seed_mix, pix[s], sid[s])
+        zkey = K._U0
+        if zshift >= 0:
+            zkey = K._zkey(pix[s] % width, pix[s] // width, sid[s], log2spp, zshift)
         dx, dy, dz = K._camera_ray(
-            intr, r_wc, width, jitter, sampler, salts, pix[s], sid[s], pixel_seed, base_s
-        )
+            intr, r_wc, width, jitter, sampler, salts, pix[s], sid[s], pixel_seed, base_s,
+            (pixseed0, zkey, zshift),
+        )  # fmt: skip
         acc += dx + dy + dz
     return acc
 
@@ -187,7 +198,8 @@ def _shade(p, level, d, prim, u, v, tt):
     suns, punct, pmf, area, _, emit_faces, emit_cdf = p.lights
     sky_kind, _, _, _, _, frame, marg, cond, spdf, rows, phi0, mis = p.sky
     sky_mis = mis != 0 and sky_kind != K.SKY_NONE
-    pixseed0 = p.sampling.pixseed
+    pixseed0, log2spp, zshift = p.sampling.pixseed, p.sampling.log2spp, p.sampling.zshift
+    width = p.cam.width
     n_e = len(emit_faces)
     acc = 0.0
     for i in range(len(prim)):
@@ -222,9 +234,13 @@ def _shade(p, level, d, prim, u, v, tt):
         if level >= 5:
             ps = K._mix(pixseed0 ^ (np.uint64(i >> 3) * K._GOLD))
             sid = np.int64(i & 7)
-            r0 = K._sobol1d(ps, sid, 4)
-            r1, r2 = K._sobol2(ps, sid, 5)
-            r3, r4 = K._sobol2(ps, sid, 3)
+            zkey = K._U0
+            if zshift >= 0:
+                px = (i >> 3) % (width * width)  # a pixel of the image (as the kernel's key)
+                zkey = K._zkey(px % width, px // width, sid, log2spp, zshift)
+            r0 = K._ld1(ps, sid, 4, pixseed0, zkey, zshift)
+            r1, r2 = K._ld2(ps, sid, 5, pixseed0, zkey, zshift)
+            r3, r4 = K._ld2(ps, sid, 3, pixseed0, zkey, zshift)
             acc += r4
         eps = K._eps(x[0], x[1], x[2], np.float64(tt[i]), diag)
         for j in range(suns.shape[0]):
@@ -234,7 +250,7 @@ def _shade(p, level, d, prim, u, v, tt):
             ok, wi0, wi1, wi2, tf, ii, g = K._punctual_sample(punct, j, x, nf, ns, eps)
             acc += g
         if n_e > 0:
-            lf, y = K._emitter_point(tri, emit_faces, emit_cdf, r0, r1, r2)
+            lf, y = K._emitter_point(tri, emit_faces, emit_cdf, r0, r1, r2, False)
             nl = (fn[lf, 0], fn[lf, 1], fn[lf, 2])
             ok, wi0, wi1, wi2, tf, g = K._emitter_sample(
                 y, nl, pmf[lf], area[lf], diag, x, nf, ns, eps
@@ -468,9 +484,7 @@ def profile(scene, cam, cfg: TraceConfig, repeats: int) -> dict:
     sid = np.concatenate([ss for _, ss in passes])
     c, s = prm.cam, prm.sampling
     stages["ray_generation"] = cpu_min(
-        lambda: _raygen(
-            c.intr, c.r_wc, c.width, c.jitter, s.sampler, s.salts, s.seed_mix, s.pixseed, pix, sid
-        ),
+        lambda: _raygen(c.intr, c.r_wc, c.width, c.jitter, s, pix, sid),
         repeats,
     )
     # per-vertex shading on the replayed hits (primary and bounce), cumulative levels

@@ -23,6 +23,12 @@ that computes them, so images do not depend on the number of threads. Two sample
   "Practical Hash-based Owen Scrambling"), padded with independent per-pair scrambles: every
   sample is uniformly distributed (so the estimator stays unbiased) while the samples of one
   pixel are stratified in each pair (pixel area, BSDF direction, point on the light).
+- ``zsobol`` (the ``sobol`` sampler with a Z key, ``Sampling.zshift >= 0``): the same Sobol
+  points, but the index of a sample is its screen-space key, the pixel's Morton code followed by
+  the sample index (:func:`_zkey`), nested-scrambled per pair (:func:`_zsobol2`). A pixel's
+  samples stay one aligned block of indices (stratified as with ``sobol``), and so are those of
+  every aligned 2^k x 2^k block of pixels: neighbouring pixels' errors become negatively
+  correlated (blue noise on screen). The extra edge samples keep per-pixel points.
 
 No ``fastmath``: NaN/Inf checks and IEEE behaviour must hold (stability stress tests). Every
 kernel has ``cache=True``: numba writes its cache next to this file, or, when that directory is
@@ -185,16 +191,21 @@ def _shuffled_index(h, sid):
 
 
 @nb.njit(**_JIT)
-def _sobol2(pixseed, sid, pair):
-    """Shuffled Owen-scrambled 2D Sobol point of sample ``sid`` in pair ``pair`` of a pixel.
+def _sobol_point(i, h):
+    """Owen-scrambled 2D Sobol point of index ``i`` (scrambles from the pair seed ``h``).
 
     x0 = nus(rev(i)) = rev(lk(i)); x1 = nus(sobol1(i)) = rev(lk(rev(sobol1(i)))).
     """
-    h = _pair_seed(pixseed, pair)
-    i = _shuffled_index(h, sid)
     x0 = _rev32(_lk_perm(i, h >> _U32))
     x1 = _rev32(_lk_perm(_sobol1_rev(i), _mix(h + _GOLD) & _MASK32))
     return np.float64(x0) * _INV32, np.float64(x1) * _INV32
+
+
+@nb.njit(**_JIT)
+def _sobol2(pixseed, sid, pair):
+    """Shuffled Owen-scrambled 2D Sobol point of sample ``sid`` in pair ``pair`` of a pixel."""
+    h = _pair_seed(pixseed, pair)
+    return _sobol_point(_shuffled_index(h, sid), h)
 
 
 @nb.njit(**_JIT)
@@ -203,6 +214,54 @@ def _sobol1d(pixseed, sid, pair):
     h = _pair_seed(pixseed, pair)
     i = _shuffled_index(h, sid)
     return np.float64(_rev32(_lk_perm(i, h >> _U32))) * _INV32
+
+
+@nb.njit(**_JIT)
+def _part1by1(v):
+    """Bits of the 16-bit ``v`` spread to the even bit positions (for Morton codes)."""
+    v = v & np.uint64(0xFFFF)
+    v = (v | (v << _B8)) & np.uint64(0x00FF00FF)
+    v = (v | (v << np.uint64(4))) & np.uint64(0x0F0F0F0F)
+    v = (v | (v << np.uint64(2))) & np.uint64(0x33333333)
+    v = (v | (v << _U1)) & np.uint64(0x55555555)
+    return v
+
+
+@nb.njit(inline="always", **_JIT)
+def _zkey(x, y, sid, log2spp, zshift):
+    """Screen-space sample key of the Z sampler: (Morton(x, y) << log2spp | sid), aligned to
+    the top of 32 bits (``zshift`` = 32 - its width)."""
+    m = _part1by1(np.uint64(x)) | (_part1by1(np.uint64(y)) << _U1)
+    return (((m << np.uint64(log2spp)) | np.uint64(sid)) << np.uint64(zshift)) & _MASK32
+
+
+@nb.njit(**_JIT)
+def _zsobol2(zseed, zkey, zshift, pair):
+    """Z-sampler point of pair ``pair``: the Sobol point whose index is the sample key
+    :func:`_zkey` after a nested (Owen) scramble of its bits from the most significant down,
+    seeded per pair. A pixel's samples are one aligned block of indices (stratified as
+    :func:`_sobol2`'s), and so are the samples of every aligned 2^k x 2^k block of pixels: the
+    pixels' errors are negatively correlated, blue noise on screen."""
+    h = _pair_seed(zseed, pair)
+    i = _nus(zkey, h & _MASK32) >> np.uint64(zshift)
+    return _sobol_point(i, h)
+
+
+@nb.njit(inline="always", **_JIT)
+def _ld2(pixseed, sid, pair, zseed, zkey, zshift):
+    """Low-discrepancy 2D point of pair ``pair``: :func:`_zsobol2` when the Z sampler is on
+    (``zshift`` >= 0), else :func:`_sobol2`."""
+    if zshift >= 0:
+        return _zsobol2(zseed, zkey, zshift, pair)
+    return _sobol2(pixseed, sid, pair)
+
+
+@nb.njit(inline="always", **_JIT)
+def _ld1(pixseed, sid, pair, zseed, zkey, zshift):
+    """First coordinate of :func:`_ld2` only."""
+    if zshift >= 0:
+        return _zsobol2(zseed, zkey, zshift, pair)[0]
+    return _sobol1d(pixseed, sid, pair)
 
 
 #: the sobol sampler is used for the first LD_MAX_DEPTH vertices; deeper ones use hashes
@@ -590,10 +649,13 @@ SkyParams = namedtuple(
                   "rows", "phi0", "mis"],
 )  # fmt: skip
 #: Sampling: hash seed, per-dimension salts (independent sampler), Sobol pixel seed, sampler
-#: (SAMPLER_*), depth limit, Russian roulette depth, want_aux (1: first-hit albedo/normal).
+#: (SAMPLER_*), depth limit, Russian roulette depth, want_aux (1: first-hit albedo/normal), log2
+#: of the sample slots per pixel and the shift of the Z key (-1: no Z key; see :func:`_zkey`).
 Sampling = namedtuple(
-    "Sampling", ["seed_mix", "salts", "pixseed", "sampler", "limit", "rr_depth", "want_aux"]
-)
+    "Sampling",
+    ["seed_mix", "salts", "pixseed", "sampler", "limit", "rr_depth", "want_aux", "log2spp",
+     "zshift"],
+)  # fmt: skip
 #: Everything trace_paths reads.
 TraceParams = namedtuple("TraceParams", ["embree", "cam", "surf", "lights", "sky", "sampling"])
 #: One sample's outputs, in a scratch row per part (``part * ROW_STRIDE``; n_parts * ROW_STRIDE
@@ -632,11 +694,12 @@ EDGE_PAIR = SKY_PAIR0 + LD_MAX_DEPTH + 1
 
 # ---------------------------------------------------------------------------------- path steps
 @nb.njit(inline="always", **_JIT)
-def _camera_ray(intr, r_wc, width, jitter, sampler, salts, pix_s, sid_s, ps_pix, base_s):
-    """Unit world direction of the camera ray through pixel ``pix_s`` (jittered or centred)."""
+def _camera_ray(intr, r_wc, width, jitter, sampler, salts, pix_s, sid_s, ps_pix, base_s, zk):
+    """Unit world direction of the camera ray through pixel ``pix_s`` (jittered or centred);
+    ``zk``: (zseed, zkey, zshift) of :func:`_ld2`."""
     if jitter:
         if sampler == SAMPLER_SOBOL:
-            jx, jy = _sobol2(ps_pix, sid_s, 0)
+            jx, jy = _ld2(ps_pix, sid_s, 0, zk[0], zk[1], zk[2])
         else:
             jx = _u01(base_s, salts[0])
             jy = _u01(base_s, salts[1])
@@ -851,10 +914,17 @@ def _punctual_sample(punct, j, x, nf, ns, eps):
 
 
 @nb.njit(inline="always", **_JIT)
-def _emitter_point(tri, emit_faces, emit_cdf, ul, ra, r2):
-    """An emissive face drawn by power (ul) and a uniform point on it (ra, r2): (face, point)."""
-    n_e = len(emit_faces)
-    lf = emit_faces[min(_search_right(emit_cdf, 0, ul), n_e - 1)]
+def _emitter_point(tri, emit_faces, emit_cdf, ul, ra, r2, reuse):
+    """An emissive face drawn by power (ul) and a uniform point on it (ra, r2): (face, point).
+    With ``reuse``, ``ra`` is ignored and ul's remainder within the face's CDF cell takes its
+    place, so that the whole light sample is one 2D point (ul, r2): stratifying that pair
+    stratifies the point over all the emitters' area (with one face pick and a separate pair,
+    the pick and the point were stratified apart)."""
+    if reuse:
+        k, ra = _cdf_pick(emit_cdf, 0, ul)
+    else:
+        k = min(_search_right(emit_cdf, 0, ul), len(emit_faces) - 1)
+    lf = emit_faces[k]
     r1 = math.sqrt(ra)
     ca = r1 * (1 - r2)
     cb = r1 * r2
@@ -1017,7 +1087,7 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
     nearest, shading_normals, diag = sf.nearest, sf.shading_normals, sf.diag
     suns, punct, face_light_pmf, face_area, face_is_area, emit_faces, emit_cdf = p.lights
     sky_kind, sky, env, rot, scale, frame, marg, cond, spdf, rows, phi0, mis = p.sky
-    seed_mix, salts, pixseed0, sampler, limit, rr_depth, want_aux = p.sampling
+    seed_mix, salts, pixseed0, sampler, limit, rr_depth, want_aux, log2spp, zshift = p.sampling
     direct, gi, first_hit, alb_out, nrm_out = out
     sky_mis = mis != 0 and sky_kind != SKY_NONE
     any_extra = len(edge_extra) > 0
@@ -1043,8 +1113,12 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                 nrm_out[row, 0] = nrm_out[row, 1] = nrm_out[row, 2] = 0.0
             pixel_seed = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD))
             base_s = _sample_base(seed_mix, pix[s], sid[s])
+            zkey = _U0
+            if zshift >= 0:
+                zkey = _zkey(pix[s] % width, pix[s] // width, sid[s], log2spp, zshift)
+            zk = (pixseed0, zkey, zshift)
             dx, dy, dz = _camera_ray(
-                intr, r_wc, width, jitter, sampler, salts, pix[s], sid[s], pixel_seed, base_s
+                intr, r_wc, width, jitter, sampler, salts, pix[s], sid[s], pixel_seed, base_s, zk
             )
             ox = np.float32(pos[0])
             oy = np.float32(pos[1])
@@ -1211,14 +1285,14 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                                 fo[2] * ii[2] * g,
                             )
                 if n_e > 0:  # emissive triangles: power-sampled, MIS with the BSDF
-                    if use_ld:
-                        ul = _sobol1d(pixel_seed, sid[s], pair0 + 1)
-                        ra, rb = _sobol2(pixel_seed, sid[s], pair0 + 2)
+                    if use_ld:  # one stratified pair: face pick and point (reuse)
+                        ul, rb = _ld2(pixel_seed, sid[s], pair0 + 2, pixseed0, zkey, zshift)
+                        ra = 0.0
                     else:
                         ul = _u01(base_s, salts[dim0 + 2])
                         ra = _u01(base_s, salts[dim0 + 3])
                         rb = _u01(base_s, salts[dim0 + 4])
-                    lf, y = _emitter_point(tri, emit_faces, emit_cdf, ul, ra, rb)
+                    lf, y = _emitter_point(tri, emit_faces, emit_cdf, ul, ra, rb, use_ld)
                     nl = (fn[lf, 0], fn[lf, 1], fn[lf, 2])
                     ok, wi0, wi1, wi2, tf, g = _emitter_sample(
                         y, nl, face_light_pmf[lf], face_area[lf], diag, x, nf, ns, eps
@@ -1238,7 +1312,9 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                             )
                 if sky_mis:  # the sky, importance-sampled from its table; always gi
                     if use_ld:
-                        us1, us2 = _sobol2(pixel_seed, sid[s], SKY_PAIR0 + depth)
+                        us1, us2 = _ld2(
+                            pixel_seed, sid[s], SKY_PAIR0 + depth, pixseed0, zkey, zshift
+                        )
                     else:
                         us1 = _u01(base_s, salts[dim0 + 6])
                         us2 = _u01(base_s, salts[dim0 + 7])
@@ -1262,7 +1338,7 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                             )
                 # ---- bounce
                 if use_ld:
-                    u1, u2 = _sobol2(pixel_seed, sid[s], pair0)
+                    u1, u2 = _ld2(pixel_seed, sid[s], pair0, pixseed0, zkey, zshift)
                 else:
                     u1 = _u01(base_s, salts[dim0])
                     u2 = _u01(base_s, salts[dim0 + 1])

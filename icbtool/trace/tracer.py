@@ -31,12 +31,16 @@ roulette ends paths; a hard cap of :data:`HARD_MAX_DEPTH` guards against hangs).
 
 Determinism: every random number is a function of (seed, pixel, sample index, dimension), so an
 image depends on the seed and the config only, never on the number of threads or on timing (a
-time budget changes how many samples are taken, not the samples themselves). The default
-``sampler='sobol'`` stratifies each pixel's samples (pixel area, BSDF direction and point on the
-light for the first vertices) with shuffled Owen-scrambled Sobol points; it stays unbiased, and
-the per-pixel variance estimate (``variance``, adaptive sampling, target error) becomes
-conservative (it assumes independent samples). ``sampler='independent'`` draws every dimension
-from its own hash (the random numbers of the earlier numpy tracer).
+time budget changes how many samples are taken, not the samples themselves). ``sampler='sobol'``
+stratifies each pixel's samples (pixel area, BSDF direction and point on the light for the first
+vertices) with shuffled Owen-scrambled Sobol points; it stays unbiased, and the per-pixel variance
+estimate (``variance``, adaptive sampling, target error) becomes conservative (it assumes
+independent samples). The default ``sampler='zsobol'`` takes the same points from one sequence
+in screen-space Z (Morton) order, so that every aligned 2^k x 2^k block of pixels is stratified
+too and the pixels' errors form blue noise (the ZSobol sampler of pbrt-v4; Ahmed and Wonka 2020,
+"Screen-space blue-noise diffusion of Monte Carlo sampling error via hierarchical ordering of
+pixels"). ``sampler='independent'`` draws every dimension from its own hash (the random numbers
+of the earlier numpy tracer).
 """
 
 from __future__ import annotations
@@ -143,9 +147,13 @@ class TraceConfig:
     sky is found by cosine sampling as well as by a light sample, which would only add a shadow
     ray per vertex: on Sponza's sky (peak 2.0) MIS cut the GI variance by 1 % for 1.3x the time;
     on a 400:1 zenith/horizon sky (peak 3.0) by 47 % for 1.2x the time."""
-    sampler: Literal["sobol", "independent"] = "sobol"
-    """Random numbers: 'sobol' (shuffled Owen-scrambled Sobol pairs per pixel for the pixel area,
-    BSDF and light dimensions; unbiased, lower variance) or 'independent' (a hash per dimension)."""
+    sampler: Literal["zsobol", "sobol", "independent"] = "zsobol"
+    """Random numbers: 'zsobol' (Owen-scrambled Sobol pairs for the pixel area, BSDF and light
+    dimensions, indexed in screen-space Z order so that neighbouring pixels share one stratified
+    point set: a pixel's error is as with 'sobol', but neighbouring pixels' errors are negatively
+    correlated, blue noise that the eye, FLIP and a denoiser average away; docs/design.md,
+    section 8), 'sobol' (the same points, shuffled per pixel: white noise across pixels) or
+    'independent' (a hash per dimension). All are unbiased."""
     edge_samples: int = 8
     """Extra camera rays per sample, for the emission seen directly only, on the pixels that an
     emitter's or the sky's edge crosses (0: none). A pixel half on a light is otherwise its
@@ -184,8 +192,8 @@ class TraceConfig:
             raise bad("target_error", "must be > 0 or None")
         if self.texture_filter not in ("bilinear", "nearest"):
             raise bad("texture_filter", "must be 'bilinear' or 'nearest'")
-        if self.sampler not in ("sobol", "independent"):
-            raise bad("sampler", "must be 'sobol' or 'independent'")
+        if self.sampler not in ("sobol", "zsobol", "independent"):
+            raise bad("sampler", "must be 'sobol', 'zsobol' or 'independent'")
         check_denoise_quality(self.denoise_quality, "TraceConfig.denoise_quality")
         if self.sky_sampling not in ("auto", "mis", "bsdf"):
             raise bad("sky_sampling", "must be 'auto', 'mis' or 'bsdf'")
@@ -604,6 +612,18 @@ class _SceneData:
 
 
 # ---------------------------------------------------------------------------------- tracer
+def _z_layout(cfg: TraceConfig, width: int, height: int) -> tuple[int, int]:
+    """(log2 of the sample slots per pixel, shift) of the Z sampler's 32-bit sample key
+    (Morton code of the pixel, then the sample index); shift -1 (per-pixel Sobol points) when
+    the sampler is not 'zsobol' or the key would not fit in 32 bits."""
+    log2spp = max(int(cfg.spp) - 1, 0).bit_length()
+    nbits = max(max(int(width), int(height)) - 1, 0).bit_length()
+    used = 2 * nbits + log2spp
+    if cfg.sampler != "zsobol" or used > 32:
+        return log2spp, -1
+    return log2spp, 32 - used
+
+
 class _Tracer:
     def __init__(self, scene: Scene, cam: Camera, cfg: TraceConfig, stats: TraceStats) -> None:
         from icbtool.trace.rtc import RtcScene
@@ -727,7 +747,8 @@ class _Tracer:
         """The kernels' :data:`~icbtool.trace.kernels.TraceParams` (fixed for a render)."""
         K = _kernels()
         cfg, sd, cam, rs = self.cfg, self.sd, self.cam, self.rtc
-        sampler = K.SAMPLER_SOBOL if cfg.sampler == "sobol" else K.SAMPLER_INDEPENDENT
+        sampler = K.SAMPLER_INDEPENDENT if cfg.sampler == "independent" else K.SAMPLER_SOBOL
+        log2spp, zshift = _z_layout(cfg, cam.width, cam.height)
         return K.TraceParams(
             K.EmbreeFns(rs.ptr, rs.fn_intersect, rs.fn_occluded),
             K.View(
@@ -772,6 +793,8 @@ class _Tracer:
                 int(cfg.depth_limit),
                 int(cfg.rr_depth),
                 int(bool(cfg.aux or cfg.denoise)),
+                log2spp,
+                zshift,
             ),
         )
 
