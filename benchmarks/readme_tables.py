@@ -538,7 +538,12 @@ def block_trace_time_error(results: Path) -> str:
             "|---" * (len(spps) + 1) + "|",
             row("per sample: our time / Mitsuba's, same spp", per_sample, mark=False),
             row("RMSE per sample: ours / Mitsuba's, same spp", err_ratio, mark=False),
-            row("RMSE, ours raw (default: Sobol, Embree not robust)", ratios("target_rmse")),
+            row(
+                "RMSE, ours raw (default: "
+                + ("Z-Sobol" if "ours_raw_sobol" in sc["target_rmse"] else "Sobol")
+                + ", Embree not robust)",
+                ratios("target_rmse"),
+            ),
             *(  # (runs before the robust default changed have no such curve)
                 [row("RMSE, ours raw, `robust=True`", ratios("target_rmse", "ours_raw_robust"))]
                 if "ours_raw_robust" in sc["target_rmse"]
@@ -562,7 +567,22 @@ def block_trace_time_error(results: Path) -> str:
             ),
             row("RMSE, Embree floor", sc["embree_floor"]["floor_ratio_per_mitsuba_point"], False),
             row("FLIP, ours raw", ratios("target_flip")),
+            *(  # (runs before the Z sampler became the default have no such curve)
+                [
+                    row(
+                        "FLIP, ours raw, `sampler='sobol'` (per-pixel points)",
+                        ratios("target_flip", "ours_raw_sobol"),
+                    )
+                ]
+                if "ours_raw_sobol" in sc["target_flip"]
+                else []
+            ),
             row("FLIP, ours with denoised GI (OIDN)", ratios("target_flip", "ours_denoised")),
+            *(
+                [row("FLIP, denoised GI, OIDN 'fast'", ratios("target_flip", "ours_denoised_fast"))]
+                if "ours_denoised_fast" in sc["target_flip"]
+                else []
+            ),
             "",
         ]
         if not quiet:

@@ -542,6 +542,7 @@ def main() -> None:
             "ours_raw_robust",
             "ours_raw_no_edge_samples",
             "ours_raw_independent",
+            "ours_raw_sobol",
             "ours_denoised",
             "ours_denoised_fast",
             "ours_denoised_full",
@@ -619,10 +620,11 @@ def main() -> None:
             curves["ours_raw_no_edge_samples"].append(
                 {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
             )
-            r = ours(scene, cam, replace(cfg, sampler="independent"), args.repeats)
-            curves["ours_raw_independent"].append(
-                {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
-            )
+            for sampler in ("independent", "sobol"):  # sobol: per-pixel points, white noise
+                r = ours(scene, cam, replace(cfg, sampler=sampler), args.repeats)
+                curves[f"ours_raw_{sampler}"].append(
+                    {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
+                )
             r = ours(
                 scene,
                 cam,
