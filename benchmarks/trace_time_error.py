@@ -543,6 +543,7 @@ def main() -> None:
             "ours_raw_no_edge_samples",
             "ours_raw_independent",
             "ours_raw_sobol",
+            "ours_raw_gi_splits4",
             "ours_denoised",
             "ours_denoised_fast",
             "ours_denoised_full",
@@ -618,6 +619,12 @@ def main() -> None:
             # without the extra emission samples on emitter/sky edges (TraceConfig.edge_samples)
             r = ours(scene, cam, replace(cfg, edge_samples=0), args.repeats)
             curves["ours_raw_no_edge_samples"].append(
+                {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
+            )
+            # four branches after the first vertex (TraceConfig.gi_splits): the same spp of
+            # camera rays, about 4x the GI samples
+            r = ours(scene, cam, replace(cfg, gi_splits=4), args.repeats)
+            curves["ours_raw_gi_splits4"].append(
                 {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
             )
             for sampler in ("independent", "sobol"):  # sobol: per-pixel points, white noise

@@ -650,11 +650,12 @@ SkyParams = namedtuple(
 )  # fmt: skip
 #: Sampling: hash seed, per-dimension salts (independent sampler), Sobol pixel seed, sampler
 #: (SAMPLER_*), depth limit, Russian roulette depth, want_aux (1: first-hit albedo/normal), log2
-#: of the sample slots per pixel and the shift of the Z key (-1: no Z key; see :func:`_zkey`).
+#: of the sample slots per pixel and the shift of the Z key (-1: no Z key; see :func:`_zkey`),
+#: the number of branches of a path after its first vertex (>= 1) and log2 of their slots.
 Sampling = namedtuple(
     "Sampling",
     ["seed_mix", "salts", "pixseed", "sampler", "limit", "rr_depth", "want_aux", "log2spp",
-     "zshift"],
+     "zshift", "splits", "log2split"],
 )  # fmt: skip
 #: Everything trace_paths reads.
 TraceParams = namedtuple("TraceParams", ["embree", "cam", "surf", "lights", "sky", "sampling"])
@@ -681,6 +682,9 @@ SKY_GRADIENT = 2
 SKY_ENVMAP = 3
 ROWS_COS = 0
 ROWS_THETA = 1
+
+#: salt of the independent sampler's hash base of a branch (splits > 1)
+_SPLIT_SALT = np.uint64(0xD1B54A32D192ED03)
 
 #: Samples per block; the threads of a pass take every n-th block (balanced, no false sharing).
 BLOCK = 256
@@ -1058,7 +1062,10 @@ def _cosine_sample(nf, ns, u1, u2):
 @nb.njit(_nrt=False, **_JIT)
 def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
     """Trace one whole path per sample (every depth, shadow rays inline) for a share of samples
-    and add each sample to its pixel's statistics.
+    and add each sample to its pixel's statistics. With ``Sampling.splits`` = k > 1 the path
+    branches after its first vertex's light sample: branch 0 goes on from there, branches 1 ..
+    k - 1 restart from the saved first vertex; each carries 1 / k of the throughput and draws
+    its numbers from its own slot ``sid * k + branch``.
 
     Args:
         p: :data:`TraceParams`.
@@ -1087,7 +1094,9 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
     nearest, shading_normals, diag = sf.nearest, sf.shading_normals, sf.diag
     suns, punct, face_light_pmf, face_area, face_is_area, emit_faces, emit_cdf = p.lights
     sky_kind, sky, env, rot, scale, frame, marg, cond, spdf, rows, phi0, mis = p.sky
-    seed_mix, salts, pixseed0, sampler, limit, rr_depth, want_aux, log2spp, zshift = p.sampling
+    (seed_mix, salts, pixseed0, sampler, limit, rr_depth, want_aux, log2spp, zshift, splits,
+     log2split) = p.sampling  # fmt: skip
+    inv_splits = 1.0 / splits
     direct, gi, first_hit, alb_out, nrm_out = out
     sky_mis = mis != 0 and sky_kind != SKY_NONE
     any_extra = len(edge_extra) > 0
@@ -1146,215 +1155,289 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                     direct[row, 0] += le[0] * w_seen
                     direct[row, 1] += le[1] * w_seen
                     direct[row, 2] += le[2] * w_seen
-            t0 = 1.0
-            t1 = 1.0
-            t2 = 1.0
-            pdf_prev = 0.0
-            from_first = False
-            for depth in range(1, limit + 1):
-                # ---- closest hit of segment `depth`
-                _log_ray(log, 0 if depth == 1 else 2, ox, oy, oz, dx, dy, dz, np.float32(np.inf))
-                dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
-                h_t, prim, h_u, h_v = _intersect(rtc, fn_isect, ray, ox, oy, oz, dx32, dy32, dz32)
-                if depth == 1:
-                    n_prim += 1
-                else:
-                    n_bounce += 1
-                if prim < 0:  # ---- the sky: direct for a camera ray, else gi (MIS-weighted)
-                    if sky_kind != SKY_NONE:
-                        if sky_kind == SKY_ENVMAP:
-                            le = _envmap(env, rot, scale, dx, dy, dz)
-                        else:
-                            le = _sky_analytic(sky_kind, sky, dx, dy, dz)
+            # ---- the path from the first vertex on: `splits` branches (docs/design.md,
+            # section 8); branch 0 finds the first vertex, the others restart from it
+            v1 = False
+            s_so = (np.float32(0.0), np.float32(0.0), np.float32(0.0))
+            s_f = (0.0, 0.0, 0.0)
+            s_nf = (0.0, 0.0, 0.0)
+            s_ns = (0.0, 0.0, 0.0)
+            for branch in range(splits):
+                if branch > 0 and not v1:
+                    break
+                sid_b = sid[s]
+                base_b = base_s
+                zkey_b = zkey
+                zshift_b = zshift
+                if splits > 1:  # the branch's own sample slot: sid * splits + branch
+                    sid_b = sid[s] * splits + branch
+                    base_b = _sample_base(seed_mix ^ _SPLIT_SALT, pix[s], sid_b)
+                    if zshift >= 0:
+                        zshift_b = zshift - log2split
+                        zkey_b = _zkey(
+                            pix[s] % width, pix[s] // width, sid_b, log2spp + log2split,
+                            zshift - log2split,
+                        )  # fmt: skip
+                t0 = 1.0
+                t1 = 1.0
+                t2 = 1.0
+                pdf_prev = 0.0
+                from_first = False
+                rr_boost = 1.0
+                for depth in range(1, limit + 1):
+                    if branch == 0 or depth > 1:
+                        # the first vertex's light sample is the sample's, the rest the branch's
+                        sid_d, base_d, zkey_d, zshift_d = (
+                            (sid[s], base_s, zkey, zshift)
+                            if depth == 1
+                            else (sid_b, base_b, zkey_b, zshift_b)
+                        )
+                        # ---- closest hit of segment `depth`
+                        _log_ray(
+                            log, 0 if depth == 1 else 2, ox, oy, oz, dx, dy, dz, np.float32(np.inf)
+                        )
+                        dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
+                        h_t, prim, h_u, h_v = _intersect(
+                            rtc, fn_isect, ray, ox, oy, oz, dx32, dy32, dz32
+                        )
                         if depth == 1:
-                            direct[row, 0] += le[0] * w_seen
-                            direct[row, 1] += le[1] * w_seen
-                            direct[row, 2] += le[2] * w_seen
+                            n_prim += 1
                         else:
-                            w = 1.0
-                            if sky_mis:  # MIS weight of the BSDF sample against the sky sample
-                                psk = _sky_pdf(frame, spdf, rows, phi0, dx, dy, dz)
-                                w = (
-                                    pdf_prev
-                                    * pdf_prev
-                                    / max(pdf_prev * pdf_prev + psk * psk, 1e-300)
-                                )
-                            gi[row, 0] += le[0] * t0 * w
-                            gi[row, 1] += le[1] * t1 * w
-                            gi[row, 2] += le[2] * t2 * w
-                    break
-                th = np.float64(h_t)
-                x, bary, cos_o, front, nf, ns = _hit_frame(
-                    tri, fn, vn, shading_normals, prim, h_u, h_v, dx, dy, dz
-                )
-                # ---- emission seen (one-sided): direct for a camera ray and for a bounce off
-                # the first hit into an AreaLight (MIS-weighted); else gi (MIS-weighted)
-                m = face_mat[prim]
-                e0 = mat_emission[m, 0]
-                e1 = mat_emission[m, 1]
-                e2 = mat_emission[m, 2]
-                if front and (e0 > 0 or e1 > 0 or e2 > 0):
-                    if depth == 1:
-                        direct[row, 0] += e0 * w_seen
-                        direct[row, 1] += e1 * w_seen
-                        direct[row, 2] += e2 * w_seen
-                    else:
-                        w = _emission_mis_weight(
-                            face_light_pmf[prim], face_area[prim], th, cos_o, pdf_prev
+                            n_bounce += 1
+                        if (
+                            prim < 0
+                        ):  # ---- the sky: direct for a camera ray, else gi (MIS-weighted)
+                            if sky_kind != SKY_NONE:
+                                if sky_kind == SKY_ENVMAP:
+                                    le = _envmap(env, rot, scale, dx, dy, dz)
+                                else:
+                                    le = _sky_analytic(sky_kind, sky, dx, dy, dz)
+                                if depth == 1:
+                                    direct[row, 0] += le[0] * w_seen
+                                    direct[row, 1] += le[1] * w_seen
+                                    direct[row, 2] += le[2] * w_seen
+                                else:
+                                    w = 1.0
+                                    if (
+                                        sky_mis
+                                    ):  # MIS weight of the BSDF sample against the sky sample
+                                        psk = _sky_pdf(frame, spdf, rows, phi0, dx, dy, dz)
+                                        w = (
+                                            pdf_prev
+                                            * pdf_prev
+                                            / max(pdf_prev * pdf_prev + psk * psk, 1e-300)
+                                        )
+                                    gi[row, 0] += le[0] * t0 * w
+                                    gi[row, 1] += le[1] * t1 * w
+                                    gi[row, 2] += le[2] * t2 * w
+                            break
+                        th = np.float64(h_t)
+                        x, bary, cos_o, front, nf, ns = _hit_frame(
+                            tri, fn, vn, shading_normals, prim, h_u, h_v, dx, dy, dz
                         )
-                        _add_to(
-                            direct,
-                            gi,
-                            from_first and face_is_area[prim],
-                            row,
-                            e0 * t0 * w,
-                            e1 * t1 * w,
-                            e2 * t2 * w,
-                        )
-                al0 = mat_albedo[m, 0]
-                al1 = mat_albedo[m, 1]
-                al2 = mat_albedo[m, 2]
-                if tex_off[m] >= 0:  # textured (repeat)
-                    uu, vv = _tex_coords(face_uv, prim, bary)
-                    if nearest:
-                        q = _nearest_texel(tex_off[m], tex_hw[m, 0], tex_hw[m, 1], uu, vv)
-                        al0 *= _texel(tex, lut, q)
-                        al1 *= _texel(tex, lut, q + 1)
-                        al2 *= _texel(tex, lut, q + 2)
-                    else:
-                        p00, p01, p10, p11, ga, gb, gc, gd = _bilinear_footprint(
-                            tex_off[m], tex_hw[m, 0], tex_hw[m, 1], uu, vv
-                        )
-                        al0 *= _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd)
-                        al1 *= _bilerp(tex, lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd)
-                        al2 *= _bilerp(tex, lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd)
-                if depth == 1:
-                    first_hit[row] = True
-                    if want_aux:
-                        alb_out[row, 0] = al0
-                        alb_out[row, 1] = al1
-                        alb_out[row, 2] = al2
-                        nrm_out[row, 0] = ns[0]
-                        nrm_out[row, 1] = ns[1]
-                        nrm_out[row, 2] = ns[2]
-                if depth >= limit:
-                    break
-                f0 = t0 * al0
-                f1 = t1 * al1
-                f2 = t2 * al2
-                if not (f0 > 0 or f1 > 0 or f2 > 0):
-                    break
-                # ---- next-event estimation from the offset float32 origin `so`
-                eps = _eps(x[0], x[1], x[2], th, diag)
-                so = (
-                    np.float32(x[0] + nf[0] * eps),
-                    np.float32(x[1] + nf[1] * eps),
-                    np.float32(x[2] + nf[2] * eps),
-                )
-                fo = (f0 * _INV_PI, f1 * _INV_PI, f2 * _INV_PI)
-                to_direct_dl = depth == 1
-                dim0 = 2 + depth * DIMS_PER_BOUNCE
-                pair0 = 1 + 3 * depth
-                use_ld = sampler == SAMPLER_SOBOL and depth <= LD_MAX_DEPTH
-                for j in range(n_s):  # directional lights (delta: no MIS)
-                    ok, wi0, wi1, wi2, c = _sun_sample(suns[j, 0], suns[j, 1], suns[j, 2], nf, ns)
-                    if ok:
-                        n_shadow += 1
-                        if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)):
-                            _add_to(
-                                direct,
-                                gi,
-                                to_direct_dl,
-                                row,
-                                fo[0] * suns[j, 3] * c,
-                                fo[1] * suns[j, 4] * c,
-                                fo[2] * suns[j, 5] * c,
-                            )
-                for j in range(n_q):  # point and spot lights (delta)
-                    ok, wi0, wi1, wi2, tf, ii, g = _punctual_sample(punct, j, x, nf, ns, eps)
-                    if ok:
-                        n_shadow += 1
-                        if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
-                            _add_to(
-                                direct,
-                                gi,
-                                to_direct_dl,
-                                row,
-                                fo[0] * ii[0] * g,
-                                fo[1] * ii[1] * g,
-                                fo[2] * ii[2] * g,
-                            )
-                if n_e > 0:  # emissive triangles: power-sampled, MIS with the BSDF
-                    if use_ld:  # one stratified pair: face pick and point (reuse)
-                        ul, rb = _ld2(pixel_seed, sid[s], pair0 + 2, pixseed0, zkey, zshift)
-                        ra = 0.0
-                    else:
-                        ul = _u01(base_s, salts[dim0 + 2])
-                        ra = _u01(base_s, salts[dim0 + 3])
-                        rb = _u01(base_s, salts[dim0 + 4])
-                    lf, y = _emitter_point(tri, emit_faces, emit_cdf, ul, ra, rb, use_ld)
-                    nl = (fn[lf, 0], fn[lf, 1], fn[lf, 2])
-                    ok, wi0, wi1, wi2, tf, g = _emitter_sample(
-                        y, nl, face_light_pmf[lf], face_area[lf], diag, x, nf, ns, eps
-                    )
-                    if ok:
-                        n_shadow += 1
-                        if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
-                            me = face_mat[lf]
-                            _add_to(
-                                direct,
-                                gi,
-                                to_direct_dl and face_is_area[lf],
-                                row,
-                                fo[0] * mat_emission[me, 0] * g,
-                                fo[1] * mat_emission[me, 1] * g,
-                                fo[2] * mat_emission[me, 2] * g,
-                            )
-                if sky_mis:  # the sky, importance-sampled from its table; always gi
-                    if use_ld:
-                        us1, us2 = _ld2(
-                            pixel_seed, sid[s], SKY_PAIR0 + depth, pixseed0, zkey, zshift
-                        )
-                    else:
-                        us1 = _u01(base_s, salts[dim0 + 6])
-                        us2 = _u01(base_s, salts[dim0 + 7])
-                    wi0, wi1, wi2, psk = _sky_sample(frame, marg, cond, spdf, rows, phi0, us1, us2)
-                    ok, g = _sky_light_weight(psk, wi0, wi1, wi2, nf, ns)
-                    if ok:
-                        n_shadow += 1
-                        if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)):
-                            if sky_kind == SKY_ENVMAP:
-                                le = _envmap(env, rot, scale, wi0, wi1, wi2)
+                        # ---- emission seen (one-sided): direct for a camera ray and for a bounce
+                        # off the first hit into an AreaLight (MIS-weighted); else gi (MIS-weighted)
+                        m = face_mat[prim]
+                        e0 = mat_emission[m, 0]
+                        e1 = mat_emission[m, 1]
+                        e2 = mat_emission[m, 2]
+                        if front and (e0 > 0 or e1 > 0 or e2 > 0):
+                            if depth == 1:
+                                direct[row, 0] += e0 * w_seen
+                                direct[row, 1] += e1 * w_seen
+                                direct[row, 2] += e2 * w_seen
                             else:
-                                le = _sky_analytic(sky_kind, sky, wi0, wi1, wi2)
-                            _add_to(
-                                direct,
-                                gi,
-                                False,
-                                row,
-                                fo[0] * le[0] * g,
-                                fo[1] * le[1] * g,
-                                fo[2] * le[2] * g,
+                                w = _emission_mis_weight(
+                                    face_light_pmf[prim], face_area[prim], th, cos_o, pdf_prev
+                                )
+                                _add_to(
+                                    direct,
+                                    gi,
+                                    from_first and face_is_area[prim],
+                                    row,
+                                    e0 * t0 * w,
+                                    e1 * t1 * w,
+                                    e2 * t2 * w,
+                                )
+                        al0 = mat_albedo[m, 0]
+                        al1 = mat_albedo[m, 1]
+                        al2 = mat_albedo[m, 2]
+                        if tex_off[m] >= 0:  # textured (repeat)
+                            uu, vv = _tex_coords(face_uv, prim, bary)
+                            if nearest:
+                                q = _nearest_texel(tex_off[m], tex_hw[m, 0], tex_hw[m, 1], uu, vv)
+                                al0 *= _texel(tex, lut, q)
+                                al1 *= _texel(tex, lut, q + 1)
+                                al2 *= _texel(tex, lut, q + 2)
+                            else:
+                                p00, p01, p10, p11, ga, gb, gc, gd = _bilinear_footprint(
+                                    tex_off[m], tex_hw[m, 0], tex_hw[m, 1], uu, vv
+                                )
+                                al0 *= _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd)
+                                al1 *= _bilerp(
+                                    tex, lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd
+                                )
+                                al2 *= _bilerp(
+                                    tex, lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd
+                                )
+                        if depth == 1:
+                            first_hit[row] = True
+                            if want_aux:
+                                alb_out[row, 0] = al0
+                                alb_out[row, 1] = al1
+                                alb_out[row, 2] = al2
+                                nrm_out[row, 0] = ns[0]
+                                nrm_out[row, 1] = ns[1]
+                                nrm_out[row, 2] = ns[2]
+                        if depth >= limit:
+                            break
+                        f0 = t0 * al0
+                        f1 = t1 * al1
+                        f2 = t2 * al2
+                        if not (f0 > 0 or f1 > 0 or f2 > 0):
+                            break
+                        # ---- next-event estimation from the offset float32 origin `so`
+                        eps = _eps(x[0], x[1], x[2], th, diag)
+                        so = (
+                            np.float32(x[0] + nf[0] * eps),
+                            np.float32(x[1] + nf[1] * eps),
+                            np.float32(x[2] + nf[2] * eps),
+                        )
+                        fo = (f0 * _INV_PI, f1 * _INV_PI, f2 * _INV_PI)
+                        to_direct_dl = depth == 1
+                        dim0 = 2 + depth * DIMS_PER_BOUNCE
+                        pair0 = 1 + 3 * depth
+                        use_ld = sampler == SAMPLER_SOBOL and depth <= LD_MAX_DEPTH
+                        for j in range(n_s):  # directional lights (delta: no MIS)
+                            ok, wi0, wi1, wi2, c = _sun_sample(
+                                suns[j, 0], suns[j, 1], suns[j, 2], nf, ns
                             )
-                # ---- bounce
-                if use_ld:
-                    u1, u2 = _ld2(pixel_seed, sid[s], pair0, pixseed0, zkey, zshift)
-                else:
-                    u1 = _u01(base_s, salts[dim0])
-                    u2 = _u01(base_s, salts[dim0 + 1])
-                wi0, wi1, wi2, pdf = _cosine_sample(nf, ns, u1, u2)
-                if depth + 1 > rr_depth:  # Russian roulette for the next segment
-                    q = min(max(f0, max(f1, f2)), 0.95)
-                    if not (_u01(base_s, salts[dim0 + 5]) < q):
-                        break
-                    f0 /= q
-                    f1 /= q
-                    f2 /= q
-                ox, oy, oz = so
-                dx, dy, dz = wi0, wi1, wi2
-                t0, t1, t2 = f0, f1, f2
-                pdf_prev = pdf
-                from_first = depth == 1
+                            if ok:
+                                n_shadow += 1
+                                if _visible(
+                                    rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)
+                                ):
+                                    _add_to(
+                                        direct,
+                                        gi,
+                                        to_direct_dl,
+                                        row,
+                                        fo[0] * suns[j, 3] * c,
+                                        fo[1] * suns[j, 4] * c,
+                                        fo[2] * suns[j, 5] * c,
+                                    )
+                        for j in range(n_q):  # point and spot lights (delta)
+                            ok, wi0, wi1, wi2, tf, ii, g = _punctual_sample(
+                                punct, j, x, nf, ns, eps
+                            )
+                            if ok:
+                                n_shadow += 1
+                                if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
+                                    _add_to(
+                                        direct,
+                                        gi,
+                                        to_direct_dl,
+                                        row,
+                                        fo[0] * ii[0] * g,
+                                        fo[1] * ii[1] * g,
+                                        fo[2] * ii[2] * g,
+                                    )
+                        if n_e > 0:  # emissive triangles: power-sampled, MIS with the BSDF
+                            if use_ld:  # one stratified pair: face pick and point (reuse)
+                                ul, rb = _ld2(
+                                    pixel_seed, sid_d, pair0 + 2, pixseed0, zkey_d, zshift_d
+                                )
+                                ra = 0.0
+                            else:
+                                ul = _u01(base_d, salts[dim0 + 2])
+                                ra = _u01(base_d, salts[dim0 + 3])
+                                rb = _u01(base_d, salts[dim0 + 4])
+                            lf, y = _emitter_point(tri, emit_faces, emit_cdf, ul, ra, rb, use_ld)
+                            nl = (fn[lf, 0], fn[lf, 1], fn[lf, 2])
+                            ok, wi0, wi1, wi2, tf, g = _emitter_sample(
+                                y, nl, face_light_pmf[lf], face_area[lf], diag, x, nf, ns, eps
+                            )
+                            if ok:
+                                n_shadow += 1
+                                if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
+                                    me = face_mat[lf]
+                                    _add_to(
+                                        direct,
+                                        gi,
+                                        to_direct_dl and face_is_area[lf],
+                                        row,
+                                        fo[0] * mat_emission[me, 0] * g,
+                                        fo[1] * mat_emission[me, 1] * g,
+                                        fo[2] * mat_emission[me, 2] * g,
+                                    )
+                        if sky_mis:  # the sky, importance-sampled from its table; always gi
+                            if use_ld:
+                                us1, us2 = _ld2(
+                                    pixel_seed, sid_d, SKY_PAIR0 + depth, pixseed0, zkey_d, zshift_d
+                                )
+                            else:
+                                us1 = _u01(base_d, salts[dim0 + 6])
+                                us2 = _u01(base_d, salts[dim0 + 7])
+                            wi0, wi1, wi2, psk = _sky_sample(
+                                frame, marg, cond, spdf, rows, phi0, us1, us2
+                            )
+                            ok, g = _sky_light_weight(psk, wi0, wi1, wi2, nf, ns)
+                            if ok:
+                                n_shadow += 1
+                                if _visible(
+                                    rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)
+                                ):
+                                    if sky_kind == SKY_ENVMAP:
+                                        le = _envmap(env, rot, scale, wi0, wi1, wi2)
+                                    else:
+                                        le = _sky_analytic(sky_kind, sky, wi0, wi1, wi2)
+                                    _add_to(
+                                        direct,
+                                        gi,
+                                        False,
+                                        row,
+                                        fo[0] * le[0] * g,
+                                        fo[1] * le[1] * g,
+                                        fo[2] * le[2] * g,
+                                    )
+                        if depth == 1 and splits > 1:  # the first vertex, for the other branches
+                            v1 = True
+                            s_so = so
+                            s_f = (f0, f1, f2)
+                            s_nf = nf
+                            s_ns = ns
+                    else:  # branch > 0 at the first vertex: restart from it
+                        so = s_so
+                        f0, f1, f2 = s_f
+                        nf = s_nf
+                        ns = s_ns
+                        dim0 = 2 + DIMS_PER_BOUNCE
+                        pair0 = 1 + 3
+                        use_ld = sampler == SAMPLER_SOBOL
+                    # ---- bounce
+                    if use_ld:
+                        u1, u2 = _ld2(pixel_seed, sid_b, pair0, pixseed0, zkey_b, zshift_b)
+                    else:
+                        u1 = _u01(base_b, salts[dim0])
+                        u2 = _u01(base_b, salts[dim0 + 1])
+                    wi0, wi1, wi2, pdf = _cosine_sample(nf, ns, u1, u2)
+                    if depth + 1 > rr_depth:  # Russian roulette for the next segment
+                        q = min(max(f0, max(f1, f2)) * rr_boost, 0.95)
+                        if not (_u01(base_b, salts[dim0 + 5]) < q):
+                            break
+                        f0 /= q
+                        f1 /= q
+                        f2 /= q
+                    ox, oy, oz = so
+                    dx, dy, dz = wi0, wi1, wi2
+                    t0, t1, t2 = f0, f1, f2
+                    if depth == 1 and splits > 1:  # each branch carries 1 / splits of the path
+                        t0 *= inv_splits
+                        t1 *= inv_splits
+                        t2 *= inv_splits
+                        rr_boost = np.float64(splits)  # roulette on the unsplit throughput
+                    pdf_prev = pdf
+                    from_first = depth == 1
             _add_sample(acc, pix[s], direct, gi, first_hit, alb_out, nrm_out, row, want_aux)
     counts[0] += n_prim
     counts[1] += n_bounce

@@ -71,6 +71,8 @@ SKY_MIS_PEAK = 2.5
 MAX_SAMPLES_PER_CALL = 1 << 20
 #: Upper bound on ``TraceConfig.edge_samples``.
 MAX_EDGE_SAMPLES = 64
+#: upper bound of TraceConfig.gi_splits
+MAX_GI_SPLITS = 16
 #: A pixel gets ``edge_samples`` when the emission seen through its four corners differs by more
 #: than this fraction of the brightest of them (luminance): a light's or the sky's outline, not
 #: a smooth sky gradient or an environment map's texels of similar brightness.
@@ -154,6 +156,12 @@ class TraceConfig:
     correlated, blue noise that the eye, FLIP and a denoiser average away; docs/design.md,
     section 8), 'sobol' (the same points, shuffled per pixel: white noise across pixels) or
     'independent' (a hash per dimension). All are unbiased."""
+    gi_splits: int = 1
+    """Branches of every path after its first vertex (1: none). Each sample's camera ray, first
+    hit and direct light there are shared by ``gi_splits`` independent continuations (bounce
+    direction and all that follows), each weighted 1 / gi_splits: the GI gets that many
+    samples for less than that many paths' cost (docs/design.md, section 8). ``spp`` still
+    counts camera rays."""
     edge_samples: int = 8
     """Extra camera rays per sample, for the emission seen directly only, on the pixels that an
     emitter's or the sky's edge crosses (0: none). A pixel half on a light is otherwise its
@@ -192,6 +200,12 @@ class TraceConfig:
             raise bad("target_error", "must be > 0 or None")
         if self.texture_filter not in ("bilinear", "nearest"):
             raise bad("texture_filter", "must be 'bilinear' or 'nearest'")
+        if (
+            not isinstance(self.gi_splits, (int, np.integer))
+            or isinstance(self.gi_splits, bool)
+            or not 1 <= self.gi_splits <= MAX_GI_SPLITS
+        ):
+            raise bad("gi_splits", f"must be an integer in [1, {MAX_GI_SPLITS}]")
         if self.sampler not in ("sobol", "zsobol", "independent"):
             raise bad("sampler", "must be 'sobol', 'zsobol' or 'independent'")
         check_denoise_quality(self.denoise_quality, "TraceConfig.denoise_quality")
@@ -618,10 +632,15 @@ def _z_layout(cfg: TraceConfig, width: int, height: int) -> tuple[int, int]:
     the sampler is not 'zsobol' or the key would not fit in 32 bits."""
     log2spp = max(int(cfg.spp) - 1, 0).bit_length()
     nbits = max(max(int(width), int(height)) - 1, 0).bit_length()
-    used = 2 * nbits + log2spp
+    used = 2 * nbits + log2spp + _log2_splits(cfg)
     if cfg.sampler != "zsobol" or used > 32:
         return log2spp, -1
-    return log2spp, 32 - used
+    return log2spp, 32 - used + _log2_splits(cfg)
+
+
+def _log2_splits(cfg: TraceConfig) -> int:
+    """Bits of a branch's slot within its sample (``gi_splits`` rounded up to a power of 2)."""
+    return (int(cfg.gi_splits) - 1).bit_length()
 
 
 class _Tracer:
@@ -795,6 +814,8 @@ class _Tracer:
                 int(bool(cfg.aux or cfg.denoise)),
                 log2spp,
                 zshift,
+                int(cfg.gi_splits),
+                _log2_splits(cfg),
             ),
         )
 
