@@ -798,8 +798,10 @@ def test_textured_lookup_wraps_and_matches_bilinear_formula(texels):
     cam = Camera.look_at((0, 2, 0.001), (0, 0, 0), (0, 0, -1), fov_y_deg=40, height=12, width=12)
     res = render(sc, cam, TraceConfig(spp=1, pixel_jitter=False, max_depth=1))
     sd = _SceneData.of(sc)
-    assert sd.k_tex.dtype == (np.uint8 if texels == "8bit" else np.float32)
-    assert len(sd.k_tex_lut) == (256 if texels == "8bit" else 0)
+    # one dtype pair for both kinds (one compiled kernel): codes + levels, or no codes + values
+    assert sd.k_tex.dtype == np.uint8 and sd.k_tex_lut.dtype == np.float32
+    assert len(sd.k_tex) == (tex.size if texels == "8bit" else 0)
+    assert len(sd.k_tex_lut) == (256 if texels == "8bit" else tex.size)
     o, d, _ = cam.rays()
     hits = EmbreeScene.from_scene(sc).intersect(o.reshape(-1, 3), d.reshape(-1, 3))
     assert hits.hit.all()

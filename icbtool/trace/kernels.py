@@ -349,10 +349,11 @@ def _sky_analytic(kind, sky, dx, dy, dz):
 
 @nb.njit(inline="always", **_JIT)
 def _texel(tex, lut, p):
-    """Texel value p: tex holds codes into lut (8/16-bit textures), or values if lut is empty."""
-    if len(lut) > 0:
+    """Texel value p: ``lut[tex[p]]`` (uint8 codes into the sRGB levels, 8-bit textures), or
+    ``lut[p]`` when ``tex`` is empty (``lut`` then holds the float texels themselves)."""
+    if len(tex) > 0:
         return np.float64(lut[np.int64(tex[p])])
-    return np.float64(tex[p])
+    return np.float64(lut[p])
 
 
 @nb.njit(inline="always", **_JIT)
@@ -623,8 +624,9 @@ EmbreeFns = namedtuple("EmbreeFns", ["scene", "fn_intersect", "fn_occluded"])
 View = namedtuple("View", ["intr", "r_wc", "pos", "width", "jitter", "edge_extra"])
 #: Surfaces: per face (F) float32 corners (F, 3, 3), geometric normal (F, 3), corner normals
 #: (F, 3, 3), material (F,), corner uvs (F, 3, 2); per material (M) albedo and emission (M, 3)
-#: float64, texture offset into the texels (-1: untextured) and (h, w); texels (codes into
-#: tex_lut, or values if it is empty); nearest (1: nearest texel, 0: bilinear), shading_normals
+#: float64, texture offset into the texels (-1: untextured) and (h, w); texels: uint8 codes into
+#: tex_lut, or empty with tex_lut the float32 texels (one dtype pair either way: one compiled
+#: kernel); nearest (1: nearest texel, 0: bilinear), shading_normals
 #: (1: interpolated, 0: flat), scene diagonal.
 Surfaces = namedtuple(
     "Surfaces",
