@@ -529,6 +529,10 @@ def block_trace_time_error(results: Path) -> str:
         def ratios(key: str, curve: str = "ours_raw", sc=sc) -> list[float | None]:
             return sc[key][curve]["time_ratio_per_mitsuba_point"]
 
+        def optional(what: str, key: str, curve: str, sc=sc) -> list[str]:
+            """The row of a curve that older results files may lack (it did not exist yet)."""
+            return [row(what, ratios(key, curve))] if curve in sc[key] else []
+
         mi_t = [p["time_s"] for p in cur["mitsuba"]]
         per_sample = [o["time_s"] / m["time_s"] for o, m in zip(cur["ours_raw"], cur["mitsuba"])]
         err_ratio = [o["rmse"] / m["rmse"] for o, m in zip(cur["ours_raw"], cur["mitsuba"])]
@@ -544,55 +548,23 @@ def block_trace_time_error(results: Path) -> str:
                 + ", Embree not robust)",
                 ratios("target_rmse"),
             ),
-            *(  # (runs before the robust default changed have no such curve)
-                [row("RMSE, ours raw, `robust=True`", ratios("target_rmse", "ours_raw_robust"))]
-                if "ours_raw_robust" in sc["target_rmse"]
-                else []
+            *optional("RMSE, ours raw, `robust=True`", "target_rmse", "ours_raw_robust"),
+            *optional(
+                "RMSE, ours raw, `edge_samples=0`", "target_rmse", "ours_raw_no_edge_samples"
             ),
-            *(  # (runs before edge samples existed have no such curve)
-                [
-                    row(
-                        "RMSE, ours raw, `edge_samples=0`",
-                        ratios("target_rmse", "ours_raw_no_edge_samples"),
-                    )
-                ]
-                if "ours_raw_no_edge_samples" in sc["target_rmse"]
-                else []
-            ),
-            *(  # (runs before gi_splits existed have no such curve)
-                [row("RMSE, ours raw, `gi_splits=4`", ratios("target_rmse", "ours_raw_gi_splits4"))]
-                if "ours_raw_gi_splits4" in sc["target_rmse"]
-                else []
-            ),
+            *optional("RMSE, ours raw, `gi_splits=4`", "target_rmse", "ours_raw_gi_splits4"),
             row("RMSE, ours with denoised GI (OIDN)", ratios("target_rmse", "ours_denoised")),
-            *(
-                [row("RMSE, denoised GI, OIDN 'fast'", ratios("target_rmse", "ours_denoised_fast"))]
-                if "ours_denoised_fast" in sc["target_rmse"]
-                else []
-            ),
+            *optional("RMSE, denoised GI, OIDN 'fast'", "target_rmse", "ours_denoised_fast"),
             row("RMSE, Embree floor", sc["embree_floor"]["floor_ratio_per_mitsuba_point"], False),
             row("FLIP, ours raw", ratios("target_flip")),
-            *(  # (runs before the Z sampler became the default have no such curve)
-                [
-                    row(
-                        "FLIP, ours raw, `sampler='sobol'` (per-pixel points)",
-                        ratios("target_flip", "ours_raw_sobol"),
-                    )
-                ]
-                if "ours_raw_sobol" in sc["target_flip"]
-                else []
-            ),
-            *(
-                [row("FLIP, ours raw, `gi_splits=4`", ratios("target_flip", "ours_raw_gi_splits4"))]
-                if "ours_raw_gi_splits4" in sc["target_flip"]
-                else []
-            ),
+            *optional(
+                "FLIP, ours raw, `sampler='sobol'` (per-pixel points)",
+                "target_flip",
+                "ours_raw_sobol",
+            ),  # fmt: skip
+            *optional("FLIP, ours raw, `gi_splits=4`", "target_flip", "ours_raw_gi_splits4"),
             row("FLIP, ours with denoised GI (OIDN)", ratios("target_flip", "ours_denoised")),
-            *(
-                [row("FLIP, denoised GI, OIDN 'fast'", ratios("target_flip", "ours_denoised_fast"))]
-                if "ours_denoised_fast" in sc["target_flip"]
-                else []
-            ),
+            *optional("FLIP, denoised GI, OIDN 'fast'", "target_flip", "ours_denoised_fast"),
             "",
         ]
         if not quiet:

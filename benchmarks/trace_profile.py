@@ -238,10 +238,9 @@ def _shade(p, level, d, prim, u, v, tt):
             if zshift >= 0:
                 px = (i >> 3) % (width * width)  # a pixel of the image (as the kernel's key)
                 zkey = K._zkey(px % width, px // width, sid, log2spp, zshift)
-            r0 = K._ld1(ps, sid, 4, pixseed0, zkey, zshift)
-            r1, r2 = K._ld2(ps, sid, 5, pixseed0, zkey, zshift)
-            r3, r4 = K._ld2(ps, sid, 3, pixseed0, zkey, zshift)
-            acc += r4
+            # the first vertex's two pairs, as the kernel: emitter (pick + point), bounce
+            r0, r2 = K._ld2(ps, sid, 6, pixseed0, zkey, zshift)
+            r3, r1 = K._ld2(ps, sid, 4, pixseed0, zkey, zshift)
         eps = K._eps(x[0], x[1], x[2], np.float64(tt[i]), diag)
         for j in range(suns.shape[0]):
             ok, wi0, wi1, wi2, c = K._sun_sample(suns[j, 0], suns[j, 1], suns[j, 2], nf, ns)
@@ -250,7 +249,7 @@ def _shade(p, level, d, prim, u, v, tt):
             ok, wi0, wi1, wi2, tf, ii, g = K._punctual_sample(punct, j, x, nf, ns, eps)
             acc += g
         if n_e > 0:
-            lf, y = K._emitter_point(tri, emit_faces, emit_cdf, r0, r1, r2, False)
+            lf, y = K._emitter_point(tri, emit_faces, emit_cdf, r0, 0.0, r2, True)
             nl = (fn[lf, 0], fn[lf, 1], fn[lf, 2])
             ok, wi0, wi1, wi2, tf, g = K._emitter_sample(
                 y, nl, pmf[lf], area[lf], diag, x, nf, ns, eps

@@ -209,14 +209,6 @@ def _sobol2(pixseed, sid, pair):
 
 
 @nb.njit(**_JIT)
-def _sobol1d(pixseed, sid, pair):
-    """First coordinate of :func:`_sobol2` only (a 1D stratified, Owen-scrambled sample)."""
-    h = _pair_seed(pixseed, pair)
-    i = _shuffled_index(h, sid)
-    return np.float64(_rev32(_lk_perm(i, h >> _U32))) * _INV32
-
-
-@nb.njit(**_JIT)
 def _part1by1(v):
     """Bits of the 16-bit ``v`` spread to the even bit positions (for Morton codes)."""
     v = v & np.uint64(0xFFFF)
@@ -254,14 +246,6 @@ def _ld2(pixseed, sid, pair, zseed, zkey, zshift):
     if zshift >= 0:
         return _zsobol2(zseed, zkey, zshift, pair)
     return _sobol2(pixseed, sid, pair)
-
-
-@nb.njit(inline="always", **_JIT)
-def _ld1(pixseed, sid, pair, zseed, zkey, zshift):
-    """First coordinate of :func:`_ld2` only."""
-    if zshift >= 0:
-        return _zsobol2(zseed, zkey, zshift, pair)[0]
-    return _sobol1d(pixseed, sid, pair)
 
 
 #: the sobol sampler is used for the first LD_MAX_DEPTH vertices; deeper ones use hashes
@@ -1177,9 +1161,8 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                     if zshift >= 0:
                         zshift_b = zshift - log2split
                         zkey_b = _zkey(
-                            pix[s] % width, pix[s] // width, sid_b, log2spp + log2split,
-                            zshift - log2split,
-                        )  # fmt: skip
+                            pix[s] % width, pix[s] // width, sid_b, log2spp + log2split, zshift_b
+                        )
                 t0 = 1.0
                 t1 = 1.0
                 t2 = 1.0
@@ -1206,23 +1189,18 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                             n_prim += 1
                         else:
                             n_bounce += 1
-                        if (
-                            prim < 0
-                        ):  # ---- the sky: direct for a camera ray, else gi (MIS-weighted)
+                        # ---- the sky: direct for a camera ray, else gi (MIS-weighted)
+                        if prim < 0:
                             if sky_kind != SKY_NONE:
-                                if sky_kind == SKY_ENVMAP:
-                                    le = _envmap(env, rot, scale, dx, dy, dz)
-                                else:
-                                    le = _sky_analytic(sky_kind, sky, dx, dy, dz)
+                                le = _sky(sky_kind, sky, env, rot, scale, dx, dy, dz)
                                 if depth == 1:
                                     direct[row, 0] += le[0] * w_seen
                                     direct[row, 1] += le[1] * w_seen
                                     direct[row, 2] += le[2] * w_seen
                                 else:
                                     w = 1.0
-                                    if (
-                                        sky_mis
-                                    ):  # MIS weight of the BSDF sample against the sky sample
+                                    # MIS weight of the BSDF sample against the sky sample
+                                    if sky_mis:
                                         psk = _sky_pdf(frame, spdf, rows, phi0, dx, dy, dz)
                                         w = (
                                             pdf_prev
@@ -1389,10 +1367,7 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                                 if _visible(
                                     rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)
                                 ):
-                                    if sky_kind == SKY_ENVMAP:
-                                        le = _envmap(env, rot, scale, wi0, wi1, wi2)
-                                    else:
-                                        le = _sky_analytic(sky_kind, sky, wi0, wi1, wi2)
+                                    le = _sky(sky_kind, sky, env, rot, scale, wi0, wi1, wi2)
                                     _add_to(
                                         direct,
                                         gi,
