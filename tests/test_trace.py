@@ -213,6 +213,8 @@ def test_config_validation():
     for bad in (0, 17, 2.0, True):
         with pytest.raises(ValueError, match="gi_splits"):
             TraceConfig(gi_splits=bad)
+    with pytest.raises(ValueError, match="sampler must be 'sobol', 'zsobol' or 'independent'"):
+        TraceConfig(sampler="halton")
 
 
 def test_adaptive_and_target_error_and_time_budget():
