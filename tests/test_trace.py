@@ -936,6 +936,59 @@ def test_sky_sampling_auto_skips_smooth_skies():
         TraceConfig(sky_sampling="env")
 
 
+def test_one_compiled_kernel_serves_every_scene_and_config_kind():
+    """trace_paths is compiled once (about 45 s cold): every scene and option below passes it
+    arguments of the same numba types. A read-only array (a Sky's rotation was one), another
+    dtype or layout would compile a second specialisation for that kind of scene."""
+    from icbtool.scene import PointLight, SpotLight
+    from icbtool.scene.load import decode_texture
+    from icbtool.trace import kernels as K
+
+    rng = np.random.default_rng(0)
+    sun = icb.scene.plane()
+    b = SceneBuilder("mixed")
+    m8 = b.material("t8", texture=decode_texture(rng.integers(0, 256, (4, 4, 3), np.uint8)))
+    mf = b.material("tf", texture=rng.uniform(0.1, 0.9, (4, 4, 3)).astype(np.float32))
+    b.add_quad((-1, 0, 1), (1, 0, 0), (0, 0, -2), m8)
+    b.add_quad((0, 0, 1), (1, 0, 0), (0, 0, -2), mf)
+    b.lights.append(PointLight((0, 2, 0), (8, 8, 8)))
+    b.lights.append(SpotLight((0, 1, 0), (0, -1, 0), (4, 4, 4), 20, 30))
+    lights = b.build()
+    envmap = rng.uniform(0.1, 4.0, (8, 16, 3)).astype(np.float32)
+    tilt = np.array([[1.0, 0, 0], [0, 0.8, -0.6], [0, 0.6, 0.8]])
+    skies = [
+        Sky((1.0, 1.0, 1.0)),
+        Sky(kind="gradient", **PEAKY_SKY),
+        Sky.from_envmap(envmap, world_from_map=tilt),
+    ]
+    scenes = [icb.scene.cornell_box(), sun, lights] + [_with_sky(lights, s) for s in skies]
+    configs = [
+        dict(),
+        dict(aux=False, sampler="independent", gi_splits=3),
+        dict(sampler="sobol", robust=True, texture_filter="nearest", sky_sampling="mis"),
+    ]
+    cap = 64
+    log = {
+        "o": np.zeros((cap, 3), np.float32),
+        "d": np.zeros((cap, 3), np.float32),
+        "tfar": np.zeros(cap, np.float32),
+        "kind": np.zeros(cap, np.int8),
+        "n": np.zeros(1, np.int64),
+    }
+    for sc in scenes:
+        cam = Camera.look_at((0.3, 2, 1.5), (0, 0, 0), (0, 1, 0), fov_y_deg=60, height=6, width=6)
+        if sc.name == "cornell_box":
+            cam = sc.default_camera.resized(6, 6)
+        for kw in configs:
+            _finite_nonneg(render(sc, cam, TraceConfig(spp=2, **kw)))
+        render(sc, cam, TraceConfig(spp=1), ray_log=log)
+    assert log["n"][0] == cap
+    sigs = K.trace_paths.signatures
+    assert len(sigs) == 1, "trace_paths was specialised more than once:\n" + "\n".join(
+        f"{i}: {[str(t) for t in s]}" for i, s in enumerate(sigs)
+    )
+
+
 def test_kernels_and_rtc_do_not_import_each_other_at_module_level():
     """The RTCRayHit layout lives in trace/layout.py: kernels.py reads it without importing rtc,
     and rtc imports the kernels only inside its self-check (no import cycle)."""

@@ -487,7 +487,9 @@ class SkyTable:
                 from icbtool.scene.types import envmap_periodic
 
                 env = envmap_periodic(sky.envmap)
-                rot = np.ascontiguousarray(sky.world_from_map, np.float64)
+                # a writeable copy: the Sky's own array is read-only, and numba types a
+                # read-only array apart (a second ~45 s compile of trace_paths)
+                rot = np.array(sky.world_from_map, np.float64, order="C")
                 scale = float(sky.envmap_scale)
             else:
                 rad = np.array([sky.zenith, sky.horizon, sky.ground, sky.up], np.float64)
