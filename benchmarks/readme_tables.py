@@ -1100,17 +1100,29 @@ TRACE_SPEED_AB = (
         "line)",
         True,
     ),
+    (
+        "fastmath",
+        "LLVM fast-math flags but NaN/Inf semantics (contract, arcp, nsz, afn, reassoc; images "
+        "not bit-identical)",
+        False,
+    ),
+    (
+        "overhead",
+        "per render: only the sample counts zeroed (a pixel's first sample sets its "
+        "statistics), no copies of the outputs",
+        True,
+    ),
 )
 
 
 def block_trace_speed(results: Path) -> str:
     lines = [
         "**Tracer speed changes** (`benchmarks/trace_ab.py`, paired A/B: one process per "
-        "checkout, renders alternating, 8 spp,",
+        "checkout, renders alternating,",
         "median ratio B/A of rays per second of process CPU time (quartiles); images "
         "bit-identical, so the error per sample is unchanged, unless the change says otherwise):",
         "",
-        "| change (B) | kept | Cornell box | Sponza | size, threads, rounds, 1-minute load |",
+        "| change (B) | kept | Cornell box | Sponza | size, spp, threads, rounds, 1-minute load |",
         "|---|---|---|---|---|",
     ]
     for key, what, kept in TRACE_SPEED_AB:
@@ -1125,7 +1137,7 @@ def block_trace_speed(results: Path) -> str:
                 d = json.loads(path.read_text())
                 q = d["cpu_ratio_quartiles"]
                 runs.append(f"{d['median_cpu_ratio_b_over_a']:.3f} ({q[0]:.3f}-{q[-1]:.3f})")
-                meta = f"{d['args']['size']}^2, {d['args']['threads']}"
+                meta = f"{d['args']['size']}^2, {d['args']['spp']}, {d['args']['threads']}"
                 rounds.append(str(len(d["rounds"])))
                 loads += d["load_1min"]
             cells.append("; rerun ".join(runs))

@@ -1461,9 +1461,24 @@ def _visible(rtc, fn_occl, ray, log, so, dx, dy, dz, tf):
 @nb.njit(inline="always", **_JIT)
 def _add_sample(acc, p, direct, gi, hit, alb, nrm, row, want_aux):
     """A sample's outputs (scratch ``row``) into pixel ``p``'s statistics: Welford mean/M2 of
-    (gi rgb, gi luminance) and of direct, and sums of the hit flag, albedo and normal."""
+    (gi rgb, gi luminance) and of direct, and sums of the hit flag, albedo and normal. A pixel
+    whose count is 0 is set, not added to: its other statistics need no zeroing."""
     lum_w, n, mean_g, m2_g, mean_d, m2_d, hit_sum, alb_sum, nrm_sum = acc
     g3 = gi[row, 0] * lum_w[0] + gi[row, 1] * lum_w[1] + gi[row, 2] * lum_w[2]
+    if n[p] == 0:  # the pixel's first sample sets its statistics (only ``n`` starts zeroed)
+        n[p] = 1
+        for k in range(4):
+            mean_g[p, k] = gi[row, k] if k < 3 else g3
+            m2_g[p, k] = 0.0
+        for k in range(3):
+            mean_d[p, k] = direct[row, k]
+            m2_d[p, k] = 0.0
+        hit_sum[p] = 1.0 if hit[row] else 0.0
+        if want_aux:
+            for k in range(3):
+                alb_sum[p, k] = alb[row, k]
+                nrm_sum[p, k] = nrm[row, k]
+        return
     n[p] += 1
     inv = 1.0 / n[p]
     for k in range(4):
@@ -1523,6 +1538,13 @@ def finish(
     for p in range(lo, hi):
         k = n_g[p]
         kk = max(k, 1)
+        if k == 0:  # no sample (its statistics were never set): zeros
+            for c in range(3):
+                gi[p, c] = direct[p, c] = var[p, c] = 0.0
+                if want_aux:
+                    albedo[p, c] = normal[p, c] = 0.0
+            mask[p] = 0.0
+            continue
         for c in range(3):
             gi[p, c] = mean_g[p, c]
             direct[p, c] = mean_d[p, c]

@@ -823,21 +823,22 @@ class _Tracer:
         )
 
     def _pixel_stats(self) -> Any:
-        """Zeroed per-pixel statistics (:data:`~icbtool.trace.kernels.PixelStats`, workspace
-        buffers) for the kernel to add samples to."""
+        """Per-pixel statistics (:data:`~icbtool.trace.kernels.PixelStats`, workspace buffers)
+        for the kernel to add samples to: the counts zeroed, the rest as the workspace left them
+        (a pixel's first sample sets them, and a pixel without samples is never read)."""
         K = _kernels()
         ws, npix = self._ws, self.cam.height * self.cam.width
         n_aux = npix if (self.cfg.aux or self.cfg.denoise) else 1
         return K.PixelStats(
             _LUM,
             ws.zeros("acc_n", (npix,), np.int64),
-            ws.zeros("acc_gi_mean", (npix, 4), np.float64),  # rgb + luminance
-            ws.zeros("acc_gi_m2", (npix, 4), np.float64),
-            ws.zeros("acc_dir_mean", (npix, 3), np.float64),
-            ws.zeros("acc_dir_m2", (npix, 3), np.float64),
-            ws.zeros("hit_sum", (npix,), np.float64),
-            ws.zeros("alb_sum", (n_aux, 3), np.float64),
-            ws.zeros("nrm_sum", (n_aux, 3), np.float64),
+            ws.get("acc_gi_mean", (npix, 4), np.float64),  # rgb + luminance
+            ws.get("acc_gi_m2", (npix, 4), np.float64),
+            ws.get("acc_dir_mean", (npix, 3), np.float64),
+            ws.get("acc_dir_m2", (npix, 3), np.float64),
+            ws.get("hit_sum", (npix,), np.float64),
+            ws.get("alb_sum", (n_aux, 3), np.float64),
+            ws.get("nrm_sum", (n_aux, 3), np.float64),
         )
 
     # ------------------------------------------------------------------ one pass
@@ -1050,7 +1051,7 @@ def render(
             stats.stop_reason = stats.stop_reason or "spp"
             break
         k = np.minimum(cfg.spp_per_pass, cfg.spp - acc.n[active])
-        pix = np.repeat(active, k).astype(np.int64)
+        pix = np.repeat(active, k).astype(np.int64, copy=False)
         start = np.repeat(acc.n[active], k)
         sid = start + (np.arange(len(pix)) - np.repeat(np.cumsum(k) - k, k))
         # a pass is traced in calls of at most MAX_SAMPLES_PER_CALL samples; each pixel's samples
@@ -1139,7 +1140,7 @@ def render(
     return TraceResult(
         gi=gi,
         direct=direct,
-        full=(direct + gi).astype(np.float32),
+        full=np.add(direct, gi, dtype=np.float32),
         variance=var,
         spp=spp,
         mask=mask,
