@@ -489,6 +489,10 @@ def block_trace_time_error(results: Path) -> str:
         "Mitsuba's time per sample on the Cornell box (8 spp) in that day's quiet run and about "
         "1.0-1.1x on the host of 2026-11-26 (both 'AMD EPYC', 2 cores), where Mitsuba needed 3.3x "
         "its earlier CPU time and we 1.5x; each run names its host below.",
+        "The RMSE ratio at Mitsuba's 2 spp is our 1-spp time (its RMSE is already below "
+        "Mitsuba's 2-spp RMSE) over Mitsuba's 2-spp time; between quiet runs on one host, "
+        "Mitsuba's fastest 2-spp render has moved enough for that point to pass in one run and "
+        "fail in the next.",
         "",
     ]
     for name, (rel, d, sc) in runs.items():
