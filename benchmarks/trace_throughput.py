@@ -43,13 +43,7 @@ def sponza():
 def ray_log(scene, cam, cfg, capacity: int) -> tuple[dict[str, np.ndarray], int]:
     """Every ray of one render in tracing order (the tracer's ``ray_log``: o, d, tfar, kind)
     and how many there are."""
-    log = {
-        "o": np.zeros((capacity, 3), np.float32),
-        "d": np.zeros((capacity, 3), np.float32),
-        "tfar": np.zeros(capacity, np.float32),
-        "kind": np.zeros(capacity, np.int8),
-        "n": np.zeros(1, np.int64),
-    }
+    log = icb.trace.ray_log_buffers(capacity)
     icb.trace.render(scene, cam, cfg, ray_log=log)
     n = int(log["n"][0])
     if n >= capacity:

@@ -968,13 +968,7 @@ def test_one_compiled_kernel_serves_every_scene_and_config_kind():
         dict(sampler="sobol", robust=True, texture_filter="nearest", sky_sampling="mis"),
     ]
     cap = 64
-    log = {
-        "o": np.zeros((cap, 3), np.float32),
-        "d": np.zeros((cap, 3), np.float32),
-        "tfar": np.zeros(cap, np.float32),
-        "kind": np.zeros(cap, np.int8),
-        "n": np.zeros(1, np.int64),
-    }
+    log = icb.trace.ray_log_buffers(cap)
     for sc in scenes:
         cam = Camera.look_at((0.3, 2, 1.5), (0, 0, 0), (0, 1, 0), fov_y_deg=60, height=6, width=6)
         if sc.name == "cornell_box":

@@ -13,6 +13,7 @@ from icbtool.trace.tracer import (
     TraceResult,
     TraceStats,
     denoise,
+    ray_log_buffers,
     render,
     render_gi,
 )
@@ -25,6 +26,7 @@ __all__ = [
     "TraceResult",
     "TraceStats",
     "denoise",
+    "ray_log_buffers",
     "render",
     "render_gi",
 ]

@@ -984,6 +984,22 @@ def _in_parts(
 
 
 # ---------------------------------------------------------------------------------- driver
+def ray_log_buffers(capacity: int) -> dict[str, np.ndarray]:
+    """Empty buffers for :func:`render`'s ``ray_log`` that hold the first ``capacity`` rays.
+
+    Returns:
+        {"o", "d": (capacity, 3) float32, "tfar": (capacity,) float32, "kind": (capacity,) int8,
+        "n": (1,) int64 zero}.
+    """
+    return {
+        "o": np.zeros((capacity, 3), np.float32),
+        "d": np.zeros((capacity, 3), np.float32),
+        "tfar": np.zeros(capacity, np.float32),
+        "kind": np.zeros(capacity, np.int8),
+        "n": np.zeros(1, np.int64),
+    }
+
+
 def render(
     scene: Scene,
     cam: Camera,
@@ -1000,9 +1016,9 @@ def render(
         config: :class:`TraceConfig` (default: ``TraceConfig()``, with the scene's
             ``max_depth`` when its file gives one, e.g. a Mitsuba integrator's).
         ray_log: for benchmarks: {"o", "d": (C, 3) float32, "tfar": (C,) float32, "kind": (C,)
-            int8, "n": (1,) int64} receives the first C rays traced, in order (kind 0: camera
-            ray, 1: shadow ray, 2: bounce ray), with ``n`` counting them; it makes the render
-            single-threaded.
+            int8, "n": (1,) int64} (:func:`ray_log_buffers`) receives the first C rays traced,
+            in order (kind 0: camera ray, 1: shadow ray, 2: bounce ray), with ``n`` counting
+            them; it makes the render single-threaded.
         progress: True shows a progress bar (mean spp, relative error) on stderr; a callable
             is called with the :class:`TraceStats` after every pass (``stats.error_history[-1]``
             is (seconds, samples, relative error) so far).
