@@ -537,6 +537,30 @@ def block_trace_time_error(results: Path) -> str:
             """The row of a curve that older results files may lack (it did not exist yet)."""
             return [row(what, ratios(key, curve))] if curve in sc[key] else []
 
+        def paired_row(points: list[dict]) -> list[str]:
+            """Median (quartiles) of the per-round time ratios, where the file has them."""
+            if not all("paired_ratio_quartiles" in p for p in points):
+                return []
+            cells = [
+                "{1:.2f} ({0:.2f}-{2:.2f}, {3} rounds)".format(
+                    *p["paired_ratio_quartiles"], len(p["paired_rounds_s"])
+                )
+                for p in points
+            ]
+            what = "per sample, each round's ratio (renders back to back): median (quartiles)"
+            return [f"| {what} | " + " | ".join(cells) + " |"]
+
+        def paired_summary(points: list[dict], spps: list[int]) -> str:
+            """The per-round medians in words (comparing fastest runs alone can favour either
+            renderer by the VM's drift between them)."""
+            if not all("paired_ratio_quartiles" in p for p in points):
+                return ""
+            med = [p["paired_ratio_quartiles"][1] for p in points]
+            slow = [s for s, m in zip(spps, med, strict=True) if m > 1]
+            return f"; round by round, the median ratio is {span(med, f2)}" + (
+                f" (above 1 at {', '.join(map(str, slow))} spp)" if slow else ""
+            )
+
         mi_t = [p["time_s"] for p in cur["mitsuba"]]
         per_sample = [o["time_s"] / m["time_s"] for o, m in zip(cur["ours_raw"], cur["mitsuba"])]
         err_ratio = [o["rmse"] / m["rmse"] for o, m in zip(cur["ours_raw"], cur["mitsuba"])]
@@ -545,6 +569,7 @@ def block_trace_time_error(results: Path) -> str:
             f"| Mitsuba spp (its time) | {head} |",
             "|---" * (len(spps) + 1) + "|",
             row("per sample: our time / Mitsuba's, same spp", per_sample, mark=False),
+            *paired_row(cur["ours_raw"]),
             row("RMSE per sample: ours / Mitsuba's, same spp", err_ratio, mark=False),
             row(
                 "RMSE, ours raw (default: "
@@ -599,7 +624,9 @@ def block_trace_time_error(results: Path) -> str:
                 if slower
                 else " (faster at every spp)"
             )
-            + f", with {span(err_ratio, f2)} of its RMSE.",
+            + f", with {span(err_ratio, f2)} of its RMSE"
+            + paired_summary(cur["ours_raw"], spps)
+            + ".",
             "",
         ]
     lines += _error_by_brightness(results)

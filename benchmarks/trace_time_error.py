@@ -562,6 +562,7 @@ def main() -> None:
             mitsuba_render(scene, cam, spp, seed=spp + 10_000)  # warm Mitsuba's kernel cache
             r, t_mi, floor, img = None, np.inf, np.inf, None
             rounds = 0
+            paired = []  # (ours, Mitsuba) wall times of each round, back to back
             while rounds < args.repeats * (
                 SHORT_RUN_FACTOR if r and max(r.stats.time_s["total"], t_mi) < SHORT_RUN_S else 1
             ):
@@ -570,12 +571,21 @@ def main() -> None:
                     r = ri
                 img, dt = mitsuba_render(scene, cam, spp, seed=spp)
                 t_mi = min(t_mi, dt)
+                paired.append((ri.stats.time_s["total"], dt))
                 floor = min(floor, sum(replay_direct(rtc, rays).values()))
                 if min(r.stats.time_s["total"], t_mi) > LONG_RUN_S:
                     break
                 rounds += 1
+            ratio = [a / b for a, b in paired]
             curves["ours_raw"].append(
-                {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
+                {
+                    "spp": spp,
+                    "time_s": r.stats.time_s["total"],
+                    **errors(ref_full, r.full),
+                    # per sample, robust to drift: each round's ours / Mitsuba (back to back)
+                    "paired_rounds_s": paired,
+                    "paired_ratio_quartiles": np.percentile(ratio, [25, 50, 75]).tolist(),
+                }
             )
             curves["mitsuba"].append({"spp": spp, "time_s": t_mi, **errors(ref_mi, img)})
             embree_floor.append({"spp": spp, "time_s": floor, "rays": n_rays(rays)})
@@ -660,7 +670,8 @@ def main() -> None:
             "reference_mean_ours": float(ref_full.mean()),
             "timing": f"min wall time of {args.repeats} runs ({SHORT_RUN_FACTOR * args.repeats} "
             f"where both renders took under {SHORT_RUN_S} s); ours_raw, Mitsuba and the Embree "
-            "floor in interleaved rounds (the VM's stolen time varies)",
+            "floor in interleaved rounds (the VM's stolen time varies); ours_raw's points keep "
+            "each round's (ours, Mitsuba) times and the quartiles of their ratios",
             "reference_mean_mitsuba": float(ref_mi.mean()),
             "alignment_ours_vs_mitsuba": align,
             "target_rmse": target_check(curves, "rmse"),
