@@ -766,6 +766,41 @@ def test_reused_workspaces_do_not_leak_between_renders():
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
 
 
+def test_statistics_never_read_stale_workspace_values():
+    """Only the sample counts are zeroed before a render (a pixel's first sample sets its other
+    statistics): with every reused buffer poisoned with NaN, renders (with and without aux,
+    several passes) equal the same renders on fresh buffers, and ``finish`` writes zeros for a
+    pixel that got no sample."""
+    from icbtool.trace import kernels as K
+    from icbtool.trace import tracer as T
+
+    sc = icb.scene.cornell_box()
+    cam = sc.default_camera.resized(24, 20)
+    cfgs = [TraceConfig(spp=6, seed=3, spp_per_pass=2), TraceConfig(spp=3, seed=4, aux=False)]
+    fresh = []
+    for cfg in cfgs:
+        T._WS_FREE.clear()
+        fresh.append(render(sc, cam, cfg))
+    for cfg, a in zip(cfgs, fresh):
+        ws = T._take_workspace()
+        render(sc, cam, TraceConfig(spp=1))  # (another workspace, so ws stays ours)
+        for b in ws._bufs.values():
+            b.fill(np.nan if b.dtype.kind == "f" else 7)
+        T._WS_FREE[:] = [ws]
+        b = render(sc, cam, cfg)
+        for name in ("gi", "direct", "variance", "mask", "albedo", "normal", "full"):
+            x, y = getattr(a, name), getattr(b, name)
+            assert (x is None and y is None) or np.array_equal(x, y), name
+    n = np.array([2, 0], np.int64)
+    junk = np.full((2, 4), np.nan)
+    outs = [np.full((2, 3), 5.0, np.float32) for _ in range(5)]
+    mask = np.full(2, 5.0, np.float32)
+    K.finish(n, junk, junk, junk[:, :3], np.full(2, np.nan), junk[:, :3], junk[:, :3], True,
+             outs[0], outs[1], outs[2], mask, outs[3], outs[4], 1, 2)  # fmt: skip
+    assert all((o[1] == 0).all() for o in outs) and mask[1] == 0
+    assert all((o[0] == 5).all() for o in outs)  # pixel 0 is outside lo..hi
+
+
 @pytest.mark.parametrize("texels", ["8bit", "float"])
 def test_textured_lookup_wraps_and_matches_bilinear_formula(texels):
     """A textured quad with uvs far outside [0, 1] under a uniform sky: the traced first-hit
