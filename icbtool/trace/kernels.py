@@ -1297,15 +1297,10 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                                 if _visible(
                                     rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)
                                 ):
-                                    _add_to(
-                                        direct,
-                                        gi,
-                                        to_direct_dl,
-                                        row,
-                                        fo[0] * suns[j, 3] * c,
-                                        fo[1] * suns[j, 4] * c,
-                                        fo[2] * suns[j, 5] * c,
-                                    )
+                                    _add_light(
+                                        direct, gi, to_direct_dl, row, fo,
+                                        suns[j, 3], suns[j, 4], suns[j, 5], c,
+                                    )  # fmt: skip
                         for j in range(n_q):  # point and spot lights (delta)
                             ok, wi0, wi1, wi2, tf, ii, g = _punctual_sample(
                                 punct, j, x, nf, ns, eps
@@ -1313,14 +1308,8 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                             if ok:
                                 n_shadow += 1
                                 if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
-                                    _add_to(
-                                        direct,
-                                        gi,
-                                        to_direct_dl,
-                                        row,
-                                        fo[0] * ii[0] * g,
-                                        fo[1] * ii[1] * g,
-                                        fo[2] * ii[2] * g,
+                                    _add_light(
+                                        direct, gi, to_direct_dl, row, fo, ii[0], ii[1], ii[2], g
                                     )
                         if n_e > 0:  # emissive triangles: power-sampled, MIS with the BSDF
                             if use_ld:  # one stratified pair: face pick and point (reuse)
@@ -1341,15 +1330,11 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                                 n_shadow += 1
                                 if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
                                     me = face_mat[lf]
-                                    _add_to(
-                                        direct,
-                                        gi,
-                                        to_direct_dl and face_is_area[lf],
-                                        row,
-                                        fo[0] * mat_emission[me, 0] * g,
-                                        fo[1] * mat_emission[me, 1] * g,
-                                        fo[2] * mat_emission[me, 2] * g,
-                                    )
+                                    _add_light(
+                                        direct, gi, to_direct_dl and face_is_area[lf], row, fo,
+                                        mat_emission[me, 0], mat_emission[me, 1],
+                                        mat_emission[me, 2], g,
+                                    )  # fmt: skip
                         if sky_mis:  # the sky, importance-sampled from its table; always gi
                             if use_ld:
                                 us1, us2 = _ld2(
@@ -1368,15 +1353,7 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                                     rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)
                                 ):
                                     le = _sky(sky_kind, sky, env, rot, scale, wi0, wi1, wi2)
-                                    _add_to(
-                                        direct,
-                                        gi,
-                                        False,
-                                        row,
-                                        fo[0] * le[0] * g,
-                                        fo[1] * le[1] * g,
-                                        fo[2] * le[2] * g,
-                                    )
+                                    _add_light(direct, gi, False, row, fo, le[0], le[1], le[2], g)
                         if depth == 1 and splits > 1:  # the first vertex, for the other branches
                             v1 = True
                             s_so = so
@@ -1433,6 +1410,14 @@ def _add_to(direct, gi, to_direct, s, a, b, c):
         gi[s, 0] += a
         gi[s, 1] += b
         gi[s, 2] += c
+
+
+@nb.njit(inline="always", **_JIT)
+def _add_light(direct, gi, to_direct, s, fo, l0, l1, l2, g):
+    """A light sample's contribution ``fo * (l0, l1, l2) * g`` (``fo``: the vertex's BSDF value
+    times the throughput, a 3-tuple; ``g``: the sample's geometry and pdf factor) into sample
+    s of ``direct`` or ``gi``, each channel evaluated as (fo * l) * g."""
+    _add_to(direct, gi, to_direct, s, fo[0] * l0 * g, fo[1] * l1 * g, fo[2] * l2 * g)
 
 
 @nb.njit(inline="always", **_JIT)
