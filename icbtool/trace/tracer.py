@@ -635,10 +635,11 @@ def _z_layout(cfg: TraceConfig, width: int, height: int) -> tuple[int, int]:
     the sampler is not 'zsobol' or the key would not fit in 32 bits."""
     log2spp = max(int(cfg.spp) - 1, 0).bit_length()
     nbits = max(max(int(width), int(height)) - 1, 0).bit_length()
-    used = 2 * nbits + log2spp + _log2_splits(cfg)
+    log2split = _log2_splits(cfg)
+    used = 2 * nbits + log2spp + log2split
     if cfg.sampler != "zsobol" or used > 32:
         return log2spp, -1
-    return log2spp, 32 - used + _log2_splits(cfg)
+    return log2spp, 32 - used + log2split
 
 
 def _log2_splits(cfg: TraceConfig) -> int:
