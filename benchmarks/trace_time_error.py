@@ -259,6 +259,18 @@ def alignment(ours: np.ndarray, theirs: np.ndarray, max_shift: int = 2) -> dict:
 
 
 REF_CACHE = Path("/tmp/icb_trace_bench_refs")
+
+#: Our other raw configurations, each a curve of its own, as changes to the default config.
+RAW_VARIANTS = {
+    "ours_raw_robust": dict(robust=True),
+    # without the extra emission samples on emitter/sky edges (TraceConfig.edge_samples)
+    "ours_raw_no_edge_samples": dict(edge_samples=0),
+    "ours_raw_independent": dict(sampler="independent"),
+    "ours_raw_sobol": dict(sampler="sobol"),  # per-pixel points: white noise across pixels
+    # four branches after the first vertex (TraceConfig.gi_splits): the same spp of camera
+    # rays, about 4x the GI samples
+    "ours_raw_gi_splits4": dict(gi_splits=4),
+}
 #: timed runs longer than this are not repeated
 LONG_RUN_S = 5.0
 #: Renders shorter than this get SHORT_RUN_FACTOR times the repeats: at 1-2 spp a render takes
@@ -539,11 +551,7 @@ def main() -> None:
         print(f"{name}: alignment best shift {align['full']['best_shift_dy_dx']}", flush=True)
         keys = (
             "ours_raw",
-            "ours_raw_robust",
-            "ours_raw_no_edge_samples",
-            "ours_raw_independent",
-            "ours_raw_sobol",
-            "ours_raw_gi_splits4",
+            *RAW_VARIANTS,
             "ours_denoised",
             "ours_denoised_fast",
             "ours_denoised_full",
@@ -622,24 +630,9 @@ def main() -> None:
                     **errors(ref_full, full_dn),
                 }
             )
-            r = ours(scene, cam, replace(cfg, robust=True), args.repeats)
-            curves["ours_raw_robust"].append(
-                {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
-            )
-            # without the extra emission samples on emitter/sky edges (TraceConfig.edge_samples)
-            r = ours(scene, cam, replace(cfg, edge_samples=0), args.repeats)
-            curves["ours_raw_no_edge_samples"].append(
-                {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
-            )
-            # four branches after the first vertex (TraceConfig.gi_splits): the same spp of
-            # camera rays, about 4x the GI samples
-            r = ours(scene, cam, replace(cfg, gi_splits=4), args.repeats)
-            curves["ours_raw_gi_splits4"].append(
-                {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
-            )
-            for sampler in ("independent", "sobol"):  # sobol: per-pixel points, white noise
-                r = ours(scene, cam, replace(cfg, sampler=sampler), args.repeats)
-                curves[f"ours_raw_{sampler}"].append(
+            for key, change in RAW_VARIANTS.items():  # each timed on its own (min of repeats)
+                r = ours(scene, cam, replace(cfg, **change), args.repeats)
+                curves[key].append(
                     {"spp": spp, "time_s": r.stats.time_s["total"], **errors(ref_full, r.full)}
                 )
             r = ours(
