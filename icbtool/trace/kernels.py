@@ -1108,9 +1108,11 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                 nrm_out[row, 0] = nrm_out[row, 1] = nrm_out[row, 2] = 0.0
             pixel_seed = _mix(pixseed0 ^ (np.uint64(pix[s]) * _GOLD))
             base_s = _sample_base(seed_mix, pix[s], sid[s])
+            pix_x = pix[s] % width
+            pix_y = pix[s] // width
             zkey = _U0
             if zshift >= 0:
-                zkey = _zkey(pix[s] % width, pix[s] // width, sid[s], log2spp, zshift)
+                zkey = _zkey(pix_x, pix_y, sid[s], log2spp, zshift)
             zk = (pixseed0, zkey, zshift)
             dx, dy, dz = _camera_ray(
                 intr, r_wc, width, jitter, sampler, salts, pix[s], sid[s], pixel_seed, base_s, zk
@@ -1131,8 +1133,8 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                         bj = _mix(base_s + np.uint64(j + 1) * _GOLD)
                         jx = _u01(bj, salts[0])
                         jy = _u01(bj, salts[1])
-                    px = np.float64(pix[s] % width) + jx
-                    py = np.float64(pix[s] // width) + jy
+                    px = np.float64(pix_x) + jx
+                    py = np.float64(pix_y) + jy
                     le = _emission_through(
                         rtc, fn_isect, ray, log, (ox, oy, oz), intr, r_wc, px, py,
                         (fn, face_mat, mat_emission), (sky_kind, sky, env, rot, scale),
@@ -1160,9 +1162,7 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
                     base_b = _sample_base(seed_mix ^ _SPLIT_SALT, pix[s], sid_b)
                     if zshift >= 0:
                         zshift_b = zshift - log2split
-                        zkey_b = _zkey(
-                            pix[s] % width, pix[s] // width, sid_b, log2spp + log2split, zshift_b
-                        )
+                        zkey_b = _zkey(pix_x, pix_y, sid_b, log2spp + log2split, zshift_b)
                 t0 = 1.0
                 t1 = 1.0
                 t2 = 1.0
