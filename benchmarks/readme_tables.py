@@ -1143,14 +1143,31 @@ TRACE_SPEED_AB = (
         "statistics), no copies of the outputs",
         True,
     ),
+    (
+        "queue",
+        "the two threads take blocks of samples from one shared queue (an atomic counter) "
+        "instead of every other block (blocks of 64 pixels alternated: column bands of unequal "
+        "cost on Sponza, and a thread the VM slows holds up the pass)",
+        True,
+    ),
+    (
+        "queue1spp",
+        "the same, 1 spp (a block is then one whole row: the old split alternated rows, little "
+        "to balance)",
+        True,
+    ),
 )
+#: rows of TRACE_SPEED_AB whose ratio is of wall time: they change how the threads share the
+#: work, which saves one thread's waiting for the other, not CPU time
+TRACE_SPEED_WALL = {"queue", "queue1spp"}
 
 
 def block_trace_speed(results: Path) -> str:
     lines = [
         "**Tracer speed changes** (`benchmarks/trace_ab.py`, paired A/B: one process per "
         "checkout, renders alternating,",
-        "median ratio B/A of rays per second of process CPU time (quartiles); images "
+        "median ratio B/A of rays per second of process CPU time (quartiles; of wall time "
+        "where the cell says so); images "
         "bit-identical, so the error per sample is unchanged, unless the change says otherwise):",
         "",
         "| change (B) | kept | Cornell box | Sponza | size, spp, threads, rounds, 1-minute load |",
@@ -1166,8 +1183,15 @@ def block_trace_speed(results: Path) -> str:
             runs = []  # every run of this change (a rerun: ab_<key>_<scene>_rerun.json)
             for path in found:
                 d = json.loads(path.read_text())
-                q = d["cpu_ratio_quartiles"]
-                runs.append(f"{d['median_cpu_ratio_b_over_a']:.3f} ({q[0]:.3f}-{q[-1]:.3f})")
+                if key in TRACE_SPEED_WALL:
+                    q = d["ratio_quartiles"]
+                    runs.append(
+                        f"wall {d['median_ratio_b_over_a']:.3f} ({q[0]:.3f}-{q[-1]:.3f}), CPU "
+                        f"{d['median_cpu_ratio_b_over_a']:.3f}"
+                    )
+                else:
+                    q = d["cpu_ratio_quartiles"]
+                    runs.append(f"{d['median_cpu_ratio_b_over_a']:.3f} ({q[0]:.3f}-{q[-1]:.3f})")
                 meta = f"{d['args']['size']}^2, {d['args']['spp']}, {d['args']['threads']}"
                 rounds.append(str(len(d["rounds"])))
                 loads += d["load_1min"]

@@ -738,6 +738,41 @@ def test_threads_split_kernels_and_embree_deterministic(sampler):
     assert np.array_equal(a.albedo, b.albedo) and np.array_equal(a.variance, b.variance)
 
 
+def test_parts_take_each_block_of_the_shared_queue_exactly_once():
+    """The kernel's parts share a pass by taking blocks from one queue (``_take_block``, an
+    atomic add): two threads that each take 2 million blocks as fast as they can, on one queue,
+    get every block once between them; a plain ``queue[0] += 1`` loses and repeats blocks
+    there. The queue ends one past the last block for each part (each takes one to find it
+    empty)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import numba as nb
+
+    from icbtool.trace import kernels as K
+
+    @nb.njit(nogil=True)
+    def take_all(queue, n, taken):
+        k = 0
+        while True:
+            b = K._take_block(queue)
+            if b >= n:
+                return k
+            taken[k] = b
+            k += 1
+
+    n = 2_000_000
+    queue = np.zeros(1, np.int64)
+    taken = [np.full(n, -1, np.int64) for _ in range(2)]
+    take_all(np.zeros(1, np.int64), 4, np.zeros(4, np.int64))  # compiled before the race
+    with ThreadPoolExecutor(2) as pool:
+        counts = list(pool.map(lambda t: take_all(queue, n, t), taken))
+    got = np.concatenate([t[:k] for t, k in zip(taken, counts)])
+    assert len(got) == n and np.array_equal(np.sort(got), np.arange(n))
+    assert queue[0] == n + 2
+    for t, k in zip(taken, counts):  # each part's blocks in the order it took them
+        assert np.all(np.diff(t[:k]) > 0)
+
+
 def test_passes_split_into_calls_give_the_same_image(monkeypatch):
     """Large passes are traced in calls of MAX_SAMPLES_PER_CALL samples: any split (here one
     that cuts through pixels' samples and kernel blocks) gives the same image, bit for bit."""

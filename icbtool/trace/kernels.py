@@ -415,6 +415,22 @@ def _stack_words(typingctx):
 
 
 @intrinsic
+def _take_block(typingctx, queue):
+    """The next block of a shared work queue: ``queue[0] += 1`` as one atomic step (LLVM
+    ``atomicrmw add``), returning the old value. Parts that take blocks this way share the
+    work by how fast each runs, not by a fixed split (docs/design.md, section 8)."""
+    if not (isinstance(queue, types.Array) and queue.dtype == types.int64):
+        return None
+
+    def codegen(context, builder, signature, args):
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        one = ir.Constant(ir.IntType(64), 1)
+        return builder.atomic_rmw("add", ary.data, one, "monotonic")
+
+    return types.int64(queue), codegen
+
+
+@intrinsic
 def _address(typingctx, ptr):
     """The address of a pointer, as uint64."""
 
@@ -1046,7 +1062,7 @@ def _cosine_sample(nf, ns, u1, u2):
 # otherwise incref/decref (atomically, on arrays both threads share) every array an inlined
 # helper receives: 12 % of the single-thread CPU time on the Cornell box, 7 % on Sponza.
 @nb.njit(_nrt=False, **_JIT)
-def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
+def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
     """Trace one whole path per sample (every depth, shadow rays inline) for a share of samples
     and add each sample to its pixel's statistics. With ``Sampling.splits`` = k > 1 the path
     branches after its first vertex's light sample: branch 0 goes on from there, branches 1 ..
@@ -1060,15 +1076,18 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
         counts: (3,) int64 rays traced by this part: primary, bounce, shadow (added to).
         log: ray log (benchmarks): o, d (C, 3), tfar (C,), kind (C,) 0 = camera, 1 = shadow,
             2 = bounce; n (1,) entries used; C <= 1 turns logging off.
-        part, n_parts: this part's share: blocks part, part + n_parts, ...
+        part: this part's scratch row (``part * ROW_STRIDE``); parts running at once differ.
+        queue: (1,) int64, the next block to take, shared by every part of the call (zero at
+            the start): each part takes blocks from it until none is left, so a part that runs
+            faster (its pixels cost less, or the host gives its thread more time) takes more.
         pix, sid: (P,) pixel index (row-major, non-decreasing) and sample index of each sample.
         bounds: (B + 1,) the blocks' first samples and P; every boundary lies between two pixels.
 
     No pixel's samples span two blocks, so parts update disjoint pixels: several threads can run
     parts at once (the kernel releases the GIL). Per sample, contributions are added in a fixed
     order (emission seen, then each light's shadow-tested sample: suns, point/spot, emitter,
-    sky), and samples are added to their pixel in sample order, so images do not depend on the
-    number of parts.
+    sky), and samples are added to their pixel in sample order, so images depend neither on the
+    number of parts nor on which part took which block.
     """
     # the struct's fields as locals, once (see the note above the shading helpers)
     rtc, fn_isect, fn_occl = p.embree
@@ -1097,7 +1116,10 @@ def trace_paths(p, out, acc, counts, log, part, n_parts, pix, sid, bounds):
     n_shadow = 0
     row = part * ROW_STRIDE
     n_blocks = len(bounds) - 1
-    for blk in range(part, n_blocks, n_parts):
+    while True:
+        blk = _take_block(queue)
+        if blk >= n_blocks:
+            break
         for s in range(bounds[blk], bounds[blk + 1]):
             # this sample's scratch row starts at zero
             direct[row, 0] = direct[row, 1] = direct[row, 2] = 0.0

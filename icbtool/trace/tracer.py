@@ -886,16 +886,17 @@ class _Tracer:
         else:
             log = (ray_log["o"], ray_log["d"], ray_log["tfar"], ray_log["kind"], ray_log["n"])
         counts = np.zeros((parts, 3), np.int64)
+        queue = np.zeros(1, np.int64)  # the next block: the parts take blocks from it
         out = K.Outputs(direct, gi, first_hit, alb_out, nrm_out)
         prm, acc = self._params, self.acc
         t0 = time.perf_counter()
         if parts == 1:
-            K.trace_paths(prm, out, acc, counts[0], log, 0, 1, pix, sid, bounds)
+            K.trace_paths(prm, out, acc, counts[0], log, 0, queue, pix, sid, bounds)
         else:
             pool = _pool(parts)
             futs = [
                 pool.submit(
-                    K.trace_paths, prm, out, acc, counts[i], log, i, parts, pix, sid, bounds
+                    K.trace_paths, prm, out, acc, counts[i], log, i, queue, pix, sid, bounds
                 )
                 for i in range(parts)
             ]
