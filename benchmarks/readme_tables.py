@@ -1177,6 +1177,15 @@ TRACE_SPEED_AB = (
         True,
     ),
     (
+        "passes1spp",
+        "each pass's (pixel, sample) lists: the whole image's kept by the workspace per (size, "
+        "k), only the first sample index added per pass (they were rebuilt from numpy repeats "
+        "every pass: 5-10 ms at 256^2, 4 spp a pass), 1 spp",
+        True,
+    ),
+    ("passes8spp", "the same, 8 spp (2 passes)", True),
+    ("passes32spp", "the same, 32 spp (8 passes)", True),
+    (
         "specialised",
         "what the Cornell box does not use (textures, sky, suns, point/spot lights, branches, "
         "the ray log) compiled out of the kernel: the cost of one kernel for every scene "
@@ -1186,7 +1195,7 @@ TRACE_SPEED_AB = (
 )
 #: rows of TRACE_SPEED_AB whose ratio is of wall time: they change how the threads share the
 #: work, which saves one thread's waiting for the other, not CPU time
-TRACE_SPEED_WALL = {"queue", "queue1spp"}
+TRACE_SPEED_WALL = {"queue", "queue1spp", "passes1spp", "passes8spp", "passes32spp"}
 
 
 def block_trace_speed(results: Path) -> str:

@@ -1109,6 +1109,27 @@ def test_a_pass_with_pixels_out_of_order_is_refused():
     assert tr.acc.n[:2].tolist() == [2, 1] and tr.stats.rays["primary"] == 3
 
 
+def test_pass_samples_give_each_pixel_its_next_samples_in_order():
+    """A pass's (pixel, sample index) list: each active pixel's next k samples, pixel by pixel;
+    the whole image's layout is kept by the workspace and reused with the next first index,
+    and an adaptive pass over some pixels gets its own."""
+    from icbtool.trace.tracer import _Workspace
+
+    ws = _Workspace()
+    pix, sid = ws.pass_samples(np.arange(3), 3, 2, 0)
+    assert pix.tolist() == [0, 0, 1, 1, 2, 2] and sid.tolist() == [0, 1, 0, 1, 0, 1]
+    pix2, sid2 = ws.pass_samples(np.arange(3), 3, 2, 4)
+    assert pix2 is pix and sid2.tolist() == [4, 5, 4, 5, 4, 5]
+    pix, sid = ws.pass_samples(np.arange(3), 3, 1, 6)  # the last, shorter pass
+    assert pix.tolist() == [0, 1, 2] and sid.tolist() == [6, 6, 6]
+    pix, sid = ws.pass_samples(np.array([1, 4]), 5, 3, 2)
+    assert pix.tolist() == [1, 1, 1, 4, 4, 4] and sid.tolist() == [2, 3, 4, 2, 3, 4]
+    # a render whose spp is not a multiple of the pass size: every pixel gets exactly spp
+    scene = icb.scene.cornell_box()
+    r = render(scene, scene.default_camera.resized(8, 6), TraceConfig(spp=7, spp_per_pass=3))
+    assert r.stats.passes == 3 and (r.spp == 7).all()
+
+
 # ------------------------------------------------------------------------------ edge samples
 def _edge_pixels_and_coverage(scene, cam, n=64):
     """The pixels the tracer gives edge samples (flat indices) and, for every pixel, the
