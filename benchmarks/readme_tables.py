@@ -1186,6 +1186,13 @@ TRACE_SPEED_AB = (
     ("passes8spp", "the same, 8 spp (2 passes)", True),
     ("passes32spp", "the same, 32 spp (8 passes)", True),
     (
+        "outputs1spp",
+        "a render's float32 outputs as views of one block (one allocation of >= 4 MiB gets huge "
+        "pages: fewer page faults on first write), 1 spp",
+        True,
+    ),
+    ("outputs4spp", "the same, 4 spp", True),
+    (
         "specialised",
         "what the Cornell box does not use (textures, sky, suns, point/spot lights, branches, "
         "the ray log) compiled out of the kernel: the cost of one kernel for every scene "
@@ -1195,7 +1202,15 @@ TRACE_SPEED_AB = (
 )
 #: rows of TRACE_SPEED_AB whose ratio is of wall time: they change how the threads share the
 #: work, which saves one thread's waiting for the other, not CPU time
-TRACE_SPEED_WALL = {"queue", "queue1spp", "passes1spp", "passes8spp", "passes32spp"}
+TRACE_SPEED_WALL = {
+    "queue",
+    "queue1spp",
+    "passes1spp",
+    "passes8spp",
+    "passes32spp",
+    "outputs1spp",
+    "outputs4spp",
+}
 
 
 def block_trace_speed(results: Path) -> str:

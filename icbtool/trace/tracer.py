@@ -259,7 +259,9 @@ class TraceStats:
 
 @dataclass
 class TraceResult:
-    """The buffers of one traced view. All (H, W, C) float32, linear HDR.
+    """The buffers of one traced view. All (H, W, C) float32, linear HDR; the float32 buffers
+    of :func:`render` are views of one allocation (fewer page faults), so keeping one keeps
+    them all.
 
     Attributes:
         gi: (H, W, 3) global illumination = full - direct (denoised if ``config.denoise``).
@@ -1029,6 +1031,23 @@ def ray_log_buffers(capacity: int) -> dict[str, np.ndarray]:
     }
 
 
+def _output_buffers(H: int, W: int, want_aux: bool) -> tuple[np.ndarray, ...]:
+    """A render's float32 outputs: gi, direct, full, variance (H, W, 3), mask (H, W, 1) and,
+    with ``want_aux``, albedo and normal (H, W, 3) (else None), as views of one block. One
+    allocation of 4 MiB or more gets huge pages from numpy, so writing it first costs few page
+    faults: at 256^2, 0.2 ms against 3.3 ms for six fresh buffers. Where the allocator hands
+    back pages a previous render freed, the gain is smaller: 2 % of a 1-spp render in a paired
+    A/B (README, tracer speed changes)."""
+    npix = H * W
+    n3 = 6 if want_aux else 4
+    block = np.empty(npix * (3 * n3 + 1), np.float32)
+    views = [block[i * 3 * npix : (i + 1) * 3 * npix].reshape(H, W, 3) for i in range(n3)]
+    mask = block[n3 * 3 * npix :].reshape(H, W, 1)
+    gi, direct, full, var = views[:4]
+    albedo, normal = (views[4], views[5]) if want_aux else (None, None)
+    return gi, direct, full, var, mask, albedo, normal
+
+
 def render(
     scene: Scene,
     cam: Camera,
@@ -1136,12 +1155,7 @@ def render(
         )
     # ---- outputs
     t0 = time.perf_counter()
-    gi = np.empty((H, W, 3), np.float32)
-    direct = np.empty((H, W, 3), np.float32)
-    var = np.empty((H, W, 3), np.float32)
-    mask = np.empty((H, W, 1), np.float32)
-    albedo = np.empty((H, W, 3), np.float32) if want_aux else None
-    normal = np.empty((H, W, 3), np.float32) if want_aux else None
+    gi, direct, full, var, mask, albedo, normal = _output_buffers(H, W, want_aux)
     finish_args = (
         acc.n,
         acc.mean_g,
@@ -1183,7 +1197,7 @@ def render(
     return TraceResult(
         gi=gi,
         direct=direct,
-        full=np.add(direct, gi, dtype=np.float32),
+        full=np.add(direct, gi, out=full),
         variance=var,
         spp=spp,
         mask=mask,
