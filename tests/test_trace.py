@@ -1130,6 +1130,27 @@ def test_pass_samples_give_each_pixel_its_next_samples_in_order():
     assert r.stats.passes == 3 and (r.spp == 7).all()
 
 
+@pytest.mark.parametrize("aux", [True, False])
+def test_output_buffers_are_separate_views_of_one_block(aux):
+    """A render's float32 outputs share one allocation but no element: each buffer written
+    with its own value reads back unchanged, and the full image is direct + gi."""
+    from icbtool.trace.tracer import _output_buffers
+
+    bufs = _output_buffers(5, 7, aux)
+    arrays = [b for b in bufs if b is not None]
+    assert len(arrays) == (7 if aux else 5) and (bufs[5] is None) == (not aux)
+    assert [a.shape for a in arrays] == [(5, 7, 3)] * 4 + [(5, 7, 1)] + [(5, 7, 3)] * (2 * aux)
+    for i, a in enumerate(arrays):
+        assert a.flags.c_contiguous and a.dtype == np.float32
+        a[...] = i + 1
+    for i, a in enumerate(arrays):
+        assert (a == i + 1).all()
+    scene = icb.scene.cornell_box()
+    r = render(scene, scene.default_camera.resized(12, 10), TraceConfig(spp=2, aux=aux))
+    np.testing.assert_array_equal(r.full, r.direct + r.gi)
+    assert not np.shares_memory(r.full, r.gi) and not np.shares_memory(r.mask, r.variance)
+
+
 # ------------------------------------------------------------------------------ edge samples
 def _edge_pixels_and_coverage(scene, cam, n=64):
     """The pixels the tracer gives edge samples (flat indices) and, for every pixel, the
