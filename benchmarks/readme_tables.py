@@ -384,7 +384,7 @@ TIME_ERROR_COMMANDS = {
     "--ref-spp 1024 --spps 1,2,4,8,16,32,64 --repeats 5 --out-name time_error_cornell_box "
     "--wait-quiet 120",
     "sponza": "benchmarks/trace_time_error.py --size 256 --scenes sponza --ref-spp 512 "
-    "--spps 1,2,4,8,16,32 --repeats 3 --out-name time_error_sponza --wait-quiet 120",
+    "--spps 1,2,4,8,16,32 --repeats 5 --out-name time_error_sponza --wait-quiet 120",
 }
 
 
