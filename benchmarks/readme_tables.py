@@ -1193,6 +1193,13 @@ TRACE_SPEED_AB = (
     ),
     ("outputs4spp", "the same, 4 spp", True),
     (
+        "wrap",
+        "a texel index's repeat wrap by a bit mask where the texture's side is a power of two "
+        "(two integer divisions a texture lookup before)",
+        True,
+    ),
+    ("wrap2t", "the same, 2 threads", True),
+    (
         "specialised",
         "what the Cornell box does not use (textures, sky, suns, point/spot lights, branches, "
         "the ray log) compiled out of the kernel: the cost of one kernel for every scene "

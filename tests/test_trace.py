@@ -1130,6 +1130,16 @@ def test_pass_samples_give_each_pixel_its_next_samples_in_order():
     assert r.stats.passes == 3 and (r.spp == 7).all()
 
 
+def test_texel_wrap_is_the_modulo_for_every_side_and_negative_index():
+    """The repeat wrap of a texel index (a bit mask on power-of-two sides) equals Python's
+    modulo, negative indices (a bilinear footprint left of u = 0) included."""
+    from icbtool.trace.kernels import _wrap
+
+    for n in (1, 2, 3, 5, 8, 12, 16, 1024, 1000):
+        for i in range(-2 * n - 3, 2 * n + 4):
+            assert _wrap(np.int64(i), np.int64(n)) == i % n, (i, n)
+
+
 @pytest.mark.parametrize("aux", [True, False])
 def test_output_buffers_are_separate_views_of_one_block(aux):
     """A render's float32 outputs share one allocation but no element: each buffer written

@@ -841,11 +841,20 @@ def _tex_coords(face_uv, prim, bary):
 
 
 @nb.njit(inline="always", **_JIT)
+def _wrap(i, n):
+    """``i % n`` (the repeat wrap of a texel index, n > 0): a mask when n is a power of two (most
+    textures), where it equals the modulo for negative i too, instead of an integer division."""
+    if n & (n - 1) == 0:
+        return i & (n - 1)
+    return i % n
+
+
+@nb.njit(inline="always", **_JIT)
 def _nearest_texel(off, th, tw, uu, vv):
     """Offset of the nearest texel's red value at (uu, vv) in a texture at ``off`` in the
     texels (th x tw, RGB, repeat)."""
-    xi = np.int64(math.floor(uu * tw - 0.5 + 0.5)) % tw
-    yi = np.int64(math.floor((1.0 - vv) * th - 0.5 + 0.5)) % th
+    xi = _wrap(np.int64(math.floor(uu * tw - 0.5 + 0.5)), tw)
+    yi = _wrap(np.int64(math.floor((1.0 - vv) * th - 0.5 + 0.5)), th)
     return off + (yi * tw + xi) * 3
 
 
@@ -859,8 +868,8 @@ def _bilinear_footprint(off, th, tw, uu, vv):
     fy0 = math.floor(yy)
     fx = xx - fx0
     fy = yy - fy0
-    xa = np.int64(fx0) % tw
-    ya = np.int64(fy0) % th
+    xa = _wrap(np.int64(fx0), tw)
+    ya = _wrap(np.int64(fy0), th)
     xb = xa + 1 if xa + 1 < tw else 0
     yb = ya + 1 if ya + 1 < th else 0
     return (
