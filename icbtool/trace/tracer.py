@@ -877,16 +877,8 @@ class _Tracer:
         first_hit = ws.get("first_hit", (rows,), np.bool_)
         alb_out = ws.get("alb", (rows if want_aux else 1, 3), np.float64)
         nrm_out = ws.get("nrm", (rows if want_aux else 1, 3), np.float64)
-        if ray_log is None:
-            log = (
-                np.zeros((1, 3), np.float32),
-                np.zeros((1, 3), np.float32),
-                np.zeros(1, np.float32),
-                np.zeros(1, np.int8),
-                np.zeros(1, np.int64),
-            )
-        else:
-            log = (ray_log["o"], ray_log["d"], ray_log["tfar"], ray_log["kind"], ray_log["n"])
+        rl = ray_log_buffers(1) if ray_log is None else ray_log  # capacity 1: logging off
+        log = (rl["o"], rl["d"], rl["tfar"], rl["kind"], rl["n"])
         counts = np.zeros((parts, 3), np.int64)
         queue = np.zeros(1, np.int64)  # the next block: the parts take blocks from it
         out = K.Outputs(direct, gi, first_hit, alb_out, nrm_out)
