@@ -469,6 +469,42 @@ def _error_split(results: Path) -> list[str]:
     ]
 
 
+def _gi_variance(results: Path) -> list[str]:
+    """Where the GI's noise lies, and what rr_depth / gi_splits buy (trace_gi_variance.py)."""
+    rel = "trace/gi_variance.json"
+    if not (results / rel).is_file():
+        return []
+    d = load(rel, results)
+    parts = []
+    for name, sc in d["scenes"].items():
+        div = sc["gi_variance_divided_by_splits"]
+        eff = "; ".join(
+            f"{r['config'].split(' (')[0]} {r['gi_efficiency_rel']:.2f} / "
+            f"{r['display_efficiency_rel']:.2f}"
+            for r in sc["rows"][1:]
+        )
+        parts.append(
+            f"{TIME_ERROR_SCENES[name]}: at most {100 * sc['shared_share_at_most']:.0f} % of "
+            "the GI's variance is in the camera ray and first hit (it falls "
+            f"{div['2']:.1f}x with `gi_splits=2`, {div['4']:.1f}x with 4), and Russian roulette "
+            f"from depth 4 adds {100 * sc['roulette_added_gi_variance']:.0f} % to it (against "
+            "none up to the maximum depth); at equal CPU time (1 / (variance x time), default = "
+            f"1; GI / full image after the display transform): {eff}"
+        )
+    a = d["args"]
+    return [
+        "Where the GI's noise lies, and what the path knobs buy at equal time "
+        f"(`benchmarks/trace_gi_variance.py`, {a['size']}x{a['size']}, 1 spp, {a['seeds']} "
+        f"seeds, variance per pixel across seeds, 1-minute load {d['load_average_start'][0]:.2f} "
+        "at the start; plot `benchmarks/results/trace/gi_variance.png`): " + "; ".join(parts) + ". The GI's noise is the bounce and what "
+        "follows it, from the same estimator as Mitsuba's (cosine-sampled bounce, a light "
+        "sample at each vertex, roulette from depth 4). The defaults keep that estimator and "
+        "its noise per sample, as the comparison above assumes; `rr_depth` and `gi_splits` "
+        "trade noise for time as these ratios show.",
+        "",
+    ]
+
+
 def block_trace_time_error(results: Path) -> str:
     runs = time_error_runs(results)
     lines = [
@@ -651,6 +687,7 @@ def block_trace_time_error(results: Path) -> str:
         ]
     lines += _error_by_brightness(results)
     lines += _error_split(results)
+    lines += _gi_variance(results)
     lines += [
         "Commands (each about 10 min or less on this 2-core machine; `--wait-quiet` waits for "
         "the load to settle):",
