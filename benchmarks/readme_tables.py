@@ -1237,6 +1237,13 @@ TRACE_SPEED_AB = (
     ),
     ("wrap2t", "the same, 2 threads", True),
     (
+        "texprefetch",
+        "a textured vertex's texels prefetched at its hit and read after its shadow rays, its "
+        "light samples held until then: the wait for a bounce's texels, anywhere in the "
+        "textures' megabytes, overlaps the shadow rays (Cornell box: no textures)",
+        True,
+    ),
+    (
         "specialised",
         "what the Cornell box does not use (textures, sky, suns, point/spot lights, branches, "
         "the ray log) compiled out of the kernel: the cost of one kernel for every scene "

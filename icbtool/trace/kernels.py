@@ -64,6 +64,7 @@ _U32 = np.uint64(32)
 _U16 = np.uint64(16)
 _U1 = np.uint64(1)
 _U0 = np.uint64(0)
+_I0 = np.int64(0)
 _INV53 = 1.0 / 9007199254740992.0
 _INV32 = 1.0 / 4294967296.0
 _PI = math.pi
@@ -349,6 +350,82 @@ def _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd):
 
 
 @nb.njit(inline="always", **_JIT)
+def _prefetch_texel(tex, lut, p):
+    """Start loading texel p's cache line (its code, or its float value) without waiting."""
+    if len(tex) > 0:
+        _prefetch(tex, p)
+    else:
+        _prefetch(lut, p)
+
+
+@nb.njit(inline="always", **_JIT)
+def _texture_albedo(tex, lut, nearest, fp, al):
+    """The albedo ``al`` (r, g, b) times the texture at footprint ``fp``: the
+    :func:`_bilinear_footprint`, or with ``nearest`` the :func:`_nearest_texel` offset first."""
+    p00, p01, p10, p11, ga, gb, gc, gd = fp
+    if nearest:
+        return (
+            al[0] * _texel(tex, lut, p00),
+            al[1] * _texel(tex, lut, p00 + 1),
+            al[2] * _texel(tex, lut, p00 + 2),
+        )
+    return (
+        al[0] * _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd),
+        al[1] * _bilerp(tex, lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd),
+        al[2] * _bilerp(tex, lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd),
+    )
+
+
+@nb.njit(inline="always", **_JIT)
+def _hold_vertex(held, row, fp, al, t0, t1, t2):
+    """Keep a textured vertex's texture footprint ``fp``, untextured albedo ``al`` and throughput
+    t in its part's ``held`` row while its texels load (:func:`_held_throughput` reads them)."""
+    p00, p01, p10, p11, ga, gb, gc, gd = fp
+    held[row, 0] = np.float64(p00)  # texel offsets: exact in float64
+    held[row, 1] = np.float64(p01)
+    held[row, 2] = np.float64(p10)
+    held[row, 3] = np.float64(p11)
+    held[row, 4] = ga
+    held[row, 5] = gb
+    held[row, 6] = gc
+    held[row, 7] = gd
+    held[row, 8] = al[0]
+    held[row, 9] = al[1]
+    held[row, 10] = al[2]
+    held[row, 11] = t0
+    held[row, 12] = t1
+    held[row, 13] = t2
+
+
+@nb.njit(inline="always", **_JIT)
+def _held_throughput(held, row, tex, lut, nearest):
+    """The held vertex's albedo with its texture, throughput f = t * albedo and f / pi (the
+    diffuse BSDF): (f0, f1, f2, f / pi)."""
+    fp = (
+        np.int64(held[row, 0]), np.int64(held[row, 1]), np.int64(held[row, 2]),
+        np.int64(held[row, 3]), held[row, 4], held[row, 5], held[row, 6], held[row, 7],
+    )  # fmt: skip
+    al = _texture_albedo(tex, lut, nearest, fp, (held[row, 8], held[row, 9], held[row, 10]))
+    f0 = held[row, 11] * al[0]
+    f1 = held[row, 12] * al[1]
+    f2 = held[row, 13] * al[2]
+    return f0, f1, f2, (f0 * _INV_PI, f1 * _INV_PI, f2 * _INV_PI)
+
+
+@nb.njit(inline="always", **_JIT)
+def _hold_light(held, row, nh, to_direct, l0, l1, l2, g):
+    """Keep light sample ``nh`` of a held vertex (its radiance, factor g and destination), to be
+    added once the vertex's albedo is known; returns the new count."""
+    r = row + 1 + nh
+    held[r, 0] = l0
+    held[r, 1] = l1
+    held[r, 2] = l2
+    held[r, 3] = g
+    held[r, 4] = 1.0 if to_direct else 0.0
+    return nh + 1
+
+
+@nb.njit(inline="always", **_JIT)
 def _towards(x0, x1, x2, y0, y1, y2):
     """Unit direction from point x to point y, and their distance: (w0, w1, w2, dist)."""
     v0 = y0 - x0
@@ -428,6 +505,27 @@ def _take_block(typingctx, queue):
         return builder.atomic_rmw("add", ary.data, one, "monotonic")
 
     return types.int64(queue), codegen
+
+
+@intrinsic
+def _prefetch(typingctx, arr, idx):
+    """Ask the CPU to start loading the cache line of ``arr[idx]`` (LLVM ``llvm.prefetch``, read,
+    high locality) and go on without waiting: a later load of it then finds it in cache. A
+    prefetch never faults, whatever the index."""
+    if not (isinstance(arr, types.Array) and isinstance(idx, types.Integer)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        i8p = ir.IntType(8).as_pointer()
+        ptr = builder.bitcast(builder.gep(ary.data, [args[1]]), i8p)
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        builder.call(fn, [ptr, ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
+        return context.get_dummy_value()
+
+    return types.void(arr, idx), codegen
 
 
 @intrinsic
@@ -663,8 +761,10 @@ Sampling = namedtuple(
 TraceParams = namedtuple("TraceParams", ["embree", "cam", "surf", "lights", "sky", "sampling"])
 #: One sample's outputs, in a scratch row per part (``part * ROW_STRIDE``; n_parts * ROW_STRIDE
 #: rows): direct, gi (R, 3), first hit (R,), first-hit albedo and normal (R, 3) (or (1, 3) when
-#: not wanted).
-Outputs = namedtuple("Outputs", ["direct", "gi", "first_hit", "albedo", "normal"])
+#: not wanted); and ``held`` (R, 14): a textured vertex waiting for its texels, its footprint,
+#: albedo and throughput in the part's first row, its light samples in the rows after it
+#: (:func:`_hold_vertex`, :func:`_hold_light`).
+Outputs = namedtuple("Outputs", ["direct", "gi", "first_hit", "albedo", "normal", "held"])
 #: Rows between two parts' scratch rows: 64, so that no two threads write one cache line even in
 #: the one-byte ``first_hit`` (8 rows apart, both threads' flags shared a line: every sample wrote
 #: it).
@@ -1111,12 +1211,14 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
     (seed_mix, salts, pixseed0, sampler, limit, rr_depth, want_aux, log2spp, zshift, splits,
      log2split) = p.sampling  # fmt: skip
     inv_splits = 1.0 / splits
-    direct, gi, first_hit, alb_out, nrm_out = out
+    direct, gi, first_hit, alb_out, nrm_out, held = out
     sky_mis = mis != 0 and sky_kind != SKY_NONE
     any_extra = len(edge_extra) > 0
     n_s = suns.shape[0]
     n_q = punct.shape[0]
     n_e = len(emit_faces)
+    # a textured vertex's light samples wait in its part's held rows (one per light at most)
+    hold_ok = n_s + n_q + 2 < ROW_STRIDE
     # the RTCRayHit record (as _rayhit's) on this function's stack: no allocation
     pw, pf = _stack_words()
     ray = (pw, pf, np.int64(0), _address(pw))  # pointers index as the arrays of _rayhit do
@@ -1270,27 +1372,28 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                                     e1 * t1 * w,
                                     e2 * t2 * w,
                                 )
-                        al0 = mat_albedo[m, 0]
-                        al1 = mat_albedo[m, 1]
-                        al2 = mat_albedo[m, 2]
+                        al = (mat_albedo[m, 0], mat_albedo[m, 1], mat_albedo[m, 2])
+                        # ``pend``: the texels are asked for now (prefetched) and read after the
+                        # vertex's shadow rays, which hide the wait for them; its light samples
+                        # are held until then (docs/design.md, section 8)
+                        pend = False
                         if tex_off[m] >= 0:  # textured (repeat)
                             uu, vv = _tex_coords(face_uv, prim, bary)
                             if nearest:
-                                q = _nearest_texel(tex_off[m], tex_hw[m, 0], tex_hw[m, 1], uu, vv)
-                                al0 *= _texel(tex, lut, q)
-                                al1 *= _texel(tex, lut, q + 1)
-                                al2 *= _texel(tex, lut, q + 2)
+                                qn = _nearest_texel(tex_off[m], tex_hw[m, 0], tex_hw[m, 1], uu, vv)
+                                fp = (qn, qn, qn, qn, 0.0, 0.0, 0.0, 0.0)
                             else:
-                                p00, p01, p10, p11, ga, gb, gc, gd = _bilinear_footprint(
+                                fp = _bilinear_footprint(
                                     tex_off[m], tex_hw[m, 0], tex_hw[m, 1], uu, vv
                                 )
-                                al0 *= _bilerp(tex, lut, p00, p01, p10, p11, ga, gb, gc, gd)
-                                al1 *= _bilerp(
-                                    tex, lut, p00 + 1, p01 + 1, p10 + 1, p11 + 1, ga, gb, gc, gd
-                                )
-                                al2 *= _bilerp(
-                                    tex, lut, p00 + 2, p01 + 2, p10 + 2, p11 + 2, ga, gb, gc, gd
-                                )
+                            if (depth == 1 and want_aux) or not hold_ok or depth >= limit:
+                                al = _texture_albedo(tex, lut, nearest, fp, al)
+                            else:
+                                pend = True
+                                _prefetch_texel(tex, lut, fp[0])
+                                _prefetch_texel(tex, lut, fp[2])
+                                _hold_vertex(held, row, fp, al, t0, t1, t2)
+                        al0, al1, al2 = al
                         if depth == 1:
                             first_hit[row] = True
                             if want_aux:
@@ -1302,11 +1405,12 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                                 nrm_out[row, 2] = ns[2]
                         if depth >= limit:
                             break
-                        f0 = t0 * al0
+                        f0 = t0 * al0  # (while ``pend``, without the texture: zero stays zero)
                         f1 = t1 * al1
                         f2 = t2 * al2
                         if not (f0 > 0 or f1 > 0 or f2 > 0):
                             break
+                        nh = 0  # light samples held
                         # ---- next-event estimation from the offset float32 origin `so`
                         eps = _eps(x[0], x[1], x[2], th, diag)
                         so = (
@@ -1328,10 +1432,16 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                                 if _visible(
                                     rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)
                                 ):
-                                    _add_light(
-                                        direct, gi, to_direct_dl, row, fo,
-                                        suns[j, 3], suns[j, 4], suns[j, 5], c,
-                                    )  # fmt: skip
+                                    if pend:
+                                        nh = _hold_light(
+                                            held, row, nh, to_direct_dl,
+                                            suns[j, 3], suns[j, 4], suns[j, 5], c,
+                                        )  # fmt: skip
+                                    else:
+                                        _add_light(
+                                            direct, gi, to_direct_dl, row, fo,
+                                            suns[j, 3], suns[j, 4], suns[j, 5], c,
+                                        )  # fmt: skip
                         for j in range(n_q):  # point and spot lights (delta)
                             ok, wi0, wi1, wi2, tf, ii, g = _punctual_sample(
                                 punct, j, x, nf, ns, eps
@@ -1339,9 +1449,15 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                             if ok:
                                 n_shadow += 1
                                 if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
-                                    _add_light(
-                                        direct, gi, to_direct_dl, row, fo, ii[0], ii[1], ii[2], g
-                                    )
+                                    if pend:
+                                        nh = _hold_light(
+                                            held, row, nh, to_direct_dl, ii[0], ii[1], ii[2], g
+                                        )
+                                    else:
+                                        _add_light(
+                                            direct, gi, to_direct_dl, row, fo,
+                                            ii[0], ii[1], ii[2], g,
+                                        )  # fmt: skip
                         if n_e > 0:  # emissive triangles: power-sampled, MIS with the BSDF
                             if use_ld:  # one stratified pair: face pick and point (reuse)
                                 ul, rb = _ld2(
@@ -1361,11 +1477,17 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                                 n_shadow += 1
                                 if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
                                     me = face_mat[lf]
-                                    _add_light(
-                                        direct, gi, to_direct_dl and face_is_area[lf], row, fo,
-                                        mat_emission[me, 0], mat_emission[me, 1],
-                                        mat_emission[me, 2], g,
-                                    )  # fmt: skip
+                                    to_dir = to_direct_dl and face_is_area[lf]
+                                    if pend:
+                                        nh = _hold_light(
+                                            held, row, nh, to_dir, mat_emission[me, 0],
+                                            mat_emission[me, 1], mat_emission[me, 2], g,
+                                        )  # fmt: skip
+                                    else:
+                                        _add_light(
+                                            direct, gi, to_dir, row, fo, mat_emission[me, 0],
+                                            mat_emission[me, 1], mat_emission[me, 2], g,
+                                        )  # fmt: skip
                         if sky_mis:  # the sky, importance-sampled from its table; always gi
                             if use_ld:
                                 us1, us2 = _ld2(
@@ -1384,7 +1506,24 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                                     rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)
                                 ):
                                     le = _sky(sky_kind, sky, env, rot, scale, wi0, wi1, wi2)
-                                    _add_light(direct, gi, False, row, fo, le[0], le[1], le[2], g)
+                                    if pend:
+                                        nh = _hold_light(
+                                            held, row, nh, False, le[0], le[1], le[2], g
+                                        )
+                                    else:
+                                        _add_light(
+                                            direct, gi, False, row, fo, le[0], le[1], le[2], g
+                                        )
+                        if pend:  # the texels: the albedo, then the held light samples in order
+                            f0, f1, f2, fo = _held_throughput(held, row, tex, lut, nearest)
+                            if not (f0 > 0 or f1 > 0 or f2 > 0):
+                                break  # a black texel (its shadow rays were traced for nothing)
+                            for j in range(nh):
+                                r = row + 1 + j
+                                _add_light(
+                                    direct, gi, held[r, 4] != 0.0, row, fo,
+                                    held[r, 0], held[r, 1], held[r, 2], held[r, 3],
+                                )  # fmt: skip
                         if depth == 1 and splits > 1:  # the first vertex, for the other branches
                             v1 = True
                             s_so = so

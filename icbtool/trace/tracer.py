@@ -881,7 +881,8 @@ class _Tracer:
         log = (rl["o"], rl["d"], rl["tfar"], rl["kind"], rl["n"])
         counts = np.zeros((parts, 3), np.int64)
         queue = np.zeros(1, np.int64)  # the next block: the parts take blocks from it
-        out = K.Outputs(direct, gi, first_hit, alb_out, nrm_out)
+        held = ws.get("held", (rows, 14), np.float64)
+        out = K.Outputs(direct, gi, first_hit, alb_out, nrm_out, held)
         prm, acc = self._params, self.acc
         t0 = time.perf_counter()
         if parts == 1:
