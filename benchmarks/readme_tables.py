@@ -496,7 +496,9 @@ def _gi_variance(results: Path) -> list[str]:
         "Where the GI's noise lies, and what the path knobs buy at equal time "
         f"(`benchmarks/trace_gi_variance.py`, {a['size']}x{a['size']}, 1 spp, {a['seeds']} "
         f"seeds, variance per pixel across seeds, 1-minute load {d['load_average_start'][0]:.2f} "
-        "at the start; plot `benchmarks/results/trace/gi_variance.png`): " + "; ".join(parts) + ". The GI's noise is the bounce and what "
+        "at the start; plot `benchmarks/results/trace/gi_variance.png`): "
+        + "; ".join(parts)
+        + ". The GI's noise is the bounce and what "
         "follows it, from the same estimator as Mitsuba's (cosine-sampled bounce, a light "
         "sample at each vertex, roulette from depth 4). The defaults keep that estimator and "
         "its noise per sample, as the comparison above assumes; `rr_depth` and `gi_splits` "
