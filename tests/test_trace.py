@@ -897,10 +897,10 @@ def test_textured_lookup_wraps_and_matches_bilinear_formula(texels):
     np.testing.assert_allclose(res.albedo.reshape(-1, 3), expect, rtol=1e-4, atol=1e-5)
 
 
-def _flat_or_textured_room(textured: bool, filt: str) -> tuple[Scene, Camera]:
-    """An open box lit by an area light, a sun, a point light and a sky, its walls grey (0.5) and
-    its floor black (0): plain albedos, or white materials with constant textures of those
-    values (``filt`` 'nearest': the same albedo exactly; 'bilinear': up to the weights'
+def _flat_or_textured_room(textured: bool, lights: int = 1) -> tuple[Scene, Camera]:
+    """An open box lit by an area light, a sun, ``lights`` point lights and a sky, its walls grey
+    (0.5) and its floor black (0): plain albedos, or white materials with constant textures of
+    those values (nearest texels: the same albedo exactly; bilinear: up to the weights'
     rounding)."""
     from icbtool.scene import PointLight
 
@@ -919,25 +919,25 @@ def _flat_or_textured_room(textured: bool, filt: str) -> tuple[Scene, Camera]:
     b.add_quad((1, 0, -1), (0, 0, 2), (0, 2, 0), grey)  # right wall
     b.add_quad((-0.3, 1.99, 0.3), (0.6, 0, 0), (0, 0, -0.6), b.material("lamp", emission=(6, 6, 6)))
     b.add_quad((-1, 2, 1), (1.2, 0, 0), (0, 0, -2), grey)  # half a ceiling
-    b.lights += [
-        DirectionalLight((0.4, -1.0, -0.3), (2.0, 1.8, 1.5)),
-        PointLight((0.5, 1.2, 0.2), (1, 1, 1)),
-    ]
+    b.lights.append(DirectionalLight((0.4, -1.0, -0.3), (2.0, 1.8, 1.5)))
+    for i in range(lights):
+        b.lights.append(PointLight((0.5 - 0.01 * i, 1.2, 0.2), (1 / lights,) * 3))
     sc = b.build(sky=Sky((0.3, 0.4, 0.6)))
     cam = Camera.look_at((0, 1, 2.8), (0, 0.9, 0), (0, 1, 0), fov_y_deg=55, height=20, width=24)
     return sc, cam
 
 
-@pytest.mark.parametrize("filt", ["nearest", "bilinear"])
-def test_texels_read_after_the_shadow_rays_give_the_plain_albedo_image(filt):
+@pytest.mark.parametrize(("filt", "lights"), [("nearest", 1), ("bilinear", 1), ("nearest", 70)])
+def test_texels_read_after_the_shadow_rays_give_the_plain_albedo_image(filt, lights):
     """A textured vertex asks for its texels first and reads them after its shadow rays, holding
     its light samples until then (docs/design.md, section 8): constant textures render the image
     of the same plain albedos (bit for bit with nearest texels), whichever light kinds, with and
     without the first hit's aux buffers (which read the first vertex's texels at once), with
     branches and sky sampling; the black floor's held samples are dropped, as a black plain
-    albedo never takes them."""
-    plain = _flat_or_textured_room(False, filt)
-    tex = _flat_or_textured_room(True, filt)
+    albedo never takes them. With more lights than the held rows take (70 point lights), every
+    vertex reads its texels at once, with the same image."""
+    plain = _flat_or_textured_room(False, lights)
+    tex = _flat_or_textured_room(True, lights)
     for kw in (dict(), dict(aux=False), dict(aux=False, gi_splits=3, sky_sampling="mis")):
         cfg = TraceConfig(spp=3, seed=5, texture_filter=filt, **kw)
         a, b = render(*plain, cfg), render(*tex, cfg)
