@@ -41,17 +41,19 @@ import icbtool as icb
 from icbtool.imageio import to_display
 from icbtool.trace import TraceConfig
 
+DEFAULT = "default (rr_depth 4, gi_splits 1)"
+NO_ROULETTE = f"no roulette (rr_depth {MAX_DEPTH})"
 #: (label, TraceConfig changes from the default); the first is the baseline
 CONFIGS: list[tuple[str, dict]] = [
-    ("default (rr_depth 4, gi_splits 1)", {}),
+    (DEFAULT, {}),
     ("rr_depth 2", dict(rr_depth=2)),
     ("rr_depth 3", dict(rr_depth=3)),
     ("rr_depth 6", dict(rr_depth=6)),
-    (f"no roulette (rr_depth {MAX_DEPTH})", dict(rr_depth=MAX_DEPTH)),
+    (NO_ROULETTE, dict(rr_depth=MAX_DEPTH)),
     ("gi_splits 2", dict(gi_splits=2)),
     ("gi_splits 4", dict(gi_splits=4)),
 ]
-SPLIT_LABELS = {1: CONFIGS[0][0], 2: "gi_splits 2", 4: "gi_splits 4"}
+SPLIT_LABELS = {1: DEFAULT, 2: "gi_splits 2", 4: "gi_splits 4"}
 
 
 class _Moments:
@@ -96,7 +98,6 @@ def measure(name: str, size: int, seeds: int, spp: int) -> dict:
             disp[label].add(to_display(r.full).astype(np.float64) / 255.0)
             bar.update()
     bar.close()
-    base_label = cfgs[0][0]
     rows = []
     for label, _ in cfgs:
         v_gi, v_d, t = gi[label].mean_variance(), disp[label].mean_variance(), cpu[label]
@@ -111,12 +112,12 @@ def measure(name: str, size: int, seeds: int, spp: int) -> dict:
         row["gi_efficiency_rel"] = 1.0 / (row["gi_variance_rel"] * t_rel)
         row["display_efficiency_rel"] = 1.0 / (row["display_variance_rel"] * t_rel)
     by = {r["config"]: r for r in rows}
-    off = by[CONFIGS[4][0]]
+    off = by[NO_ROULETTE]
     return {
         "size": size,
         "spp": spp,
         "rows": rows,
-        "baseline": base_label,
+        "baseline": DEFAULT,
         # V(k) >= the variance shared by a sample's k branches, for every k: so V(4) / V(1)
         # bounds the share of the camera ray, first hit and its light sample from above
         "gi_variance_divided_by_splits": {

@@ -64,7 +64,6 @@ _U32 = np.uint64(32)
 _U16 = np.uint64(16)
 _U1 = np.uint64(1)
 _U0 = np.uint64(0)
-_I0 = np.int64(0)
 _INV53 = 1.0 / 9007199254740992.0
 _INV32 = 1.0 / 4294967296.0
 _PI = math.pi
@@ -1432,16 +1431,10 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                                 if _visible(
                                     rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)
                                 ):
-                                    if pend:
-                                        nh = _hold_light(
-                                            held, row, nh, to_direct_dl,
-                                            suns[j, 3], suns[j, 4], suns[j, 5], c,
-                                        )  # fmt: skip
-                                    else:
-                                        _add_light(
-                                            direct, gi, to_direct_dl, row, fo,
-                                            suns[j, 3], suns[j, 4], suns[j, 5], c,
-                                        )  # fmt: skip
+                                    nh = _add_or_hold(
+                                        direct, gi, held, row, nh, pend, to_direct_dl, fo,
+                                        suns[j, 3], suns[j, 4], suns[j, 5], c,
+                                    )  # fmt: skip
                         for j in range(n_q):  # point and spot lights (delta)
                             ok, wi0, wi1, wi2, tf, ii, g = _punctual_sample(
                                 punct, j, x, nf, ns, eps
@@ -1449,15 +1442,10 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                             if ok:
                                 n_shadow += 1
                                 if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
-                                    if pend:
-                                        nh = _hold_light(
-                                            held, row, nh, to_direct_dl, ii[0], ii[1], ii[2], g
-                                        )
-                                    else:
-                                        _add_light(
-                                            direct, gi, to_direct_dl, row, fo,
-                                            ii[0], ii[1], ii[2], g,
-                                        )  # fmt: skip
+                                    nh = _add_or_hold(
+                                        direct, gi, held, row, nh, pend, to_direct_dl, fo,
+                                        ii[0], ii[1], ii[2], g,
+                                    )  # fmt: skip
                         if n_e > 0:  # emissive triangles: power-sampled, MIS with the BSDF
                             if use_ld:  # one stratified pair: face pick and point (reuse)
                                 ul, rb = _ld2(
@@ -1477,17 +1465,12 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                                 n_shadow += 1
                                 if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
                                     me = face_mat[lf]
-                                    to_dir = to_direct_dl and face_is_area[lf]
-                                    if pend:
-                                        nh = _hold_light(
-                                            held, row, nh, to_dir, mat_emission[me, 0],
-                                            mat_emission[me, 1], mat_emission[me, 2], g,
-                                        )  # fmt: skip
-                                    else:
-                                        _add_light(
-                                            direct, gi, to_dir, row, fo, mat_emission[me, 0],
-                                            mat_emission[me, 1], mat_emission[me, 2], g,
-                                        )  # fmt: skip
+                                    nh = _add_or_hold(
+                                        direct, gi, held, row, nh, pend,
+                                        to_direct_dl and face_is_area[lf], fo,
+                                        mat_emission[me, 0], mat_emission[me, 1],
+                                        mat_emission[me, 2], g,
+                                    )  # fmt: skip
                         if sky_mis:  # the sky, importance-sampled from its table; always gi
                             if use_ld:
                                 us1, us2 = _ld2(
@@ -1506,14 +1489,10 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                                     rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)
                                 ):
                                     le = _sky(sky_kind, sky, env, rot, scale, wi0, wi1, wi2)
-                                    if pend:
-                                        nh = _hold_light(
-                                            held, row, nh, False, le[0], le[1], le[2], g
-                                        )
-                                    else:
-                                        _add_light(
-                                            direct, gi, False, row, fo, le[0], le[1], le[2], g
-                                        )
+                                    nh = _add_or_hold(
+                                        direct, gi, held, row, nh, pend, False, fo,
+                                        le[0], le[1], le[2], g,
+                                    )  # fmt: skip
                         if pend:  # the texels: the albedo, then the held light samples in order
                             f0, f1, f2, fo = _held_throughput(held, row, tex, lut, nearest)
                             if not (f0 > 0 or f1 > 0 or f2 > 0):
@@ -1588,6 +1567,16 @@ def _add_light(direct, gi, to_direct, s, fo, l0, l1, l2, g):
     times the throughput, a 3-tuple; ``g``: the sample's geometry and pdf factor) into sample
     s of ``direct`` or ``gi``, each channel evaluated as (fo * l) * g."""
     _add_to(direct, gi, to_direct, s, fo[0] * l0 * g, fo[1] * l1 * g, fo[2] * l2 * g)
+
+
+@nb.njit(inline="always", **_JIT)
+def _add_or_hold(direct, gi, held, row, nh, pend, to_direct, fo, l0, l1, l2, g):
+    """A shadow-tested light sample of a vertex: added now (:func:`_add_light`), or held while
+    the vertex waits for its texels (``pend``, :func:`_hold_light`). Returns the held count."""
+    if pend:
+        return _hold_light(held, row, nh, to_direct, l0, l1, l2, g)
+    _add_light(direct, gi, to_direct, row, fo, l0, l1, l2, g)
+    return nh
 
 
 @nb.njit(inline="always", **_JIT)

@@ -939,18 +939,19 @@ class _Workspace:
         ``first .. first + k - 1``, pixel by pixel. A pass over the whole image keeps its pixel
         indices and in-pixel offsets here, built once per (image size, k): building them took
         5-10 ms a pass at 256^2, 4 spp (numpy repeats and page faults)."""
-        n = len(active)
-        if n != npix:
-            pix = np.repeat(active.astype(np.int64, copy=False), k)
-            return pix, np.tile(np.arange(first, first + k, dtype=np.int64), n)
+
+        def layout(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """Each pixel k times, and the in-pixel offsets 0 .. k - 1 beside them."""
+            return np.repeat(pixels, k), np.tile(np.arange(k, dtype=np.int64), len(pixels))
+
+        if len(active) != npix:
+            pix, off = layout(active.astype(np.int64, copy=False))
+            return pix, off + first
         key = (npix, k)
         if key not in self._layouts:
             if len(self._layouts) >= 4:
                 self._layouts.clear()
-            self._layouts[key] = (
-                np.repeat(np.arange(npix, dtype=np.int64), k),
-                np.tile(np.arange(k, dtype=np.int64), npix),
-            )
+            self._layouts[key] = layout(np.arange(npix, dtype=np.int64))
         pix, off = self._layouts[key]
         sid = self.get("sid", off.shape, np.int64)
         np.add(off, first, out=sid)
