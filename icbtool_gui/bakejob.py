@@ -52,7 +52,7 @@ def bake_quick_store(
         The number of records of the scene in the store afterwards.
     """
     import icbtool as icb
-    from icbtool_gui.model import load_scene
+    from icbtool.cli._common import load_scene  # not icbtool_gui.model's: it imports torch
 
     scene = load_scene(scene_spec)
     views = quick_views(scene, stride)

@@ -27,6 +27,7 @@ import numpy as np
 import icbtool as icb
 from icbtool import metrics, prefetch, system
 from icbtool.camera import Camera, CameraPath
+from icbtool.cli._common import load_scene as cli_load_scene
 from icbtool.imageio import to_display
 from icbtool.pipeline import PathConfig
 from icbtool.warp import HOLE_COLOURS  # the demo's colours of the hole causes
@@ -440,10 +441,8 @@ def frustum_depth(scene: Any, fraction: float = 0.08) -> float:
 # ----------------------------------------------------------------------------- defaults
 def load_scene(spec: str) -> Any:
     """A procedural scene by name (``cornell_box`` ...) or a scene file
-    (:func:`icbtool.scene.load`)."""
-    if spec in icb.scene.PROCEDURAL:
-        return icb.scene.PROCEDURAL[spec]()
-    return icb.scene.load(spec)
+    (:func:`icbtool.scene.load`), as the command line reads ``SCENE``."""
+    return cli_load_scene(spec)
 
 
 def demo_settings(
