@@ -402,6 +402,51 @@ def time_error_runs(results: Path) -> dict[str, tuple[str, dict, dict]]:
     return out
 
 
+def _run_to_run(results: Path, name: str, label: str, sc: dict) -> list[str]:
+    """How far the ratios moved between this run and an earlier quiet run of the same scene
+    (``trace/time_error_<scene>_previous.json``, where kept): the fastest-run statistic against
+    the per-round medians."""
+    rel = f"trace/time_error_{name}_previous.json"
+    if not (results / rel).is_file():
+        return []
+    d0 = load(rel, results)
+    s0 = d0["results"]["scenes"][name]
+    if not (is_quiet(d0) and "target_flip_paired" in s0 and "target_flip_paired" in sc):
+        return []
+    spps = [p["spp"] for p in sc["curves"]["mitsuba"]]
+
+    def moved(key: str) -> tuple[float, int]:
+        a, b = s0[key], sc[key]
+        if not key.endswith("_paired"):
+            a, b = a["ours_raw"], b["ours_raw"]
+        a, b = a["time_ratio_per_mitsuba_point"], b["time_ratio_per_mitsuba_point"]
+        diffs = [abs(x - y) for x, y in zip(a, b, strict=True)]
+        i = int(np.argmax(diffs))
+        return diffs[i], spps[i]
+
+    def med(s: dict) -> list[float]:
+        return [p["paired_ratio_quartiles"][1] for p in s["curves"]["ours_raw"]]
+
+    per_round = max(abs(x - y) for x, y in zip(med(s0), med(sc), strict=True))
+    parts = []
+    for key, what in (
+        ("target_flip", "FLIP, fastest runs"),
+        ("target_flip_paired", "FLIP, per-round medians"),
+        ("target_rmse", "RMSE, fastest runs"),
+        ("target_rmse_paired", "RMSE, per-round medians"),
+    ):
+        dv, at = moved(key)
+        parts.append(f"{what} {dv:.2f} (at {at} spp)")
+    return [
+        f"{label}, run to run: against an earlier quiet run (`{rel}`, 1-minute load "
+        f"{d0['load_average_start'][0]:.2f}, an earlier build whose images here are the same), "
+        "the target ratios moved by at most: " + "; ".join(parts) + f"; the per-sample "
+        f"per-round medians by at most {per_round:.2f}. A ratio within about that of 0.5 is "
+        "not settled by one run.",
+        "",
+    ]
+
+
 def is_quiet(d: dict) -> bool:
     """Whether a results file says its run was on a quiet machine (1-minute load < 1 at the
     start, recorded by the benchmark); files without the flag are not."""
@@ -569,7 +614,13 @@ def block_trace_time_error(results: Path) -> str:
             return f"| {what} | " + " | ".join(cells) + " |"
 
         def ratios(key: str, curve: str = "ours_raw", sc=sc) -> list[float | None]:
+            if key.endswith("_paired"):  # ours_raw only: the curve with per-round times
+                return sc[key]["time_ratio_per_mitsuba_point"]
             return sc[key][curve]["time_ratio_per_mitsuba_point"]
+
+        def paired_target_row(what: str, key: str, sc=sc) -> list[str]:
+            """The target check from the per-round medians, where the file has it."""
+            return [row(what, ratios(key))] if key in sc else []
 
         def optional(what: str, key: str, curve: str, sc=sc) -> list[str]:
             """The row of a curve that older results files may lack (it did not exist yet)."""
@@ -622,8 +673,10 @@ def block_trace_time_error(results: Path) -> str:
             *optional("RMSE, ours raw, `gi_splits=4`", "target_rmse", "ours_raw_gi_splits4"),
             row("RMSE, ours with denoised GI (OIDN)", ratios("target_rmse", "ours_denoised")),
             *optional("RMSE, denoised GI, OIDN 'fast'", "target_rmse", "ours_denoised_fast"),
+            *paired_target_row("RMSE, ours raw, from the per-round medians", "target_rmse_paired"),
             row("RMSE, Embree floor", sc["embree_floor"]["floor_ratio_per_mitsuba_point"], False),
             row("FLIP, ours raw", ratios("target_flip")),
+            *paired_target_row("FLIP, ours raw, from the per-round medians", "target_flip_paired"),
             *optional(
                 "FLIP, ours raw, `sampler='sobol'` (per-pixel points)",
                 "target_flip",
@@ -684,9 +737,17 @@ def block_trace_time_error(results: Path) -> str:
             + f", with {span(err_ratio, f2)} of its RMSE"
             + paired_summary(cur["ours_raw"], spps)
             + "."
+            + (
+                f" From the per-round medians (ours: the median round ratio times Mitsuba's "
+                f"median time; Mitsuba: its median time), the RMSE target is "
+                f"{met('target_rmse_paired')}, the FLIP target {met('target_flip_paired')}."
+                if "target_flip_paired" in sc
+                else ""
+            )
             + speedup_needed(spps, ratios),
             "",
         ]
+        lines += _run_to_run(results, name, label, sc)
     lines += _error_by_brightness(results)
     lines += _error_split(results)
     lines += _gi_variance(results)

@@ -32,6 +32,10 @@ two). The README's numbers come from one run per scene, e.g.
     .venv/bin/python benchmarks/trace_time_error.py --size 256 --scenes cornell_box \
         --out-name time_error_cornell_box --wait-quiet 120
 
+Besides the fastest runs, the target check of the raw curve is also computed from the per-round
+medians (``target_*_paired``: :func:`paired_target_check`), which move less between quiet runs;
+``--restat`` adds it to a saved results file without rendering.
+
 Writes benchmarks/results/trace/<out-name>.{json,png} (default time_error). Mitsuba is a
 benchmark peer only.
 """
@@ -363,6 +367,41 @@ def target_check(curves: dict, metric: str) -> dict:
     return out
 
 
+def paired_target_check(curves: dict, metric: str) -> dict | None:
+    """The target check of ``ours_raw`` from the per-round medians instead of the fastest runs.
+
+    Our time at each spp is the median of the rounds' (ours / Mitsuba) ratios times Mitsuba's
+    median time there; Mitsuba's time at each point is its median time. The fastest of a few
+    runs moves between quiet runs by more than 10 % at some points (the VM's drift hits the two
+    renderers unevenly); the median of back-to-back ratios moves less. None when the curve has
+    no per-round times (older results files).
+    """
+    raw, mi = curves["ours_raw"], curves["mitsuba"]
+    if not all("paired_rounds_s" in p for p in raw):
+        return None
+    ratio = [float(np.median([a / b for a, b in p["paired_rounds_s"]])) for p in raw]
+    t_mi = {p["spp"]: float(np.median([b for _, b in p["paired_rounds_s"]])) for p in raw}
+    ours = [{**p, "time_s": r * t_mi[p["spp"]]} for p, r in zip(raw, ratio, strict=True)]
+    ratios = []
+    for p in mi:  # the rounds ran both renderers at each spp
+        reach = time_to_reach(ours, p[metric], metric)
+        ratios.append(None if reach is None else reach / t_mi[p["spp"]])
+    return {
+        "time_ratio_per_mitsuba_point": ratios,
+        "method": "ours: median per-round ratio x Mitsuba's median time at each spp; "
+        "Mitsuba: its median time",
+    }
+
+
+def add_paired_checks(scene_results: dict) -> None:
+    """Add ``target_rmse_paired`` and ``target_flip_paired`` (:func:`paired_target_check`) to a
+    scene's results, in place."""
+    for metric in ("rmse", "flip"):
+        check = paired_target_check(scene_results["curves"], metric)
+        if check is not None:
+            scene_results[f"target_{metric}_paired"] = check
+
+
 def plot(results: dict, size: int, path: Path, note: str = "") -> None:
     """Error against time per scene (RMSE and FLIP), with Mitsuba's curve and the Embree floor
     of our raw curve; ``note`` (e.g. the load) goes into the titles."""
@@ -466,6 +505,12 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per point (min is kept)")
     ap.add_argument("--replot", action="store_true", help="redraw the PNG from the saved JSON")
     ap.add_argument(
+        "--restat",
+        action="store_true",
+        help="recompute the saved JSON's derived statistics (the per-round-median target "
+        "checks) from its measurements, without rendering",
+    )
+    ap.add_argument(
         "--mitsuba-variant",
         default=MITSUBA_VARIANT,
         help=f"the Mitsuba variant to compare with (default {MITSUBA_VARIANT}); a variant that "
@@ -480,6 +525,14 @@ def main() -> None:
         "either way and decides the results file's 'quiet' flag",
     )
     args = ap.parse_args()
+    if args.restat:
+        path = OUT / f"{args.out_name}.json"
+        saved = json.loads(path.read_text())
+        for sc in saved["results"]["scenes"].values():
+            add_paired_checks(sc)
+        write_json(path, saved)
+        print(f"wrote {path}")
+        return
     if args.replot:
         saved = json.loads((OUT / f"{args.out_name}.json").read_text())
         plot(
@@ -678,6 +731,7 @@ def main() -> None:
             "load_average_1min_end": os.getloadavg()[0],
             "curves": curves,
         }
+        add_paired_checks(results["scenes"][name])
         print(name, "reference gap RMSE", gap, ref_full.mean(), ref_mi.mean())
         for k, v in results["scenes"][name]["target_rmse"].items():
             print(f"  {k}: time ratio to reach Mitsuba's RMSE {v['time_ratio_per_mitsuba_point']}")

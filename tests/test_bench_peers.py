@@ -63,3 +63,39 @@ def test_missing_mitsuba_names_make_bench_deps(tte, monkeypatch):
     monkeypatch.setitem(sys.modules, "mitsuba", None)  # import mitsuba -> ImportError
     with pytest.raises(tte.PeerMissingError, match="make bench-deps"):
         tte.load_mitsuba("llvm_ad_rgb")
+
+
+def test_paired_target_check_uses_the_median_round_ratio_and_mitsubas_median_time(tte):
+    """Known answer: our rounds are 0.8x Mitsuba's in most rounds (one outlier each way), and
+    our error at 2 spp equals Mitsuba's at 4 spp, so the ratio there is 0.8 * t_mi(2) /
+    t_mi(4) with Mitsuba's median times; the fastest-run check sees the outliers instead."""
+    rounds = {
+        1: [(0.08, 0.1), (0.03, 0.1), (0.08, 0.1), (0.12, 0.1), (0.08, 0.1)],
+        2: [(0.16, 0.2), (0.16, 0.2), (0.05, 0.2), (0.16, 0.2), (0.3, 0.2)],
+        4: [(0.32, 0.4), (0.32, 0.4), (0.32, 0.4), (0.1, 0.4), (0.5, 0.45)],
+    }
+    flip = {1: 0.2, 2: 0.1, 4: 0.05}
+    ours = [
+        {"spp": s, "time_s": min(a for a, _ in r), "flip": flip[s], "paired_rounds_s": r}
+        for s, r in rounds.items()
+    ]
+    mitsuba = [
+        {"spp": 1, "time_s": 0.1, "flip": 0.3},
+        {"spp": 2, "time_s": 0.2, "flip": 0.2},
+        {"spp": 4, "time_s": 0.4, "flip": 0.1},
+    ]
+    curves = {"ours_raw": ours, "mitsuba": mitsuba}
+    got = tte.paired_target_check(curves, "flip")["time_ratio_per_mitsuba_point"]
+    # Mitsuba's 1- and 2-spp errors (0.3, 0.2) are not below our 1-spp error: our 1-spp
+    # median time 0.8 * 0.1 over Mitsuba's median times 0.1 and 0.2; Mitsuba's 4-spp error 0.1
+    # is our 2-spp error: 0.8 * 0.2 over Mitsuba's median 4-spp time 0.4
+    assert got == pytest.approx([0.8, 0.4, 0.4])
+    fastest = tte.target_check(curves, "flip")["ours_raw"]["time_ratio_per_mitsuba_point"]
+    assert fastest == pytest.approx([0.03 / 0.1, 0.03 / 0.2, 0.05 / 0.4])
+    # a results file from before the per-round times: no paired check, and none is added
+    old = {"ours_raw": [{k: v for k, v in p.items() if k != "paired_rounds_s"} for p in ours],
+           "mitsuba": mitsuba}  # fmt: skip
+    assert tte.paired_target_check(old, "flip") is None
+    sc = {"curves": old}
+    tte.add_paired_checks(sc)
+    assert set(sc) == {"curves"}
