@@ -757,17 +757,26 @@ def block_trace_time_error(results: Path) -> str:
         "",
         *[f"    .venv/bin/python {TIME_ERROR_COMMANDS[n]}" for n in TIME_ERROR_SCENES],
         "",
-        "First use on a new machine compiles the kernels "
-        f"({cur_warmup(results):.0f} s in the throughput run, cached after).",
+        first_use(results),
         "",
     ]
     return "\n".join(lines)
 
 
-def cur_warmup(results: Path) -> float:
-    """The throughput run's first (compiling) render, in s."""
-    d = load("trace/throughput.json", results)
-    return max(r["warmup_render_s"] for r in d["results"])
+def first_use(results: Path) -> str:
+    """What the tracer's first use costs (``benchmarks/trace_compile.py``)."""
+    d = load("trace/compile.json", results)
+    t = d["trials"]
+    compile_s = span([x["compile_s"] for x in t])
+    load_s = span([x["cache_load_s"] for x in t], f2)
+    return (
+        "First use on a new machine (or after a change to `icbtool/trace/kernels.py`) compiles "
+        f"the tracer's kernels: the first render took {compile_s} s in a clean process with an "
+        f"empty numba cache, the same render {load_s} s in the next process, which loads them "
+        "from the cache "
+        f"(`benchmarks/trace_compile.py`, `trace/compile.json`, 1-minute load "
+        f"{d['load_average_start'][0]:.2f} at the start)."
+    )
 
 
 def block_denoise(results: Path) -> str:

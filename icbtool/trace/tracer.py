@@ -6,8 +6,9 @@ Each pass traces one or more samples for a set of pixels. One numba kernel
 or per ray batch; ``threads`` Python threads run it on interleaved blocks of whole pixels (it
 releases the GIL), and it adds every sample to its pixel's running statistics as the sample ends.
 The driver here reads those statistics between passes and decides when to stop. The kernels are
-compiled on first use and cached on disk (numba ``cache=True``): about 15-25 s once per machine (or
-per change of ``kernels.py``), ~1 s to load the cache in a new process.
+compiled on first use and cached on disk (numba ``cache=True``): about 70 s once per machine on
+a 2-core VM (or per change of ``kernels.py``), ~1 s to load the cache in a new process (measured
+by ``benchmarks/trace_compile.py``; numbers in the README).
 
 Light transport: two-sided Lambertian surfaces (textured albedo), one-sided emissive faces, a
 directional sun, point and spot lights (delta lights: next-event estimation only), emissive
