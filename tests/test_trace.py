@@ -1343,3 +1343,32 @@ def test_paint_boxes_adds_one_per_covering_box():
     np.testing.assert_array_equal(grid, want)
     _paint_boxes(grid, lo[:0], hi[:0])  # no boxes: unchanged
     np.testing.assert_array_equal(grid, want)
+
+
+def test_first_use_says_the_kernels_are_compiling_only_when_nothing_is_cached(caplog):
+    """The first render after an install compiles for about a minute: the tracer says so, and
+    only then (nothing compiled in the process, nothing valid in numba's disk cache)."""
+    import types
+
+    from icbtool.trace import kernels as K
+    from icbtool.trace.tracer import _note_first_use
+
+    scene = icb.scene.cornell_box()
+    render(scene, scene.default_camera.resized(8, 8), TraceConfig(spp=1))
+    # the numba internals the check reads exist and see the cache the render wrote
+    assert K.trace_paths.signatures
+    assert K.trace_paths._cache._cache_file._load_index()
+
+    def fake(signatures: list, index: dict) -> types.SimpleNamespace:
+        cache_file = types.SimpleNamespace(_load_index=lambda: index)
+        return types.SimpleNamespace(
+            signatures=signatures, _cache=types.SimpleNamespace(_cache_file=cache_file)
+        )
+
+    with caplog.at_level("WARNING", logger="icbtool.trace.tracer"):
+        _note_first_use(K.trace_paths)  # compiled here
+        _note_first_use(fake([], {"sig": "entry"}))  # a valid cache entry on disk
+        assert not caplog.records
+        _note_first_use(fake([], {}))  # neither: it compiles now
+    assert len(caplog.records) == 1
+    assert "compiling the path tracer's kernels" in caplog.records[0].getMessage()

@@ -905,6 +905,24 @@ class _Tracer:
         st.rays["shadow"] += int(c[2])
 
 
+def _note_first_use(kernel: Any) -> None:
+    """Say (once, as a warning) that the tracer's kernels are being compiled when ``kernel`` (a
+    numba dispatcher) has nothing compiled in this process and nothing valid in numba's disk
+    cache: the first render after an install or an update of the kernels then takes about a
+    minute (the README gives the measured time), which would otherwise look like a hang."""
+    if kernel.signatures:
+        return  # compiled or loaded in this process already
+    try:  # numba's cache index for the kernel: empty when missing or made for other source
+        cached = bool(kernel._cache._cache_file._load_index())
+    except Exception:  # pragma: no cover - a numba without these internals: say nothing
+        return
+    if not cached:
+        log.warning(
+            "compiling the path tracer's kernels (numba): about a minute on 2 cores, once per "
+            "install or update of icbtool; later runs load them from numba's cache"
+        )
+
+
 def _kernels():
     """The numba kernels module (imported on first use: numba is a heavy import)."""
     from icbtool.trace import kernels
@@ -1087,6 +1105,7 @@ def render(
     if not isinstance(cam, _Camera):
         raise ValueError(f"cam must be an icbtool Camera, got {type(cam).__name__}")
     t_start = time.perf_counter()
+    _note_first_use(_kernels().trace_paths)  # before the edge probes compile their kernel too
     stats = TraceStats()
     tracer = _Tracer(scene, cam, cfg, stats)
     H, W = cam.height, cam.width
