@@ -190,7 +190,11 @@ def test_client_disconnecting_mid_stream_and_one_never_reading(server, scene):
     async def never_read() -> None:
         from websockets.asyncio.client import connect
 
-        async with connect(server.url, proxy=None, compression=None, max_queue=1) as ws:
+        # close_timeout: this client never reads the server's close frame either, so its own
+        # close would wait websockets' default 10 s for it
+        async with connect(
+            server.url, proxy=None, compression=None, max_queue=1, close_timeout=1
+        ) as ws:
             hs = crypto.ClientHandshake(TOKEN)
             await ws.send(protocol.encode(protocol.Message("hello", hs.hello_fields())))
             welcome = protocol.decode(await ws.recv())
