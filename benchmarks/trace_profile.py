@@ -7,7 +7,8 @@ runs of each):
 
 - ``render_cpu_s``: the whole render with ``threads=1``; ``trace_kernel_s``: its passes traced
   alone (the kernel on this thread, and the per-call buffers); ``accumulate_python``: the rest (the
-  merge of samples into per-pixel statistics, its own kernel, and the driver's Python code).
+  merge of samples into per-pixel statistics, its own kernel, and the driver's Python code), from
+  each render's own clocks (its total minus its kernel calls; median of the renders).
 - ``embree_intersect_primary`` / ``_bounce``, ``embree_occluded``: the render's own rays (recorded
   with ``render(..., ray_log=...)``, same seed) replayed through the tracer's one-ray Embree calls
   (``rtcIntersect1`` / ``rtcOccluded1``, :func:`~icbtool.trace.kernels.rtc_intersect_batch`), and
@@ -388,13 +389,6 @@ def cpu_min(fn, repeats: int) -> float:
 def profile(scene, cam, cfg: TraceConfig, repeats: int) -> dict:
     cfg1 = TraceConfig(**{**cfg.__dict__, "threads": 1})
     icb.trace.render(scene, cam, TraceConfig(spp=1))  # warm-up (JIT cache, scene data, BVH)
-    renders = []
-    for _ in range(repeats):
-        c0 = time.process_time()
-        r = icb.trace.render(scene, cam, cfg1)
-        renders.append((time.process_time() - c0, r))
-    cpu_total, res = min(renders, key=lambda x: x[0])
-    st = res.stats
     # the kernel alone: the render's passes (spp_per_pass samples of every pixel) through the
     # tracer's trace(), which calls trace_paths on this thread (threads=1)
     tr = _Tracer(scene, cam, cfg1, TraceStats())
@@ -408,7 +402,21 @@ def profile(scene, cam, cfg: TraceConfig, repeats: int) -> dict:
                 np.tile(np.arange(a, a + k, dtype=np.int64), npix),
             )
         )
+    renders = []
+    for _ in range(repeats):
+        c0 = time.process_time()
+        r = icb.trace.render(scene, cam, cfg1)
+        renders.append((time.process_time() - c0, r))
+    cpu_total, res = min(renders, key=lambda x: x[0])
+    st = res.stats
     trace_s = cpu_min(lambda: [tr.trace(pp, ss) for pp, ss in passes], repeats)
+    # the driver's share from each render's own clocks (its whole time minus its kernel calls),
+    # not from the fastest render minus the fastest kernel run: on this VM one run of the same
+    # work takes up to 25 % longer than the next, and that difference of two minima from
+    # different minutes once came out as a fifth of the render
+    driver_s = float(
+        np.median([r.stats.time_s["total"] - r.stats.time_s["trace"] for _, r in renders])
+    )
     rays, first_shadow = record_with_first_shadow(
         scene, cam, cfg1, capacity=int(st.total_rays * 1.05) + 1024
     )
@@ -500,7 +508,7 @@ def profile(scene, cam, cfg: TraceConfig, repeats: int) -> dict:
     for name, lv in zip(names, levels, strict=True):
         stages[name] = max(lv - prev, 0.0)
         prev = lv
-    stages["accumulate_python"] = max(cpu_total - trace_s, 0.0)
+    stages["accumulate_python"] = max(driver_s, 0.0)
     attributed = sum(v for k, v in stages.items() if k != "accumulate_python")
     stages["unattributed"] = max(trace_s - attributed, 0.0)
     oidn = {}
