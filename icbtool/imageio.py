@@ -12,6 +12,17 @@ from pathlib import Path
 
 import numpy as np
 
+#: RGB colour of each hole cause of a warp (:class:`icbtool.warp.WarpResult`) in pictures of its
+#: holes (the demo's frame strips, the desktop app): outside every reference frustum,
+#: disoccluded, no geometry. Kept here, with the display transform, so that code that only draws
+#: pictures (the desktop app's window) need not import the warp and torch; ``icbtool.warp``
+#: exports the same dict.
+HOLE_COLOURS: dict[str, tuple[int, int, int]] = {
+    "outside": (255, 64, 64),
+    "disoccluded": (255, 200, 0),
+    "no_geometry": (40, 40, 40),
+}
+
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     """Linear [0, 1] -> sRGB-encoded [0, 1] (float32; the exact piecewise curve)."""

@@ -28,9 +28,8 @@ import icbtool as icb
 from icbtool import metrics, prefetch, system
 from icbtool.camera import Camera, CameraPath
 from icbtool.cli._common import load_scene as cli_load_scene
-from icbtool.imageio import to_display
+from icbtool.imageio import HOLE_COLOURS, to_display  # not icbtool.warp's: it imports torch
 from icbtool.pipeline import PathConfig
-from icbtool.warp import HOLE_COLOURS  # the demo's colours of the hole causes
 
 
 @dataclass(frozen=True)

@@ -620,3 +620,23 @@ def test_the_window_refuses_a_process_that_holds_headless_opengl(monkeypatch):
             check_gl_owner()
     monkeypatch.setenv("PYOPENGL_PLATFORM", "glx")
     check_gl_owner()
+
+
+def test_the_window_and_the_bake_start_without_torch():
+    """torch takes about 2.5 s to import: the window's process (icbtool_gui.app) and the quick
+    store's bake process (icbtool_gui.bakejob: it loads the scene, rasterizes and traces) do not
+    import it; the frame process and the trainer, which run the warp and the GAN, do."""
+    code = (
+        "import sys\n"
+        "import icbtool_gui.app\n"
+        "assert 'torch' not in sys.modules, 'icbtool_gui.app imported torch'\n"
+        "import icbtool.bake, icbtool.raster, icbtool.store, icbtool.trace, icbtool_gui.bakejob\n"
+        "from icbtool.cli._common import load_scene\n"
+        "load_scene('cornell_box')\n"
+        "assert 'torch' not in sys.modules, 'the quick-store bake imported torch'\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    env["ICBTOOL_GL_BACKEND"] = "osmesa"  # the bake rasterizes; not this test's window
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       timeout=300)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]

@@ -24,6 +24,7 @@ from typing import Literal
 import numpy as np
 
 from icbtool.camera import Camera
+from icbtool.imageio import HOLE_COLOURS  # re-exported: pictures of a WarpResult's holes
 
 __all__ = [
     "HOLE_COLOURS",
@@ -90,15 +91,6 @@ class WarpConfig:
             or self.threads < 1
         ):
             raise ValueError(f"WarpConfig.threads must be an int >= 1, got {self.threads!r}")
-
-
-#: RGB colour of each hole cause of a :class:`WarpResult` in pictures of its holes (the demo's
-#: frame strips, the desktop app): outside every reference frustum, disoccluded, no geometry.
-HOLE_COLOURS: dict[str, tuple[int, int, int]] = {
-    "outside": (255, 64, 64),
-    "disoccluded": (255, 200, 0),
-    "no_geometry": (40, 40, 40),
-}
 
 
 @dataclass
