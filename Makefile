@@ -31,9 +31,13 @@ sysdeps:
 	  echo "installing Debian packages: $(DEB_PKGS)"; \
 	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $(DEB_PKGS); }
 
+# pip byte-compiles what it installs one file at a time (75 of its 170 s here); compileall does
+# the same on every core (about 40 s on 2). A file that does not compile (a few packages ship
+# Python 2 examples) is skipped, as pip skips it.
 .venv/.installed: requirements.lock setup.cfg pyproject.toml | sysdeps
 	test -x $(PY) || python3 -m venv .venv
-	$(PIP) install -q --disable-pip-version-check -r requirements.lock
+	$(PIP) install -q --disable-pip-version-check --no-compile -r requirements.lock
+	$(PY) -m compileall -q -j 0 "$$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" >/dev/null 2>&1 || true
 	$(PIP) install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
 	touch $@
 
