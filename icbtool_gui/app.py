@@ -608,38 +608,43 @@ def open_window(
         GLOwnerError: this process already uses icbtool's headless OpenGL
             (:func:`check_gl_owner`).
     """
+    from icbtool_gui.frames import discard_prestarted, prestart
     from icbtool_gui.model import demo_settings
 
     check_gl_owner()
-    scene = load_scene(scene_spec)
-    s_viewer, s_cloud, s_client = ViewerConfig(), None, None
-    if store is None and (Path(demo_dir) / "cache").is_dir():
-        store = Path(demo_dir) / "cache"
-        got = demo_settings(demo_dir)
-        if got is not None:
-            s_viewer, s_cloud, s_client = got
-    elif store is None:
-        path = "test" if "test" in scene.paths else next(iter(scene.paths), None)
-        if path is None:
-            raise ValueError(f"scene {scene_spec!r} has no camera path to follow")
-        store = _bake_with_progress(scene_spec, Path("out/gui/store"))
-        s_viewer = ViewerConfig(path=path, height=64, width=64)
-        s_cloud = icb.system.CloudConfig(spp=4, denoise=False)
-    elif not Path(store).is_dir():
+    if store is not None and not Path(store).is_dir():
         raise FileNotFoundError(f"--store {str(store)!r} is not a directory")
-    if s_cloud is not None and s_cloud.denoise:
-        try:
-            import importlib
+    prestart()  # the frame process imports while the store is baked and the window built
+    try:
+        scene = load_scene(scene_spec)
+        s_viewer, s_cloud, s_client = ViewerConfig(), None, None
+        if store is None and (Path(demo_dir) / "cache").is_dir():
+            store = Path(demo_dir) / "cache"
+            got = demo_settings(demo_dir)
+            if got is not None:
+                s_viewer, s_cloud, s_client = got
+        elif store is None:
+            path = "test" if "test" in scene.paths else next(iter(scene.paths), None)
+            if path is None:
+                raise ValueError(f"scene {scene_spec!r} has no camera path to follow")
+            store = _bake_with_progress(scene_spec, Path("out/gui/store"))
+            s_viewer = ViewerConfig(path=path, height=64, width=64)
+            s_cloud = icb.system.CloudConfig(spp=4, denoise=False)
+        if s_cloud is not None and s_cloud.denoise:
+            try:
+                import importlib
 
-            importlib.import_module("pyoidn")
-        except ImportError:
-            s_cloud = dataclasses.replace(s_cloud, denoise=False)
-    if viewer is not None:
-        s_viewer = viewer
-    if s_viewer.path not in scene.paths:
-        s_viewer = dataclasses.replace(s_viewer, path=next(iter(scene.paths)))
-    session = Session(scene, store, run, s_viewer, cloud or s_cloud, client or s_client)
-    return MainWindow(session, scene_spec, run_dir=run)
+                importlib.import_module("pyoidn")
+            except ImportError:
+                s_cloud = dataclasses.replace(s_cloud, denoise=False)
+        if viewer is not None:
+            s_viewer = viewer
+        if s_viewer.path not in scene.paths:
+            s_viewer = dataclasses.replace(s_viewer, path=next(iter(scene.paths)))
+        session = Session(scene, store, run, s_viewer, cloud or s_cloud, client or s_client)
+        return MainWindow(session, scene_spec, run_dir=run)
+    finally:
+        discard_prestarted()  # one the window did not take (it failed to open)
 
 
 def main(

@@ -7,6 +7,11 @@ references into the store) and the client (:class:`icbtool_gui.model.FrameComput
 sends it ``(frame index, viewer, cloud, client settings)`` and receives a picklable
 :class:`icbtool_gui.model.FrameResult`. It is started with ``spawn`` (a fork would copy Qt, VTK and
 their OpenGL state) and stops with the window.
+
+Spawning it and importing what a frame needs (torch for the warp, the rasterizer, the scene
+code) takes seconds. :func:`prestart` starts a process that does that at once and then waits to
+be told its scene and store: the window calls it first thing, so the imports overlap the quick
+store's bake and the window's own construction instead of delaying the first frame after them.
 """
 
 from __future__ import annotations
@@ -18,10 +23,18 @@ from typing import Any
 from PySide6 import QtCore
 
 
-def serve(conn: Any, scene_spec: str, store_dir: str, run_dir: str | None, settings: tuple) -> None:
-    """The frame process: answer ``(k, viewer, cloud, client)`` messages until ``None``."""
+def serve(conn: Any) -> None:
+    """The frame process: import what frames need, receive ``(scene_spec, store_dir, run_dir,
+    settings)`` (or ``None``: stop unused), then answer ``(k, viewer, cloud, client)`` messages
+    until ``None``."""
+    import icbtool.raster  # noqa: F401 - imported now, while the window is being built
+    import icbtool.warp  # noqa: F401 - (torch, kornia)
     from icbtool_gui.model import FrameComputer, Session, load_scene
 
+    opened = conn.recv()
+    if opened is None:
+        return
+    scene_spec, store_dir, run_dir, settings = opened
     session = Session(load_scene(scene_spec), store_dir, run_dir, *settings)
     computer = FrameComputer(session)
     try:
@@ -39,6 +52,38 @@ def serve(conn: Any, scene_spec: str, store_dir: str, run_dir: str | None, setti
     finally:
         computer.close()
         session.close()
+
+
+_PRESTARTED: tuple[Any, Any] | None = None  # (process, connection) of prestart()
+
+
+def _spawn() -> tuple[Any, Any]:
+    ctx = multiprocessing.get_context("spawn")
+    conn, child = ctx.Pipe()
+    process = ctx.Process(target=serve, args=(child,), daemon=True, name="icbtool-gui-frames")
+    process.start()
+    child.close()
+    return process, conn
+
+
+def prestart() -> None:
+    """Start the next :class:`FrameProcess`'s process now (spawn and imports), to be told its
+    scene and store later. Calling it again while one waits does nothing."""
+    global _PRESTARTED
+    if _PRESTARTED is None or not _PRESTARTED[0].is_alive():
+        _PRESTARTED = _spawn()
+
+
+def discard_prestarted() -> None:
+    """Stop a prestarted process that no window took (the window failed to open). It has only
+    imported modules (it opens nothing before it is told its store), so it is terminated."""
+    global _PRESTARTED
+    if _PRESTARTED is not None:
+        process, conn = _PRESTARTED
+        _PRESTARTED = None
+        conn.close()
+        process.terminate()
+        process.join(5.0)
 
 
 class FrameProcess(QtCore.QObject):
@@ -66,17 +111,14 @@ class FrameProcess(QtCore.QObject):
         parent: QtCore.QObject | None = None,
     ) -> None:
         super().__init__(parent)
-        ctx = multiprocessing.get_context("spawn")
-        self._conn, child = ctx.Pipe()
-        self.process = ctx.Process(
-            target=serve,
-            args=(child, scene_spec, str(store_dir), None if run_dir is None else str(run_dir),
-                  settings),
-            daemon=True,
-            name="icbtool-gui-frames",
-        )  # fmt: skip
-        self.process.start()
-        child.close()
+        global _PRESTARTED
+        if _PRESTARTED is not None and _PRESTARTED[0].is_alive():
+            (self.process, self._conn), _PRESTARTED = _PRESTARTED, None
+        else:
+            self.process, self._conn = _spawn()
+        self._conn.send(
+            (scene_spec, str(store_dir), None if run_dir is None else str(run_dir), settings)
+        )
         self._waiting: int | None = None
         self._timer = QtCore.QTimer(self)
         self._timer.setInterval(15)
@@ -124,4 +166,4 @@ class FrameProcess(QtCore.QObject):
         self._conn.close()
 
 
-__all__ = ["FrameProcess", "serve"]
+__all__ = ["FrameProcess", "discard_prestarted", "prestart", "serve"]

@@ -18,6 +18,7 @@ before any other, so that no test has bound PyOpenGL to OSMesa / EGL in this pro
 from __future__ import annotations
 
 import importlib.util
+import multiprocessing
 import os
 import shutil
 import subprocess
@@ -640,3 +641,25 @@ def test_the_window_and_the_bake_start_without_torch():
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                        timeout=300)  # fmt: skip
     assert r.returncode == 0, r.stderr[-2000:]
+
+
+def test_a_prestarted_frame_process_waits_once_and_is_stopped_when_no_window_takes_it():
+    """open_window starts the frame process first (its imports overlap the bake and the
+    window's construction); a second prestart reuses the waiting one, and a window that fails
+    to open stops it."""
+    from icbtool_gui import frames
+
+    frames.prestart()
+    proc = frames._PRESTARTED[0]
+    frames.prestart()
+    assert frames._PRESTARTED[0] is proc and proc.is_alive()
+    frames.discard_prestarted()
+    assert frames._PRESTARTED is None and not proc.is_alive()
+    frames.discard_prestarted()  # nothing waiting: nothing to do
+    # a scene that cannot be opened: the window never takes the process, which is stopped
+    from icbtool_gui.app import open_window
+
+    with pytest.raises(Exception, match="no_such_scene"):
+        open_window("no_such_scene.obj")
+    assert frames._PRESTARTED is None
+    assert not [p for p in multiprocessing.active_children() if p.name == "icbtool-gui-frames"]
