@@ -402,6 +402,18 @@ def time_error_runs(results: Path) -> dict[str, tuple[str, dict, dict]]:
     return out
 
 
+def target_ratios(sc: dict, key: str, curve: str = "ours_raw") -> list[float | None]:
+    """A time-error scene's target ratios per Mitsuba point: ``sc[key][curve]``, or for the
+    per-round-median checks (``target_*_paired``, made for ours_raw alone) ``sc[key]``."""
+    check = sc[key] if key.endswith("_paired") else sc[key][curve]
+    return check["time_ratio_per_mitsuba_point"]
+
+
+def round_medians(points: list[dict]) -> list[float]:
+    """The median per-round (ours / Mitsuba) time ratio of each point of the ours_raw curve."""
+    return [p["paired_ratio_quartiles"][1] for p in points]
+
+
 def _run_to_run(results: Path, name: str, label: str, sc: dict) -> list[str]:
     """How far the ratios moved between this run and an earlier quiet run of the same scene
     (``trace/time_error_<scene>_previous.json``, where kept): the fastest-run statistic against
@@ -416,18 +428,13 @@ def _run_to_run(results: Path, name: str, label: str, sc: dict) -> list[str]:
     spps = [p["spp"] for p in sc["curves"]["mitsuba"]]
 
     def moved(key: str) -> tuple[float, int]:
-        a, b = s0[key], sc[key]
-        if not key.endswith("_paired"):
-            a, b = a["ours_raw"], b["ours_raw"]
-        a, b = a["time_ratio_per_mitsuba_point"], b["time_ratio_per_mitsuba_point"]
+        a, b = target_ratios(s0, key), target_ratios(sc, key)
         diffs = [abs(x - y) for x, y in zip(a, b, strict=True)]
         i = int(np.argmax(diffs))
         return diffs[i], spps[i]
 
-    def med(s: dict) -> list[float]:
-        return [p["paired_ratio_quartiles"][1] for p in s["curves"]["ours_raw"]]
-
-    per_round = max(abs(x - y) for x, y in zip(med(s0), med(sc), strict=True))
+    med0, med1 = (round_medians(s["curves"]["ours_raw"]) for s in (s0, sc))
+    per_round = max(abs(x - y) for x, y in zip(med0, med1, strict=True))
     parts = []
     for key, what in (
         ("target_flip", "FLIP, fastest runs"),
@@ -614,9 +621,7 @@ def block_trace_time_error(results: Path) -> str:
             return f"| {what} | " + " | ".join(cells) + " |"
 
         def ratios(key: str, curve: str = "ours_raw", sc=sc) -> list[float | None]:
-            if key.endswith("_paired"):  # ours_raw only: the curve with per-round times
-                return sc[key]["time_ratio_per_mitsuba_point"]
-            return sc[key][curve]["time_ratio_per_mitsuba_point"]
+            return target_ratios(sc, key, curve)
 
         def paired_target_row(what: str, key: str, sc=sc) -> list[str]:
             """The target check from the per-round medians, where the file has it."""
@@ -644,7 +649,7 @@ def block_trace_time_error(results: Path) -> str:
             renderer by the VM's drift between them)."""
             if not all("paired_ratio_quartiles" in p for p in points):
                 return ""
-            med = [p["paired_ratio_quartiles"][1] for p in points]
+            med = round_medians(points)
             slow = [s for s, m in zip(spps, med, strict=True) if m > 1]
             return f"; round by round, the median ratio is {span(med, f2)}" + (
                 f" (above 1 at {', '.join(map(str, slow))} spp)" if slow else ""
