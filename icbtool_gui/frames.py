@@ -70,8 +70,19 @@ def prestart() -> None:
     """Start the next :class:`FrameProcess`'s process now (spawn and imports), to be told its
     scene and store later. Calling it again while one waits does nothing."""
     global _PRESTARTED
-    if _PRESTARTED is None or not _PRESTARTED[0].is_alive():
+    if _PRESTARTED is not None and not _PRESTARTED[0].is_alive():
+        discard_prestarted()  # it died: close its pipe, start another
+    if _PRESTARTED is None:
         _PRESTARTED = _spawn()
+
+
+def _take() -> tuple[Any, Any]:
+    """(process, connection) for a new :class:`FrameProcess`: the prestarted one, or one
+    started now."""
+    global _PRESTARTED
+    prestart()
+    taken, _PRESTARTED = _PRESTARTED, None
+    return taken
 
 
 def discard_prestarted() -> None:
@@ -111,11 +122,7 @@ class FrameProcess(QtCore.QObject):
         parent: QtCore.QObject | None = None,
     ) -> None:
         super().__init__(parent)
-        global _PRESTARTED
-        if _PRESTARTED is not None and _PRESTARTED[0].is_alive():
-            (self.process, self._conn), _PRESTARTED = _PRESTARTED, None
-        else:
-            self.process, self._conn = _spawn()
+        self.process, self._conn = _take()
         self._conn.send(
             (scene_spec, str(store_dir), None if run_dir is None else str(run_dir), settings)
         )
