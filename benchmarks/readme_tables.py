@@ -361,8 +361,56 @@ def block_trace_profile(results: Path) -> str:
                 "Per sample, the best of these query forms (every ray in a packet of 16, the "
                 "scene not robust) would still cost, for Embree alone: " + "; ".join(parts) + ".",
             ]
+    lines += _simd_bound(results, label)
     lines.append("")
     return "\n".join(lines)
+
+
+def _simd_bound(results: Path, label: dict[str, str]) -> list[str]:
+    """The wavefront / SIMD bound paragraph (benchmarks/trace_simd_bound.py), when it was run,
+    with the time the missed FLIP points of the time-against-error runs would need saved."""
+    if not (results / "trace" / "simd_bound.json").is_file():
+        return []
+    d = load("trace/simd_bound.json", results)
+    parts = []
+    for r in d["results"]:
+        by = r["soa_by_batch"]
+        best = by[str(r["best_batch"])]["ns_per_vertex"]
+        worst = max(by, key=lambda b: by[b]["ns_per_vertex"]["gather"])
+        parts.append(
+            f"{label.get(r['scene'], r['scene'])}: {r['scalar_ns_per_vertex']:.0f} ns per vertex "
+            f"in the kernel's helpers against {best['total']:.0f} ns in batches of "
+            f"{r['best_batch']} ({r['speedup_soa']:.2f}x; the math alone "
+            f"{r['speedup_soa_without_gather']:.1f}x, the gather {best['gather']:.0f} ns, "
+            f"{by[worst]['ns_per_vertex']['gather']:.0f} ns in batches of {worst}, whose 45 "
+            f"columns overflow the 32 KiB L1 cache), so at most "
+            f"{100 * r['render_saving_bound']:.0f} % off the render (these stages are "
+            f"{100 * r['shading_share_of_render']:.0f} % of it)"
+        )
+    need = []
+    for name, (_, _, sc) in time_error_runs(results).items():
+        spps = [p["spp"] for p in sc["curves"]["mitsuba"]]
+        cut = [
+            1 - 0.5 / r
+            for s, r in zip(spps, target_ratios(sc, "target_flip"), strict=True)
+            if s >= 2 and r is not None and r > 0.5
+        ]
+        if cut:
+            need.append(
+                f"the {TIME_ERROR_SCENES[name]}'s missed FLIP points need "
+                f"{span([100 * c for c in cut])} % less time at equal error"
+            )
+    return [
+        "",
+        "What a wavefront with SIMD shading could save (`benchmarks/trace_simd_bound.py`, 1-minute "
+        f"load {d['load_average_start'][0]:.1f} at the start): the per-vertex math (hit frame, "
+        "light samples, cosine bounce) on the same render's hits, as the megakernel runs it one "
+        "vertex at a time and as a wavefront's stages would over a batch of paths (a gather into "
+        "columns, then branch-free loops that LLVM turns into 4-wide AVX2 code, checked equal to "
+        "1e-9): " + "; ".join(parts) + ". That is before the wavefront hands each batch to Embree "
+        "and its path state from stage to stage, which costs stores and loads like the gather's"
+        + (f"; {'; '.join(need)} (time against error, below)." if need else "."),
+    ]
 
 
 #: the Embree queries of trace_profile.py's ``embree_ns_per_ray``
