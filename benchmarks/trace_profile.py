@@ -60,14 +60,13 @@ from numba import types
 from numba.extending import intrinsic
 
 import icbtool as icb
-from icbtool.cli._common import run_info, write_json
 from icbtool.trace import TraceConfig
 from icbtool.trace import kernels as K
 from icbtool.trace.rtc import RtcScene, _lib
 from icbtool.trace.tracer import TraceStats, _Tracer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from trace_throughput import ray_log, sponza  # noqa: E402  (a sibling benchmark script)
+from trace_throughput import ray_log, sponza, write_profile_results  # noqa: E402  (a sibling benchmark script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -636,22 +635,9 @@ def main() -> None:
             peer_s = f"; Mitsuba's Embree {peer:.0f}" if peer is not None else ""
             print(f"  ns/ray {kind:7s} (1 ray/packet 8/packet 16): {ours}{peer_s}")
         rows.append(row)
-    OUT.mkdir(parents=True, exist_ok=True)
-    load_end = os.getloadavg()
-    write_json(
-        OUT / f"{args.out_name}.json",
-        {
-            "config": cfg,
-            "args": vars(args),
-            "load_average_start": load_start,
-            "load_average_end": load_end,
-            "method": __doc__,
-            "results": rows,
-            "run_info": run_info(),
-        },
-    )
+    path, load_end = write_profile_results(args.out_name, cfg, args, load_start, rows, __doc__)
     plot(rows, OUT / f"{args.out_name}.png")
-    print(f"wrote {OUT / args.out_name}.json (load {load_start[0]:.1f} -> {load_end[0]:.1f})")
+    print(f"wrote {path} (load {load_start[0]:.1f} -> {load_end[0]:.1f})")
 
 
 if __name__ == "__main__":

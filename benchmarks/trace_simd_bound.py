@@ -50,14 +50,13 @@ import numba as nb
 import numpy as np
 
 import icbtool as icb
-from icbtool.cli._common import run_info, write_json
 from icbtool.trace import TraceConfig
 from icbtool.trace import kernels as K
 from icbtool.trace.rtc import RtcScene
 from icbtool.trace.tracer import TraceStats, _Tracer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from trace_throughput import ray_log, sponza  # noqa: E402  (a sibling benchmark script)
+from trace_throughput import ray_log, sponza, write_profile_results  # noqa: E402  (a sibling benchmark script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -116,70 +115,32 @@ N_COLS = 45
 @nb.njit(nogil=True)
 def soa_gather(tri, fn, vn, emit_faces, emit_cdf, pmf, area, d, prim, u, v, tt, rnd, cols, lo):
     """Stage 1 (scalar: loads by index): the inputs of hits lo .. lo + B as the batch's columns
-    ``cols`` (N_COLS, B), as a wavefront's queue would hold them (written out one row view per
-    value: numba's 2D indexing in this loop took several times as long)."""
+    ``cols`` (N_COLS, B), as a wavefront's queue would hold them."""
     n_e = len(emit_faces)
-    c0, c1, c2, c3, c4 = cols[0], cols[1], cols[2], cols[3], cols[4]
-    c5, c6, c7, c8 = cols[5], cols[6], cols[7], cols[8]
-    c9, c10, c11, c12, c13 = cols[9], cols[10], cols[11], cols[12], cols[13]
-    c14, c15, c16, c17 = cols[14], cols[15], cols[16], cols[17]
-    c18, c19, c20, c21, c22 = cols[18], cols[19], cols[20], cols[21], cols[22]
-    c23, c24, c25, c26 = cols[23], cols[24], cols[25], cols[26]
-    c27, c28, c29, c30, c31 = cols[27], cols[28], cols[29], cols[30], cols[31]
-    c32, c33, c34, c35 = cols[32], cols[33], cols[34], cols[35]
-    c36, c37, c38, c39, c40 = cols[36], cols[37], cols[38], cols[39], cols[40]
-    c41, c42, c43, c44 = cols[41], cols[42], cols[43], cols[44]
-    for i in range(len(c0)):
+    for i in range(cols.shape[1]):
         j = lo + i
         pr = prim[j]
-        c0[i] = tri[pr, 0, 0]
-        c1[i] = tri[pr, 0, 1]
-        c2[i] = tri[pr, 0, 2]
-        c3[i] = tri[pr, 1, 0]
-        c4[i] = tri[pr, 1, 1]
-        c5[i] = tri[pr, 1, 2]
-        c6[i] = tri[pr, 2, 0]
-        c7[i] = tri[pr, 2, 1]
-        c8[i] = tri[pr, 2, 2]
-        c9[i] = vn[pr, 0, 0]
-        c10[i] = vn[pr, 0, 1]
-        c11[i] = vn[pr, 0, 2]
-        c12[i] = vn[pr, 1, 0]
-        c13[i] = vn[pr, 1, 1]
-        c14[i] = vn[pr, 1, 2]
-        c15[i] = vn[pr, 2, 0]
-        c16[i] = vn[pr, 2, 1]
-        c17[i] = vn[pr, 2, 2]
-        c18[i] = fn[pr, 0]
-        c19[i] = fn[pr, 1]
-        c20[i] = fn[pr, 2]
-        c36[i] = d[j, 0]
-        c37[i] = d[j, 1]
-        c38[i] = d[j, 2]
+        for a in range(3):
+            for b in range(3):
+                cols[3 * a + b, i] = tri[pr, a, b]
+                cols[9 + 3 * a + b, i] = vn[pr, a, b]
+            cols[18 + a, i] = fn[pr, a]
+            cols[36 + a, i] = d[j, a]
         if n_e > 0:
             k, r = K._cdf_pick(emit_cdf, 0, rnd[0, j])
             lf = emit_faces[k]
-            c21[i] = tri[lf, 0, 0]
-            c22[i] = tri[lf, 0, 1]
-            c23[i] = tri[lf, 0, 2]
-            c24[i] = tri[lf, 1, 0]
-            c25[i] = tri[lf, 1, 1]
-            c26[i] = tri[lf, 1, 2]
-            c27[i] = tri[lf, 2, 0]
-            c28[i] = tri[lf, 2, 1]
-            c29[i] = tri[lf, 2, 2]
-            c30[i] = fn[lf, 0]
-            c31[i] = fn[lf, 1]
-            c32[i] = fn[lf, 2]
-            c33[i] = pmf[lf]
-            c34[i] = area[lf]
-            c35[i] = r
-        c39[i] = u[j]
-        c40[i] = v[j]
-        c41[i] = tt[j]
-        c42[i] = rnd[1, j]
-        c43[i] = rnd[2, j]
-        c44[i] = rnd[3, j]
+            for a in range(3):
+                for b in range(3):
+                    cols[21 + 3 * a + b, i] = tri[lf, a, b]
+                cols[30 + a, i] = fn[lf, a]
+            cols[33, i] = pmf[lf]
+            cols[34, i] = area[lf]
+            cols[35, i] = r
+        cols[39, i] = u[j]
+        cols[40, i] = v[j]
+        cols[41, i] = tt[j]
+        for a in range(3):
+            cols[42 + a, i] = rnd[1 + a, j]
 
 
 @nb.njit(nogil=True, error_model="numpy")
@@ -579,21 +540,7 @@ def main() -> None:
                 f"at most {100 * row['render_saving_bound']:.0f} % of the render"
             )
         rows.append(row)
-    OUT.mkdir(parents=True, exist_ok=True)
-    load_end = os.getloadavg()
-    out = OUT / f"{args.out_name}.json"
-    write_json(
-        out,
-        {
-            "config": cfg,
-            "args": vars(args),
-            "load_average_start": load_start,
-            "load_average_end": load_end,
-            "method": __doc__,
-            "results": rows,
-            "run_info": run_info(),
-        },
-    )
+    out, load_end = write_profile_results(args.out_name, cfg, args, load_start, rows, __doc__)
     print(f"wrote {out} (load {load_start[0]:.1f} -> {load_end[0]:.1f})")
 
 

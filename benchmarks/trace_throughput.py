@@ -35,6 +35,30 @@ KINDS = (("primary", 0), ("bounce", 2), ("shadow", 1))
 OUT = REPO / "benchmarks" / "results" / "trace"
 
 
+def write_profile_results(
+    out_name: str, cfg: TraceConfig, args: argparse.Namespace, load_start, rows: list, method: str
+) -> tuple[Path, tuple[float, float, float]]:
+    """A per-scene study's results as ``benchmarks/results/trace/<out_name>.json``: its config,
+    arguments, method (the script's docstring), rows, the load averages at start and now, and
+    this machine's run info. Returns the file and the load averages now."""
+    OUT.mkdir(parents=True, exist_ok=True)
+    path = OUT / f"{out_name}.json"
+    load_end = os.getloadavg()
+    write_json(
+        path,
+        {
+            "config": cfg,
+            "args": vars(args),
+            "load_average_start": load_start,
+            "load_average_end": load_end,
+            "method": method,
+            "results": rows,
+            "run_info": run_info(),
+        },
+    )
+    return path, load_end
+
+
 def sponza():
     os.environ.setdefault("ICBTOOL_SPONZA", str(REPO.parent / "shared" / "scenes" / "sponza"))
     return icb.scene.load(REPO / "data" / "scenes" / "sponza.toml")

@@ -12,16 +12,19 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 
 
-@pytest.fixture(scope="module")
-def tte():
+def bench_module(name: str) -> types.ModuleType:
+    """benchmarks/<name>.py as a module (its sibling imports resolved from benchmarks/)."""
     with pytest.MonkeyPatch.context() as mp:
         mp.syspath_prepend(str(REPO / "benchmarks"))
-        spec = importlib.util.spec_from_file_location(
-            "trace_time_error", REPO / "benchmarks" / "trace_time_error.py"
-        )
+        spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
         mod = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(mod)
     return mod
+
+
+@pytest.fixture(scope="module")
+def tte():
+    return bench_module("trace_time_error")
 
 
 def fake_mitsuba(loadable: set[str]) -> types.ModuleType:
@@ -109,13 +112,7 @@ def test_simd_bound_stages_match_the_kernels_helpers_and_are_vectorised():
     import icbtool as icb
     from icbtool.trace import TraceConfig
 
-    with pytest.MonkeyPatch.context() as mp:
-        mp.syspath_prepend(str(REPO / "benchmarks"))
-        spec = importlib.util.spec_from_file_location(
-            "trace_simd_bound", REPO / "benchmarks" / "trace_simd_bound.py"
-        )
-        tsb = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(tsb)
+    tsb = bench_module("trace_simd_bound")
     cfg = TraceConfig(spp=1, max_depth=4, seed=0)
     for scene in (icb.scene.cornell_box(), icb.scene.boxes_on_floor(n_boxes=4, seed=1)):
         cam = scene.default_camera.resized(24, 24)
