@@ -9,7 +9,8 @@ threaded by default), with the 1-minute load recorded every render.
 
     .venv/bin/python benchmarks/trace_ab.py --a /tmp/before --b . [--rounds 9] [--size 128]
 
-Writes benchmarks/results/trace/ab_<scene or --name>.json.
+Writes benchmarks/results/trace/ab_<scene or --name>.json (with the machine, the versions and each
+checkout's commit; files written before 2026-11-27 have the load alone).
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ import statistics
 import subprocess
 import sys
 from pathlib import Path
+
+from icbtool.cli._common import run_info
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -84,6 +87,22 @@ def add_checkout_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--size", type=int, default=128)
 
 
+def _commit(path: Path) -> str | None:
+    """The git commit a checkout is at (a dirty tree is marked), or None outside git."""
+
+    def git(*argv: str) -> str:
+        done = subprocess.run(["git", "-C", str(path), *argv], capture_output=True, text=True)
+        done.check_returncode()
+        return done.stdout.strip()
+
+    try:
+        head = git("rev-parse", "HEAD")
+        dirty = git("status", "--porcelain", "--", "icbtool")
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + (" (icbtool/ modified)" if dirty else "")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_checkout_args(ap)
@@ -133,6 +152,8 @@ def main() -> None:
         ),
         "load_1min": [x["a"]["load"] for x in rows],
         "rounds": rows,
+        "commits": {"a": _commit(args.a), "b": _commit(args.b)},
+        "run_info": run_info(),
     }
     OUT.mkdir(parents=True, exist_ok=True)
     path = OUT / f"ab_{args.name or args.scene}.json"
