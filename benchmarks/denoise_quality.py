@@ -28,6 +28,7 @@ import numpy as np
 import icbtool as icb
 from icbtool.cli._common import run_info, write_json
 from icbtool.trace import TraceConfig
+from icbtool.trace.tracer import denoise_inputs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from trace_time_error import MAX_DEPTH, bench_scene, errors, reference_cache  # noqa: E402
@@ -49,18 +50,15 @@ def execute_ms(
     gi, albedo, normal, quality: str, threads: int, repeats: int
 ) -> tuple[float, np.ndarray]:
     """OIDN's filter alone: a device (``numThreads`` = ``threads``; 0: OIDN's default), one RT
-    filter committed once on fixed buffers (the inputs as icbtool.trace.denoise prepares them),
-    the fastest of ``repeats`` ``execute`` calls after one untimed call; and its output."""
+    filter committed once on fixed buffers (the inputs as icbtool.trace.denoise prepares them,
+    :func:`~icbtool.trace.tracer.denoise_inputs`), the fastest of ``repeats`` ``execute`` calls
+    after one untimed call; and its output."""
     import pyoidn
 
     qualities = {"high": pyoidn.OIDN_QUALITY_HIGH, "balanced": pyoidn.OIDN_QUALITY_BALANCED,
                  "fast": pyoidn.OIDN_QUALITY_FAST}  # fmt: skip
-    images = {
-        "color": np.ascontiguousarray(np.maximum(gi, 0), np.float32),
-        "albedo": np.ascontiguousarray(np.clip(albedo, 0, 1), np.float32),
-        "normal": np.ascontiguousarray(normal, np.float32),
-        "output": np.empty(gi.shape, np.float32),
-    }
+    color, albedo, normal = denoise_inputs(gi, albedo, normal)
+    images = {"color": color, "albedo": albedo, "normal": normal, "output": np.empty_like(color)}
     dev = pyoidn.Device()
     flt = None
     try:

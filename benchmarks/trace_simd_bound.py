@@ -393,7 +393,8 @@ def cpu_time(fn) -> float:
 
 
 def hits_of(scene, cam, cfg) -> dict:
-    """The render's camera and bounce rays (its ray log) and their Embree hits (misses dropped)."""
+    """The render's camera and bounce rays (its ray log) and their Embree hits (misses dropped).
+    Its first render also warms the kernels' cache and the scene data."""
     st = icb.trace.render(scene, cam, cfg).stats
     log, n = ray_log(scene, cam, cfg, capacity=int(st.total_rays * 1.05) + 1024)
     keep = log["kind"][:n] != 1  # camera (0) and bounce (2) rays
@@ -418,7 +419,6 @@ def bound(
 ) -> dict:
     """The scalar helpers against the SoA stages on one render's hits, for each batch size
     (interleaved rounds, the fastest of each); the bound takes the most favourable batch."""
-    icb.trace.render(scene, cam, TraceConfig(spp=1))  # warm-up (JIT cache, scene data)
     tr = _Tracer(scene, cam, TraceConfig(**{**cfg.__dict__, "threads": 1}), TraceStats())
     p = tr._params
     sf = p.surf

@@ -1223,6 +1223,17 @@ def render(
     )
 
 
+def denoise_inputs(
+    color: np.ndarray, albedo: np.ndarray | None, normal: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The images :func:`denoise` hands Open Image Denoise: contiguous float32 colour clamped at
+    zero, albedo clipped to [0, 1], and the normal only beside an albedo (OIDN's rule)."""
+    c = np.ascontiguousarray(np.maximum(color, 0), np.float32)
+    a = None if albedo is None else np.ascontiguousarray(np.clip(albedo, 0, 1), np.float32)
+    nn = None if (normal is None or a is None) else np.ascontiguousarray(normal, np.float32)
+    return c, a, nn
+
+
 def denoise(
     color: np.ndarray,
     albedo: np.ndarray | None = None,
@@ -1247,9 +1258,7 @@ def denoise(
     from icbtool._optional import require
 
     pyoidn = require("pyoidn", "denoising (Open Image Denoise)")
-    c = np.ascontiguousarray(np.maximum(color, 0), np.float32)
-    a = None if albedo is None else np.ascontiguousarray(np.clip(albedo, 0, 1), np.float32)
-    nn = None if (normal is None or a is None) else np.ascontiguousarray(normal, np.float32)
+    c, a, nn = denoise_inputs(color, albedo, normal)
     check_denoise_quality(quality, "denoise quality")
     out = pyoidn.denoise(c, a, nn, hdr=True, quality=quality)
     return np.maximum(np.asarray(out, np.float32), 0.0)
