@@ -27,7 +27,7 @@ import numpy as np
 import icbtool as icb
 from icbtool import metrics, prefetch, system
 from icbtool.camera import Camera, CameraPath
-from icbtool.cli._common import load_scene as cli_load_scene
+from icbtool.cli._common import load_scene  # re-exported: SCENE as the command line reads it
 from icbtool.imageio import HOLE_COLOURS, to_display  # not icbtool.warp's: it imports torch
 from icbtool.pipeline import PathConfig
 
@@ -438,12 +438,6 @@ def frustum_depth(scene: Any, fraction: float = 0.08) -> float:
 
 
 # ----------------------------------------------------------------------------- defaults
-def load_scene(spec: str) -> Any:
-    """A procedural scene by name (``cornell_box`` ...) or a scene file
-    (:func:`icbtool.scene.load`), as the command line reads ``SCENE``."""
-    return cli_load_scene(spec)
-
-
 def demo_settings(
     demo_dir: str | Path,
 ) -> tuple[ViewerConfig, system.CloudConfig, system.ClientConfig] | None:
