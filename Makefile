@@ -14,12 +14,13 @@ DEB_GUI := xvfb xauth libgl1 libegl1 libgl1-mesa-dri libglib2.0-0 libfontconfig1
 # driven headless by Playwright (pip; it never downloads a browser of its own).
 DEB_WEB := chromium
 # OSMesa for headless OpenGL; libusb is needed to import open3d.
-DEB_PKGS := libosmesa6 libusb-1.0-0 $(DEB_GUI) $(DEB_WEB)
+DEB_PKGS := libosmesa6 libusb-1.0-0 $(DEB_GUI) $(DEB_WEB) $(DEB_PEER)
 # The web client's JavaScript sources; `make web` bundles them (and three.js, fzstd,
 # onnxruntime-web at the versions of package-lock.json) with esbuild into icbtool/web/bundle/.
 WEB_SRC := $(wildcard icbtool/web/src/*.js icbtool/web/shaders/*) icbtool/web/build.mjs
-# Mitsuba's llvm variant (benchmark peer only).
-DEB_BENCH := libllvm19
+# Mitsuba 3's llvm variant (the tracer's reference peer, in requirements.lock: the peer tests run in
+# `make test`) needs LLVM 19's shared library.
+DEB_PEER := libllvm19
 
 # Lint only the folders that exist.
 LINT_DIRS := $(wildcard icbtool tests benchmarks icbtool_gui)
@@ -93,9 +94,8 @@ format: install
 	.venv/bin/ruff format $(LINT_DIRS)
 	.venv/bin/ruff check --fix $(LINT_DIRS)
 
+# kept for old instructions: the peer is part of `make install` now
 bench-deps: install
-	@dpkg -s $(DEB_BENCH) >/dev/null 2>&1 || { $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $(DEB_BENCH); }
-	$(PIP) install -q --disable-pip-version-check mitsuba==3.9.1
 
 clean:
 	rm -rf .venv $(OUT) .pytest_cache node_modules icbtool/web/bundle
