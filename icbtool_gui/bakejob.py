@@ -52,7 +52,7 @@ def bake_quick_store(
         The number of records of the scene in the store afterwards.
     """
     import icbtool as icb
-    from icbtool.cli._common import load_scene  # lighter to import than icbtool_gui.model
+    from icbtool.scene import load_scene  # lighter to import than icbtool_gui.model
 
     scene = load_scene(scene_spec)
     views = quick_views(scene, stride)

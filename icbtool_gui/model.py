@@ -27,9 +27,9 @@ import numpy as np
 import icbtool as icb
 from icbtool import metrics, prefetch, system
 from icbtool.camera import Camera, CameraPath
-from icbtool.cli._common import load_scene  # re-exported: SCENE as the command line reads it
 from icbtool.imageio import HOLE_COLOURS, to_display  # not icbtool.warp's: it imports torch
 from icbtool.pipeline import PathConfig
+from icbtool.scene import load_scene  # re-exported: SCENE as the command line reads it
 
 
 @dataclass(frozen=True)

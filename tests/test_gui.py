@@ -632,7 +632,7 @@ def test_the_window_and_the_bake_start_without_torch():
         "import icbtool_gui.app\n"
         "assert 'torch' not in sys.modules, 'icbtool_gui.app imported torch'\n"
         "import icbtool.bake, icbtool.raster, icbtool.store, icbtool.trace, icbtool_gui.bakejob\n"
-        "from icbtool.cli._common import load_scene\n"
+        "from icbtool.scene import load_scene\n"
         "load_scene('cornell_box')\n"
         "assert 'torch' not in sys.modules, 'the quick-store bake imported torch'\n"
     )

@@ -213,3 +213,59 @@ def test_the_import_reader_sees_every_spelling(source, expect, tmp_path):
         assert _imports(path) == expect
     finally:
         globals()["PKG"] = old
+
+
+#: Packages outside the library that use only its public API: no module or name whose dotted
+#: path has a part starting with ``_`` (``icbtool.cli._common``, ``icbtool.warp._numba``).
+CLIENTS: list[str] = ["icbtool_gui"]
+
+
+def _private_uses(path: Path) -> list[str]:
+    """The private modules and names of icbtool that ``path`` imports, however spelled (module
+    level or inside functions; ``from icbtool.a import _b`` and ``icbtool.a._b`` attributes)."""
+    tree = ast.parse(path.read_text(), str(path))
+    used: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and not node.level:
+            module = node.module or ""
+            if module == "icbtool" or module.startswith("icbtool."):
+                used.update(f"{module}.{a.name}" for a in node.names)
+        elif isinstance(node, ast.Import):
+            used.update(a.name for a in node.names if a.name.startswith("icbtool."))
+        elif isinstance(node, ast.Attribute):  # icb.cli._common.load_scene
+            chain = [node.attr]
+            value = node.value
+            while isinstance(value, ast.Attribute):
+                chain.append(value.attr)
+                value = value.value
+            if isinstance(value, ast.Name) and value.id in ("icb", "icbtool"):
+                used.add(".".join(["icbtool", *reversed(chain)]))
+    return sorted(u for u in used if any(p.startswith("_") for p in u.split(".")[1:]))
+
+
+@pytest.mark.parametrize(
+    "path",
+    sorted(p for c in CLIENTS for p in (PKG.parent / c).rglob("*.py")),
+    ids=lambda p: str(p.relative_to(PKG.parent)),
+)
+def test_clients_use_only_the_public_api(path):
+    bad = _private_uses(path)
+    assert not bad, f"{path.relative_to(PKG.parent)} imports private parts of icbtool: {bad}"
+
+
+@pytest.mark.parametrize(
+    "source,expect",
+    [
+        ("from icbtool.cli._common import load_scene\n", ["icbtool.cli._common.load_scene"]),
+        ("def f():\n    import icbtool.warp._numba\n", ["icbtool.warp._numba"]),
+        ("from icbtool.scene import _private\n", ["icbtool.scene._private"]),
+        (
+            "import icbtool as icb\nicb.cli._common.x()\n",
+            ["icbtool.cli._common", "icbtool.cli._common.x"],
+        ),
+        ("from icbtool.scene import load_scene\nimport icbtool as icb\nicb.store.open()\n", []),
+    ],
+)
+def test_the_private_use_reader_sees_every_spelling(source, expect, tmp_path):
+    path = _write(tmp_path, "client/mod.py", source)
+    assert _private_uses(path) == expect

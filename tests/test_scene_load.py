@@ -642,8 +642,7 @@ def test_with_default_light_only_for_unlit_scenes(tmp_path):
 
 
 def test_select_cameras_keeps_aspect_for_render_and_trace():
-    from icbtool.cli._common import select_cameras
-    from icbtool.scene import cornell_box
+    from icbtool.scene import cornell_box, select_cameras
 
     s = cornell_box()
     base = s.default_camera

@@ -2,7 +2,9 @@
 
 ``icb.scene.cornell_box()``, ``icb.scene.load("room.toml")`` (a scene description),
 ``icb.scene.load("scene.xml")`` (a Mitsuba 3 scene file) or ``icb.scene.load("mesh.obj")`` (a
-bare mesh).
+bare mesh). ``icb.scene.load_scene(SPEC)`` and ``icb.scene.select_cameras(scene, SPEC)`` read a
+scene and cameras as the command line names them (a built-in name or a file; ``default`` or
+``path:NAME``).
 """
 
 from icbtool.scene.description import SceneDescription, read_description
@@ -17,6 +19,7 @@ from icbtool.scene.procedural import (
     plane,
     white_furnace,
 )
+from icbtool.scene.select import load_scene, select_cameras
 from icbtool.scene.types import (
     LIGHT_TYPES,
     AreaLight,
@@ -63,6 +66,8 @@ __all__ = [
     "promote_emitters",
     "load",
     "load_mesh",
+    "load_scene",
+    "select_cameras",
     "with_default_light",
     "read_description",
     "SceneDescription",
