@@ -17,14 +17,24 @@ import pytest
 
 import icbtool.scene as sc
 from icbtool.camera import Camera
-from icbtool.scene import SceneError, SceneRepairWarning, load
-from icbtool.scene.mitsuba import read_mitsuba, spectrum_to_rgb
+from icbtool.scene import SceneError, SceneRepairWarning, load, spectra
+from icbtool.scene.mitsuba import read_mitsuba
 from icbtool.scene.obj import MAX_APPROXIMATED_ALBEDO, MaterialApproximationWarning
 from icbtool.scene.types import Sky
 
 DATA = Path(__file__).parent / "data" / "scenes" / "mitsuba"
 FIXTURE = DATA / "fixture.xml"
 SEG = sc.mitsuba.SPHERE_SEGMENTS
+
+
+def _mitsuba(variant: str = "scalar_rgb"):
+    """Mitsuba 3, the reader's peer (``make install`` installs it): missing is a failure."""
+    try:
+        import mitsuba as mi
+    except ImportError as e:  # pragma: no cover - the install puts it there
+        pytest.fail(f"Mitsuba 3 is the Mitsuba reader's peer, installed by `make install` ({e})")
+    mi.set_variant(variant)
+    return mi
 
 
 def _load(path, **kw):
@@ -255,10 +265,109 @@ def test_envmap_without_sky_from_envmap_is_a_clear_error(tmp_path, monkeypatch):
         load(tmp_path / "s.xml")
 
 
-def test_spectrum_to_rgb_keeps_flat_spectra_grey_and_orders_hues():
-    np.testing.assert_allclose(spectrum_to_rgb([400, 700], [0.6, 0.6]), [0.6, 0.6, 0.6])
-    red = spectrum_to_rgb([400, 580, 600, 700], [0, 0, 1, 1])
-    assert red[0] > red[1] > red[2]
+_SPECTRA = """<scene version="3.0.0">
+  <shape type="rectangle" id="pairs">
+    <bsdf type="diffuse"><spectrum name="reflectance" value="400:0.1, 500:0.5, 600:0.8, 700:0.3"/>
+    </bsdf>
+    <emitter type="area"><spectrum name="radiance" value="400:2, 500:9, 600:5, 700:3"/></emitter>
+  </shape>
+  <shape type="rectangle" id="uniform">
+    <bsdf type="diffuse"><spectrum name="reflectance" value="0.5"/></bsdf>
+    <emitter type="area"><spectrum name="radiance" value="4"/></emitter>
+  </shape>
+  <shape type="rectangle" id="file">
+    <bsdf type="diffuse"><spectrum name="reflectance" filename="refl.spd"/></bsdf>
+    <emitter type="area"><spectrum name="radiance" filename="rad.spd"/></emitter>
+  </shape>
+  <shape type="rectangle" id="gamut">
+    <bsdf type="diffuse"><spectrum name="reflectance" value="580:0, 620:1.6, 700:1.6"/></bsdf>
+    <emitter type="area"><spectrum name="radiance" value="380:7, 420:7, 440:0"/></emitter>
+  </shape>
+  <emitter type="point" id="lamp"><spectrum name="intensity" value="3"/></emitter>
+  <emitter type="directional" id="sun">
+    <spectrum name="irradiance" value="450:1, 550:2, 650:3"/>
+  </emitter>
+</scene>
+"""
+
+
+def test_spectra_equal_mitsubas_own_conversion(tmp_path):
+    """Every spectrum form (pairs, one value, a .spd file, out of gamut) for reflectances and
+    emitters: the linear sRGB icbtool reads is the one Mitsuba's RGB variant prints."""
+    mi = _mitsuba()
+    (tmp_path / "refl.spd").write_text("# wavelength value\n420 0.9\n520 0.2\n\n690 0.6\n")
+    (tmp_path / "rad.spd").write_text("400 1.0\n550 4.0  # peak\n800 2.0\n")
+    (tmp_path / "s.xml").write_text(_SPECTRA)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ours = read_mitsuba(tmp_path / "s.xml").scene
+    params = mi.traverse(mi.load_file(str(tmp_path / "s.xml")))
+    mats = {m.name.split("@")[0]: m for m in ours.materials}
+    for i, shape in enumerate(("pairs", "uniform", "file", "gamut")):
+        m = ours.materials[i]
+        theirs_refl = np.resize(np.array(params[f"{shape}.bsdf.reflectance.value"]), 3)
+        theirs_rad = np.resize(np.array(params[f"{shape}.emitter.radiance.value"]), 3)
+        np.testing.assert_allclose(m.albedo, theirs_refl, rtol=2e-5, atol=1e-6, err_msg=shape)
+        np.testing.assert_allclose(m.emission, theirs_rad, rtol=2e-5, atol=1e-6, err_msg=shape)
+    assert mats  # names as read
+    lamp = ours.lights_of("point")[0]
+    np.testing.assert_allclose(lamp.intensity, np.array(params["lamp.intensity.value"]), rtol=2e-5)
+    sun = ours.lights_of("directional")[0]
+    np.testing.assert_allclose(sun.irradiance, np.array(params["sun.irradiance.value"]), rtol=2e-5)
+    # a flat reflectance stays grey; a one-value emitted spectrum is purplish, as in Mitsuba
+    np.testing.assert_allclose(ours.materials[1].albedo, 0.5)
+    assert ours.materials[1].emission[0] > ours.materials[1].emission[1]
+    # the out-of-gamut reflectance is clipped with a warning naming its line
+    line = next(i for i, t in enumerate(_SPECTRA.splitlines(), 1) if "580:0" in t)
+    assert any(f"s.xml:{line}: spectrum out of the sRGB gamut" in str(w.message) for w in caught)
+
+
+def test_blackbody_equals_mitsubas_spectral_render(tmp_path):
+    """A black body seen directly: icbtool's load-time RGB is what Mitsuba's spectral variant
+    renders (4 pixels x 4096 spp of wavelength sampling: within 2 %)."""
+    mi = _mitsuba("scalar_spectral")
+    for temp in (2700, 6500):
+        xml = (
+            '<scene version="3.0.0"><integrator type="path"/>'
+            '<sensor type="perspective"><float name="fov" value="5"/>'
+            '<sampler type="independent"><integer name="sample_count" value="4096"/></sampler>'
+            '<film type="hdrfilm"><integer name="width" value="2"/>'
+            '<integer name="height" value="2"/><rfilter type="box"/></film></sensor>'
+            '<shape type="rectangle"><boolean name="flip_normals" value="true"/>'
+            '<transform name="to_world"><translate z="10"/></transform>'
+            '<emitter type="area"><spectrum name="radiance" type="blackbody">'
+            f'<float name="temperature" value="{temp}"/></spectrum></emitter></shape></scene>'
+        )
+        (tmp_path / "bb.xml").write_text(xml)
+        img = np.array(mi.render(mi.load_file(str(tmp_path / "bb.xml")), seed=1))
+        ours = read_mitsuba(tmp_path / "bb.xml").scene.materials[0].emission
+        np.testing.assert_allclose(ours, img.reshape(-1, 3).mean(0), rtol=0.02, err_msg=temp)
+    # Mitsuba 0.6's <blackbody> property (temperature with a K, scale) reads the same, scaled
+    (tmp_path / "old.xml").write_text(
+        '<scene version="0.6.0"><shape type="rectangle"><emitter type="area">'
+        '<blackbody name="radiance" temperature="6500K" scale="0.5"/></emitter></shape></scene>'
+    )
+    old = read_mitsuba(tmp_path / "old.xml").scene.materials[0].emission
+    np.testing.assert_allclose(old, 0.5 * spectra.blackbody_to_rgb(6500), rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "spectrum, match",
+    [
+        ('value="400:0.1, 300:0.2"', r"s.xml:1: <spectrum reflectance>: wavelengths must be"),
+        ('value="400:0.1:3"', r"s.xml:1: <spectrum reflectance>: not 'wavelength:value'"),
+        ('filename="x.txt"', r"spectrum file not found"),
+        ('value="1" filename="x.spd"', r"s.xml:1: <spectrum> needs a value or a filename"),
+        ('type="d65"', r"s.xml:1: <spectrum type='d65'> is not supported"),
+    ],
+)
+def test_bad_spectra_name_file_and_line(tmp_path, spectrum, match):
+    (tmp_path / "s.xml").write_text(
+        '<scene version="3.0.0"><shape type="rectangle"><bsdf type="diffuse">'
+        f'<spectrum name="reflectance" {spectrum}/></bsdf></shape></scene>'
+    )
+    with pytest.raises((SceneError, FileNotFoundError), match=match):
+        load(tmp_path / "s.xml")
 
 
 def test_camelcase_names_of_old_scene_versions(tmp_path):
@@ -512,8 +621,7 @@ def test_approximations_never_reach_albedo_one(tmp_path):
 )
 def test_camera_rays_equal_mitsubas_own_sensor(tmp_path, to_world, fov_axis, size):
     """The file's camera read by icbtool casts the rays Mitsuba's own sensor casts."""
-    mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is the benchmark peer (make bench-deps)")
-    mi.set_variant("scalar_rgb")
+    mi = _mitsuba()
     w, h = size
     xml = (
         '<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="50"/>'
@@ -538,8 +646,7 @@ def test_fixture_shapes_equal_mitsubas_own_parse(tmp_path):
     import re
     import shutil
 
-    mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is the benchmark peer (make bench-deps)")
-    mi.set_variant("scalar_rgb")
+    mi = _mitsuba()
     shutil.copytree(DATA, tmp_path / "m")
     xml = tmp_path / "m" / "fixture.xml"
     text = xml.read_text()
@@ -675,8 +782,7 @@ def test_serialized_shapes(tmp_path, version):
     (tmp_path / "junk.serialized").write_bytes(b"\x00" * 32)
     with pytest.raises(SceneError, match=r"not a Mitsuba serialized mesh"):
         sc.mitsuba.read_serialized(tmp_path / "junk.serialized")
-    mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is the benchmark peer (make bench-deps)")
-    mi.set_variant("scalar_rgb")
+    mi = _mitsuba()
     theirs = mi.load_file(str(tmp_path / "s.xml"))
     assert sum(sh.surface_area() for sh in theirs.shapes()) == pytest.approx(3.0)
     np.testing.assert_allclose(np.array(theirs.bbox().max), s.bounds[1], atol=1e-6)

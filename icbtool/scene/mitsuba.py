@@ -54,9 +54,10 @@ left; icbtool's (OpenCV) has +x right and +y down: ``world_from_cam = to_world @
 1)`` (scale removed). uv: Mitsuba's uv (0, 0) is the image's top-left, the Scene's is the
 bottom-left, so ``v_scene = 1 - v_mitsuba`` (for OBJ, whose loader flips by default, the file's
 ``vt`` are kept). icbtool's BSDFs are two-sided: a one-sided Mitsuba BSDF seen from behind (black
-in Mitsuba) is lit here. Spectra given as ``wavelength:value`` lists are converted to linear
-sRGB with the CIE 1931 curves (the analytic fit of Wyman et al. 2013), normalised so that a flat
-spectrum stays grey, with a warning.
+in Mitsuba) is lit here. Spectra (wavelength:value pairs, one value, ``.spd`` files, black
+bodies) become linear sRGB on load exactly as Mitsuba 3's RGB variants convert them
+(:mod:`icbtool.scene.spectra`; reflectances D65-weighted and clipped to [0, 1], emitted spectra
+not). See docs/mitsuba.md for the supported subset.
 """
 
 from __future__ import annotations
@@ -74,6 +75,7 @@ from typing import Any
 
 import numpy as np
 
+from icbtool.scene import spectra
 from icbtool.scene.obj import approximated_albedo, material_warning, parse_obj
 from icbtool.scene.types import (
     DirectionalLight,
@@ -196,42 +198,31 @@ def _parse_xml(path: Path) -> _Node:
     return root[0]
 
 
+def _upgrade_v1(node: _Node) -> None:
+    """Mitsuba 0.6/1 elements as Mitsuba 3 spells them (names are snake-cased in ``props``):
+    ``<lookAt>`` -> ``<lookat>``; ``<blackbody temperature="6500K" scale=".."/>`` -> ``<spectrum
+    type="blackbody">`` with a ``scale``."""
+    for c in node.children:
+        if c.tag == "lookAt":
+            c.tag = "lookat"
+        elif c.tag == "blackbody":
+            kids = []
+            for key in ("temperature", "scale"):
+                if key in c.attrs:
+                    value = c.attrs[key].strip().rstrip("kK")
+                    kids.append(_Node("float", {"name": key, "value": value}, c.file, c.line))
+            c.tag = "spectrum"
+            c.attrs = {"name": c.attrs.get("name", ""), "type": "blackbody"}
+            c.children = kids
+        _upgrade_v1(c)
+
+
 _CAMEL = re.compile(r"(?<=[a-z0-9])([A-Z])")
 
 
 def _snake(name: str) -> str:
     """Mitsuba 0.6/1 camelCase names (``toWorld``, ``fovAxis``) as Mitsuba 3 spells them."""
     return _CAMEL.sub(lambda m: "_" + m.group(1).lower(), name)
-
-
-# --------------------------------------------------------------------------- colours
-def _gauss(lam: np.ndarray, mu: float, s1: float, s2: float) -> np.ndarray:
-    s = np.where(lam < mu, s1, s2)
-    return np.exp(-0.5 * ((lam - mu) / s) ** 2)
-
-
-_LAM = np.arange(360.0, 831.0, 1.0)
-_XYZ_BAR = np.stack(
-    [
-        1.056 * _gauss(_LAM, 599.8, 37.9, 31.0)
-        + 0.362 * _gauss(_LAM, 442.0, 16.0, 26.7)
-        - 0.065 * _gauss(_LAM, 501.1, 20.4, 26.2),
-        0.821 * _gauss(_LAM, 568.8, 46.9, 40.5) + 0.286 * _gauss(_LAM, 530.9, 16.3, 31.1),
-        1.217 * _gauss(_LAM, 437.0, 11.8, 36.0) + 0.681 * _gauss(_LAM, 459.0, 26.0, 13.8),
-    ],
-    axis=1,
-)
-_SRGB_FROM_XYZ = np.array(
-    [[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.2040, 1.0570]]
-)
-_FLAT_RGB = _SRGB_FROM_XYZ @ _XYZ_BAR.sum(0)
-
-
-def spectrum_to_rgb(wavelengths: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """(3,) linear sRGB of a piecewise-linear spectrum (CIE 1931, Wyman et al. 2013's fit),
-    normalised per channel so that a flat spectrum of value ``c`` gives ``(c, c, c)``."""
-    s = np.interp(_LAM, np.asarray(wavelengths, float), np.asarray(values, float))
-    return (_SRGB_FROM_XYZ @ (s @ _XYZ_BAR)) / _FLAT_RGB
 
 
 # --------------------------------------------------------------------------- transforms
@@ -394,6 +385,8 @@ class _Values:
             self.version = tuple(int(x) for x in ver.split(".")[:3])  # type: ignore[assignment]
         except ValueError:
             raise SceneError(f"{root.where}: bad scene version {ver!r}") from None
+        if self.version < (2, 0, 0):
+            _upgrade_v1(root)
         out: list[_Node] = []
         for node in root.children:
             if node.tag == "default":
@@ -516,24 +509,14 @@ class _Values:
         node = props.get(name)
         return np.asarray(default, float) if node is None else self.vec(node, name)
 
-    def colour(self, node: _Node) -> np.ndarray:
-        """(3,) linear RGB of an rgb/spectrum/float/srgb/color property."""
-        if node.tag == "spectrum" and "filename" in node.attrs:
-            self.skip(node, "(a spectrum file) is not supported: 0.5 used instead")
-            return np.full(3, 0.5)
+    def colour(self, node: _Node, emitter: bool = False, unbounded: bool = False) -> np.ndarray:
+        """(3,) linear RGB of an rgb/spectrum/float/srgb/color property, as Mitsuba 3's RGB
+        variants load it (:mod:`icbtool.scene.spectra`): ``emitter`` for emitted spectra (no
+        D65 weighting, a one-value spectrum purplish), ``unbounded`` for values that may exceed 1
+        (an index of refraction)."""
+        if node.tag == "spectrum":
+            return self.spectrum(node, emitter, unbounded)
         text = self.value(node)
-        if node.tag == "spectrum" and ":" in text:
-            pairs = [x.split(":") for x in re.split(r"[,\s]+", text.strip()) if x]
-            try:
-                lam, val = np.array(pairs, float).T
-            except ValueError:
-                raise SceneError(f"{node.where}: bad spectrum {text[:60]!r}") from None
-            rgb = spectrum_to_rgb(lam, val)
-            repair_warning(
-                node.where,
-                f"spectrum converted to linear sRGB {np.round(rgb, 4).tolist()} (CIE 1931 fit)",
-            )
-            return rgb
         if node.tag in ("srgb", "color") or text.startswith("#"):
             from icbtool.imageio import srgb_decode
 
@@ -549,6 +532,59 @@ class _Values:
         if x.shape != (3,) or not np.all(np.isfinite(x)):
             raise SceneError(f"{node.where}: <{node.tag}> must have 1 or 3 finite numbers")
         return x
+
+    def spectrum(self, node: _Node, emitter: bool, unbounded: bool) -> np.ndarray:
+        """(3,) linear sRGB of a ``<spectrum>`` (value pairs, one value, a .spd file, a black
+        body), converted as Mitsuba 3's RGB variants convert it at load time."""
+        kind = self.attr(node, "type")
+        try:
+            if kind == "blackbody":
+                return self.blackbody(node)
+            if kind is not None:
+                raise SceneError(f"{node.where}: <spectrum type={kind!r}> is not supported")
+            fname, text = self.attr(node, "filename"), self.attr(node, "value")
+            if (fname is None) == (text is None):
+                raise SceneError(f"{node.where}: <spectrum> needs a value or a filename (one)")
+            if fname is not None:
+                path = self.resolve(node, fname)
+                if not path.is_file():
+                    raise FileNotFoundError(f"{node.where}: spectrum file not found: {path}")
+                lam, val = spectra.read_spd(path)
+            else:
+                lam, val = spectra.parse_pairs(text)
+            if lam.size == 0:
+                return spectra.uniform_to_rgb(float(val[0]), emitter=emitter)
+            bounded = not (emitter or unbounded)
+            rgb = spectra.spectrum_to_rgb(lam, val, emitter=emitter, bounded=bounded)
+            raw = spectra.spectrum_to_rgb(lam, val, emitter=emitter, bounded=False)
+        except spectra.SpectrumError as e:
+            raise SceneError(
+                f"{node.where}: <spectrum {node.attrs.get('name', '')}>: {e}"
+            ) from None
+        if bounded and np.any(raw > 1.0):
+            repair_warning(
+                node.where,
+                f"spectrum out of the sRGB gamut {np.round(raw, 4).tolist()}: clipped to "
+                f"{np.round(rgb, 4).tolist()} (as Mitsuba does)",
+            )
+        log.debug("%s: spectrum -> linear sRGB %s", node.where, np.round(rgb, 6).tolist())
+        return rgb
+
+    def blackbody(self, node: _Node) -> np.ndarray:
+        """``<spectrum type="blackbody">`` (temperature, wavelength_min/max) and Mitsuba 0.6's
+        ``<blackbody temperature=".." scale=".."/>`` (upgraded on load) as linear sRGB."""
+        props = self.props(node)
+        temp = self.float_(props, "temperature", None)
+        if temp is None:
+            raise SceneError(f"{node.where}: a black body needs a temperature")
+        rgb = spectra.blackbody_to_rgb(
+            temp,
+            min_nm=float(self.float_(props, "wavelength_min", spectra.CIE_MIN_NM)),
+            max_nm=float(self.float_(props, "wavelength_max", spectra.CIE_MAX_NM)),
+        )
+        rgb = rgb * float(self.float_(props, "scale", 1.0))
+        self.finish(node, props)
+        return rgb
 
     def transform(self, node: _Node | None) -> np.ndarray:
         m = np.eye(4)
@@ -599,13 +635,14 @@ class _Materials(_Values):
     """Textures and BSDFs as icbtool renders them (the approximation rule), and materials."""
 
     def reflectance(
-        self, node: _Node | None, default: float
+        self, node: _Node | None, default: float, emitter: bool = False
     ) -> tuple[np.ndarray, Path | None, bool]:
-        """(mean colour (3,), bitmap path or None, raw) of a colour or texture property."""
+        """(mean colour (3,), bitmap path or None, raw) of a colour or texture property
+        (``emitter``: an emitted quantity, whose spectra convert without D65)."""
         if node is None:
             return np.full(3, default), None, False
         if node.tag != "texture":
-            return self.colour(node), None, False
+            return self.colour(node, emitter), None, False
         kind = node.attrs.get("type")
         props = self.props(node)
         if kind == "bitmap":
@@ -730,8 +767,8 @@ class _Materials(_Values):
         if kind in ("conductor", "roughconductor"):
             s = self.reflectance(props.get("specular_reflectance"), 1.0)[0]
             if "eta" in props:
-                eta = self.colour(props["eta"])
-                k = self.colour(props["k"]) if "k" in props else np.zeros(3)
+                eta = self.colour(props["eta"], unbounded=True)
+                k = self.colour(props["k"], unbounded=True) if "k" in props else np.zeros(3)
                 f0 = ((eta - 1) ** 2 + k**2) / ((eta + 1) ** 2 + k**2)
                 what = "eta/k"
             else:
@@ -830,7 +867,7 @@ class _Reader(_Materials):
                 self.skip(em, "inside a shape must be an area emitter")
             else:
                 ep = self.props(em)
-                emission, tex, _ = self.reflectance(ep.get("radiance"), 1.0)
+                emission, tex, _ = self.reflectance(ep.get("radiance"), 1.0, emitter=True)
                 if tex is not None:
                     repair_warning(em.where, "textured radiance: its mean colour is emitted")
                 emission = np.maximum(emission, 0.0)
@@ -914,12 +951,12 @@ class _Reader(_Materials):
                 props.used.add("radiance")
             if kind == "point":
                 pos = self.point(props, "position", m[:3, 3])
-                inten = self.reflectance(props.get("intensity"), 1.0)[0]
+                inten = self.reflectance(props.get("intensity"), 1.0, emitter=True)[0]
                 self.lights.append(PointLight(pos, inten, name=name))
             elif kind == "spot":
                 cutoff = float(self.float_(props, "cutoff_angle", 20.0))
                 beam = float(self.float_(props, "beam_width", cutoff * 0.75))
-                inten = self.reflectance(props.get("intensity"), 1.0)[0]
+                inten = self.reflectance(props.get("intensity"), 1.0, emitter=True)[0]
                 self.lights.append(
                     SpotLight(m[:3, 3], m[:3, 2], inten, min(beam, cutoff * 0.999), cutoff, name)
                 )
@@ -927,14 +964,14 @@ class _Reader(_Materials):
             elif kind == "directional":
                 d = props.get("direction")
                 direction = self.vec(d, "direction") if d is not None else m[:3, 2]
-                irr = self.reflectance(props.get("irradiance"), 1.0)[0]
+                irr = self.reflectance(props.get("irradiance"), 1.0, emitter=True)[0]
                 self.lights.append(DirectionalLight(direction, irr, name=name))
             elif kind in ("constant", "envmap"):
                 if self.sky is not None:
                     self.skip(node, "is a second environment emitter (only one sky is kept)")
                     props.used.update(props)
                 elif kind == "constant":
-                    rad = self.reflectance(props.get("radiance"), 1.0)[0]
+                    rad = self.reflectance(props.get("radiance"), 1.0, emitter=True)[0]
                     self.sky = Sky(zenith=np.maximum(rad, 0), kind="uniform")
                 else:
                     self.sky = self.envmap(node, props, m)
@@ -1404,5 +1441,4 @@ __all__ = [
     "read_mitsuba",
     "read_serialized",
     "diffuse_twin",
-    "spectrum_to_rgb",
 ]
