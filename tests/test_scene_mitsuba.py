@@ -641,6 +641,89 @@ def test_camera_rays_equal_mitsubas_own_sensor(tmp_path, to_world, fov_axis, siz
         np.testing.assert_allclose(np.cross(off, d[0]), 0, atol=1e-6)
 
 
+@pytest.mark.parametrize(
+    "sensor, film",
+    [
+        ('<string name="focal_length" value="50mm"/>', (32, 32, None)),
+        ('<string name="focal_length" value="28mm"/>', (60, 30, None)),
+        ('<float name="fov" value="40"/><string name="fov_axis" value="larger"/>', (30, 50, None)),
+        ('<float name="fov" value="40"/><string name="fov_axis" value="smaller"/>', (50, 30, None)),
+        ('<float name="fov" value="70"/><string name="fov_axis" value="y"/>', (40, 40, None)),
+        ('<float name="fov" value="60"/>', (64, 48, (10, 5, 30, 20))),
+        (
+            '<float name="fov" value="45"/><string name="fov_axis" value="diagonal"/>'
+            '<float name="principal_point_offset_x" value="0.1"/>'
+            '<float name="principal_point_offset_y" value="-0.05"/>',
+            (48, 32, (8, 4, 16, 24)),
+        ),
+    ],
+)
+def test_camera_intrinsics_and_crops_equal_mitsubas(tmp_path, sensor, film):
+    """focal_length (35 mm film diagonal), every fov_axis, film crops and principal point
+    offsets: each pixel of the (cropped) image casts the ray Mitsuba's sensor casts."""
+    mi = _mitsuba()
+    w, h, crop = film
+    film_xml = f'<integer name="width" value="{w}"/><integer name="height" value="{h}"/>'
+    if crop is not None:
+        film_xml += "".join(
+            f'<integer name="crop_{k}" value="{v}"/>'
+            for k, v in zip(("offset_x", "offset_y", "width", "height"), crop)
+        )
+    (tmp_path / "c.xml").write_text(
+        f'<scene version="3.0.0"><sensor type="perspective">{sensor}<transform name="to_world">'
+        '<lookat origin="1, 2, 3" target="-2, 0, 1" up="0, 0, 1"/></transform>'
+        f'<film type="hdrfilm">{film_xml}</film></sensor><shape type="cube"/></scene>'
+    )
+    cam = load(tmp_path / "c.xml").default_camera
+    cw, ch = (w, h) if crop is None else crop[2:]
+    assert (cam.width, cam.height) == (cw, ch)
+    sensor_mi = mi.load_file(str(tmp_path / "c.xml")).sensors()[0]
+    for fx, fy in [(0.5, 0.5), (0.0, 0.0), (1.0, 1.0), (0.1, 0.9), (0.8, 0.3)]:
+        ray, _ = sensor_mi.sample_ray(
+            0.0, 0.5, mi.ScalarPoint2f(fx, fy), mi.ScalarPoint2f(0.5, 0.5)
+        )
+        _, d, _ = cam.rays(np.array([[fx * cw, fy * ch]]))
+        np.testing.assert_allclose(d[0], np.array(ray.d), atol=2e-6)
+    if "focal_length" in sensor and w == h:  # 50 mm, square film: 46.8 deg diagonal, 34.0 wide
+        assert cam.fov_x_deg == pytest.approx(34.02204, abs=1e-4)  # Mitsuba's parse_fov test
+
+
+def test_thinlens_and_orthographic_are_named_approximations(tmp_path):
+    """thinlens renders as its pinhole, orthographic as a distant pinhole whose rays are
+    within 1.5 deg of Mitsuba's parallel ones and cover the same width; each warns once."""
+    mi = _mitsuba()
+    for kind, extra, scale in (
+        (
+            "thinlens",
+            '<float name="aperture_radius" value="0.1"/><float name="fov" value="40"/>',
+            "",
+        ),
+        ("orthographic", "", '<scale x="2" y="2"/>'),
+    ):
+        (tmp_path / "c.xml").write_text(
+            f'<scene version="3.0.0"><sensor type="{kind}">{extra}<transform name="to_world">'
+            f'{scale}<lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/>'
+            '</transform><film type="hdrfilm"><integer name="width" value="40"/>'
+            '<integer name="height" value="30"/></film></sensor><shape type="cube"/></scene>'
+        )
+        s, msgs, _ = _load(tmp_path / "c.xml")
+        assert sum(f"{kind} sensor" in x for x in msgs) == 1, msgs
+        cam = s.default_camera
+        sensor_mi = mi.load_file(str(tmp_path / "c.xml")).sensors()[0]
+        for fx, fy in [(0.5, 0.5), (0.0, 0.0), (1.0, 0.6)]:
+            ray, _ = sensor_mi.sample_ray(
+                0.0, 0.5, mi.ScalarPoint2f(fx, fy), mi.ScalarPoint2f(0.5, 0.5)
+            )
+            o, d, _ = cam.rays(np.array([[fx * 40, fy * 30]]))
+            if kind == "thinlens":  # the lens centre's ray
+                np.testing.assert_allclose(d[0], np.array(ray.d), atol=2e-6)
+                continue
+            assert math.degrees(math.acos(min(1.0, d[0] @ np.array(ray.d)))) < 1.5
+            # the pinhole ray crosses the sensor's plane (z = 5) where Mitsuba's ray starts
+            t = (5.0 - o[0][2]) / d[0][2]
+            np.testing.assert_allclose((o[0] + t * d[0])[:2], np.array(ray.o)[:2], atol=1e-6)
+
+
 def test_fixture_shapes_equal_mitsubas_own_parse(tmp_path):
     """Each shape's bounding box and area as Mitsuba itself reads the fixture."""
     import re

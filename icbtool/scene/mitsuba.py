@@ -21,8 +21,10 @@ refused). What is read, element by element:
   ``point``, ``spot``, ``directional``, ``constant`` (a uniform
   :class:`~icbtool.scene.types.Sky`), ``envmap`` (``Sky.from_envmap`` with ``scale`` and the
   rotation of ``to_world``).
-* ``<sensor>``: ``perspective`` (``fov``, ``fov_axis``, ``focal_length``, ``to_world``, film
-  ``width``/``height``): the scene's default camera.
+* ``<sensor>``: ``perspective`` (``fov`` on every ``fov_axis``, ``focal_length``, film size and
+  crop, principal point offsets, ``to_world``): the scene's default camera, exactly as Mitsuba
+  casts its rays; ``thinlens`` (its pinhole) and ``orthographic`` (a distant pinhole) with a
+  warning.
 * ``<integrator>``: ``max_depth`` (Mitsuba's depth convention is the tracer's) becomes
   ``Scene.max_depth``, the trace default; a path integrator without one means -1 (Mitsuba's
   default, unbounded), ``direct`` means 2; a file without an integrator leaves the tracer's own
@@ -98,6 +100,8 @@ log = logging.getLogger(__name__)
 
 #: Longitudinal segments of a tessellated sphere (latitudinal: half), disk and cylinder.
 SPHERE_SEGMENTS = 64
+#: An orthographic sensor is read as a pinhole this many half-widths behind it.
+_ORTHO_DISTANCE = 50.0
 #: Deepest ``<include>`` nesting (a cycle stops here with an error).
 MAX_INCLUDE_DEPTH = 16
 #: Normal-incidence reflectance (linear RGB) of the metals Mitsuba's ``conductor`` names
@@ -1000,64 +1004,125 @@ class _Reader(_Materials):
         return Sky.from_envmap(path, scale=scale, world_from_map=rot)
 
     def sensor(self, node: _Node) -> None:
+        """The first sensor becomes the default camera: ``perspective`` exactly (every
+        ``fov_axis``, ``focal_length``, film crops, principal point offsets); ``thinlens`` as its
+        pinhole and ``orthographic`` as a distant pinhole, each with one warning."""
         from icbtool.camera import Camera
 
         kind = node.attrs.get("type", "")
         if self.camera is not None:
             self.skip(node, "is a second sensor (the first is the default camera)")
             return
-        if kind not in ("perspective", "thinlens"):
+        if kind not in ("perspective", "thinlens", "orthographic"):
             self.skip(node, "sensor type is not supported")
             return
         props = self.props(node)
-        if kind == "thinlens":
-            repair_warning(node.where, "thinlens sensor rendered as a pinhole (no defocus)")
         film = props.get("film")
-        fp = self.props(film) if film is not None else {}
-        w = self.int_(fp, "width", 768)
-        h = self.int_(fp, "height", 576)
-        for k in ("crop_width", "crop_height", "crop_offset_x", "crop_offset_y"):
-            if k in fp:
-                repair_warning(fp[k].where, f"film {k} is not supported: the full film is used")
-        for k in ("principal_point_offset_x", "principal_point_offset_y"):
-            if k in props:
-                repair_warning(props[k].where, f"sensor {k} is not supported: centred")
-        axis = self.str_(props, "fov_axis", "x")
-        if "fov" in props:
-            fov = float(self.float_(props, "fov", 45.0))
-        else:
-            fl = self.str_(props, "focal_length", "50mm")
-            mm = float(fl.lower().rstrip("m") or 50)
-            fov, axis = math.degrees(2 * math.atan(36.0 / (2 * mm))), "x"
-        if not (0 < fov < 180):
-            raise SceneError(f"{node.where}: sensor fov must be in (0, 180), got {fov}")
-        sizes = {"x": w, "y": h, "diagonal": math.hypot(w, h)}
-        if axis == "smaller":
-            axis = "x" if w <= h else "y"
-        elif axis == "larger":
-            axis = "x" if w >= h else "y"
-        if axis not in sizes:
-            raise SceneError(f"{node.where}: unknown fov_axis {axis!r}")
-        focal = 0.5 * sizes[axis] / math.tan(math.radians(fov) / 2)
+        fp = self.props(film) if film is not None else _Props()
+        w, h, (cw, ch, ox, oy) = self.film(film, fp)
         m = self.transform(props.get("to_world"))
         r = m[:3, :3].copy()
         norms = np.linalg.norm(r, axis=0)
         if np.any(norms < 1e-12):
             raise SceneError(f"{node.where}: sensor to_world is singular")
-        r /= norms
-        u, _, vt = np.linalg.svd(r)
+        u, _, vt = np.linalg.svd(r / norms)
         r = u @ vt
         if np.linalg.det(r) < 0:
             repair_warning(node.where, "sensor to_world mirrors the image: rendered unmirrored")
             r[:, 0] = -r[:, 0]
+        origin = m[:3, 3].copy()
+        if kind == "orthographic":
+            # a pinhole far behind, seeing the orthographic view's width at the sensor's plane
+            half_w = float(norms[0])
+            back = _ORTHO_DISTANCE * half_w
+            origin = origin - back * r[:, 2]
+            fov_x = math.degrees(2 * math.atan(half_w / back))
+            repair_warning(
+                node.where,
+                f"orthographic sensor approximated by a pinhole {back:.4g} units behind it "
+                f"(rays within {math.degrees(math.atan(1 / _ORTHO_DISTANCE)):.2g} deg of "
+                "parallel; geometry behind the sensor can occlude)",
+            )
+            props.used.update(("fov", "fov_axis", "focal_length"))
+        else:
+            fov_x = self.fov_x(node, props, w / h)
+            if kind == "thinlens":
+                radius = self.float_(props, "aperture_radius", None)
+                repair_warning(
+                    node.where,
+                    f"thinlens sensor rendered as its pinhole (aperture_radius {radius}: no "
+                    "depth of field)",
+                )
+                props.used.add("focus_distance")
+        focal = 0.5 * w / math.tan(math.radians(fov_x) / 2)
+        ppx = float(self.float_(props, "principal_point_offset_x", 0.0))
+        ppy = float(self.float_(props, "principal_point_offset_y", 0.0))
+        cx, cy = w / 2 - ox - ppx * w, h / 2 - oy - ppy * h
         pose = np.eye(4)
         pose[:3, 0], pose[:3, 1], pose[:3, 2] = -r[:, 0], -r[:, 1], r[:, 2]
-        pose[:3, 3] = m[:3, 3]
-        self.camera = Camera(h, w, focal, focal, w / 2, h / 2, pose)
+        pose[:3, 3] = origin
+        self.camera = Camera(ch, cw, focal, focal, cx, cy, pose)
         self.cam_up = r[:, 1]
         self.finish(node, props)
         if film is not None:
             self.finish(film, fp)
+
+    def film(self, film: _Node | None, fp: _Props) -> tuple[int, int, tuple[int, int, int, int]]:
+        """(width, height, (crop width, crop height, crop offset x, crop offset y)) of a film
+        (Mitsuba's defaults: 768 x 576, no crop); a crop outside the film is an error."""
+        w = self.int_(fp, "width", 768)
+        h = self.int_(fp, "height", 576)
+        where = film.where if film is not None else str(self.path)
+        if w < 1 or h < 1:
+            raise SceneError(f"{where}: film size must be positive, got {w} x {h}")
+        ox = self.int_(fp, "crop_offset_x", 0)
+        oy = self.int_(fp, "crop_offset_y", 0)
+        cw = self.int_(fp, "crop_width", w - ox)
+        ch = self.int_(fp, "crop_height", h - oy)
+        if ox < 0 or oy < 0 or cw < 1 or ch < 1 or ox + cw > w or oy + ch > h:
+            raise SceneError(
+                f"{where}: film crop (offset {ox}, {oy}, size {cw} x {ch}) is not inside the "
+                f"{w} x {h} film"
+            )
+        return w, h, (cw, ch, ox, oy)
+
+    def fov_x(self, node: _Node, props: _Props, aspect: float) -> float:
+        """Horizontal field of view (degrees) of a perspective sensor, by Mitsuba's rules:
+        ``fov`` along ``fov_axis`` (x, y, diagonal, smaller, larger), or ``focal_length`` (a
+        35 mm film's 43.27 mm diagonal, whatever the film's aspect)."""
+        if "fov" in props and "focal_length" in props:
+            raise SceneError(f"{node.where}: give either fov or focal_length, not both")
+        if "fov" in props:
+            fov = float(self.float_(props, "fov", 45.0))
+            axis = self.str_(props, "fov_axis", "x").lower()
+            if axis == "smaller":
+                axis = "y" if aspect > 1 else "x"
+            elif axis == "larger":
+                axis = "x" if aspect > 1 else "y"
+        else:
+            text = self.str_(props, "focal_length", "50mm")
+            try:
+                mm = float(text[:-2] if text.endswith("mm") else text)
+            except ValueError:
+                raise SceneError(f"{node.where}: focal_length {text!r} is not '<x>mm'") from None
+            if not mm > 0:
+                raise SceneError(f"{node.where}: focal_length must be > 0, got {text!r}")
+            fov = math.degrees(2 * math.atan(math.hypot(36.0, 24.0) / (2 * mm)))
+            axis = "diagonal"
+        half = math.tan(math.radians(fov) / 2)
+        if axis == "x":
+            result = fov
+        elif axis == "y":
+            result = math.degrees(2 * math.atan(half * aspect))
+        elif axis == "diagonal":
+            result = math.degrees(2 * math.atan(half / math.sqrt(1 + 1 / aspect**2)))
+        else:
+            raise SceneError(
+                f"{node.where}: fov_axis must be x, y, diagonal, smaller or larger, got {axis!r}"
+            )
+        if not 0 < result < 180:
+            raise SceneError(f"{node.where}: sensor fov must be in (0, 180), got {result}")
+        return result
 
     def integrator(self, node: _Node) -> None:
         kind = node.attrs.get("type", "")
