@@ -724,6 +724,67 @@ def test_thinlens_and_orthographic_are_named_approximations(tmp_path):
             np.testing.assert_allclose((o[0] + t * d[0])[:2], np.array(ray.o)[:2], atol=1e-6)
 
 
+_REFS = """<scene version="3.0.0">
+  <bsdf type="diffuse" id="red"><rgb name="reflectance" value="0.8, 0.1, 0.1"/></bsdf>
+  <bsdf type="diffuse" id="green"><rgb name="reflectance" value="0.1, 0.8, 0.1"/></bsdf>
+  <bsdf type="diffuse" id="blue"><rgb name="reflectance" value="0.1, 0.1, 0.8"/></bsdf>
+  <bsdf type="diffuse" id="grey"><rgb name="reflectance" value="0.3"/></bsdf>
+  <texture type="bitmap" id="tex"><string name="filename" value="t.png"/></texture>
+  <bsdf type="diffuse" id="textured"><ref name="reflectance" id="tex"/></bsdf>
+  <emitter type="area" id="lamp"><rgb name="radiance" value="5, 4, 3"/></emitter>
+  <emitter type="area" id="lamp2"><rgb name="radiance" value="1, 2, 3"/></emitter>
+  <medium type="homogeneous" id="fog"/>
+  <shape type="rectangle" id="unnamed"><ref id="red"/></shape>
+  <shape type="rectangle" id="writer"><ref name="_arg_0" id="green"/><ref name="_arg_1" id="lamp"/>
+  </shape>
+  <shape type="rectangle" id="exporter"><ref name="bsdf" id="blue"/></shape>
+  <shape type="rectangle" id="any_name"><ref name="look" id="grey"/><ref name="light" id="lamp2"/>
+  </shape>
+  <shape type="rectangle" id="texture"><ref id="textured"/>
+    <ref name="interior" id="fog"/>
+  </shape>
+</scene>
+"""
+
+
+def test_every_ref_form_gives_mitsubas_bsdf_and_emitter(tmp_path):
+    """Unnamed refs, Mitsuba's writer's ``_arg_N`` refs, exporters' ``name="bsdf"`` refs and
+    any other name: each shape gets the BSDF and emitter Mitsuba gives it; a referenced texture
+    is the BSDF's texture; an unsupported referenced medium is named at the <ref>'s line."""
+    from PIL import Image
+
+    mi = _mitsuba()
+    Image.fromarray(np.array([[[255, 0, 0], [0, 255, 0]]], np.uint8)).save(tmp_path / "t.png")
+    (tmp_path / "s.xml").write_text(_REFS)
+    ours, msgs, _ = _load(tmp_path / "s.xml")
+    theirs = {sh.id(): sh for sh in mi.load_file(str(tmp_path / "s.xml")).shapes()}
+    order = ["unnamed", "writer", "exporter", "any_name", "texture"]
+    assert len(ours.materials) == len(order)
+    for name, m in zip(order, ours.materials):
+        sh = theirs[name]
+        bsdf = mi.traverse(sh.bsdf())
+        if name == "texture":
+            assert m.is_textured and Path(m.texture_path).name == "t.png"
+            assert "reflectance.data" in bsdf.keys()
+        else:
+            np.testing.assert_allclose(m.albedo, np.array(bsdf["reflectance.value"]), err_msg=name)
+        em = sh.emitter()
+        rad = np.zeros(3) if em is None else np.array(mi.traverse(em)["radiance.value"])
+        np.testing.assert_allclose(m.emission, rad, err_msg=name)
+    assert not any("_arg_" in x or "'light'" in x or "'look'" in x for x in msgs), msgs
+    line = next(i for i, t in enumerate(_REFS.splitlines(), 1) if 'name="interior"' in t)
+    assert any(f"s.xml:{line} (<ref> to " in x and "'interior'" in x for x in msgs), msgs
+
+
+def test_a_second_bsdf_in_a_shape_is_an_error(tmp_path):
+    (tmp_path / "s.xml").write_text(
+        '<scene version="3.0.0"><bsdf type="diffuse" id="a"/>\n<shape type="cube">'
+        '<ref id="a"/>\n<bsdf type="diffuse"/></shape></scene>'
+    )
+    with pytest.raises(SceneError, match=r"s.xml:3: <shape cube> at .*s.xml:2 has a second"):
+        load(tmp_path / "s.xml")
+
+
 def test_fixture_shapes_equal_mitsubas_own_parse(tmp_path):
     """Each shape's bounding box and area as Mitsuba itself reads the fixture."""
     import re

@@ -325,6 +325,7 @@ class _Values:
         self.textures = textures
         self.search = [path.parent]
         self.ids: dict[str, _Node] = {}
+        self.via: dict[int, _Node] = {}  # id(object) -> the <ref> that last reached it
         self.skipped: list[str] = []
         self.materials: list[Material] = []
         self.mat_keys: dict[Any, int] = {}
@@ -343,8 +344,15 @@ class _Values:
 
     # ---------------------------------------------------------------- helpers
     def skip(self, node: _Node, why: str) -> None:
-        self.skipped.append(f"{node.describe()} ({node.where})")
-        repair_warning(node.where, f"{node.describe()} {why}: skipped")
+        where = self.where(node)
+        self.skipped.append(f"{node.describe()} ({where})")
+        repair_warning(where, f"{node.describe()} {why}: skipped")
+
+    def where(self, node: _Node) -> str:
+        """``file:line`` of ``node``; for an object reached through a ``<ref>``, the line of
+        the referring ``<ref>`` first (where the user looks), then the definition's."""
+        ref = self.via.get(id(node))
+        return node.where if ref is None else f"{ref.where} (<ref> to {node.where})"
 
     def attr(self, node: _Node, key: str, default: str | None = None) -> str | None:
         v = node.attrs.get(key)
@@ -438,12 +446,15 @@ class _Values:
     def finish(self, node: _Node, props: _Props) -> None:
         """Warn about the properties of ``node`` nothing read (named, with file:line)."""
         for key in sorted(set(props) - props.used - _IGNORED_PROPERTIES):
-            c = props[key]
-            self.skipped.append(f"{node.describe()} property '{key}' ({c.where})")
-            repair_warning(c.where, f"{node.describe()} property '{key}' is not supported: ignored")
+            where = self.where(props[key])
+            self.skipped.append(f"{node.describe()} property '{key}' ({where})")
+            repair_warning(where, f"{node.describe()} property '{key}' is not supported: ignored")
 
     def props(self, node: _Node) -> _Props:
-        """Named children (properties, and objects by ``name`` or tag) of an element."""
+        """Named children of an element: properties by ``name``; nested or referenced objects
+        (``<ref id>``, ``<ref name id>``) by ``name``, except that BSDFs, emitters and media
+        (which Mitsuba's shapes take by type) and unnamed or ``_arg_N`` objects (as Mitsuba's
+        writer names them) are keyed by their tag (``bsdf``, ``emitter``, ``medium``...)."""
         out = _Props()
         for c in node.children:
             name = c.attrs.get("name")
@@ -455,7 +466,14 @@ class _Values:
                 out[name] = c
             elif c.tag in _OBJECT_TAGS:
                 target = self.deref(c) if c.tag == "ref" else c
-                out.setdefault(name or target.tag, target)
+                if c.tag == "ref":
+                    self.via[id(target)] = c
+                by_type = target.tag in ("bsdf", "emitter") or (
+                    target.tag == "medium" and name not in ("interior", "exterior")
+                )
+                if name is None or name.startswith("_arg_") or by_type:
+                    name = target.tag
+                out.setdefault(name, target)
             else:
                 self.skip(c, "is not a Mitsuba element icbtool knows")
         out.used.clear()
@@ -839,6 +857,13 @@ class _Reader(_Materials):
     def shape(self, node: _Node) -> None:
         kind = node.attrs.get("type", "")
         props = self.props(node)
+        for tag in ("bsdf", "emitter"):
+            given = [c for c in node.children if self.deref(c).tag == tag]
+            if len(given) > 1:
+                raise SceneError(
+                    f"{given[1].where}: {node.describe()} at {node.where} has a second "
+                    f"<{tag}> (Mitsuba allows one per shape)"
+                )
         to_world = self.transform(props.get("to_world"))
         geo = self.geometry(node, kind, props)
         if geo is None:
