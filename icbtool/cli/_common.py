@@ -156,8 +156,9 @@ def scene_spec(text: str) -> str:
 scene_spec.__name__ = "scene"
 
 SCENE_HELP = (
-    "a built-in scene (cornell_box, white_furnace, plane, boxes_on_floor), a scene description "
-    "(.toml), a Mitsuba 3 scene file (.xml) or a mesh file (.obj, .ply, .glb, .gltf)"
+    "a built-in scene (cornell_box, cornell_box_moving_light, white_furnace, plane, "
+    "boxes_on_floor), a scene description (.toml), a Mitsuba 3 scene file (.xml) or a mesh file "
+    "(.obj, .ply, .glb, .gltf)"
 )
 
 
@@ -213,6 +214,29 @@ def add_out_argument(
         p.add_argument("--out", required=True, metavar="DIR", help=text)
     else:
         p.add_argument("--out", default=default, metavar="DIR", help=text)
+
+
+def scene_time(text: str) -> float:
+    """argparse type of ``--time``: a finite number of seconds."""
+    try:
+        t = float(text)
+    except ValueError:
+        t = math.nan
+    if not math.isfinite(t):
+        raise argparse.ArgumentTypeError(f"must be a finite number of seconds, got {text!r}")
+    return t
+
+
+def add_time_argument(p: argparse.ArgumentParser) -> None:
+    """``--time T``: the scene time of an animated scene (keyframed lights and meshes)."""
+    p.add_argument(
+        "--time",
+        type=scene_time,
+        default=0.0,
+        metavar="T",
+        help="scene time in seconds for an animated scene (keyframes; see "
+        "icbtool.scene.animation); a static scene is the same at every time (default: 0)",
+    )
 
 
 def add_up_axis_argument(p: argparse.ArgumentParser) -> None:

@@ -13,6 +13,7 @@ from icbtool.cli._common import (
     add_out_argument,
     add_scene_argument,
     add_size_arguments,
+    add_time_argument,
     add_up_axis_argument,
     check_out_dir,
     fov_deg,
@@ -67,6 +68,7 @@ def _options(p: argparse.ArgumentParser) -> None:
         help="also write a PNG preview of every buffer (--no-png: EXR only)",
     )  # fmt: skip
     add_up_axis_argument(p)
+    add_time_argument(p)
     raster = add_config(
         p,
         RasterConfig,
@@ -89,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     from icbtool.imageio import preview, write_exr, write_png
 
     names = raster.check_buffers(args.buffers)
-    scene = load_scene(args.scene, args.up_axis, default_light=True)
+    scene = load_scene(args.scene, args.up_axis, default_light=True).at(args.time)
     spec = args.camera
     cams = [
         c for _, c in select_cameras(scene, spec, args.every, args.height, args.width, args.fov)
@@ -119,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
         {
             "scene": args.scene,
             "scene_repr": repr(scene),
+            "scene_time": scene.time,
             "camera": spec,
             "buffers": [n for n in raster.BUFFER_NAMES if n in names or n == "mask"],
             "backend": backend,

@@ -12,6 +12,7 @@ from icbtool.cli._common import (
     add_out_argument,
     add_scene_argument,
     add_size_arguments,
+    add_time_argument,
     add_up_axis_argument,
     check_out_dir,
     int_at_least,
@@ -58,6 +59,7 @@ def _options(p: argparse.ArgumentParser) -> None:
     )
     add_size_arguments(p)
     add_up_axis_argument(p)
+    add_time_argument(p)
     trace = add_config(
         p,
         TraceConfig,
@@ -90,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     from icbtool.trace import render
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    scene = load_scene(args.scene, args.up_axis, default_light=True)
+    scene = load_scene(args.scene, args.up_axis, default_light=True).at(args.time)
     if depth is None and scene.max_depth is not None:
         cfg = replace(cfg, max_depth=scene.max_depth)
     cams = select_cameras(scene, args.camera, args.every, args.height, args.width)
@@ -119,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
         {
             "scene": scene.name,
             "source": scene.source,
+            "scene_time": scene.time,
             "config": asdict(cfg),
             "views": views,
             "run_info": run_info(),

@@ -7,6 +7,7 @@ scene and cameras as the command line names them (a built-in name or a file; ``d
 ``path:NAME``).
 """
 
+from icbtool.scene.animation import Animation, LightTrack, MeshTrack, Track, animate
 from icbtool.scene.description import SceneDescription, read_description
 from icbtool.scene.emitters import light_faces, promote_emitters
 from icbtool.scene.load import has_light, load, load_mesh, with_default_light
@@ -15,6 +16,7 @@ from icbtool.scene.procedural import (
     PROCEDURAL,
     boxes_on_floor,
     cornell_box,
+    cornell_box_moving_light,
     cornell_camera,
     plane,
     white_furnace,
@@ -39,6 +41,12 @@ from icbtool.scene.view import default_view
 from icbtool.scene.walk import check_camera, random_walk, surroundings
 
 __all__ = [
+    "Animation",
+    "LightTrack",
+    "MeshTrack",
+    "Track",
+    "animate",
+    "cornell_box_moving_light",
     "LIGHT_TYPES",
     "light_parameters",
     "PROCEDURAL",

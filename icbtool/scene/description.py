@@ -28,6 +28,10 @@ description file; ``${VAR}`` and ``${VAR:-default}`` expand environment variable
     material = { albedo = [0.5, 0.5, 0.5] }        # overrides every material of this mesh
     materials = { seat = { albedo = [0.6, 0.1, 0.1], emission = [0, 0, 0] } }
                                         # overrides by material name (an unknown name: error)
+    keyframes = [{t = 0.0}, {t = 2.0, translate = [0.5, 0, 0], rotate = [0, 1, 0, 90]}]
+                                        # optional rigid motion over time (seconds); rotate is
+                                        #   [axis_x, axis_y, axis_z, angle_deg] about pivot
+    pivot = [2.0, 0.5, -1.0]            # default: the centre of the placed mesh's bounds
 
     [camera]                            # intrinsics of the default camera and of every path
     fov_y_deg = 60.0
@@ -40,6 +44,9 @@ description file; ``${VAR}`` and ``${VAR:-default}`` expand environment variable
     irradiance = [9.0, 8.5, 7.5]        # W/m^2
     # point: position, intensity; spot: position, direction, intensity, inner_deg, outer_deg;
     # area: corner, edge_u, edge_v, radiance (emits towards cross(edge_u, edge_v)); all: name
+    keyframes = [{t = 0.0, direction = [0.4, -0.9, 0.15]}, {t = 3.0, direction = [0.9, -0.2, 0]}]
+                                        # optional: fields over time (see
+                                        #   icbtool.scene.animation); the scene loads at t = 0
 
     [sky]                               # optional; type: uniform (zenith) | gradient | envmap
     type = "gradient"
@@ -79,6 +86,7 @@ from typing import Any
 
 import numpy as np
 
+from icbtool.scene.animation import LightTrack, animate, light_track, mesh_track
 from icbtool.scene.types import (
     LIGHT_TYPES,
     AreaLight,
@@ -93,7 +101,16 @@ from icbtool.scene.validate import SceneError, check_file
 #: [scene] keys passed on to :func:`icbtool.scene.mesh.load_mesh` (also build() overrides).
 _MESH_KEYS = ("scale", "up_axis", "translation", "flip_v", "textures")
 _SCENE_KEYS = {"name", "mesh", "file_lights", *_MESH_KEYS}
-_MESHES_KEYS = {"path", "name", "transform", "material", "materials", *_MESH_KEYS}
+_MESHES_KEYS = {
+    "path",
+    "name",
+    "transform",
+    "material",
+    "materials",
+    "keyframes",
+    "pivot",
+    *_MESH_KEYS,
+}
 _MATERIAL_KEYS = {"albedo", "emission"}
 _CAMERA_KEYS = {"fov_y_deg", "height", "width"}
 _TOP_KEYS = {"scene", "meshes", "camera", "lights", "sky", "default_camera", "paths"}
@@ -271,6 +288,11 @@ class MeshSpec:
     """Overrides (albedo, emission) of every material of the mesh."""
     materials: dict[str, dict[str, Any]] = field(default_factory=dict)
     """Overrides (albedo, emission) by material name."""
+    keyframes: list[dict[str, Any]] | None = None
+    """Its rigid motion over time (``translate`` / ``rotate`` keys, see
+    :mod:`icbtool.scene.animation`), or None (it stays where it is)."""
+    pivot: tuple[float, float, float] | None = None
+    """The point it rotates about (None: the centre of its bounds as placed)."""
 
 
 @dataclass(frozen=True)
@@ -301,6 +323,8 @@ class SceneDescription:
     :attr:`lights`; False drops them."""
     meshes: tuple[MeshSpec, ...] = ()
     """The [[meshes]] entries, merged after the [scene] mesh."""
+    light_tracks: tuple[LightTrack, ...] = ()
+    """Keyed lights (``keyframes`` of [[lights]] entries; indices into :attr:`lights`)."""
 
     def build(self, **overrides: Any) -> Scene:
         """Load the mesh and assemble the Scene.
@@ -340,11 +364,13 @@ class SceneDescription:
         scene = parts[0] if len(parts) == 1 else merge_meshes(parts, name)
         own = list(overrides.get("lights", self.lights))  # their area quads join the mesh
         kept = list(scene.lights) if self.file_lights and "lights" not in overrides else []
+        offsets = np.cumsum([0] + [len(part.vertices) for part in parts])
         scene = add_area_lights(scene, [lt for lt in own if isinstance(lt, AreaLight)])
         lights = kept + own
         scene = dataclasses.replace(
             scene, name=name, lights=lights, sky=overrides.get("sky", self.sky), source=where
         )
+        scene = self._animate(scene, parts, offsets, len(kept), "lights" in overrides)
         try:
             intr = Intrinsics(
                 float(overrides.get("fov_y_deg", self.intrinsics.fov_y_deg)),
@@ -366,6 +392,47 @@ class SceneDescription:
             }
             scene = dataclasses.replace(scene, paths=paths)
         return scene
+
+    def _animate(
+        self, scene: Scene, parts: list[Scene], offsets: np.ndarray, n_kept: int, new_lights: bool
+    ) -> Scene:
+        """The scene at time 0 with the description's keyframes, or as it is without any."""
+        first = 0 if self.mesh is None else 1  # parts[first + i] is self.meshes[i]
+        where = str(self.path)
+        moving = []
+        for i, spec in enumerate(self.meshes):
+            if spec.keyframes is None:
+                continue
+            part, start, stop = (
+                parts[first + i],
+                int(offsets[first + i]),
+                int(offsets[first + i + 1]),
+            )
+            if any(m.is_emissive for m in part.materials):
+                raise SceneError(
+                    f"{where}: [[meshes]] {spec.name}: a mesh with emissive faces cannot move "
+                    "(its faces are area lights); key a light instead"
+                )
+            b = part.bounds
+            pivot = spec.pivot if spec.pivot is not None else (b[0] + b[1]) / 2
+            moving.append(
+                mesh_track(
+                    spec.keyframes,
+                    spec.name,
+                    start,
+                    stop,
+                    pivot,
+                    f"{where}: [[meshes]] {spec.name}",
+                )
+            )
+        tracks = (
+            []
+            if new_lights
+            else [dataclasses.replace(tr, index=tr.index + n_kept) for tr in self.light_tracks]
+        )
+        if not moving and not tracks:
+            return scene
+        return animate(scene, tracks, moving, 0.0)
 
 
 def _load_spec(spec: MeshSpec, where: str) -> Scene:
@@ -599,7 +666,16 @@ def read_description(path: str | os.PathLike) -> SceneDescription:
     raw_lights = doc.get("lights", [])
     if not isinstance(raw_lights, list):
         raise SceneError(f"{where}: 'lights' must be an array of tables ([[lights]])")
-    lights = tuple(_light(spec, i, where) for i, spec in enumerate(raw_lights))
+    lights, light_tracks = [], []
+    for i, spec in enumerate(raw_lights):
+        keys = spec.pop("keyframes", None) if isinstance(spec, dict) else None
+        lights.append(_light(spec, i, where))
+        if keys is not None:
+            at = f"{where}: [[lights]] entry {i} ({lights[-1].name})"
+            try:
+                light_tracks.append(light_track(keys, lights[-1], i, at))
+            except ValueError as e:
+                raise SceneError(str(e)) from None
     sky = None
     if "sky" in doc:
         sky = _sky(doc["sky"], p, where)
@@ -631,12 +707,13 @@ def read_description(path: str | os.PathLike) -> SceneDescription:
         mesh=mesh,
         mesh_options=mesh_options,
         intrinsics=intr,
-        lights=lights,
+        lights=tuple(lights),
         sky=sky,
         default_camera=default_camera,
         paths=paths,
         file_lights=file_lights,
         meshes=meshes,
+        light_tracks=tuple(light_tracks),
     )
 
 
@@ -685,5 +762,24 @@ def _read_meshes(raw: Any, p: Path, where: str) -> tuple[MeshSpec, ...]:
         ).items():
             materials[mname] = _check_keys(m, _MATERIAL_KEYS, where, f"{section} materials.{mname}")
         options = {k: t[k] for k in _MESH_KEYS if k in t}
-        out.append(MeshSpec(path, str(name), options, world, material, materials))
+        pivot = None
+        if "pivot" in t:
+            try:
+                pivot = tuple(float(x) for x in np.asarray(t["pivot"], np.float64).reshape(3))
+            except (ValueError, TypeError):
+                pivot = (math.nan,)
+            if len(pivot) != 3 or not all(math.isfinite(x) for x in pivot):
+                raise SceneError(
+                    f"{where}: [[meshes]] entry {i} ({name}): pivot must be 3 finite numbers, "
+                    f"got {t['pivot']!r}"
+                )
+        keys = t.get("keyframes")
+        if keys is not None:  # checked now, so a bad key fails before any mesh is loaded
+            try:
+                mesh_track(
+                    keys, str(name), 0, 1, pivot or (0.0, 0.0, 0.0), f"{where}: [[meshes]] {name}"
+                )
+            except ValueError as e:
+                raise SceneError(str(e)) from None
+        out.append(MeshSpec(path, str(name), options, world, material, materials, keys, pivot))
     return tuple(out)

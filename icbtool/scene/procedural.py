@@ -5,6 +5,7 @@ None of them needs a file; tests and ``make demo`` use them.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -256,8 +257,27 @@ def boxes_on_floor(
 
 
 #: Procedural scenes by name (``icbtool render cornell_box`` etc.).
+def cornell_box_moving_light(height: int = 256, width: int = 256) -> Scene:
+    """The Cornell box whose ceiling light slides along x and back (an animated scene).
+
+    The light is at its published place at t = 0 s, 0.45 m towards +x at t = 1 s, 0.45 m towards
+    -x at t = 3 s and back home at t = 4 s (linear in between, held after); see
+    :mod:`icbtool.scene.animation`. ``scene.at(t)`` is the box at time t.
+    """
+    from icbtool.scene.animation import LightTrack, Track, animate
+
+    scene = cornell_box(height=height, width=width)
+    light = scene.lights[0]
+    dx = np.array([0.45, 0.0, 0.0])
+    corners = [light.corner, light.corner + dx, light.corner - dx, light.corner]
+    track = LightTrack(0, light, {"corner": Track(np.array([0.0, 1.0, 3.0, 4.0]), corners)})
+    moving = animate(scene, [track])
+    return dataclasses.replace(moving, name="cornell_box_moving_light")
+
+
 PROCEDURAL = {
     "cornell_box": cornell_box,
+    "cornell_box_moving_light": cornell_box_moving_light,
     "white_furnace": white_furnace,
     "plane": plane,
     "boxes_on_floor": boxes_on_floor,

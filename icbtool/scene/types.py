@@ -33,6 +33,7 @@ from icbtool.scene.derived import derived
 
 if TYPE_CHECKING:  # pragma: no cover
     from icbtool.camera import Camera, CameraPath
+    from icbtool.scene.animation import Animation
 
 
 def _vec3(x: Any, name: str, nonneg: bool = False) -> np.ndarray:
@@ -530,6 +531,10 @@ class Scene:
             whose convention the tracer shares: >= 1, or -1 unbounded), the trace default for
             this scene; None: the tracer's own default. Not part of :attr:`content_hash` (it
             is a render setting, not content).
+        animation: what moves over time (:class:`icbtool.scene.animation.Animation`: keyed
+            lights, rigidly moving meshes), or None for a static scene. The scene's arrays and
+            lights are those at :attr:`time`; :meth:`at` gives another time.
+        time: the scene time (seconds) this scene's contents are at (0 for a static scene).
     """
 
     name: str
@@ -546,9 +551,14 @@ class Scene:
     up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
     source: str = ""
     max_depth: int | None = None
+    animation: Animation | None = None
+    time: float = 0.0
 
     def __post_init__(self) -> None:
         where = f"scene '{self.name}'" + (f" ({self.source})" if self.source else "")
+        if isinstance(self.time, bool) or not math.isfinite(float(self.time)):
+            raise ValueError(f"{where}: time must be a finite number, got {self.time!r}")
+        object.__setattr__(self, "time", float(self.time))
         md = self.max_depth
         if md is not None and (
             isinstance(md, bool) or not isinstance(md, (int, np.integer)) or (md < 1 and md != -1)
@@ -595,6 +605,31 @@ class Scene:
         object.__setattr__(self, "materials", tuple(self.materials))
         object.__setattr__(self, "lights", tuple(self.lights))
         object.__setattr__(self, "paths", MappingProxyType(dict(self.paths)))
+        if self.animation is not None:
+            try:
+                self.animation.check(self)
+            except ValueError as e:
+                raise ValueError(f"{where}: {e}") from None
+
+    # ------------------------------------------------------------------ time
+    @property
+    def is_animated(self) -> bool:
+        """Whether anything in the scene moves over time."""
+        return self.animation is not None
+
+    def at(self, t: float) -> Scene:
+        """The scene at time ``t`` (seconds): an ordinary immutable Scene whose vertices, normals
+        and lights are those of that moment (see :mod:`icbtool.scene.animation`). A static scene
+        is returned as it is.
+
+        Raises:
+            ValueError: a non-finite ``t``.
+        """
+        if not math.isfinite(float(t)):
+            raise ValueError(f"scene '{self.name}': time must be finite, got {t}")
+        if self.animation is None or float(t) == self.time:
+            return self
+        return self.animation.apply(self, float(t))
 
     # ------------------------------------------------------------------ derived
     @property
