@@ -118,9 +118,9 @@ def promote_emitters(scene: Scene, max_triangles: int = DEFAULT_EMITTER_BUDGET) 
     if max_triangles < 0:
         raise ValueError(f"max_triangles must be >= 0, got {max_triangles}")
     covered = light_faces(scene)
-    cand = np.array(
-        [f for f in scene.emissive_faces if not covered[f] and scene.face_areas[f] > 0], np.int64
-    )
+    emissive = scene.emissive_faces
+    cand = emissive[~np.asarray(covered)[emissive] & (scene.face_areas[emissive] > 0)]
+    cand = cand.astype(np.int64)
     if len(cand) == 0:
         return scene
     if len(cand) > max_triangles:

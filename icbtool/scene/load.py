@@ -49,11 +49,15 @@ log = logging.getLogger(__name__)
 #: Scene fields that may be given to :func:`load` for a bare mesh.
 SCENE_FIELDS = ("lights", "sky", "paths", "default_camera")
 #: Options of :func:`load` itself (for meshes and descriptions alike).
-LOAD_OPTIONS = ("emitter_budget",)
+LOAD_OPTIONS = ("emitter_budget", "progress")
 
 
 def load(
-    path: str | os.PathLike, *, emitter_budget: int = DEFAULT_EMITTER_BUDGET, **overrides: Any
+    path: str | os.PathLike,
+    *,
+    emitter_budget: int = DEFAULT_EMITTER_BUDGET,
+    progress: bool = False,
+    **overrides: Any,
 ) -> Scene:
     """Load a scene description (.toml), a Mitsuba 3 scene (.xml) or a bare mesh file (.obj,
     .gltf, .glb, .ply).
@@ -69,6 +73,8 @@ def load(
         emitter_budget: at most this many emissive triangles are promoted to lights (>= 0; 0:
             none, every emissive face stays seen emission). Default
             :data:`~icbtool.scene.emitters.DEFAULT_EMITTER_BUDGET` (64).
+        progress: show a tqdm bar (stderr) over a Mitsuba file's shapes as they load (other
+            files load as one step).
         **overrides: for a mesh, any of ``name``, ``scale``, ``up_axis``, ``translation``,
             ``textures`` (see :func:`load_mesh`) and the Scene fields ``lights``, ``sky``,
             ``paths``, ``default_camera``. For a description, the same keys replace the
@@ -96,7 +102,8 @@ def load(
         scene = read_description(p).build(**overrides)
         return promote_emitters(scene, int(emitter_budget))
     if p.suffix.lower() in MITSUBA_SUFFIXES:
-        return promote_emitters(load_mitsuba(p, **overrides), int(emitter_budget))
+        scene = load_mitsuba(p, progress=progress, **overrides)
+        return promote_emitters(scene, int(emitter_budget))
     unknown = set(overrides) - set(MESH_OPTIONS) - set(SCENE_FIELDS)
     if unknown:
         raise TypeError(

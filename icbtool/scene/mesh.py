@@ -53,7 +53,7 @@ from icbtool.scene.obj import (
     parse_mtl,
     parse_obj,
 )
-from icbtool.scene.types import Material, Scene, vertex_normals
+from icbtool.scene.types import Material, Scene, fill_vertex_normals, vertex_normals
 from icbtool.scene.validate import (
     MESH_SUFFIXES,
     SceneError,
@@ -200,12 +200,10 @@ def load_mesh(
         if to_compute.all():
             normals = None
     v, f, n, uv, fm = check_arrays(where, verts, faces, normals, uvs, fm)
-    computed = vertex_normals(v, f)
     if n is None:
-        n = computed
-    else:
-        bad = ~np.isfinite(n).all(axis=1) | to_compute  # not in the file, or rejected
-        n[bad] = computed[bad]
+        n = vertex_normals(v, f)
+    else:  # not in the file, or rejected
+        fill_vertex_normals(v, f, n, ~np.isfinite(n).all(axis=1) | to_compute)
     mats = materials.materials
     if uv is None and any(m.is_textured for m in mats):
         repair_warning(where, "textured materials but no texture coordinates: textures dropped")

@@ -69,6 +69,7 @@ import logging
 import math
 import os
 import re
+import time
 import warnings
 import xml.parsers.expat
 from dataclasses import dataclass, field
@@ -86,7 +87,7 @@ from icbtool.scene.types import (
     Scene,
     Sky,
     SpotLight,
-    vertex_normals,
+    fill_vertex_normals,
 )
 from icbtool.scene.validate import (
     MITSUBA_SUFFIXES,
@@ -295,6 +296,14 @@ class _Part:
     uvs: np.ndarray | None  # (V, 2) Scene convention
     material: int
 
+    def __post_init__(self) -> None:
+        # the Scene's float32 now (what the merge would round them to): half the memory while
+        # the other shapes load, the same merged arrays
+        self.vertices = np.asarray(self.vertices, np.float32)
+        self.normals = np.asarray(self.normals, np.float32)
+        if self.uvs is not None:
+            self.uvs = np.asarray(self.uvs, np.float32)
+
 
 @dataclass
 class MitsubaScene:
@@ -341,6 +350,7 @@ class _Values:
         self.max_depth: int | None = None
         self.n_shapes = 0
         self.version = (3, 0, 0)
+        self.progress = False  # a tqdm bar over the shapes while they load
 
     # ---------------------------------------------------------------- helpers
     def skip(self, node: _Node, why: str) -> None:
@@ -1174,10 +1184,12 @@ class _Reader(_Materials):
     def read(self, root: _Node) -> None:
         nodes = self.flatten(root)
         self.collect_ids(nodes)
+        bar = _shape_bar(self.path, sum(n.tag == "shape" for n in nodes), self.progress)
         for node in nodes:
             tag = node.tag
             if tag == "shape":
                 self.shape(node)
+                bar.update(1)
             elif tag == "emitter":
                 self.emitter(node)
             elif tag == "sensor":
@@ -1191,6 +1203,7 @@ class _Reader(_Materials):
                 self.skip(node, "at the top level of the scene has no meaning")
             else:
                 self.skip(node, "is not supported")
+        bar.close()
 
     def build(self, name: str) -> Scene:
         where = str(self.path)
@@ -1204,15 +1217,17 @@ class _Reader(_Materials):
         uv = None
         if any(p.uvs is not None for p in self.parts):
             uv = np.concatenate(
-                [p.uvs if p.uvs is not None else np.zeros((len(p.vertices), 2)) for p in self.parts]
+                [
+                    p.uvs if p.uvs is not None else np.zeros((len(p.vertices), 2), np.float32)
+                    for p in self.parts
+                ]
             )
+        self.parts = []  # merged: the shapes' own copies go (peak memory)
         with warnings.catch_warnings():
             # NaN rows are the normals to compute (no normal in the file), not a repair
             warnings.filterwarnings("ignore", r".*vertex normal\(s\) are NaN", UserWarning)
             v, f, n, uv, fm = check_arrays(where, v, f, n, uv, fm)
-        computed = vertex_normals(v, f)
-        bad = ~np.isfinite(n).all(axis=1)
-        n[bad] = computed[bad]
+        fill_vertex_normals(v, f, n, ~np.isfinite(n).all(axis=1))
         mats = self.materials
         if not any(m.is_textured for m in mats):
             uv = None
@@ -1238,6 +1253,13 @@ class _Reader(_Materials):
             max_depth=self.max_depth,
             source=where,
         )
+
+
+def _shape_bar(path: Path, n_shapes: int, progress: bool) -> Any:
+    """A tqdm bar over a file's shapes (stderr; off unless ``progress``)."""
+    from tqdm import tqdm
+
+    return tqdm(total=n_shapes, desc=f"load {path.name}", unit="shape", disable=not progress)
 
 
 #: Mitsuba's serialized mesh format: file identifier and flags of the compressed header.
@@ -1457,7 +1479,11 @@ def diffuse_twin(
 
 
 def read_mitsuba(
-    path: str | os.PathLike, *, params: dict[str, Any] | None = None, textures: bool = True
+    path: str | os.PathLike,
+    *,
+    params: dict[str, Any] | None = None,
+    textures: bool = True,
+    progress: bool = False,
 ) -> MitsubaScene:
     """Read a Mitsuba 3 scene file (see the module docstring for what is read and how).
 
@@ -1465,6 +1491,7 @@ def read_mitsuba(
         path: the .xml file.
         params: values of the file's ``$`` parameters (override its ``<default>`` s).
         textures: decode bitmap textures (False: base colours only, faster).
+        progress: show a tqdm bar (stderr) over the shapes as they load.
 
     Returns:
         The :class:`MitsubaScene` (the Scene, with the shape count and what was skipped).
@@ -1475,8 +1502,11 @@ def read_mitsuba(
     """
     p = check_file(path, MITSUBA_SUFFIXES)
     reader = _Reader(p, dict(params or {}), textures)
+    reader.progress = bool(progress)
     reader.read(_parse_xml(p))
+    t0 = time.perf_counter()
     scene = reader.build(p.stem)
+    log.info("%s: shapes merged and checked in %.1f s", p, time.perf_counter() - t0)
     log.info(
         "%s: %d shapes, %d triangles, %d materials, %d lights, sky %s, camera %s, max_depth %s",
         p,
@@ -1497,15 +1527,16 @@ def load_mitsuba(path: str | os.PathLike, **overrides: Any) -> Scene:
 
     Args:
         path: the .xml file.
-        **overrides: ``params`` (dict of ``$`` parameters), ``textures`` (bool), ``name`` and the
-            Scene fields ``lights``, ``sky``, ``paths``, ``default_camera``, ``max_depth``.
+        **overrides: ``params`` (dict of ``$`` parameters), ``textures`` (bool), ``progress``
+            (bool: a bar over the shapes), ``name`` and the Scene fields ``lights``, ``sky``,
+            ``paths``, ``default_camera``, ``max_depth``.
 
     Raises:
         TypeError: an unknown override.
         FileNotFoundError, SceneError: as :func:`read_mitsuba`.
     """
     allowed = {"params", "textures", "name", "lights", "sky", "paths", "default_camera"}
-    allowed.add("max_depth")
+    allowed.update(("max_depth", "progress"))
     if "up_axis" in overrides:
         raise SceneError(
             f"{path}: up_axis applies to mesh files; a Mitsuba scene keeps its world axes (its "
@@ -1517,7 +1548,10 @@ def load_mitsuba(path: str | os.PathLike, **overrides: Any) -> Scene:
             f"load({Path(path).name}): unknown override(s) {unknown}; allowed: {sorted(allowed)}"
         )
     ms = read_mitsuba(
-        path, params=overrides.pop("params", None), textures=overrides.pop("textures", True)
+        path,
+        params=overrides.pop("params", None),
+        textures=overrides.pop("textures", True),
+        progress=overrides.pop("progress", False),
     )
     return dataclasses.replace(ms.scene, **overrides) if overrides else ms.scene
 

@@ -7,6 +7,8 @@ the benchmarks and scripts read them exactly as ``icbtool`` does.
 
 from __future__ import annotations
 
+import sys
+
 from icbtool.camera import Camera
 from icbtool.scene.load import load, with_default_light
 from icbtool.scene.procedural import PROCEDURAL
@@ -23,6 +25,8 @@ def load_scene(spec: str, up_axis: str | None = None, default_light: bool = Fals
         default_light: light a scene that has no light at all with
             :func:`icbtool.scene.with_default_light` (which logs a note).
 
+    On a terminal (stderr), a Mitsuba file shows a bar over its shapes while they load.
+
     Returns:
         The scene.
 
@@ -34,7 +38,12 @@ def load_scene(spec: str, up_axis: str | None = None, default_light: bool = Fals
             raise ValueError(f"--up-axis applies to scene files, not to procedural '{spec}'")
         scene = PROCEDURAL[spec]()
     else:
-        scene = load(spec) if up_axis is None else load(spec, up_axis=up_axis)
+        bar = sys.stderr.isatty()  # a bar over a Mitsuba file's shapes while they load
+        scene = (
+            load(spec, progress=bar)
+            if up_axis is None
+            else load(spec, up_axis=up_axis, progress=bar)
+        )
     if default_light:  # logs a note (WARNING) when it adds the default light
         scene = with_default_light(scene)
     return scene

@@ -678,8 +678,7 @@ class Scene:
         )
 
     def _face_cross(self) -> np.ndarray:
-        tri = self.vertices[self.faces].astype(np.float64)
-        return np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        return _face_cross_chunked(self.vertices, self.faces)
 
     def lights_of(self, kind: str) -> list[Light]:
         """The lights of one kind: 'directional', 'point', 'spot' or 'area'."""
@@ -752,15 +751,56 @@ def _light_key(obj: Any) -> tuple:
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) float32 area-weighted vertex normals; vertices used by no face get +up (0, 1, 0)."""
-    tri = vertices[faces].astype(np.float64)
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    vn = np.zeros((len(vertices), 3))
-    for k in range(3):
-        np.add.at(vn, faces[:, k], fn)
+    """(V, 3) float32 area-weighted vertex normals; vertices used by no face get +up (0, 1, 0).
+
+    Each vertex sums its faces' (unnormalised) normals in float64, corner by corner (first
+    corners in face order, then second, then third).
+    """
+    faces = np.asarray(faces)
+    fn = _face_cross_chunked(np.asarray(vertices), faces)
+    # np.bincount adds in input order from 0, as np.add.at does, at a fraction of the time
+    idx = np.ascontiguousarray(faces.T).reshape(-1)
+    vn = np.empty((len(vertices), 3))
+    for c in range(3):
+        vn[:, c] = np.bincount(idx, weights=np.tile(fn[:, c], 3), minlength=len(vertices))
+    del fn
     ln = np.linalg.norm(vn, axis=1, keepdims=True)
     vn = np.where(ln > 1e-30, vn / np.maximum(ln, 1e-300), np.array([0.0, 1.0, 0.0]))
     return vn.astype(np.float32)
+
+
+def fill_vertex_normals(
+    vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, missing: np.ndarray
+) -> None:
+    """Set ``normals[missing]`` to :func:`vertex_normals` (in place), computing them from the
+    faces that touch a missing vertex only: the same values as the whole mesh's
+    ``vertex_normals(vertices, faces)[missing]`` (each vertex sums the same faces in the same
+    order), without the whole mesh's work when most normals come from the file.
+
+    Args:
+        vertices: (V, 3) positions.
+        faces: (F, 3) vertex indices.
+        normals: (V, 3) float32, written in place.
+        missing: (V,) bool, the rows to compute.
+    """
+    if not missing.any():
+        return
+    touching = faces if missing.all() else faces[missing[faces].any(axis=1)]
+    normals[missing] = vertex_normals(vertices, touching)[missing]
+
+
+#: Faces per chunk of the float64 per-face arithmetic on large meshes (bounds its memory).
+FACE_CHUNK = 1 << 18
+
+
+def _face_cross_chunked(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3) float64 ``cross(v1 - v0, v2 - v0)`` per face, computed in chunks of
+    :data:`FACE_CHUNK` faces (the (F, 3, 3) float64 corner array never exists whole)."""
+    out = np.empty((len(faces), 3))
+    for s in range(0, len(faces), FACE_CHUNK):
+        tri = vertices[faces[s : s + FACE_CHUNK]].astype(np.float64)
+        out[s : s + FACE_CHUNK] = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return out
 
 
 class SceneBuilder:

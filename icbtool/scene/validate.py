@@ -44,6 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
+from icbtool.scene.types import _face_cross_chunked
+
 #: Mesh file suffixes :func:`icbtool.scene.load` understands (lower case), and the description.
 MESH_SUFFIXES = (".obj", ".gltf", ".glb", ".ply")
 DESCRIPTION_SUFFIXES = (".toml",)
@@ -193,8 +195,7 @@ def check_arrays(
         )
     fm = np.asarray(face_material, dtype=np.int32).reshape(-1)
     # degenerate faces: repeated indices or (near) zero area
-    tri = v[f].astype(np.float64)
-    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area2 = np.linalg.norm(_face_cross_chunked(v, f), axis=1)
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
     degenerate = repeated | (0.5 * area2 <= DEGENERATE_AREA_FRACTION * diag * diag)
     if degenerate.any():

@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import ctypes
 import glob
+import logging
 import os
 import threading
+import time
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -27,6 +29,8 @@ from icbtool.trace.layout import INVALID_ID, RAYHIT_WORDS
 
 if TYPE_CHECKING:  # pragma: no cover
     from icbtool.scene import Scene
+
+log = logging.getLogger(__name__)
 
 _RTC_SCENE_FLAG_ROBUST = 1 << 2
 _RTC_BUILD_QUALITY_HIGH = 2
@@ -189,8 +193,15 @@ class RtcScene:
         from icbtool.scene.derived import derived
 
         def build() -> RtcScene:
+            t0 = time.perf_counter()
             rs = cls(scene.vertices, scene.faces, robust=robust)
             _self_check()
+            log.info(
+                "scene '%s': Embree BVH of %d triangles built in %.1f s",
+                scene.name,
+                rs.n_triangles,
+                time.perf_counter() - t0,
+            )
             return rs
 
         return derived(scene, f"rtc_robust={bool(robust)}", build)

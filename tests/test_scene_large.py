@@ -1,0 +1,210 @@
+"""Loading and packing large scenes: the memory-lean paths give exactly the arrays (and images)
+of the straightforward ones, and loading shows its progress."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import icbtool.scene.mitsuba as mitsuba
+import icbtool.scene.types as types
+from icbtool.scene import Material, SceneBuilder, Sky, load
+from icbtool.scene.load import decode_texture
+from icbtool.scene.types import fill_vertex_normals, vertex_normals
+
+FIXTURE = Path(__file__).parent / "data" / "scenes" / "mitsuba" / "fixture.xml"
+
+
+def _mesh(seed: int = 0, n_vertices: int = 60, n_faces: int = 150):
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(n_vertices, 3)).astype(np.float32)
+    f = rng.integers(0, n_vertices - 3, size=(n_faces, 3))  # the last 3 vertices: unused
+    return v, f
+
+
+def _add_at_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """The reference: np.add.at over the corners, first corners, then second, then third."""
+    tri = v[f].astype(np.float64)
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    vn = np.zeros((len(v), 3))
+    for k in range(3):
+        np.add.at(vn, f[:, k], fn)
+    ln = np.linalg.norm(vn, axis=1, keepdims=True)
+    vn = np.where(ln > 1e-30, vn / np.maximum(ln, 1e-300), np.array([0.0, 1.0, 0.0]))
+    return vn.astype(np.float32)
+
+
+def test_vertex_normals_equal_the_add_at_sums_bit_for_bit():
+    v, f = _mesh()
+    got = vertex_normals(v, f)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, _add_at_normals(v, f))
+    np.testing.assert_array_equal(got[-3:], np.tile([0, 1, 0], (3, 1)))  # unused: +up
+
+
+def test_fill_vertex_normals_equals_the_whole_mesh_values():
+    v, f = _mesh(1)
+    whole = vertex_normals(v, f)
+    missing = np.zeros(len(v), bool)
+    missing[[0, 5, 17, len(v) - 1]] = True  # the last vertex is used by no face
+    n = np.full((len(v), 3), 7.0, np.float32)
+    fill_vertex_normals(v, f, n, missing)
+    np.testing.assert_array_equal(n[missing], whole[missing])
+    assert np.all(n[~missing] == 7.0)  # the file's normals stay
+
+
+def test_face_cross_in_chunks_equals_one_pass(monkeypatch):
+    v, f = _mesh(2)
+    tri = v[f].astype(np.float64)
+    one_pass = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    monkeypatch.setattr(types, "FACE_CHUNK", 7)  # many chunks and a ragged last one
+    np.testing.assert_array_equal(types._face_cross_chunked(v, f), one_pass)
+
+
+def _unoptimised_merge(monkeypatch) -> None:
+    """The Mitsuba reader as it was: float64 shapes merged, every vertex normal computed."""
+
+    def keep_float64(self) -> None:
+        pass
+
+    def whole_mesh(vertices, faces, normals, missing):
+        normals[missing] = vertex_normals(vertices, faces)[missing]
+
+    monkeypatch.setattr(mitsuba._Part, "__post_init__", keep_float64)
+    monkeypatch.setattr(mitsuba, "fill_vertex_normals", whole_mesh)
+    monkeypatch.setattr(types, "FACE_CHUNK", 1 << 30)
+
+
+def _scene_arrays(path: Path) -> dict:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s = load(path)
+    out = {k: getattr(s, k) for k in ("vertices", "faces", "normals", "face_material", "uvs")}
+    out["textures"] = [m.texture for m in s.materials]
+    return out
+
+
+def test_mitsuba_loader_gives_the_arrays_of_the_unoptimised_merge(monkeypatch, tmp_path):
+    """The fixture (obj, ply, cube, sphere, disk, cylinder, a bitmap) and a serialized file
+    whose shapes have no normals (all computed) or some."""
+    from test_scene_mitsuba import _write_serialized
+
+    v, f = _mesh(3, 40, 60)
+    n = vertex_normals(v, f)
+    n[::3] = np.nan  # a third of the file's normals unusable: recomputed from their faces
+    _write_serialized(tmp_path / "m.serialized", [(v, f, None, None), (v, f, n, None)])
+    xml = tmp_path / "s.xml"
+    xml.write_text(
+        '<scene version="3.0.0">'
+        '<shape type="serialized"><string name="filename" value="m.serialized"/></shape>'
+        '<shape type="serialized"><string name="filename" value="m.serialized"/>'
+        '<integer name="shape_index" value="1"/>'
+        '<transform name="to_world"><rotate y="1" angle="30"/><translate x="4"/></transform>'
+        "</shape></scene>"
+    )
+    lean = [_scene_arrays(FIXTURE), _scene_arrays(xml)]
+    _unoptimised_merge(monkeypatch)
+    before = [_scene_arrays(FIXTURE), _scene_arrays(xml)]
+    for a, b in zip(lean, before):
+        for key in ("vertices", "faces", "normals", "face_material", "uvs"):
+            assert (a[key] is None) == (b[key] is None), key
+            if a[key] is not None:
+                assert a[key].dtype == b[key].dtype, key
+                np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+        for ta, tb in zip(a["textures"], b["textures"]):
+            assert (ta is None) == (tb is None)
+            if ta is not None:
+                np.testing.assert_array_equal(ta, tb)
+
+
+def test_load_shows_a_bar_over_the_shapes(capsys):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        load(FIXTURE, progress=True)
+        err_on = capsys.readouterr().err
+        load(FIXTURE)
+        err_off = capsys.readouterr().err
+    n_shapes = FIXTURE.read_text().count("<shape ")
+    assert f"load {FIXTURE.name}" in err_on and f"{n_shapes}/{n_shapes}" in err_on
+    assert "shape" in err_on
+    assert f"load {FIXTURE.name}" not in err_off
+
+
+# --------------------------------------------------------------------------- tracer packing
+def _reference_encode(texels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The one-pass encoding: a binary search of the whole concatenation."""
+    lut = decode_texture(np.arange(256, dtype=np.uint8).reshape(1, 256))[0, :, 0]
+    codes = np.clip(np.searchsorted(lut, texels), 0, 255)
+    if np.array_equal(lut[codes], texels):
+        return codes.astype(np.uint8), lut
+    return np.zeros(0, np.uint8), texels
+
+
+@pytest.mark.parametrize("kinds", [("8bit", "8bit"), ("8bit", "float"), ()])
+def test_texels_encoded_in_pieces_equal_the_one_pass_encoding(monkeypatch, kinds):
+    from icbtool.trace import tracer
+
+    rng = np.random.default_rng(4)
+    texs = [
+        decode_texture(rng.integers(0, 256, (9, 11, 3), dtype=np.uint8)).reshape(-1)
+        if k == "8bit"
+        else rng.uniform(0, 1, 9 * 11 * 3).astype(np.float32)
+        for k in kinds
+    ]
+    whole = np.concatenate(texs) if texs else np.zeros(1, np.float32)
+    ref_codes, ref_lut = _reference_encode(whole)
+    monkeypatch.setattr(tracer, "TEXEL_PIECE", 10)  # pieces across texture boundaries
+    codes, lut = tracer._encode_texels(texs)
+    assert codes.dtype == np.uint8 and lut.dtype == np.float32
+    np.testing.assert_array_equal(codes, ref_codes)
+    np.testing.assert_array_equal(lut, ref_lut)
+
+
+def test_every_srgb_level_gets_its_own_code():
+    from icbtool.trace import tracer
+
+    lut = decode_texture(np.arange(256, dtype=np.uint8).reshape(1, 256))[0, :, 0]
+    codes, _ = tracer._encode_texels([np.ascontiguousarray(lut[::-1])])
+    np.testing.assert_array_equal(codes, np.arange(256)[::-1])
+
+
+def _textured_emitting_scene():
+    rng = np.random.default_rng(5)
+    b = SceneBuilder("packed")
+    for i in range(2):
+        tex = decode_texture(rng.integers(0, 256, (6, 5, 3), dtype=np.uint8))
+        m = b.add_material(Material(f"t{i}", albedo=(1, 1, 1), texture=tex))
+        b.add_quad((-1 + i, 0, -1), (1, 0, 0), (0, 0, 2), m)
+    for i, e in enumerate(((3, 2, 1), (1, 1, 4))):
+        m = b.material(f"e{i}", albedo=(0, 0, 0), emission=e)
+        b.add_quad((-0.5 + i, 1.5, -0.5), (0, 0, 0.5), (0.5, 0, 0), m)
+    b.sky = Sky((0.2, 0.2, 0.2))
+    return b.build()
+
+
+def test_packing_in_pieces_renders_the_same_image_bit_for_bit(monkeypatch):
+    """The tracer's arrays packed with tiny texel pieces (many) and with the default (one)
+    give identical images; the emitter pmf is the per-face power's."""
+    from icbtool.camera import Camera
+    from icbtool.scene.derived import forget
+    from icbtool.trace import TraceConfig, render, tracer
+
+    scene = _textured_emitting_scene()
+    cam = Camera.look_at((0, 3, 2), (0, 0, 0), (0, 1, 0), fov_y_deg=60, height=10, width=12)
+    cfg = TraceConfig(spp=2, max_depth=3, seed=3)
+    one = render(scene, cam, cfg)
+    sd = tracer._SceneData.of(scene)
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    power = (
+        scene.face_areas
+        * np.array([m.emission @ lum for m in scene.materials])[scene.face_material]
+    )
+    np.testing.assert_allclose(sd.face_light_pmf, power / power.sum(), rtol=1e-12)
+    forget(scene)
+    monkeypatch.setattr(tracer, "TEXEL_PIECE", 7)
+    many = render(scene, cam, cfg)
+    for key in ("full", "gi", "direct"):
+        np.testing.assert_array_equal(getattr(one, key), getattr(many, key))
