@@ -65,11 +65,11 @@ demo: install
 gui: install
 	$(PY) -m icbtool gui
 
-# the README's screenshot (offscreen: Xvfb is started when there is no display)
+# the desktop app guide's screenshot (offscreen: Xvfb is started when there is no display)
 docs/images/gui.png: install
 	$(PY) -m icbtool gui --screenshot $@
 
-# the web client's screenshot in the README (headless chromium, taken by tests/test_web.py)
+# the web client guide's screenshot (headless chromium, taken by tests/test_web.py)
 docs/images/web.png: install
 	ICBTOOL_WEB_SCREENSHOT=$(abspath $@) ICBTOOL_GL_BACKEND=osmesa $(PY) -m pytest -q \
 	  tests/test_web.py -k walks_the_test_path

@@ -4,8 +4,8 @@ Runs ``icbtool demo --fresh`` (Cornell box, 24 client frames at 128x128 along th
 T_IL = 100 ms, cloud GI at 16 spp denoised: the CLI defaults) into a temporary folder with an empty
 cloud cache, and copies its small outputs (``summary.json``, ``config.json``, ``frames.csv``) to
 benchmarks/results/loop/, with the wall time of the whole command and the machine in
-``loop_demo.json``. The README's loop numbers are generated from these files
-(benchmarks/readme_tables.py).
+``loop_demo.json``. docs/benchmarks.md's loop numbers are generated from these files
+(benchmarks/page.py).
 
     .venv/bin/python benchmarks/loop_demo.py
 """

@@ -24,8 +24,9 @@ and checked).
 COMMIT | tar -x -C DIR``) and this one, alternately, ``--ab-rounds`` times, 32 lean clients, hits
 alone: before / after on the same machine state.
 
-Writes benchmarks/results/net/net_scale.json and net_scale.png; README's ``net-scale`` block is
-generated from them (benchmarks/readme_tables.py). Each part replaces its own entry only.
+Writes benchmarks/results/net/net_scale.json and net_scale.png; docs/benchmarks.md's
+``net-scale`` block is generated from them (benchmarks/page.py). Each part replaces its own
+entry only.
 
     nice -n 10 .venv/bin/python benchmarks/net_scale.py [--part profile|hits|bake|attack|all]
     nice -n 10 .venv/bin/python benchmarks/net_scale.py --part ab --ab-repo /tmp/net_before

@@ -1,7 +1,8 @@
 """The client's direct light (raster DL) against the tracer's direct light, at shadow edges too.
 
-The tracer's ``direct`` (same DL/GI split, README "Radiometry") is the reference: traced with
-box-filtered (jittered) pixels at many spp, since that is what the cloud's GI is combined with.
+The tracer's ``direct`` (same DL/GI split, docs/guide/python-api.md, "Radiometry") is the
+reference: traced with box-filtered (jittered) pixels at many spp, since that is what the cloud's GI
+is combined with.
 The raster shades one point per pixel unless ``RasterConfig.dl_supersample = k`` (k x k points,
 box-filtered). For each k: the mean bias per channel and the relative RMSE of the images blurred
 by a 5x5 box, over the covered pixels, (a) on the whole image and (b) without the pixels that see

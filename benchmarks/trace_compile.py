@@ -3,7 +3,7 @@
 The tracer's kernels are compiled by numba on first use and cached on disk (``cache=True``); a
 new machine, a fresh checkout or a change to ``icbtool/trace/kernels.py`` pays the compilation
 once, and later processes load the cached machine code. This script measures both from clean
-processes, so that the README can say what a new user waits for:
+processes, so that docs/benchmarks.md can say what a new user waits for:
 
 - ``compile_s``: the first render (Cornell box, 16 x 16, 1 spp) in a new process whose numba cache
   (``NUMBA_CACHE_DIR``) is an empty folder: compiling every kernel a render needs.

@@ -28,7 +28,7 @@ vectorizer can run 4 doubles per AVX2 instruction. Before such a rewrite (docs/d
 The bound: the share of the render in these stages (benchmarks/results/trace/profile.json: hit
 frame, light and BSDF sampling) times (1 - 1 / speed-up) at the most favourable batch size is
 the most this vectorisation could take off the render; the missed FLIP points of the Cornell box
-need 15-25 % (README, time against error).
+need 15-25 % (docs/benchmarks.md, time against error).
 
     .venv/bin/python benchmarks/trace_simd_bound.py [--size 256] [--spp 8] [--scenes cornell_box] \
         [--batches 32,64,128,256]

@@ -25,9 +25,9 @@ libLLVM), it is never silently replaced by a slower one.
 
 Quiet machine: the 1-minute load average is recorded at the start and the end of the run, and a
 run whose load at the start is 1 or more is marked ``"quiet": false`` in its results file
-(benchmarks/readme_tables.py then labels its numbers as no claim). ``--wait-quiet S`` waits up to S
+(benchmarks/page.py then labels its numbers as no claim). ``--wait-quiet S`` waits up to S
 seconds for the load to drop below 1 before starting (a previous run's load decays in a minute or
-two). The README's numbers come from one run per scene, e.g.
+two). docs/benchmarks.md's numbers come from one run per scene, e.g.
 
     .venv/bin/python benchmarks/trace_time_error.py --size 256 --scenes cornell_box \
         --out-name time_error_cornell_box --wait-quiet 120

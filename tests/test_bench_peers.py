@@ -108,7 +108,7 @@ def test_paired_target_check_uses_the_median_round_ratio_and_mitsubas_median_tim
 def test_simd_bound_stages_match_the_kernels_helpers_and_are_vectorised():
     """benchmarks/trace_simd_bound.py's wavefront stages compute what the megakernel's helpers
     compute, on a real render's hits (emitter and sun scenes), and compile to packed AVX2 code:
-    its README bound would mean nothing otherwise."""
+    its bound on docs/benchmarks.md would mean nothing otherwise."""
     import icbtool as icb
     from icbtool.trace import TraceConfig
 

@@ -525,8 +525,8 @@ def test_an_old_spelling_is_an_error_of_the_command_that_names_the_new_one(tmp_p
 
 
 def test_store_evict_without_a_capacity_drops_only_damaged_records(tmp_path, capsys):
-    """``icbtool store evict DIR`` as the README writes it: the damaged records go, the healthy
-    ones stay (no capacity given)."""
+    """``icbtool store evict DIR`` as the command-line guide writes it: the damaged records go,
+    the healthy ones stay (no capacity given)."""
     from icbtool import store as S
     from icbtool.camera import Camera
 

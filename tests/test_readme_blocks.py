@@ -1,6 +1,7 @@
-"""Every shell and Python block of README.md runs as written, on the built-in scenes.
+"""Every shell and Python block of README.md and of the pages in docs/ runs as written, on the
+built-in scenes.
 
-Conventions (README.md repeats them in a comment at its top; other sections follow them):
+Conventions (README.md repeats them in a comment at its top; every page follows them):
 
 - A fenced block tagged ``bash``, ``sh``, ``shell`` or ``python`` is a block to check; a usage
   synopsis (``icbtool demo [SCENE] ...``) is fenced as ``text`` and is not.
@@ -43,6 +44,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
+#: the documents whose blocks are checked: the README and every page under docs/
+DOCS = [README, *sorted((REPO / "docs").rglob("*.md"))]
 LANGS = {"bash": "shell", "sh": "shell", "shell": "shell", "python": "python"}
 MARKERS = {"slow", "sponza", "skip"}
 SPONZA_LINE = "# [sponza]"
@@ -50,8 +53,9 @@ SPONZA_LINE = "# [sponza]"
 
 @dataclass
 class Block:
-    """One fenced block of the README."""
+    """One fenced block of a document."""
 
+    doc: str  # the document, relative to the repository ("README.md", "docs/guide/cli.md")
     line: int  # 1-based line of the opening fence
     kind: str  # "shell" or "python"
     code: str
@@ -60,14 +64,18 @@ class Block:
 
     @property
     def id(self) -> str:
-        return f"README.md:{self.line}:{self.kind}"
+        return f"{self.doc}:{self.line}:{self.kind}"
 
 
-def readme_blocks(text: str | None = None) -> list[Block]:
-    """The shell and Python blocks of the README with their markers.
+def readme_blocks(text: str | None = None, doc: str = "README.md") -> list[Block]:
+    """The shell and Python blocks of a document (default: the README) with their markers.
+
+    Args:
+        text: the document's text; None: README.md's.
+        doc: the document's name in block ids and errors.
 
     Raises:
-        ValueError: an unknown marker or an unclosed fence (naming the line).
+        ValueError: an unknown marker or an unclosed fence (naming the document and line).
     """
     lines = (README.read_text() if text is None else text).splitlines()
     blocks, i = [], 0
@@ -79,7 +87,7 @@ def readme_blocks(text: str | None = None) -> list[Block]:
         lang, start = (m.group(1) or "").lower(), i
         end = next((j for j in range(i + 1, len(lines)) if lines[j].startswith("```")), None)
         if end is None:
-            raise ValueError(f"README.md:{start + 1}: the ``` fence is never closed")
+            raise ValueError(f"{doc}:{start + 1}: the ``` fence is never closed")
         marks, reason = set(), ""
         prev = lines[start - 1].strip() if start > 0 else ""
         mm = re.match(r"^<!--\s*readme-test:\s*(.*?)\s*-->$", prev)
@@ -90,11 +98,11 @@ def readme_blocks(text: str | None = None) -> list[Block]:
             reason = " ".join(words)
             if not marks:
                 raise ValueError(
-                    f"README.md:{start}: readme-test marker {prev!r} names none of {MARKERS}"
+                    f"{doc}:{start}: readme-test marker {prev!r} names none of {MARKERS}"
                 )
         if lang in LANGS:
             code = "\n".join(lines[start + 1 : end]) + "\n"
-            blocks.append(Block(start + 1, LANGS[lang], code, marks, reason))
+            blocks.append(Block(doc, start + 1, LANGS[lang], code, marks, reason))
         i = end + 1
     return blocks
 
@@ -279,7 +287,7 @@ def run_block(block: Block, workdir: Path, timeout_s: float) -> subprocess.Compl
     }
     env.setdefault("ICBTOOL_GL_BACKEND", "osmesa")
     if block.kind == "python":
-        script = workdir / f"readme_{block.line}.py"
+        script = workdir / f"block_{block.line}.py"
         script.write_text(code)
         cmd = [sys.executable, str(script)]
     else:
@@ -288,14 +296,23 @@ def run_block(block: Block, workdir: Path, timeout_s: float) -> subprocess.Compl
                           timeout=timeout_s)  # fmt: skip
 
 
-BLOCKS = readme_blocks()
+def doc_blocks() -> list[Block]:
+    """The blocks of every document in DOCS."""
+    return [
+        b for path in DOCS for b in readme_blocks(path.read_text(), str(path.relative_to(REPO)))
+    ]
+
+
+BLOCKS = doc_blocks()
 
 
 def test_the_readme_has_blocks_and_states_the_convention():
-    """The extractor sees the README's blocks (one that found none would pass every test) and
-    the README says how to mark a block."""
-    kinds = {b.kind for b in BLOCKS}
-    assert kinds == {"shell", "python"} and len(BLOCKS) >= 5, [b.id for b in BLOCKS]
+    """The extractor sees the README's and the guide's blocks (one that found none would pass
+    every test) and the README says how to mark a block."""
+    readme = [b for b in BLOCKS if b.doc == "README.md"]
+    assert {b.kind for b in readme} == {"shell", "python"}, [b.id for b in readme]
+    guide = {b.doc for b in BLOCKS if b.doc.startswith("docs/guide/")}
+    assert len(guide) >= 5 and len(BLOCKS) >= 15, sorted(guide)
     assert "readme-test:" in README.read_text().split("\n## ", 1)[0]
     for b in BLOCKS:
         if "skip" in b.marks:
@@ -363,7 +380,7 @@ def test_code_and_docs_cite_only_documents_in_the_repository():
     """Docstrings cite docs/design.md and docs/conventions.md (in the repository), never the
     design notes they were written from (ICB.md, STYLE.md), which a clone does not have."""
     cited = []
-    for path in [*REPO.glob("*.md"), *REPO.glob("docs/*.md")] + [
+    for path in [*REPO.glob("*.md"), *REPO.glob("docs/**/*.md")] + [
         p
         for d in ("icbtool", "icbtool_gui", "tests", "benchmarks")
         for p in (REPO / d).rglob("*.py")

@@ -267,7 +267,8 @@ class TrainConfig:
     def preset(cls, name: Literal["cpu", "paper-cpu", "paper"], **overrides: Any) -> TrainConfig:
         """A named preset with field overrides.
 
-        - ``cpu``: the recipe measured best on 2 CPU cores (docs/gan.md; README "Learned GI"):
+        - ``cpu``: the recipe measured best on 2 CPU cores (docs/gan.md; docs/benchmarks.md,
+          "Learned GI"):
           configuration J (albedo, DL, world normals, positions) with 6 octaves of Fourier
           features of the position computed at half resolution, demodulated targets, the
           full-resolution skip with a 1 x 1 head (the client's 256 x 256 frame budget:

@@ -70,8 +70,8 @@ class RasterConfig:
             rendered at k times the resolution, box-filtered down), the tracer's pixel filter
             (``TraceConfig.pixel_jitter``); the other buffers stay one sample at the pixel
             centre. 1: dl at pixel centres. On McGuire's Cornell box (128^2, against the
-            tracer's direct light, see README "Client DL accuracy") k = 2 brings the blurred
-            relative RMSE from 4.0 % to 1.9 % for about 4x the dl cost.
+            tracer's direct light) k = 2 lowers the blurred relative RMSE about twofold for about
+            4x the dl cost (docs/benchmarks.md, "Client DL accuracy").
         depth_prepass: draw depth first, then the visibility pass with GL_EQUAL. The renderer is
             deferred (every pixel is shaded once by a full-screen resolve pass whatever the
             overdraw), so this only repeats the vertex work: off by default; kept for

@@ -295,7 +295,7 @@ class Sky:
     first row is the north pole, the last the south pole) and the map is interpolated
     bilinearly, periodic in u. The radiance is ``envmap_scale * map``. For an envmap ``zenith``,
     ``horizon`` and ``ground`` hold its mean radiance over the sphere (what a uniform sky of the
-    same power would be) and ``up`` is ``world_from_map``'s second column. See README.md,
+    same power would be) and ``up`` is ``world_from_map``'s second column. See docs/guide/scenes.md,
     "Environment maps".
 
     Attributes:

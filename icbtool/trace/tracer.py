@@ -6,9 +6,9 @@ Each pass traces one or more samples for a set of pixels. One numba kernel
 or per ray batch; ``threads`` Python threads run it on interleaved blocks of whole pixels (it
 releases the GIL), and it adds every sample to its pixel's running statistics as the sample ends.
 The driver here reads those statistics between passes and decides when to stop. The kernels are
-compiled on first use and cached on disk (numba ``cache=True``): about 70 s once per machine on
-a 2-core VM (or per change of ``kernels.py``), ~1 s to load the cache in a new process (measured
-by ``benchmarks/trace_compile.py``; numbers in the README).
+compiled on first use and cached on disk (numba ``cache=True``): once per machine (or per change
+of ``kernels.py``); a new process then only loads the cache (both times are measured by
+``python -m benchmarks.trace_compile``: docs/benchmarks.md).
 
 Light transport: two-sided Lambertian surfaces (textured albedo), one-sided emissive faces, a
 directional sun, point and spot lights (delta lights: next-event estimation only), emissive
@@ -962,7 +962,7 @@ def _note_first_use(kernel: Any) -> None:
     """Say (once, as a warning) that the tracer's kernels are being compiled when ``kernel`` (a
     numba dispatcher) has nothing compiled in this process and nothing valid in numba's disk
     cache: the first render after an install or an update of the kernels then takes about a
-    minute (the README gives the measured time), which would otherwise look like a hang."""
+    minute (docs/benchmarks.md gives the measured time), which would otherwise look like a hang."""
     if kernel.signatures:
         return  # compiled or loaded in this process already
     try:  # numba's cache index for the kernel: empty when missing or made for other source
@@ -1103,7 +1103,7 @@ def _output_buffers(H: int, W: int, want_aux: bool) -> tuple[np.ndarray, ...]:
     allocation of 4 MiB or more gets huge pages from numpy, so writing it first costs few page
     faults: at 256^2, 0.2 ms against 3.3 ms for six fresh buffers. Where the allocator hands
     back pages a previous render freed, the gain is smaller: 2 % of a 1-spp render in a paired
-    A/B (README, tracer speed changes)."""
+    A/B (docs/benchmarks.md, tracer speed changes)."""
     npix = H * W
     n3 = 6 if want_aux else 4
     block = np.empty(npix * (3 * n3 + 1), np.float32)

@@ -313,7 +313,7 @@ export class WebRenderer {
   _atlas(views, res) {
     const maxSize = this.gl.getParameter(this.gl.MAX_TEXTURE_SIZE);
     const cols = Math.ceil(Math.sqrt(views.length));
-    if (cols * res > maxSize) res = Math.floor(maxSize / cols);  // stated in the README
+    if (cols * res > maxSize) res = Math.floor(maxSize / cols);  // stated in docs/guide/web-client.md
     const size = cols * res;
     const depth = new THREE.DepthTexture(size, size, THREE.UnsignedIntType);
     depth.compareFunction = THREE.LessEqualCompare;

@@ -1,13 +1,13 @@
-"""Regenerate the README's benchmark numbers from the committed results files.
+"""Write the numbers of docs/benchmarks.md from the committed results files.
 
-Every benchmark number in README.md sits between marker comments, ``<!-- bench:NAME -->`` and
-``<!-- /bench:NAME -->``, and is written here from the JSON files the benchmark scripts leave in
-benchmarks/results/ (nothing is typed by hand). ``--check`` rewrites nothing and exits with 1 when
-README.md differs from what the results files give (tests/test_readme_numbers.py runs it, so a
-stale README number fails CI).
+Every benchmark number in docs/benchmarks.md sits between marker comments,
+``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->``, and is written here from the JSON files the
+benchmark scripts leave in benchmarks/results/ (nothing is typed by hand). ``--check`` rewrites
+nothing and exits with 1 when the page differs from what the results files give
+(tests/test_benchmarks_page.py runs it, so a stale number fails CI).
 
-    .venv/bin/python benchmarks/readme_tables.py          # rewrite README.md's bench blocks
-    .venv/bin/python benchmarks/readme_tables.py --check  # fail if README.md is stale
+    python -m benchmarks.page          # rewrite the bench blocks of docs/benchmarks.md
+    python -m benchmarks.page --check  # fail if docs/benchmarks.md is stale
 """
 
 from __future__ import annotations
@@ -25,13 +25,13 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "benchmarks" / "results"
-README = REPO / "README.md"
+PAGE = REPO / "docs" / "benchmarks.md"
 
 MARKER = re.compile(r"<!-- bench:([a-z0-9_-]+) -->\n(.*?)<!-- /bench:\1 -->", re.DOTALL)
 
 
-class ReadmeBlockError(ValueError):
-    """README.md's bench markers do not match the blocks this script writes."""
+class PageBlockError(ValueError):
+    """docs/benchmarks.md's bench markers do not match the blocks this script writes."""
 
 
 def short_runs(d: dict) -> str:
@@ -137,7 +137,7 @@ def block_raster(results: Path) -> str:
     tris = rows["osmesa", "sponza", 512, "cached"]["triangles"]
     a = cfg["area_samples"]
     lines = [
-        f"**Client raster** (`benchmarks/raster_bench.py --frames {d['frames']}`): ms per frame "
+        f"**Client raster** (`benchmarks.raster_bench --frames {d['frames']}`): ms per frame "
         "for the full buffer",
         "set (DL with shadows, albedo, world and view normals, depth, position, mask), median of "
         f"{d['frames']} frames",
@@ -191,8 +191,8 @@ def block_trace_throughput(results: Path) -> str:
     c = d["config"]
     label = {"cornell_box": "Cornell box", "sponza": "Sponza"}
     lines = [
-        "**Cloud path tracer** (`benchmarks/trace_throughput.py`, `benchmarks/trace_profile.py`, "
-        "`benchmarks/trace_time_error.py`): one numba kernel traces whole paths and calls Embree 4",
+        "**Cloud path tracer** (`benchmarks.trace_throughput`, `benchmarks.trace_profile`, "
+        "`benchmarks.trace_time_error`): one numba kernel traces whole paths and calls Embree 4",
         "directly (no Python per depth), on both cores. The throughput benchmark records the "
         "tracer's own",
         "rays and replays them through Embree alone.",
@@ -252,7 +252,7 @@ def block_trace_profile(results: Path) -> str:
     names = [label.get(r["scene"], r["scene"]) for r in rows]
     size = rows[0]["size"]
     lines = [
-        f"Where the time goes (`benchmarks/trace_profile.py`, {size[1]}x{size[0]}, "
+        f"Where the time goes (`benchmarks.trace_profile`, {size[1]}x{size[0]}, "
         f"{rows[0]['spp']} spp, one thread, CPU seconds; 1-minute load "
         f"{d['load_average_start'][0]:.1f} at the start: CPU time, not wall time, is what a "
         "loaded machine leaves comparable). Stages are the kernel's own helpers and Embree "
@@ -398,7 +398,7 @@ def _simd_bound(results: Path, label: dict[str, str]) -> list[str]:
             )
     return [
         "",
-        "What a wavefront with SIMD shading could save (`benchmarks/trace_simd_bound.py`, 1-minute "
+        "What a wavefront with SIMD shading could save (`benchmarks.trace_simd_bound`, 1-minute "
         f"load {d['load_average_start'][0]:.1f} at the start): the per-vertex math (hit frame, "
         "light samples, cosine bounce) on the same render's hits, as the megakernel runs it one "
         "vertex at a time and as a wavefront's stages would over a batch of paths (a gather into "
@@ -424,10 +424,10 @@ def _first_met(ratios: list[float | None], spps: list[int]) -> int | None:
 TIME_ERROR_SCENES = {"cornell_box": "Cornell box", "sponza": "Sponza"}
 #: the commands that write the per-scene time/error files (each under ~10 min on this machine)
 TIME_ERROR_COMMANDS = {
-    "cornell_box": "benchmarks/trace_time_error.py --size 256 --scenes cornell_box "
+    "cornell_box": "-m benchmarks.trace_time_error --size 256 --scenes cornell_box "
     "--ref-spp 1024 --spps 1,2,4,8,16,32,64 --repeats 5 --out-name time_error_cornell_box "
     "--wait-quiet 120",
-    "sponza": "benchmarks/trace_time_error.py --size 256 --scenes sponza --ref-spp 512 "
+    "sponza": "-m benchmarks.trace_time_error --size 256 --scenes sponza --ref-spp 512 "
     "--spps 1,2,4,8,16,32 --repeats 5 --out-name time_error_sponza --wait-quiet 120",
 }
 
@@ -448,7 +448,7 @@ def time_error_runs(results: Path) -> dict[str, tuple[str, dict, dict]]:
 
 def missed_points(spps: list[int], ratios: list[float | None]) -> list[tuple[int, float]]:
     """(Mitsuba spp, ratio) where the time-to-error target (ratio <= 0.5 from Mitsuba's 2 spp up,
-    issue 22's goal) is missed."""
+    the tracer's speed goal) is missed."""
     return [
         (s, r) for s, r in zip(spps, ratios, strict=True) if s >= 2 and r is not None and r > 0.5
     ]
@@ -539,7 +539,7 @@ def _error_by_brightness(results: Path) -> list[str]:
             f"{span(rms, f2)} of Mitsuba's and our mean FLIP {span(flip, f2)} of its"
         )
     return [
-        f"Where the RMSE lead comes from (`benchmarks/trace_error_by_brightness.py`, "
+        f"Where the RMSE lead comes from (`benchmarks.trace_error_by_brightness`, "
         f"{d['args']['spp']} spp, each renderer against its own reference, pixels binned by the "
         "reference's display brightness): " + "; ".join(parts) + ". On the Cornell box the lead "
         "is mostly at the light and its edges (the extra emission samples on the light's "
@@ -565,7 +565,7 @@ def _error_split(results: Path) -> list[str]:
         ]
         parts.append(f"{TIME_ERROR_SCENES[name]}: " + "; ".join(each))
     return [
-        "Which half carries the error (`benchmarks/trace_error_split.py`, mean of "
+        "Which half carries the error (`benchmarks.trace_error_split`, mean of "
         f"{d['args']['seeds']} seeds; one half of our render swapped for the reference's): "
         + "; ".join(parts)
         + ". FLIP is the GI's noise: better light sampling at the first hit cannot move it.",
@@ -598,7 +598,7 @@ def _gi_variance(results: Path) -> list[str]:
     a = d["args"]
     return [
         "Where the GI's noise lies, and what the path knobs buy at equal time "
-        f"(`benchmarks/trace_gi_variance.py`, {a['size']}x{a['size']}, 1 spp, {a['seeds']} "
+        f"(`benchmarks.trace_gi_variance`, {a['size']}x{a['size']}, 1 spp, {a['seeds']} "
         f"seeds, variance per pixel across seeds, 1-minute load {d['load_average_start'][0]:.2f} "
         "at the start; plot `benchmarks/results/trace/gi_variance.png`): "
         + "; ".join(parts)
@@ -757,7 +757,7 @@ def block_trace_time_error(results: Path) -> str:
 
         def speedup_needed(spps: list[int], ratios=ratios) -> str:
             """How much faster at equal error our raw render would have to be at each missed
-            point (Mitsuba spp >= 2: the issue's goal): ratio / 0.5."""
+            point (Mitsuba spp >= 2: the speed goal): ratio / 0.5."""
             parts = []
             for key, name in (("target_rmse", "RMSE"), ("target_flip", "FLIP")):
                 miss = [f"{r / 0.5:.2f}x at {s}" for s, r in missed_points(spps, ratios(key))]
@@ -817,7 +817,7 @@ def block_trace_time_error(results: Path) -> str:
 
 
 def first_use(results: Path) -> str:
-    """What the tracer's first use costs (``benchmarks/trace_compile.py``)."""
+    """What the tracer's first use costs (``benchmarks.trace_compile``)."""
     d = load("trace/compile.json", results)
     t = d["trials"]
     compile_s = span([x["compile_s"] for x in t])
@@ -827,7 +827,7 @@ def first_use(results: Path) -> str:
         f"the tracer's kernels: the first render took {compile_s} s in a clean process with an "
         f"empty numba cache, the same render {load_s} s in the next process, which loads them "
         "from the cache "
-        f"(`benchmarks/trace_compile.py`, `trace/compile.json`, 1-minute load "
+        f"(`benchmarks.trace_compile`, `trace/compile.json`, 1-minute load "
         f"{d['load_average_start'][0]:.2f} at the start)."
     )
 
@@ -860,7 +860,7 @@ def block_denoise(results: Path) -> str:
             f"{ms('fast', 'execute_ms_1_thread')} ms."
         )
     return (
-        f"Denoising (`benchmarks/denoise_quality.py`, {a['size']}x{a['size']}, {a['spp']} spp "
+        f"Denoising (`benchmarks.denoise_quality`, {a['size']}x{a['size']}, {a['spp']} spp "
         f"GI, OIDN with albedo + normal,\nbest of {a['repeats']}): 'high' {ms('high')} ms, "
         f"'fast' {ms('fast')} ms; RMSE of direct + denoised GI: {cb}\n"
         f"(raw {e('cornell_box', 'none (raw)')}), Sponza {e('sponza', 'high')} vs "
@@ -875,7 +875,7 @@ def block_denoise(results: Path) -> str:
 def block_store(results: Path) -> str:
     d = load("store/store_bench.json", results)
     lines = [
-        "**Cache** (`benchmarks/store_bench.py`): similar-camera lookup (exact, same answers as a "
+        "**Cache** (`benchmarks.store_bench`): similar-camera lookup (exact, same answers as a "
         "brute",
         f"force scan on {d['lookup'][0]['queries']:,} queries per size).",
         "",
@@ -913,7 +913,7 @@ def block_warp(results: Path) -> str:
         "icbtool_warp_backward_torch": "icbtool torch path (differentiable, masks included)",
     }
     lines = [
-        f"**Warping** (`benchmarks/warp_bench.py --runs {c['runs']} --repeats {c['repeats']}`, "
+        f"**Warping** (`benchmarks.warp_bench --runs {c['runs']} --repeats {c['repeats']}`, "
         f"{c['size']}x{c['size']}, {c['threads']} threads): backward warp",
         "with all hole masks, next to kornia's `warp_frame_depth` without a mask, calls "
         "interleaved; median",
@@ -979,7 +979,7 @@ def block_prefetch(results: Path) -> str:
         return " / ".join(f"{sw[k]['ssim_gi_inpainted']:.3f}" for k in conds)
 
     lines = [
-        f"**Prefetch** (`benchmarks/prefetch_experiment.py --frames {c['frames']} --gi-frames "
+        f"**Prefetch** (`benchmarks.prefetch_experiment --frames {c['frames']} --gi-frames "
         f"{c['gi_frames']}`, T_IL = {1e3 * c['latency']:.0f} ms, client",
         f"{c['size']}x{c['size']} along each scene's test path, {d['speed_scale'].split(' in')[0]}"
         "): holes (% of geometry pixels) after warping",
@@ -1013,7 +1013,7 @@ def block_loop(results: Path) -> str:
     scene = {"cornell_box": "Cornell box"}.get(s["scene"], s["scene"])
     den = "denoised" if lc["denoise"] else "raw"
     return (
-        f"**The ICB loop** (`make demo`, numbers from `benchmarks/loop_demo.py`: {scene}, "
+        f"**The ICB loop** (`make demo`, numbers from `benchmarks.loop_demo`: {scene}, "
         f"{s['frames']} client frames at\n{lc['height']}x{lc['width']} along the {lc['path']} "
         f"path, T_IL = {1e3 * lc['latency_s']:.0f} ms, cloud GI at {lc['spp']} spp {den}): cache "
         f"hit rate {100 * s['cache_hit_rate']:.0f} %, holes after combining "
@@ -1034,7 +1034,7 @@ def block_emitters(results: Path) -> str:
     pct = ", ".join(f"{100 * b:+.2f}" for b in d["gi_bias_per_channel"])
     met = "met" if d["within_target"] else "NOT met"
     return (
-        "**Emissive geometry as light** (`benchmarks/emitter_split.py`): the classic Cornell "
+        "**Emissive geometry as light** (`benchmarks.emitter_split`): the classic Cornell "
         "box written as a glTF\nin millimetres with an emissive ceiling quad, "
         f"{c['size']}x{c['size']}; icbtool's GI (full - direct, {c['spp']} spp, the quad\n"
         "promoted to an area light) against "
@@ -1061,7 +1061,7 @@ def block_mitsuba_xml(results: Path) -> str:
         )
     switched = sum(r.get("approximated_bsdfs_switched_to_diffuse", 0) for r in d["scenes"].values())
     return (
-        "**Mitsuba 3 scene files** (`benchmarks/mitsuba_xml_compare.py`): public Mitsuba scene "
+        "**Mitsuba 3 scene files** (`benchmarks.mitsuba_xml_compare`): public Mitsuba scene "
         "files loaded by\n`icb.scene.load` (the file's camera and depth) and traced, against "
         f"Mitsuba {d['mitsuba_version']} (`{d['mitsuba_variant']}`) rendering the same\nfile "
         f"with every BSDF the two-sided diffuse icbtool renders ({switched} approximated BSDF(s) "
@@ -1075,7 +1075,7 @@ def block_mitsuba_xml(results: Path) -> str:
 def _baseline_line(results: Path, tag: str = "train", paths: tuple[str, ...] = ("test",)) -> str:
     """One line: the trivial baselines on the current store's ``paths`` (gan/baselines_TAG.json:
     fitted on the train path, or on train + cover with ``tag="cover"``), appended to every GAN
-    table (issue 17: every table carries its baselines)."""
+    table (every table carries its baselines: docs/gan.md, "Honest tables")."""
     d = load(f"gan/baselines_{tag}.json", results)
     fitted = "the train path" if tag == "train" else "the train path + the coverage views"
     names = ("constant", "albedo x k", "nearest irradiance", "warp + inpaint",
@@ -1087,7 +1087,7 @@ def _baseline_line(results: Path, tag: str = "train", paths: tuple[str, ...] = (
         cells = ", ".join(f"{n} {m[n]['ssim']:.3f}" for n in names if n in m)
         parts.append(f"on the {p} path ({t['views']} views, every one scored): SSIM {cells}")
     return (  # after a blank line: a line right under a table would be one of its rows
-        "\nBaselines of the current Sponza store (`benchmarks/gan_baselines.py`, same scene, train "
+        "\nBaselines of the current Sponza store (`benchmarks.gan_baselines`, same scene, train "
         f"path and bake settings; fitted on {fitted}) " + "; ".join(parts) + ".\n"
     )
 
@@ -1137,7 +1137,7 @@ def block_gan_baselines(results: Path) -> str:
             + "\n"
         )
     return (
-        "**Learned GI against what needs no network** (`benchmarks/gan_baselines.py`, Sponza "
+        "**Learned GI against what needs no network** (`benchmarks.gan_baselines`, Sponza "
         "128x128; truth: 256-spp denoised traces (walk: 128 spp); test: the project's test "
         "path; walk: held-out views of a seeded random walk of the atrium in every direction):"
         "\n\n" + "\n".join(out)
@@ -1170,12 +1170,12 @@ def block_gan_ablation(results: Path) -> str:
             f" Last column: the generator's ms per {side}x{side} frame in onnxruntime on one "
             "thread, the least of "
             f"{next(iter(sp['variants'].values()))['ms'][side]['samples']} calls (random "
-            "weights; `benchmarks/gan_speed.py`, the variants taking turns call by call, "
+            "weights; `benchmarks.gan_speed`, the variants taking turns call by call, "
             f"1-minute load {lo:.1f} -> {hi:.1f}; medians and CPU times in `gan/speed.json`); "
             "- where the network is one timed above or was not timed."
         )
     return (
-        "**What limits the generator** (`benchmarks/gan_ablation.py`: the `cpu` preset's recipe "
+        "**What limits the generator** (`benchmarks.gan_ablation`: the `cpu` preset's recipe "
         "and one change at a time; SSIM / MSE over every view; minutes of training on this "
         f"loaded 2-core machine, 1-minute load {d['load_1min'][0]:.1f} at the end).{ms_txt}\n\n"
         "| variant | change | iterations | " + " | ".join(paths) + " | minutes |" + ms_head + "\n"
@@ -1200,7 +1200,7 @@ def block_gan_coverage(results: Path) -> str:
         for p, c in mc.items()
     )
     return (
-        "**Coverage** (`benchmarks/gan_coverage.py`): the planner scored "
+        "**Coverage** (`benchmarks.gan_coverage`): the planner scored "
         f"{d['candidates']} candidate cameras in {d['plan_seconds']:.0f} s; "
         f"{100 * d['uncovered_before']:.0f} % of their surface was farther than "
         f"{100 * d['radius']:.0f} % of the diagonal from every train pixel. The first "
@@ -1214,7 +1214,7 @@ def block_envmap(results: Path) -> str:
     d = load("envmap/mitsuba.json", results)
     bias = ", ".join(f"{100 * b:+.3f}" for b in d["mean_bias_per_channel"])
     return (
-        "**Environment map** (`benchmarks/envmap_mitsuba.py`): boxes on a floor lit only by a "
+        "**Environment map** (`benchmarks.envmap_mitsuba`): boxes on a floor lit only by a "
         "generated sky EXR\n(a small sun of peak radiance 2000, a dome, a dark ground; "
         "rotated 40 degrees about y), "
         f"{d['size']}x{d['size']}; icbtool's full radiance\n({d['ours_spp']} spp, the map "
@@ -1234,7 +1234,7 @@ def block_dl_accuracy(results: Path) -> str:
         return f"{100 * x:.2f}"
 
     lines = [
-        "**Client DL accuracy** (`benchmarks/raster_dl_accuracy.py`): the raster's DL against "
+        "**Client DL accuracy** (`benchmarks.raster_dl_accuracy`): the raster's DL against "
         "the tracer's direct light\n(box-filtered pixels, max_depth 2, "
         "the reference spp below), mean bias (largest channel) and 5x5-blurred relative RMSE "
         "over\nthe covered pixels without those that see the ceiling light itself (+2 px: "
@@ -1280,14 +1280,14 @@ def block_trace_refactor(results: Path) -> str:
         loads = [r["load_average_1min"] for r in d["runs"]]
         n_runs = len({(r["version"], r["run"]) for r in d["runs"]}) // 2
         tp = (
-            f"\n`benchmarks/trace_throughput.py` ({d['args']}), {n_runs} runs of "
+            f"\n`benchmarks.trace_throughput` ({d['args']}), {n_runs} runs of "
             "each version interleaved, median tracer Mrays/s (wall, 2 threads)\nbefore / after: "
             + "; ".join(f"{k} {v['before']:.2f} / {v['after']:.2f}" for k, v in med.items())
             + f" (1-minute load {min(loads):.1f}-{max(loads):.1f}: wall times this loaded "
             "vary 2-5x between runs)."
         )
     return (
-        "**Tracer refactor** (`benchmarks/trace_ab.py`: the split `trace_paths` (B) against the "
+        "**Tracer refactor** (`benchmarks.trace_ab`: the split `trace_paths` (B) against the "
         "62-argument kernel (A),\none process per checkout, renders alternating; rays per "
         "second of process CPU time, single-threaded,\nmedian B/A): "
         + "; ".join(rows)
@@ -1296,7 +1296,7 @@ def block_trace_refactor(results: Path) -> str:
     )
 
 
-#: paired A/B runs of the issue-22 speed changes: (results name, what B changed against A,
+#: paired A/B runs of the tracer's speed changes: (results name, what B changed against A,
 #: kept in the code)
 TRACE_SPEED_AB = (
     ("nrt", "megakernel without numba's reference counting (`_nrt=False`)", True),
@@ -1402,7 +1402,7 @@ TRACE_SPEED_WALL = {
 
 def block_trace_speed(results: Path) -> str:
     lines = [
-        "**Tracer speed changes** (`benchmarks/trace_ab.py`, paired A/B: one process per "
+        "**Tracer speed changes** (`benchmarks.trace_ab`, paired A/B: one process per "
         "checkout, renders alternating,",
         "median ratio B/A of rays per second of process CPU time (quartiles; of wall time "
         "where the cell says so); images "
@@ -1446,7 +1446,7 @@ def block_trace_speed(results: Path) -> str:
         a, rows = d["args"], d["rows"]
         worst_se = max(max(r["se_a"], r["se_b"]) / r["rmse_a"] for r in rows)
         lines.append(
-            f"- Error per sample, `{path.name}` (`benchmarks/trace_rmse_ab.py`, {a['scene']}, "
+            f"- Error per sample, `{path.name}` (`benchmarks.trace_rmse_ab`, {a['scene']}, "
             f"{a['size']}^2, {a['seeds']} seeds a point, robust Embree in both): RMSE B/A "
             + ", ".join(f"{r['b_over_a']:.3f} at {r['spp']} spp" for r in rows)
             + f" (standard errors up to {100 * worst_se:.1f} % of the RMSE)."
@@ -1516,13 +1516,13 @@ def block_gan_figure7(results: Path) -> str:
     views = (
         f" Last two columns: SSIM / MSE of the last checkpoint over every view of the test path "
         f"({n_test}) and of the held-out walk ({n_walk}); the no-network rows are fitted on the "
-        f"same views (`benchmarks/gan_baselines.py --tag {tag}`)."
+        f"same views (`benchmarks.gan_baselines --tag {tag}`)."
         if paths
         else ""
     )
     tail = "" if paths else _demodulated(results) + _baseline_line(results)
     return (
-        "**GAN pre-renderer, Figure 7** (`benchmarks/gan_figure7.py`, Sponza at 128x128; "
+        "**GAN pre-renderer, Figure 7** (`benchmarks.gan_figure7`, Sponza at 128x128; "
         f"{what}; {ceiling}).\nTest SSIM / MSE (display scale, 0-255, every test view) after "
         f"{it} iterations, and the first evaluated iteration reaching SSIM "
         f"{sm['target_ssim']}.{views}\n\n"
@@ -1552,7 +1552,7 @@ def block_gan_figure8(results: Path) -> str:
         ("gan/preset/figure8.json", "the `cpu` preset (the run of the time-against-error block)"),
         (
             "gan/recipe/figure8.json",
-            "the `cpu` preset before the speed study (issue 17; current store)",
+            "the `cpu` preset before the speed study (current store)",
         ),
         ("gan/demodulated/figure8.json", "an early study with albedo demodulation"),
     ):
@@ -1566,7 +1566,7 @@ def block_gan_figure8(results: Path) -> str:
             f"MSE {m['mse']:.0f}, FLIP {m['flip']:.3f} (`{rel.replace('.json', '.png')}`)"
         )
     return (
-        "**Figure 8** (`benchmarks/gan_figure8.py`: generated | traced | difference x4 on test "
+        "**Figure 8** (`benchmarks.gan_figure8`: generated | traced | difference x4 on test "
         "frames spread along the test path):\n\n"
         + "\n".join(lines)
         + "\n"
@@ -1619,7 +1619,7 @@ def block_gan_time_error(results: Path) -> str:
     if "load_1min" in d:
         load_txt = f" 1-minute load {d['load_1min'][0]:.1f} at the start."
     return (
-        "**Generator against path tracer** (`benchmarks/gan_time_error.py`, Sponza test frames at "
+        "**Generator against path tracer** (`benchmarks.gan_time_error`, Sponza test frames at "
         f"the store's size, run {Path(d['run']).name}; equal SSIM found on the tracer's measured "
         f"curve):\nthe generator ({e['generator']}) takes "
         f"{e['ms']:.1f} ms for SSIM {e['ssim']:.3f}; the path tracer at that SSIM: "
@@ -1644,7 +1644,7 @@ def block_lpm(results: Path) -> str:
             f"{ff['total_s']['10Mbit']:.2f} s |"
         )
     return (
-        "**LPM levels** (`benchmarks/lpm_levels.py`, Sponza, open3d quadric decimation with one "
+        "**LPM levels** (`benchmarks.lpm_levels`, Sponza, open3d quadric decimation with one "
         f"queue over the material groups; {e['n_cameras']} cameras of the test path at "
         f"{e['height']}x{e['width']}; geometric error as a fraction of the bounding-box "
         "diagonal; the reference GI warped with the level's depth against the full mesh's; "
@@ -1701,7 +1701,7 @@ def block_gan_warped(results: Path) -> str:
     tag = "cover" if "cover" in tc["train_path"] else "train"
     return (
         "**Beyond the paper: the generator with the warped reference** "
-        f"(`benchmarks/gan_warped.py`, configuration {cfg['args']['inputs']}, the generators "
+        f"(`benchmarks.gan_warped`, configuration {cfg['args']['inputs']}, the generators "
         f"trained {it} iterations with {how}{_gated_how(cfg)}; {d['views']} test views, the "
         "reference k test "
         "views earlier (frames back: the median distance along the test path); mean test SSIM "
@@ -1722,7 +1722,7 @@ def block_gan_spp(results: Path) -> str:
     )
     it = next(iter(d["sets"].values()))["iteration"][-1]
     return (
-        "**The cost of the data** (`benchmarks/gan_spp.py`: configuration J trained "
+        "**The cost of the data** (`benchmarks.gan_spp`: configuration J trained "
         f"{it} iterations with the Figure 7 settings on the train path (150 views, 128x128) "
         "baked at each sample count, noisy targets unless denoised; the same 256-spp test truth; "
         "baking times are the records' own, taken when each store was baked, under different "
@@ -1781,7 +1781,7 @@ def block_net(results: Path) -> str:
     )
     la = d.get("load_average") or [float("nan")]
     return (
-        f"**Networked system** (`benchmarks/net_latency.py`: {c['scene']}, {c['size']} x "
+        f"**Networked system** (`benchmarks.net_latency`: {c['scene']}, {c['size']} x "
         f"{c['size']} client, {c['spp']} spp GI, default codecs, {c['frames']} frames per run, "
         f"medians; load average {la[0]:.1f} at the end). Request -> reply (of which transfer), "
         "or the local generator's time (an untrained U-Net of the paper's shape, base 32: "
@@ -1854,7 +1854,7 @@ def block_web(results: Path) -> str:
     loads = [x for _, d in runs for x in walk_load_averages(d)]
     gen = cols[0][1]["generate"]
     text = (
-        f"**Web client** (`benchmarks/web_client.py`, chromium {runs[0][1]['chromium']} headless: "
+        f"**Web client** (`benchmarks.web_client`, chromium {runs[0][1]['chromium']} headless: "
         f"WebGL2 on **{backend}**, i.e. on the CPU: no GPU here; every number below is a "
         f"{backend} number. The test path walked twice, medians of the second walk (GI from "
         f"the store); server {runs[0][1]['config']['spp']} spp GI, denoised; load average "
@@ -1984,11 +1984,11 @@ def block_net_scale(results: Path) -> str:
     loop = all(x["sockets"]["all_loopback"] for x in [*d["hits"], b])
     rounds = ", ".join(f"{x:.0f}" for x in a["rss_after_each_round_mb"])
     return (
-        f"**The cloud at scale** (`benchmarks/net_scale.py`, cornell_box, `icbtool serve` in its "
+        f"**The cloud at scale** (`benchmarks.net_scale`, cornell_box, `icbtool serve` in its "
         f"own process, local Dask workers, {hc['spp']} spp denoised GI). {hc['hit_clients']} "
         f"clients replay cache hits ({hc['hit_size']}^2; {client}) while {hc['miss_clients']} "
         f"clients ask for {hc['miss_size']}^2 misses; hit latency measured while the misses "
-        "render (before this design a miss held every hit behind it: 32-37 s, issue 18), "
+        "render (before this design a miss held every hit behind it: 32-37 s), "
         "throughput and server CPU per hit alone and during the misses:\n\n"
         "| render workers | hits alone p50 / p99 | alone: hits/s, server CPU / hit | "
         "hits during the misses | hit p50 | hit p99 | during: hits/s, server CPU / hit | "
@@ -2001,7 +2001,7 @@ def block_net_scale(results: Path) -> str:
         "whether every record equals the single-process bake bit for bit:\n\n"
         "| bake | records/min | identical | load avg |\n|---|---|---|---|\n"
         f"{brows}\n\n"
-        f"Server memory under the attack set of issue 18 (8192^2 requests, id 2^53, LPM ranges "
+        f"Server memory under the protocol's attack set (8192^2 requests, id 2^53, LPM ranges "
         f"with no level, velocity 1e308, fx = 0, duplicate ids, bursts, 80 malformed frames, a 9 "
         f"MB message, 30 silent connections), {len(a['rss_after_each_round_mb'])} rounds: RSS "
         f"{a['rss_before_mb']:.0f} MB before, {rounds} MB after each round; still serving: "
@@ -2043,17 +2043,17 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
 
 
 def regenerate(text: str, results: Path = RESULTS) -> str:
-    """``text`` (README.md's content) with every bench block rewritten from ``results``.
+    """``text`` (docs/benchmarks.md's content) with every bench block rewritten from ``results``.
 
     Args:
-        text: the README text with ``<!-- bench:NAME -->`` ... ``<!-- /bench:NAME -->`` blocks.
+        text: the page's text with ``<!-- bench:NAME -->`` ... ``<!-- /bench:NAME -->`` blocks.
         results: the benchmarks/results folder.
 
     Returns:
-        The new README text.
+        The new page text.
 
     Raises:
-        ReadmeBlockError: a block in BLOCKS has no markers in ``text``, or ``text`` has a block
+        PageBlockError: a block in BLOCKS has no markers in ``text``, or ``text`` has a block
             this script does not know.
         FileNotFoundError: a results file is missing.
     """
@@ -2062,8 +2062,9 @@ def regenerate(text: str, results: Path = RESULTS) -> str:
     missing = sorted(set(BLOCKS) - set(found))
     dup = sorted({n for n in found if found.count(n) > 1})
     if unknown or missing or dup:
-        raise ReadmeBlockError(
-            f"README bench markers: unknown {unknown}, missing {missing}, duplicated {dup}"
+        raise PageBlockError(
+            f"docs/benchmarks.md bench markers: unknown {unknown}, missing {missing}, "
+            f"duplicated {dup}"
         )
     return MARKER.sub(
         lambda m: (
@@ -2076,26 +2077,26 @@ def regenerate(text: str, results: Path = RESULTS) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--check", action="store_true", help="fail if README.md is stale")
-    ap.add_argument("--readme", default=str(README))
+    ap.add_argument("--check", action="store_true", help="fail if the page is stale")
+    ap.add_argument("--page", default=str(PAGE), help="the page to write")
     ap.add_argument("--results", default=str(RESULTS))
     args = ap.parse_args(argv)
-    path = Path(args.readme)
+    path = Path(args.page)
     old = path.read_text()
     new = regenerate(old, Path(args.results))
     if args.check:
         if new != old:
             diff = difflib.unified_diff(
-                old.splitlines(), new.splitlines(), "README.md", "from results", lineterm=""
+                old.splitlines(), new.splitlines(), str(path), "from results", lineterm=""
             )
             print("\n".join(diff))
             print(
-                "README.md's benchmark numbers differ from benchmarks/results/: run "
-                "`python benchmarks/readme_tables.py`",
+                f"{path}'s benchmark numbers differ from benchmarks/results/: run "
+                "`benchmarks.page`",
                 file=sys.stderr,
             )
             return 1
-        print("README.md's benchmark numbers match benchmarks/results/")
+        print(f"{path}'s benchmark numbers match benchmarks/results/")
         return 0
     if new != old:
         path.write_text(new)

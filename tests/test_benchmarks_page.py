@@ -1,57 +1,46 @@
-"""README's benchmark numbers are the ones in the committed results files (benchmarks/results/).
+"""docs/benchmarks.md's numbers are the ones in the committed results files (benchmarks/results/).
 
-benchmarks/readme_tables.py writes every number between ``<!-- bench:NAME -->`` markers from the
-results JSON; a README edited by hand, or a results file rerun without regenerating the README,
-fails here.
+benchmarks/page.py writes every number between ``<!-- bench:NAME -->`` markers from the results
+JSON; a page edited by hand, or a results file rerun without regenerating the page, fails here.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 from pathlib import Path
 
 import pytest
 
+from benchmarks import page as rt
+
 REPO = Path(__file__).resolve().parent.parent
+PAGE = REPO / "docs" / "benchmarks.md"
 
 
-def _load_module():
-    spec = importlib.util.spec_from_file_location(
-        "readme_tables", REPO / "benchmarks" / "readme_tables.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-rt = _load_module()
-
-
-def test_readme_matches_results_files(capsys):
+def test_page_matches_results_files(capsys):
     assert rt.main(["--check"]) == 0, capsys.readouterr().out
 
 
-def test_every_block_is_in_the_readme_once():
-    text = (REPO / "README.md").read_text()
+def test_every_block_is_on_the_page_once():
+    text = PAGE.read_text()
     for name in rt.BLOCKS:
         assert text.count(f"<!-- bench:{name} -->") == 1, name
         assert text.count(f"<!-- /bench:{name} -->") == 1, name
 
 
 def test_a_hand_edited_number_fails_the_check(tmp_path, capsys):
-    text = (REPO / "README.md").read_text()
+    text = PAGE.read_text()
     # the warp table's kornia row, as the results file gives it, changed by one digit
     row = next(line for line in text.splitlines() if line.startswith("| kornia `warp_frame"))
     cells = row.split(" | ")
     cells[1] = str(int(cells[1]) + 1)
-    stale = tmp_path / "README.md"
+    stale = tmp_path / "benchmarks.md"
     stale.write_text(text.replace(row, " | ".join(cells)))
-    assert rt.main(["--check", "--readme", str(stale)]) == 1
+    assert rt.main(["--check", "--page", str(stale)]) == 1
     assert "differ" in capsys.readouterr().err
     # regenerating puts the number from the results file back
-    assert rt.main(["--readme", str(stale)]) == 0
+    assert rt.main(["--page", str(stale)]) == 0
     assert stale.read_text() == text
 
 
@@ -62,18 +51,18 @@ def test_a_changed_results_file_fails_the_check(tmp_path):
     d = json.loads(path.read_text())
     d["lookup"][0]["octree_us_median"] = 1234.4  # written as "1234 us" in the store table
     path.write_text(json.dumps(d))
-    new = rt.regenerate((REPO / "README.md").read_text(), results)
+    new = rt.regenerate(PAGE.read_text(), results)
     assert "| 10^3 | 1234 us (59) | 72 us |" in new
-    readme = tmp_path / "README.md"
-    readme.write_text((REPO / "README.md").read_text())
-    assert rt.main(["--check", "--readme", str(readme), "--results", str(results)]) == 1
+    copy = tmp_path / "benchmarks.md"
+    copy.write_text(PAGE.read_text())
+    assert rt.main(["--check", "--page", str(copy), "--results", str(results)]) == 1
 
 
 def test_markers_must_match_the_blocks():
-    text = (REPO / "README.md").read_text()
-    with pytest.raises(rt.ReadmeBlockError, match=r"missing \['warp'\]"):
+    text = PAGE.read_text()
+    with pytest.raises(rt.PageBlockError, match=r"missing \['warp'\]"):
         rt.regenerate(text.replace("<!-- bench:warp -->", "<!-- bench-warp -->"))
-    with pytest.raises(rt.ReadmeBlockError, match=r"unknown \['nope'\]"):
+    with pytest.raises(rt.PageBlockError, match=r"unknown \['nope'\]"):
         rt.regenerate(text + "\n<!-- bench:nope -->\nx\n<!-- /bench:nope -->\n")
 
 
