@@ -1,4 +1,4 @@
-"""What limits learned GI: the recipe, and one change at a time (issue 17's ablation).
+"""What limits learned GI: the recipe, and one change at a time (the learned-GI ablation).
 
 The recipe (``RECIPE``, the ``cpu`` preset's training): configuration J (albedo, DL, world
 normals, world positions) with Fourier features of the position computed inside the network,
@@ -6,7 +6,7 @@ demodulated targets, the full-resolution skip, width 16, L1 + SSIM
 loss without the critic, cosine learning rate, weight averaging, 64-pixel crops in batches of 8,
 trained on the train path plus the coverage views (``train,cover``: benchmarks/gan_coverage.py).
 Each variant changes exactly one thing. The best of them, "constant lr", is what the ``cpu``
-preset became (the recipe with a constant learning rate); the speed study (issue 17: <= 15 ms
+preset became (the recipe with a constant learning rate); the speed study (target: <= 15 ms
 per 256 x 256 frame, benchmarks/gan_speed.py) then changed one thing at a time from that preset,
 with seed replicates for the run-to-run spread, and the ``cpu`` preset is now its last row
 ("half-res features + 1x1 head + base 8, 20000 iterations"). Runs train round-robin in chunks
@@ -51,7 +51,7 @@ FIRST_NET = dict(
 RECIPE = dict(lr_schedule="cosine", train_path="train,cover", **FIRST_NET)
 
 #: The ``cpu`` preset before the speed study (the recipe with a constant learning rate): the
-#: speed variants (issue 17: <= 15 ms at 256 x 256) each change one thing of it.
+#: speed variants (target: <= 15 ms at 256 x 256) each change one thing of it.
 CPU_BEFORE = {"lr_schedule": "constant"}
 
 #: name -> (what changes, the fields that change)

@@ -1,4 +1,4 @@
-"""The honest table of learned GI (issue 17): every learned model next to what needs no network,
+"""The honest table of learned GI: every learned model next to what needs no network,
 on every view of the test path and of held-out views off both paths, with each view's coverage.
 
 Methods (rows):

@@ -1,6 +1,6 @@
 """The generator's frame time in onnxruntime, per architecture variant and per ONNX node.
 
-The client runs the generator in onnxruntime (docs/design.md section 6); issue 17 asks for
+The client runs the generator in onnxruntime (docs/design.md section 6); the target is
 <= 15 ms at 256 x 256 on one thread. For the ``cpu`` preset's generator before the speed study
 and each ablation variant that changes its architecture (benchmarks/gan_ablation.py, one change
 at a time; :class:`icbtool.gan.models.GeneratorConfig`), this script exports

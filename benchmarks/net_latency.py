@@ -1,4 +1,4 @@
-"""The networked ICB system's latency, bytes and throughput on loopback (issue 11, "Measured").
+"""The networked ICB system's latency, bytes and throughput on loopback.
 
 1. Latency split per mode (cloud render, cache hit, local generator) and per emulated network
    (RTT / bandwidth, both directions, by the client's shaper): a server in this process (its own

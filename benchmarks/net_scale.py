@@ -1,4 +1,4 @@
-"""The cloud at scale (issue 18, "Measured"): hits under misses, bake throughput on Dask, server
+"""The cloud at scale: hits under misses, bake throughput on Dask, server
 memory under attack. Everything on loopback (127.0.0.1; the sockets are listed with ``ss -tnp``
 and checked).
 
@@ -18,7 +18,7 @@ and checked).
    127.0.0.1): records/min (after one warm-up view per worker, which compiles the tracer there)
    and whether every record equals the single-process bake's bit for bit.
 3. ``attack``: the server's RSS before and after the malformed / oversized / abusive inputs of
-   issue 18 (and 80 more malformed frames), and whether it still answers.
+   docs/protocol.md's limits (and 80 more malformed frames), and whether it still answers.
 
 ``ab`` (not in ``all``): the server of an older checkout (``--ab-repo DIR``, e.g. ``git archive
 COMMIT | tar -x -C DIR``) and this one, alternately, ``--ab-rounds`` times, 32 lean clients, hits

@@ -1,4 +1,4 @@
-"""World-space GI (issue 17, item 4): the hash-grid irradiance model and the probe volume next to
+"""World-space GI: the hash-grid irradiance model and the probe volume next to
 the trivial baselines, on every view of the test path and of held-out views, with coverage.
 
 Methods (rows), all fitted on the train path's pixels only (``--train-paths``):

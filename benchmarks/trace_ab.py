@@ -10,7 +10,7 @@ threaded by default), with the 1-minute load recorded every render.
     .venv/bin/python benchmarks/trace_ab.py --a /tmp/before --b . [--rounds 9] [--size 128]
 
 Writes benchmarks/results/trace/ab_<scene or --name>.json (with the machine, the versions and each
-checkout's commit; files written before 2026-11-27 have the load alone).
+checkout's commit; the oldest files have the load alone).
 """
 
 from __future__ import annotations

@@ -215,10 +215,9 @@ def write_results(out: dict, file_name: str) -> None:
 def machine_probe() -> dict:
     """Two numbers that tell this host from another, next to run_info's CPU family, model and
     widest SIMD: memory copy bandwidth (numpy, 1 GiB, best of 3) and numpy's sin on 4M doubles
-    (best of 3). The same tracer code took 1.86x Mitsuba's time per sample on the Cornell box on
-    the host of 2026-11-25 and about 1.0-1.1x on the host of 2026-11-26 (both "AMD EPYC", two
-    cores), where Mitsuba's own render took 3.3x the CPU time and ours 1.5x: a vectorising JIT
-    gains more than our one-path-at-a-time kernel from a wider or faster host (AVX-512, memory)."""
+    (best of 3). The same tracer code's time per sample relative to Mitsuba's changed from one
+    host to another of the same name (docs/benchmarks.md gives the runs): a vectorising JIT gains
+    more than our one-path-at-a-time kernel from a wider or faster host (AVX-512, memory)."""
     a = np.ones(1 << 27)
     b = np.empty_like(a)
     x = np.random.default_rng(0).random(1 << 22)

@@ -1,4 +1,4 @@
-"""The browser client's frame time, first frame and bytes in headless chromium (issue 20).
+"""The browser client's frame time, first frame and bytes in headless chromium.
 
 No GPU here: chromium renders WebGL2 with SwiftShader (ANGLE's CPU Vulkan), so every browser
 number is a SwiftShader number (the JSON records the GL renderer string); a GPU is one to three

@@ -1,4 +1,4 @@
-"""The served client model on a real scene, in the browser and in Python (issues 20 and 17.4).
+"""The served client model on a real scene, in the browser and in Python.
 
 Given a scene, the store its client-model runs were trained and evaluated on (opened read-only:
 only its test-path truth is read) and the runs (GAN and world-space radiance):

@@ -312,7 +312,7 @@ def test_check_camera():
 #: into named steps (_Probe, _Walker, _View); the same seed must still give the same path (the
 #: scene descriptions' random_walk paths, Sponza's "walk" included, depend on it). Bit for bit on
 #: the host that wrote the file; on another host the float32 ray casts (Embree, numpy) may round
-#: a last bit otherwise (6e-8 to 4e-7 on these walks, 2026-11-26). A change to the walk itself
+#: a last bit otherwise (6e-8 to 4e-7 on these walks). A change to the walk itself
 #: moves poses by far more (a step here is 0.14-0.3 m).
 WALK_ATOL = 1e-6
 REF_WALKS = {

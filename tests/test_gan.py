@@ -650,7 +650,7 @@ def test_training_with_a_warped_reference_resumes_exactly_and_generates(plane_st
         tiny(test_reference_offset=0)
 
 
-# ------------------------------------------------------------------------------ issue 17 additions
+# ------------------------------------------- coverage, demodulation, position features, baselines
 def test_ssim_loss_is_zero_for_equal_maps_and_grows_with_noise():
     from icbtool.gan.losses import ssim_loss
 

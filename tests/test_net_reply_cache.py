@@ -1,4 +1,4 @@
-"""The hit path's leftovers of issue 18: kept encoded replies (icbtool.net.reply_cache), hit
+"""The cache-hit path's pieces: kept encoded replies (icbtool.net.reply_cache), hit
 counts through the store's one writer, LPM manifests without the server's folders, and
 ``icbtool client --tls-ca`` (docs/protocol.md, section Scaling out; docs/lpm.md).
 
