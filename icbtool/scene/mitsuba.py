@@ -286,6 +286,7 @@ class _Bsdf:
     albedo: np.ndarray
     texture: Path | None = None
     raw: bool = False
+    declared: Any = None  # the icbtool.scene.bsdf BSDF the tracer evaluates exactly, if any
 
 
 @dataclass
@@ -663,6 +664,10 @@ class _Values:
         return m
 
 
+class _Unsupported(Exception):
+    """A BSDF or texture the tracer does not evaluate exactly (approximated instead)."""
+
+
 class _Materials(_Values):
     """Textures and BSDFs as icbtool renders them (the approximation rule), and materials."""
 
@@ -732,13 +737,15 @@ class _Materials(_Values):
             b = self._bsdf(node, notes)
             if notes:
                 albedo, rule = approximated_albedo(b.albedo)
-                b = _Bsdf(b.name, albedo, b.texture, b.raw)
-                material_warning(
-                    node.where,
-                    b.name,
-                    f"{'; '.join(notes)}: rendered as diffuse albedo "
-                    f"{np.round(albedo, 4).tolist()} ({rule})",
-                )
+                declared = self._declared(node)
+                b = _Bsdf(b.name, albedo, b.texture, b.raw, declared)
+                if declared is None:
+                    material_warning(
+                        node.where,
+                        b.name,
+                        f"{'; '.join(notes)}: rendered as diffuse albedo "
+                        f"{np.round(albedo, 4).tolist()} ({rule})",
+                    )
             self.bsdfs[key] = b
             self.rendered[node.where] = b
         return self.bsdfs[key]
@@ -840,6 +847,150 @@ class _Materials(_Values):
         notes.append(f"unsupported BSDF type {kind!r} at {node.where}: 0.5 grey")
         return _Bsdf(name, np.full(3, 0.5))
 
+    def _declared(self, node: _Node) -> Any:
+        """The BSDF element as an :mod:`icbtool.scene.bsdf` BSDF the tracer evaluates exactly,
+        or None when it (or a BSDF or texture nested in it) is a plugin or form the tracer does
+        not implement (the diffuse approximation and its warning then stand)."""
+        try:
+            return self._decl(node)
+        except _Unsupported:
+            return None
+        except ValueError as e:
+            raise SceneError(f"{node.where}: {e}") from None
+
+    def _decl(self, node: _Node) -> Any:
+        from icbtool.scene import bsdf as sb
+
+        kind = node.attrs.get("type", "")
+        props = self.props(node)
+        nested = [self.deref(c) for c in node.children if c.tag in ("bsdf", "ref")]
+        nested = [c for c in nested if c.tag == "bsdf"]
+
+        def spec(key: str, default: Any) -> Any:
+            n = props.get(key)
+            if n is None:
+                return default
+            if n.tag == "texture":
+                return self._decl_texture(n)
+            return tuple(float(x) for x in self.colour(n))
+
+        def scalar(key: str, default: Any) -> Any:
+            n = props.get(key)
+            if n is not None and n.tag == "texture":
+                return self._decl_texture(n)
+            return self.float_(props, key, default)
+
+        def ior(key: str, default: str) -> Any:
+            n = props.get(key)
+            if n is None:
+                return default
+            if n.tag == "string":
+                v = self.value(n).lower()
+                if v not in sb.NAMED_IOR:
+                    raise _Unsupported
+                return v
+            return self.float_(props, key, None)
+
+        def micro() -> dict:
+            d = self.str_(props, "distribution", "beckmann")
+            if d not in ("beckmann", "ggx"):
+                raise _Unsupported
+            a = scalar("alpha", 0.1)
+            return {
+                "distribution": d,
+                "alpha_u": scalar("alpha_u", a),
+                "alpha_v": scalar("alpha_v", a),
+            }
+
+        if kind == "diffuse":
+            return sb.Diffuse(spec("reflectance", 0.5))
+        if kind == "twosided":
+            if not nested or len(nested) > 2:
+                raise _Unsupported
+            back = self._decl(nested[1]) if len(nested) == 2 else None
+            return sb.TwoSided(self._decl(nested[0]), back)
+        if kind in ("plastic", "roughplastic"):
+            kw = dict(
+                int_ior=ior("int_ior", "polypropylene"),
+                ext_ior=ior("ext_ior", "air"),
+                diffuse_reflectance=spec("diffuse_reflectance", 0.5),
+                specular_reflectance=spec("specular_reflectance", 1.0),
+                nonlinear=self.bool_(props, "nonlinear", False),
+            )
+            if kind == "plastic":
+                return sb.Plastic(**kw)
+            d = self.str_(props, "distribution", "beckmann")
+            a = scalar("alpha", 0.1)
+            if d not in ("beckmann", "ggx") or not isinstance(a, float):
+                raise _Unsupported
+            return sb.RoughPlastic(**kw, distribution=d, alpha=a)
+        if kind in ("conductor", "roughconductor"):
+            kw = dict(specular_reflectance=spec("specular_reflectance", 1.0))
+            if "eta" in props:
+                if props["eta"].tag == "texture" or props.get("k", props["eta"]).tag == "texture":
+                    raise _Unsupported
+                kw["eta"] = tuple(self.colour(props["eta"]))
+                kw["k"] = tuple(self.colour(props["k"])) if "k" in props else (0.0, 0.0, 0.0)
+            else:
+                metal = self.str_(props, "material", "none")
+                if metal not in sb.CONDUCTOR_ETA_K:
+                    raise _Unsupported
+                kw["material"] = metal
+            if kind == "conductor":
+                return sb.Conductor(**kw)
+            return sb.RoughConductor(**kw, **micro())
+        if kind in ("dielectric", "thindielectric", "roughdielectric"):
+            kw = dict(
+                int_ior=ior("int_ior", "bk7"),
+                ext_ior=ior("ext_ior", "air"),
+                specular_reflectance=spec("specular_reflectance", 1.0),
+                specular_transmittance=spec("specular_transmittance", 1.0),
+            )
+            if kind == "dielectric":
+                return sb.Dielectric(**kw)
+            if kind == "thindielectric":
+                return sb.ThinDielectric(**kw)
+            return sb.RoughDielectric(**kw, **micro())
+        if kind == "blendbsdf":
+            if len(nested) != 2:
+                raise _Unsupported
+            return sb.BlendBSDF(self._decl(nested[0]), self._decl(nested[1]), scalar("weight", 0.5))
+        if kind == "mask":
+            if len(nested) != 1:
+                raise _Unsupported
+            return sb.Mask(self._decl(nested[0]), scalar("opacity", 0.5))
+        raise _Unsupported
+
+    def _decl_texture(self, node: _Node) -> Any:
+        """A ``bitmap`` or ``checkerboard`` texture as :mod:`icbtool.scene.bsdf` declares it."""
+        from icbtool.scene import bsdf as sb
+
+        kind = node.attrs.get("type")
+        props = self.props(node)
+        to_uv = self.transform(props.get("to_uv")) if "to_uv" in props else np.eye(4)
+        if kind == "bitmap":
+            fname = self.str_(props, "filename", None)
+            if fname is None:
+                raise SceneError(f"{node.where}: bitmap texture without a filename")
+            path = self.resolve(node, fname)
+            raw = self.bool_(props, "raw", False)
+            tex = self.texture(node, path, raw)
+            if tex is None:
+                raise _Unsupported
+            filt = self.str_(props, "filter_type", "bilinear")
+            if filt not in ("bilinear", "nearest"):
+                raise _Unsupported
+            return sb.Bitmap(tex, filt, str(path), to_uv)
+        if kind == "checkerboard":
+            c = []
+            for key, default in (("color0", 0.4), ("color1", 0.2)):
+                n = props.get(key)
+                if n is not None and n.tag == "texture":
+                    raise _Unsupported
+                c.append(np.full(3, default) if n is None else self.colour(n))
+            return sb.Checkerboard(tuple(c[0]), tuple(c[1]), to_uv)
+        raise _Unsupported
+
     def material(self, bsdf: _Bsdf, emission: np.ndarray) -> int:
         key = (id(bsdf), tuple(np.round(emission, 9)))
         if key in self.mat_keys:
@@ -854,8 +1005,9 @@ class _Materials(_Values):
         if bsdf.texture is not None:
             tex = self.tex_cache.get(f"{bsdf.texture}|{bsdf.raw}")
         mat = Material(
-            name, bsdf.albedo, emission, tex, str(bsdf.texture) if tex is not None else None
-        )
+            name, bsdf.albedo, emission, tex, str(bsdf.texture) if tex is not None else None,
+            bsdf=bsdf.declared,
+        )  # fmt: skip
         self.materials.append(mat)
         self.mat_keys[key] = len(self.materials) - 1
         return self.mat_keys[key]

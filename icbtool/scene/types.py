@@ -19,6 +19,7 @@ Face winding is counter-clockwise seen from the front; the geometric normal is
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import os
@@ -68,6 +69,9 @@ class Material:
         emission: (3,) emitted radiance, >= 0.
         texture: optional (h, w, 3) float32 linear albedo texture in [0, 1].
         texture_path: where the texture came from (for messages and hashing), if a file.
+        bsdf: a declared BSDF (:mod:`icbtool.scene.bsdf`, Mitsuba 3's plugins) the tracer
+            evaluates instead of the Lambertian ``albedo``/``texture``, which then stand in
+            for it where no BSDF is evaluated (raster, denoiser albedo); None: Lambertian.
     """
 
     name: str
@@ -75,6 +79,7 @@ class Material:
     emission: np.ndarray = field(default_factory=lambda: np.zeros(3))
     texture: np.ndarray | None = None
     texture_path: str | None = None
+    bsdf: Any = None
 
     def __post_init__(self) -> None:
         alb = _vec3(self.albedo, f"material '{self.name}' albedo", nonneg=True)
@@ -96,6 +101,14 @@ class Material:
             t = np.clip(t, 0.0, 1.0)
             t.setflags(write=False)
             object.__setattr__(self, "texture", t)
+        if self.bsdf is not None:
+            from icbtool.scene.bsdf import BSDF_TYPES
+
+            if not isinstance(self.bsdf, BSDF_TYPES):
+                raise ValueError(
+                    f"material '{self.name}' bsdf must be one of icbtool.scene.bsdf's BSDFs, "
+                    f"got {type(self.bsdf).__name__}"
+                )
 
     @property
     def is_emissive(self) -> bool:
@@ -701,6 +714,10 @@ class Scene:
             h.update(m.emission.tobytes())
             if m.texture is not None:
                 h.update(np.ascontiguousarray(m.texture).tobytes())
+            if m.bsdf is not None:
+                from icbtool.scene.bsdf import fingerprint
+
+                h.update(fingerprint(m.bsdf))
         h.update(self.light_hash.encode())
         return h.hexdigest()
 
@@ -831,9 +848,7 @@ class SceneBuilder:
         while name in self._by_name:
             name = name + "_"
         if name != material.name:
-            material = Material(
-                name, material.albedo, material.emission, material.texture, material.texture_path
-            )
+            material = dataclasses.replace(material, name=name)
         self._materials.append(material)
         self._by_name[name] = len(self._materials) - 1
         return len(self._materials) - 1

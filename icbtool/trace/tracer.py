@@ -668,6 +668,10 @@ class _SceneData:
         # the kernels' sky parameters (an envmap's periodic copy made once per scene)
         self.k_sky_params = self.k_sky_table.params(self.sky)
         assert self.k_tri.shape == (F, 3, 3)
+        # declared BSDFs (icbtool.scene.bsdf): the general kernel's node table, else None
+        self.general = None
+        if any(m.bsdf is not None for m in scene.materials):
+            self.general = _general_data(scene, self.k_face_uv if has_uv else None)
 
     @classmethod
     def of(cls, scene: Scene) -> _SceneData:
@@ -682,6 +686,28 @@ class _SceneData:
             return sd
 
         return derived(scene, "trace_data", build)
+
+
+def _general_data(scene: Scene, face_uv: np.ndarray | None) -> tuple[Any, np.ndarray, list]:
+    """(BSDF params, material roots, per-face tangents (F, 3) float32, plugin names) of the
+    general kernel: the tangent is dp/du (Mitsuba's shading frame) where a face has uvs."""
+    from icbtool.trace.bsdfs import pack
+
+    table = pack(scene.materials)
+    F = len(scene.faces)
+    face_t = np.zeros((F, 3), np.float32)
+    if face_uv is not None:
+        p = scene.vertices[scene.faces].astype(np.float64)
+        uv = face_uv.astype(np.float64).copy()
+        uv[:, :, 1] = 1.0 - uv[:, :, 1]  # Mitsuba's v
+        e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+        d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+        det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+        ok = np.abs(det) > 1e-20
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        dpdu = (d2[:, 1:2] * e1 - d1[:, 1:2] * e2) * inv[:, None]
+        face_t[:] = np.where(ok[:, None], dpdu, 0.0)
+    return table.params, table.mat_root, np.ascontiguousarray(face_t), table.kinds
 
 
 # ---------------------------------------------------------------------------------- tracer
@@ -713,6 +739,13 @@ class _Tracer:
         self.sd = _SceneData.of(scene)
         sd = self.sd
         sk = stats.skipped
+        if sd.general is None:
+            sk.append("general BSDF kernel: every material is Lambertian (the Lambert kernel)")
+        else:
+            sk.append(
+                "Lambert kernel: declared BSDFs (" + ", ".join(sd.general[3]) + ") need the "
+                "general kernel (no gi_splits, no deferred texel loads)"
+            )
         if not sd.textures:
             sk.append("texture lookups: no textured material")
         if not sd.suns:
@@ -938,14 +971,21 @@ class _Tracer:
         held = ws.get("held", (rows, 14), np.float64)
         out = K.Outputs(direct, gi, first_hit, alb_out, nrm_out, held)
         prm, acc = self._params, self.acc
+        gen = self.sd.general
+        if gen is None:
+            kernel, extra = K.trace_paths, ()
+        else:
+            from icbtool.trace.general import trace_paths_general
+
+            kernel, extra = trace_paths_general, gen[:3]
         t0 = time.perf_counter()
         if parts == 1:
-            K.trace_paths(prm, out, acc, counts[0], log, 0, queue, pix, sid, bounds)
+            kernel(prm, *extra, out, acc, counts[0], log, 0, queue, pix, sid, bounds)
         else:
             pool = _pool(parts)
             futs = [
                 pool.submit(
-                    K.trace_paths, prm, out, acc, counts[i], log, i, queue, pix, sid, bounds
+                    kernel, prm, *extra, out, acc, counts[i], log, i, queue, pix, sid, bounds
                 )
                 for i in range(parts)
             ]
