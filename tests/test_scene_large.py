@@ -208,3 +208,19 @@ def test_packing_in_pieces_renders_the_same_image_bit_for_bit(monkeypatch):
     many = render(scene, cam, cfg)
     for key in ("full", "gi", "direct"):
         np.testing.assert_array_equal(getattr(one, key), getattr(many, key))
+
+
+def test_face_normals_and_areas_from_one_pass_equal_their_formulas():
+    from icbtool.scene import Scene
+
+    v, f = _mesh(6)
+    f[3] = [4, 4, 9]  # a degenerate face: zero area, zero normal
+    s = Scene("m", v, f, vertex_normals(v, f), np.zeros(len(f), np.int32), [Material("m")])
+    tri = v[f].astype(np.float64)
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    ln = np.linalg.norm(cross, axis=1, keepdims=True)
+    normals = np.where(ln > 0, cross / np.maximum(ln, 1e-300), 0).astype(np.float32)
+    np.testing.assert_array_equal(s.face_areas, 0.5 * np.linalg.norm(cross, axis=1))
+    np.testing.assert_array_equal(s.face_normals, normals)
+    assert s.face_areas[3] == 0 and not s.face_normals[3].any()
+    assert s.face_normals is s.face_normals and s.face_areas is s.face_areas  # cached

@@ -673,22 +673,24 @@ class Scene:
     @property
     def face_normals(self) -> np.ndarray:
         """(F, 3) float32 unit geometric normals (zero for degenerate faces)."""
-
-        def build() -> np.ndarray:
-            n = self._face_cross()
-            ln = np.linalg.norm(n, axis=1, keepdims=True)
-            return _readonly(np.where(ln > 0, n / np.maximum(ln, 1e-300), 0).astype(np.float32))
-
-        return derived(self, "face_normals", build)
+        return derived(self, "face_normals", lambda: self._face_geometry()[0])
 
     @property
     def face_areas(self) -> np.ndarray:
         """(F,) float64 triangle areas."""
-        return derived(
-            self,
-            "face_areas",
-            lambda: _readonly(0.5 * np.linalg.norm(self._face_cross(), axis=1)),
-        )
+        return derived(self, "face_areas", lambda: self._face_geometry()[1])
+
+    def _face_geometry(self) -> tuple[np.ndarray, np.ndarray]:
+        """(face normals, face areas) from one pass over the faces' cross products (both are
+        cached: whoever needs one, the tracer for one, needs the other)."""
+        n = self._face_cross()
+        ln = np.linalg.norm(n, axis=1, keepdims=True)
+        areas = _readonly(0.5 * ln[:, 0])
+        normals = _readonly(np.where(ln > 0, n / np.maximum(ln, 1e-300), 0).astype(np.float32))
+        del n
+        derived(self, "face_areas", lambda: areas)
+        derived(self, "face_normals", lambda: normals)
+        return normals, areas
 
     def _face_cross(self) -> np.ndarray:
         return _face_cross_chunked(self.vertices, self.faces)
