@@ -1586,8 +1586,9 @@ def diffuse_twin(
     """Write a copy of a Mitsuba scene for Mitsuba itself that renders what icbtool renders.
 
     The scene's folder is copied into ``out_dir``; in the copy of the scene file and of every file
-    it includes, each BSDF a shape uses becomes the two-sided diffuse BSDF icbtool renders for it
-    (the same albedo after the approximation rule, or the same bitmap), and every pixel filter
+    it includes, each BSDF a shape uses that icbtool approximates becomes the two-sided diffuse
+    BSDF icbtool renders for it (the same albedo after the approximation rule, or the same
+    bitmap; a BSDF icbtool traces exactly, :mod:`icbtool.scene.bsdf`, stays), and every pixel filter
     becomes ``box`` (icbtool's pixel footprint). Everything else (shapes, transforms, emitters,
     the sensor, ``$`` parameters) is written as read. Used to verify icbtool against Mitsuba
     (``benchmarks/mitsuba_xml_compare.py``).
@@ -1615,6 +1616,8 @@ def diffuse_twin(
 
     def rewrite(node: _Node) -> _Node:
         if node.tag == "bsdf" and node.where in reader.rendered:
+            if reader.rendered[node.where].declared is not None:
+                return node  # traced exactly (icbtool.scene.bsdf): Mitsuba's own BSDF
             return _diffuse_node(node, reader.rendered[node.where])
         if node.tag == "rfilter":
             return _Node("rfilter", {"type": "box"}, node.file, node.line)
