@@ -612,3 +612,52 @@ def test_dl_supersample_is_the_tracers_pixel_filter():
         np.testing.assert_array_equal(getattr(out[3], name), getattr(out[1], name))
     with pytest.raises(ValueError, match="dl_supersample"):
         RasterConfig(dl_supersample=0)
+
+
+# ------------------------------------------------------------------------------ soft shadows
+@gl
+def test_soft_shadows_match_the_tracers_direct_light():
+    """At default settings the area light's penumbrae and fully lit surfaces agree with the
+    tracer's direct light (the independent peer; box-filtered pixels, 256 spp) within 2 % and
+    1 % per channel: a view inside the Cornell box of the tall block's soft shadow on the red
+    wall (grazing incidence) and the floor. Measured: penumbra -0.3 / -0.5 / -0.5 %, lit
+    -0.0 / -0.2 / -0.2 %; with the former normal offset at the area lookups and one point per
+    pixel the penumbra was -3.0 / -3.4 / -3.5 %."""
+    from scipy.ndimage import binary_dilation
+
+    from icbtool.raster.accuracy import interior_pixels, shadow_bias
+    from icbtool.trace import TraceConfig, render
+
+    scene = icb.scene.cornell_box()
+    cam = icb.Camera.look_at(
+        (0.4, 0.9, 0.6), (-1.0, 0.5, -0.4), (0, 1, 0), fov_y_deg=60, height=48, width=48
+    )
+    ref = render(scene, cam, TraceConfig(spp=256, max_depth=2, seed=3)).direct
+    with Rasterizer(scene, _cfg(shadows=False)) as r:
+        fine = r.render(cam.resized(192, 192), ("normal_world", "albedo", "position", "dl"))
+        free = fine.dl.reshape(48, 4, 48, 4, 3).mean((1, 3))  # the unshadowed light, box filter
+    with Rasterizer(scene, _cfg()) as r:
+        dl = r.render(cam, "dl").dl
+    # not the light seen nor the 2 pixels around it (the ceiling beside it is in its plane)
+    seen_light = binary_dilation(free.mean(-1) > 0.5 * free.mean(-1).max(), iterations=2)
+    b = shadow_bias(dl, ref, free, interior_pixels(fine, 4) & ~seen_light)
+    assert b.penumbra_pixels > 150 and b.lit_pixels > 1000, b
+    assert np.all(np.abs(b.penumbra) <= 0.02), b
+    assert np.all(np.abs(b.lit) <= 0.01), b
+
+
+def test_shadow_bias_classifies_and_sums():
+    """Known answer: a penumbra pixel 10 % dark and a lit pixel 1 % bright; edges and unlit
+    pixels do not count."""
+    from icbtool.raster.accuracy import shadow_bias
+
+    ref = np.ones((1, 4, 3), np.float32)
+    free = np.array([1.0, 2.0, 1.0, 0.0], np.float32)[None, :, None].repeat(3, -1)
+    dl = np.array([1.01, 0.9, 5.0, 0.0], np.float32)[None, :, None].repeat(3, -1)
+    select = np.array([[True, True, False, True]])
+    b = shadow_bias(dl, ref, free, select)
+    assert (b.penumbra_pixels, b.lit_pixels) == (1, 1)
+    np.testing.assert_allclose(b.penumbra, -0.1, rtol=1e-5)
+    np.testing.assert_allclose(b.lit, 0.01, rtol=1e-4)
+    with pytest.raises(ValueError, match="select"):
+        shadow_bias(dl, ref, free, select[0])

@@ -25,7 +25,9 @@ Design (see also the shaders in ``shaders/``):
   makes the fragment centres icbtool's pixel centres).
 * Shadows: one depth map per directional light (orthographic, fitted to the scene bounds), six per
   point light (cube faces), one per spot light, one per stratified sample point of each area light
-  (perspective); slope-scaled depth bias + normal offset; bilinear PCF. Lights and geometry are
+  (perspective); slope-scaled depth bias, a normal offset (sharp lights) or an offset along the
+  ray (area-light samples: it does not displace soft shadows); bilinear PCF; penumbra pixels of
+  area lights shaded at several points of their footprint. Lights and geometry are
   fixed for a :class:`Rasterizer`, so the shadow maps are rendered on the first frame and reused.
 """
 
@@ -957,6 +959,7 @@ class Rasterizer:
                 N_SPOT=self._counts["spot"],
                 N_AREA=self._counts["area"],
                 AREA_K=cfg.area_samples,
+                AREA_SUB=cfg.penumbra_samples if shadows else 1,
             )
             if shadows:
                 defines["SHADOWS"] = True
@@ -996,6 +999,7 @@ class Rasterizer:
                 units.append((4, GL.GL_TEXTURE_2D_ARRAY, st["area_tex"], "u_area_shadow"))
                 units.append((8, GL.GL_TEXTURE_BUFFER, st["area_samples"][0], "u_area_samples"))
             self._set(prog, "u_normal_offset", cfg.normal_offset, "f")
+            self._set(prog, "u_area_offset", cfg.area_offset, "f")
         for unit, target, tex, name in units:
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
             GL.glBindTexture(target, tex)

@@ -12,6 +12,7 @@
 //   HAS_TEX   some material is textured (sampler2DArray, per-material layer)
 //   N_DIR, N_POINT, N_SPOT, N_AREA   number of lights of each kind (0 = code compiled out)
 //   SHADOWS         shadow lookups on;  AREA_K  k x k shadow samples per area light
+//   AREA_SUB        s x s points per pixel for area light in penumbrae (1: the pixel centre)
 //   SKY_UNIFORM / SKY_GRADIENT / SKY_ENVMAP   the scene's sky (none: background DL is 0)
 // Every output is 0 on background pixels except DL's colour; a non-zero alpha marks coverage.
 const float PI = 3.14159265358979;
@@ -140,6 +141,25 @@ float shadow_lookup(sampler2DArrayShadow tex, mat4 m, float texel, int layer, ve
     vec3 s = ndc * 0.5 + 0.5;
     return texture(tex, vec4(s.xy, float(layer), s.z));
 }
+
+#if N_AREA > 0
+uniform float u_area_offset;  // in texels
+// Visibility of an area-light sample point, as shadow_lookup, but the receiver moves towards the
+// sample point (along l, by u_area_offset texels times the tangent of the incidence angle, at
+// most 8) instead of along its normal: the point stays on its ray to the light sample, so the
+// shadow is not displaced (a normal offset shifts soft shadows by a visible fraction of their
+// width on receivers at grazing incidence), only the compared depth gets the slope's margin.
+float area_shadow_lookup(mat4 m, float texel, int layer, vec3 p, vec3 l, float cos_l, float w0) {
+    float sin_l = sqrt(max(0.0, 1.0 - cos_l * cos_l));
+    vec3 q = p + l * (u_area_offset * texel * max(w0, 0.0) * min(sin_l / max(cos_l, 1e-3), 8.0));
+    vec4 c = m * vec4(q, 1.0);
+    if (c.w <= 0.0) return 1.0;
+    vec3 ndc = c.xyz / c.w;
+    if (any(greaterThan(abs(ndc), vec3(1.0)))) return 1.0;
+    vec3 s = ndc * 0.5 + 0.5;
+    return texture(u_area_shadow, vec4(s.xy, float(layer), s.z));
+}
+#endif
 #endif
 
 #if N_DIR > 0
@@ -187,6 +207,50 @@ float polygon_irradiance(vec3 v0, vec3 v1, vec3 v2, vec3 v3, vec3 p, vec3 n) {
         if (lc > 1e-12) sum += atan(lc, dot(a, b)) * dot(n, c / lc);
     }
     return 0.5 * abs(sum);
+}
+
+// Irradiance / radiance of area light i at p (shading normal ns, geometric ng), shadowed: the
+// exact polygon irradiance times the visibility fraction, from shadow tests towards AREA_K^2
+// stratified points on the light (equal cells) weighted by their unshadowed contribution
+// cos * cos' / r^2. ``partial`` is set when some sample is (partly) hidden and some not.
+float area_irradiance(int i, vec3 p, vec3 ns, vec3 ng, inout bool partial) {
+    vec3 v0 = u_area_v[4 * i];
+    vec3 v1 = u_area_v[4 * i + 1];
+    vec3 v2 = u_area_v[4 * i + 2];
+    vec3 v3 = u_area_v[4 * i + 3];
+    vec3 nl = normalize(cross(v1 - v0, v3 - v0));
+    float w0 = dot(p - v0, nl);  // depth in every sample's view (axis nl)
+    if (w0 <= 0.0) return 0.0;  // behind the emitter (one-sided)
+    float e = polygon_irradiance(v0, v1, v2, v3, p, ns);
+    if (e <= 0.0) return 0.0;
+#ifdef SHADOWS
+    float wsum = 0.0;
+    float vsum = 0.0;
+    float vmin = 1.0;
+    float vmax = 0.0;
+    for (int j = 0; j < AREA_K * AREA_K; ++j) {
+        int layer = i * AREA_K * AREA_K + j;
+        vec4 st = texelFetch(u_area_samples, 5 * layer + 4);
+        vec3 d = st.xyz - p;
+        float r2 = dot(d, d);
+        vec3 l = d * inversesqrt(r2);
+        float w = max(dot(ns, l), 0.0) * max(-dot(nl, l), 0.0) / r2;
+        if (w <= 0.0) continue;
+        mat4 sm = mat4(texelFetch(u_area_samples, 5 * layer),
+                       texelFetch(u_area_samples, 5 * layer + 1),
+                       texelFetch(u_area_samples, 5 * layer + 2),
+                       texelFetch(u_area_samples, 5 * layer + 3));
+        float v = area_shadow_lookup(sm, st.w, layer, p, l, max(dot(ng, l), 0.0), w0);
+        wsum += w;
+        vsum += w * v;
+        vmin = min(vmin, v);
+        vmax = max(vmax, v);
+    }
+    partial = partial || vmax - vmin > 1e-3;
+    return wsum > 0.0 ? e * vsum / wsum : e;
+#else
+    return e;
+#endif
 }
 #endif
 
@@ -320,42 +384,32 @@ void main() {
     }
 #endif
 #if N_AREA > 0
-    for (int i = 0; i < N_AREA; ++i) {
-        vec3 v0 = u_area_v[4 * i];
-        vec3 v1 = u_area_v[4 * i + 1];
-        vec3 v2 = u_area_v[4 * i + 2];
-        vec3 v3 = u_area_v[4 * i + 3];
-        vec3 nl = normalize(cross(v1 - v0, v3 - v0));
-        if (dot(p - v0, nl) <= 0.0) continue;  // behind the emitter (one-sided)
-        float e = polygon_irradiance(v0, v1, v2, v3, p, ns);
-        if (e <= 0.0) continue;
-        float vis = 1.0;
-#ifdef SHADOWS
-        // Visibility fraction: shadow tests towards AREA_K^2 stratified points on the light (equal
-        // cells), weighted by their unshadowed contribution cos * cos' / r^2.
-        float wsum = 0.0;
-        float vsum = 0.0;
-        float w0 = dot(p - v0, nl);  // depth in every sample's view (axis nl)
-        for (int j = 0; j < AREA_K * AREA_K; ++j) {
-            int layer = i * AREA_K * AREA_K + j;
-            vec4 st = texelFetch(u_area_samples, 5 * layer + 4);
-            vec3 d = st.xyz - p;
-            float r2 = dot(d, d);
-            vec3 l = d * inversesqrt(r2);
-            float w = max(dot(ns, l), 0.0) * max(-dot(nl, l), 0.0) / r2;
-            if (w <= 0.0) continue;
-            mat4 sm = mat4(texelFetch(u_area_samples, 5 * layer),
-                           texelFetch(u_area_samples, 5 * layer + 1),
-                           texelFetch(u_area_samples, 5 * layer + 2),
-                           texelFetch(u_area_samples, 5 * layer + 3));
-            float cg = max(dot(ng, l), 0.0);
-            wsum += w;
-            vsum += w * shadow_lookup(u_area_shadow, sm, st.w, layer, p, ng, cg, w0);
+    // Area lights, with the tracer's pixel filter where it matters: a pixel some of whose light
+    // samples are hidden (a penumbra) is shaded again at AREA_SUB x AREA_SUB stratified points of
+    // its footprint on the face's plane (box filter), as the tracer's jittered pixels integrate
+    // it; at one point per pixel the penumbra's curved profile is biased (dark at its umbra side).
+    bool partial = false;
+    vec3 area = vec3(0.0);
+    for (int i = 0; i < N_AREA; ++i) area += u_area_L[i] * area_irradiance(i, p, ns, ng, partial);
+#if AREA_SUB > 1
+    if (partial) {
+        area = vec3(0.0);
+        for (int sy = 0; sy < AREA_SUB; ++sy) {
+            for (int sx = 0; sx < AREA_SUB; ++sx) {
+                vec2 o = (vec2(sx, sy) + 0.5) / float(AREA_SUB) - 0.5;
+                vec2 bs = barycentrics(pixel_ray(o.x, o.y), a0.xyz, e1, e2);
+                vec3 ps = a0.xyz + bs.x * e1 + bs.y * e2;
+                vec3 nss = normalize((1.0 - bs.x - bs.y) * n0.xyz + bs.x * n1.xyz + bs.y * n2.xyz);
+                if (!front) nss = -nss;
+                bool unused = false;
+                for (int i = 0; i < N_AREA; ++i)
+                    area += u_area_L[i] * area_irradiance(i, ps, nss, ng, unused);
+            }
         }
-        vis = wsum > 0.0 ? vsum / wsum : 1.0;
-#endif
-        dl += brdf * u_area_L[i] * e * vis;
+        area /= float(AREA_SUB * AREA_SUB);
     }
+#endif
+    dl += brdf * area;
 #endif
     o_dl = vec4(dl, 1.0);
 #endif

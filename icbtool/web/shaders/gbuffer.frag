@@ -2,9 +2,12 @@
 // light into 4 float targets (multiple render targets), with the light model and shadows of
 // icbtool/raster/shaders/resolve.frag (sun, point, spot, area lights; shadow maps with bilinear
 // PCF, slope-scaled bias in the shadow pass, normal offset at lookup; area lights: Lambert's
-// polygon formula for the unshadowed irradiance, k x k shadow samples for the visibility).
-// Difference: the shadow maps live in two depth atlases (one tile per view) instead of texture
-// arrays. render.js #defines N_DIR, N_POINT, N_SPOT, N_AREA, AREA_K, SHADOWS, HAS_TEX.
+// polygon formula for the unshadowed irradiance, k x k shadow samples for the visibility with a
+// receiver offset along the ray, penumbra pixels shaded again at AREA_SUB x AREA_SUB points).
+// Differences: the shadow maps live in two depth atlases (one tile per view) instead of texture
+// arrays; a penumbra's sub-pixel points extrapolate the position and normal with screen-space
+// derivatives (the resolve pass intersects their rays with the face's plane). render.js
+// #defines N_DIR, N_POINT, N_SPOT, N_AREA, AREA_K, AREA_SUB, SHADOWS, HAS_TEX.
 precision highp float;
 precision highp int;
 precision highp sampler2D;
@@ -48,13 +51,10 @@ mat4 view_matrix(int row) {
                 texelFetch(u_views, ivec2(2, row), 0), texelFetch(u_views, ivec2(3, row), 0));
 }
 
-// 1 = lit, 0 = shadowed; outside the view: lit. `tile`: index in the atlas.
-float shadow_lookup(sampler2DShadow atlas, vec2 grid, int row, int tile, vec3 p, vec3 ng,
-                    float cos_l, float w0) {
+// Depth-compared lookup of the receiver point q (world) in view `row` of an atlas; outside the
+// view: lit. `tile`: index in the atlas.
+float atlas_lookup(sampler2DShadow atlas, vec2 grid, int row, int tile, vec3 q) {
     mat4 m = view_matrix(row);
-    float texel = texelFetch(u_views, ivec2(4, row), 0).w;
-    float sin_l = sqrt(max(0.0, 1.0 - cos_l * cos_l));
-    vec3 q = p + ng * (u_normal_offset * texel * max(w0, 0.0) * sin_l);
     vec4 c = m * vec4(q, 1.0);
     if (c.w <= 0.0) return 1.0;
     vec3 ndc = c.xyz / c.w;
@@ -66,6 +66,26 @@ float shadow_lookup(sampler2DShadow atlas, vec2 grid, int row, int tile, vec3 p,
     vec2 uv = (vec2(float(tile % cols), float(tile / cols)) + st) / grid.x;
     return texture(atlas, vec3(uv, s.z));
 }
+
+// 1 = lit, 0 = shadowed: the receiver offset along its geometric normal (sharp lights).
+float shadow_lookup(sampler2DShadow atlas, vec2 grid, int row, int tile, vec3 p, vec3 ng,
+                    float cos_l, float w0) {
+    float texel = texelFetch(u_views, ivec2(4, row), 0).w;
+    float sin_l = sqrt(max(0.0, 1.0 - cos_l * cos_l));
+    return atlas_lookup(atlas, grid, row, tile,
+                        p + ng * (u_normal_offset * texel * max(w0, 0.0) * sin_l));
+}
+
+#if N_AREA > 0
+uniform float u_area_offset;        // in texels
+// An area-light sample's visibility: the receiver moves towards the sample (along l, on its ray).
+float area_shadow_lookup(int row, int tile, vec3 p, vec3 l, float cos_l, float w0) {
+    float texel = texelFetch(u_views, ivec2(4, row), 0).w;
+    float sin_l = sqrt(max(0.0, 1.0 - cos_l * cos_l));
+    float k = u_area_offset * texel * max(w0, 0.0) * min(sin_l / max(cos_l, 1e-3), 8.0);
+    return atlas_lookup(u_area, u_area_grid, row, tile, p + l * k);
+}
+#endif
 #endif
 
 #if N_DIR > 0
@@ -109,6 +129,44 @@ float polygon_irradiance(vec3 v0, vec3 v1, vec3 v2, vec3 v3, vec3 p, vec3 n) {
         if (lc > 1e-12) sum += atan(lc, dot(a, b)) * dot(n, c / lc);
     }
     return 0.5 * abs(sum);
+}
+
+// Shadowed irradiance / radiance of area light i at p (resolve.frag's area_irradiance).
+float area_irradiance(int i, vec3 p, vec3 ns, vec3 ng, inout bool partial) {
+    vec3 v0 = u_area_v[4 * i];
+    vec3 v1 = u_area_v[4 * i + 1];
+    vec3 v2 = u_area_v[4 * i + 2];
+    vec3 v3 = u_area_v[4 * i + 3];
+    vec3 nl = normalize(cross(v1 - v0, v3 - v0));
+    float w0 = dot(p - v0, nl);
+    if (w0 <= 0.0) return 0.0;
+    float e = polygon_irradiance(v0, v1, v2, v3, p, ns);
+    if (e <= 0.0) return 0.0;
+#ifdef SHADOWS
+    float wsum = 0.0;
+    float vsum = 0.0;
+    float vmin = 1.0;
+    float vmax = 0.0;
+    for (int j = 0; j < AREA_K * AREA_K; ++j) {
+        int tile = i * AREA_K * AREA_K + j;
+        int row = u_area_view0 + tile;
+        vec3 s = texelFetch(u_views, ivec2(4, row), 0).xyz;
+        vec3 d = s - p;
+        float r2 = dot(d, d);
+        vec3 l = d * inversesqrt(r2);
+        float w = max(dot(ns, l), 0.0) * max(-dot(nl, l), 0.0) / r2;
+        if (w <= 0.0) continue;
+        float v = area_shadow_lookup(row, tile, p, l, max(dot(ng, l), 0.0), w0);
+        wsum += w;
+        vsum += w * v;
+        vmin = min(vmin, v);
+        vmax = max(vmax, v);
+    }
+    partial = partial || vmax - vmin > 1e-3;
+    return wsum > 0.0 ? e * vsum / wsum : e;
+#else
+    return e;
+#endif
 }
 #endif
 
@@ -180,37 +238,32 @@ void main() {
     }
 #endif
 #if N_AREA > 0
-    for (int i = 0; i < N_AREA; ++i) {
-        vec3 v0 = u_area_v[4 * i];
-        vec3 v1 = u_area_v[4 * i + 1];
-        vec3 v2 = u_area_v[4 * i + 2];
-        vec3 v3 = u_area_v[4 * i + 3];
-        vec3 nl = normalize(cross(v1 - v0, v3 - v0));
-        if (dot(p - v0, nl) <= 0.0) continue;
-        float e = polygon_irradiance(v0, v1, v2, v3, p, ns);
-        if (e <= 0.0) continue;
-        float vis = 1.0;
-#ifdef SHADOWS
-        float wsum = 0.0;
-        float vsum = 0.0;
-        float w0 = dot(p - v0, nl);
-        for (int j = 0; j < AREA_K * AREA_K; ++j) {
-            int tile = i * AREA_K * AREA_K + j;
-            int row = u_area_view0 + tile;
-            vec3 s = texelFetch(u_views, ivec2(4, row), 0).xyz;
-            vec3 d = s - p;
-            float r2 = dot(d, d);
-            vec3 l = d * inversesqrt(r2);
-            float w = max(dot(ns, l), 0.0) * max(-dot(nl, l), 0.0) / r2;
-            if (w <= 0.0) continue;
-            float cg = max(dot(ng, l), 0.0);
-            wsum += w;
-            vsum += w * shadow_lookup(u_area, u_area_grid, row, tile, p, ng, cg, w0);
+    bool partial = false;
+    vec3 area = vec3(0.0);
+    for (int i = 0; i < N_AREA; ++i) area += u_area_L[i] * area_irradiance(i, p, ns, ng, partial);
+    // derivatives taken in uniform control flow, used only in penumbrae
+    vec3 dpx = dFdx(v_pos);
+    vec3 dpy = dFdy(v_pos);
+    vec3 dnx = dFdx(v_n);
+    vec3 dny = dFdy(v_n);
+#if AREA_SUB > 1
+    if (partial) {
+        area = vec3(0.0);
+        for (int sy = 0; sy < AREA_SUB; ++sy) {
+            for (int sx = 0; sx < AREA_SUB; ++sx) {
+                vec2 o = (vec2(sx, sy) + 0.5) / float(AREA_SUB) - 0.5;
+                vec3 ps = p + o.x * dpx + o.y * dpy;
+                vec3 nss = normalize(v_n + o.x * dnx + o.y * dny);
+                if (!front) nss = -nss;
+                bool unused = false;
+                for (int i = 0; i < N_AREA; ++i)
+                    area += u_area_L[i] * area_irradiance(i, ps, nss, ng, unused);
+            }
         }
-        vis = wsum > 0.0 ? vsum / wsum : 1.0;
-#endif
-        dl += brdf * u_area_L[i] * e * vis;
+        area /= float(AREA_SUB * AREA_SUB);
     }
+#endif
+    dl += brdf * area;
 #endif
     o_albedo = vec4(albedo, 1.0);
     o_normal = vec4(ns, 1.0);

@@ -18,7 +18,8 @@ import {colMajor, glProjection, glView, matmul, nearFar, rigidInverse} from "./c
 /** icbtool.raster.RasterConfig defaults the browser follows. */
 export const RASTER = {
   shadowMapSize: 2048, areaShadowMapSize: 512, areaSamples: 4, depthBiasSlope: 1.5,
-  depthBiasUnits: 2.0, normalOffset: 1.5, maxFrustumHalfAngleDeg: 60.0, textureSize: 512,
+  depthBiasUnits: 2.0, normalOffset: 1.5, areaOffset: 2.0, penumbraSamples: 2,
+  maxFrustumHalfAngleDeg: 60.0, textureSize: 512,
 };
 /** icbtool.warp.WarpConfig / inpaint defaults. */
 export const WARP = {relDepthTol: 0.02, minWeight: 1e-3, relDepthGap: 0.05};
@@ -374,15 +375,15 @@ export class WebRenderer {
     const of = (k) => lights.filter((l) => l.kind === k);
     const [dir, point, spot, area] = ["directional", "point", "spot", "area"].map(of);
     const defines = {N_DIR: dir.length, N_POINT: point.length, N_SPOT: spot.length,
-                     N_AREA: area.length, AREA_K: RASTER.areaSamples};
-    if (this.viewsTex) defines.SHADOWS = 1;
+                     N_AREA: area.length, AREA_K: RASTER.areaSamples, AREA_SUB: 1};
+    if (this.viewsTex) { defines.SHADOWS = 1; defines.AREA_SUB = RASTER.penumbraSamples; }
     if (this.level.texArray) defines.HAS_TEX = 1;
     const v3 = (a) => new THREE.Vector3(...a);
     const u = {
       u_clip_from_world: {value: new THREE.Matrix4()}, u_cam_pos: {value: new THREE.Vector3()},
       u_cam_forward: {value: new THREE.Vector3()}, u_materials: {value: this.level.matTex},
       u_textures: {value: this.level.texArray}, u_views: {value: this.viewsTex},
-      u_normal_offset: {value: RASTER.normalOffset},
+      u_normal_offset: {value: RASTER.normalOffset}, u_area_offset: {value: RASTER.areaOffset},
     };
     if (this.sharpAtlas) {
       u.u_sharp = {value: this.sharpAtlas.rt.depthTexture};
