@@ -127,7 +127,9 @@ def run_network(
 
         shutil.rmtree(out / "cache")
     env = {**os.environ, "ICBTOOL_TOKEN": token}
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, text=True)
+    # a process group of its own: a Ctrl-C in the terminal interrupts the demo, which then
+    # stops the server (SIGTERM below), instead of both saying so
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, text=True, process_group=0)
     try:
         assert proc.stdout is not None
         line = proc.stdout.readline()

@@ -7,7 +7,8 @@ mesh's source), ask for GI maps (answered from the store or path traced, coalesc
 the client model (--models RUN[,RUN...]: GAN and world-space radiance runs; the one whose
 recorded test SSIM is best, within 0.001 the smallest, is offered as ONNX and the choice logged
 with every candidate's numbers). SIGINT/SIGTERM stop it cleanly: every committed store
-record is kept. Prints ``listening on ws://HOST:PORT`` once it accepts connections.
+record is kept (exit code 0 after SIGTERM; 130 after SIGINT, as every command's Ctrl-C).
+Prints ``listening on ws://HOST:PORT`` once it accepts connections.
 
 With --web the same host and port also serve the browser client (icbtool/web, built by
 ``make web``), and one more line is printed: ``web client: http://HOST:PORT/#token=...``, the URL
@@ -27,7 +28,9 @@ from icbtool.cli._common import (
     UsageError,
     add_command,
     add_scene_argument,
+    check_out_dir,
     load_scene,
+    store_holds_no_record,
 )
 from icbtool.cli._options import add_config
 
@@ -107,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
             web.check_bundle()
         except web.WebBundleMissing as e:
             raise UsageError(f"--web: {e}") from None
+    # the server writes its renders into the store: one it may only read is refused now
+    check_out_dir(args.store, "--store", holds_nothing=store_holds_no_record)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s: %(message)s")
     scene = load_scene(args.scene)
     server = net.Server(scene, args.store, token, server_cfg, cloud_cfg)
@@ -128,4 +133,6 @@ def run(args: argparse.Namespace) -> int:
         f"({s.renders} renders, {s.cache_hits} hits, {s.coalesced} coalesced)",
         flush=True,
     )
+    if server.stopped_by == "SIGINT":  # Ctrl-C: exit 130 like every command
+        raise KeyboardInterrupt
     return 0

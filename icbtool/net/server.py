@@ -464,6 +464,8 @@ class Server:
         self._start_error: BaseException | None = None
         self._conn_ids = itertools.count(1)
         self._stop_requested = False
+        #: the signal that stopped serve_forever ("SIGINT", "SIGTERM"; None: none yet)
+        self.stopped_by: str | None = None
         #: Called with :attr:`url` once the server accepts connections.
         self.on_listening: Any = None
 
@@ -648,6 +650,7 @@ class Server:
 
     def _signalled(self, sig: int) -> None:
         log.info("signal %s: stopping", signal.Signals(sig).name)
+        self.stopped_by = signal.Signals(sig).name  # `icbtool serve`: SIGINT is exit 130
         self._stop_requested = True
         self._wake()
 

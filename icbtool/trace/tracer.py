@@ -51,7 +51,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -989,8 +989,8 @@ class _Tracer:
                 )
                 for i in range(parts)
             ]
-            for f in futs:
-                f.result()
+            # on Ctrl-C the parts take no further block (each finishes the one it holds)
+            _wait_parts(futs, stop=lambda: queue.fill(n_blocks))
         st.add_time("trace", time.perf_counter() - t0)
         c = counts.sum(0)
         st.rays["primary"] += int(c[0])
@@ -1116,8 +1116,39 @@ def _in_parts(
         return
     cuts = np.linspace(0, n, parts + 1).astype(np.int64)
     pool = _pool(parts)
-    for f in [pool.submit(kernel, *args, int(a), int(b)) for a, b in zip(cuts, cuts[1:])]:
-        f.result()
+    _wait_parts([pool.submit(kernel, *args, int(a), int(b)) for a, b in zip(cuts, cuts[1:])])
+
+
+def _wait_parts(futs: list[Future], stop: Callable[[], None] | None = None) -> None:
+    """Wait for the parts of one kernel call on the pool, and re-raise the first error.
+
+    A Ctrl-C raises KeyboardInterrupt here, in the waiting main thread, while the parts still
+    run native code (numba, Embree) on this call's buffers and on the Embree scene. Unwinding
+    then would free the scene under them (``Scene.__del__`` releases it), and they crash the
+    process as it exits (exit 139 after "interrupted"). So the interrupt waits: ``stop()`` tells
+    the parts to take no more work, every part returns, and only then does it propagate. A
+    second Ctrl-C during that wait (milliseconds: one block per part) does not cut it short.
+
+    Args:
+        futs: the parts' futures.
+        stop: makes the running parts return early (None: they run to the end of their part).
+
+    Raises:
+        KeyboardInterrupt: the wait was interrupted (raised after every part has returned).
+        Exception: the first part's error.
+    """
+    try:
+        for f in futs:
+            f.result()
+    except KeyboardInterrupt:
+        if stop is not None:
+            stop()
+        while not all(f.done() for f in futs):
+            try:
+                wait(futs)
+            except KeyboardInterrupt:  # Ctrl-C again: the parts are already stopping
+                continue
+        raise
 
 
 # ---------------------------------------------------------------------------------- driver
