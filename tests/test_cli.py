@@ -333,15 +333,15 @@ def test_train_reaches_every_trainconfig_field():
     from icbtool.gan.training import TrainConfig
 
     parser = build_parser()
-    args = parser.parse_args(["train", "S", "--out", "R", "--preset", "paper"])
+    args = parser.parse_args(["train", "--store", "S", "--out", "R", "--preset", "paper"])
     assert args.train_options.call(
         lambda **kw: TrainConfig.preset("paper", **kw), args
     ) == TrainConfig.preset("paper")
     opts = {f.path[-1]: f.option for f in args.train_options.fields}
     assert set(opts) == {f.name for f in dataclasses.fields(TrainConfig)}
-    argv = ["train", "S", "--out", "R", "--crop", "64", "--betas", "0.4,0.9", "--no-flip",
-            "--reference-offsets", "1,3", "--vgg19-weights", "none", "--norm", "instance",
-            "--lr", "2e-4", "--seed", "5"]  # fmt: skip
+    argv = ["train", "--store", "S", "--out", "R", "--crop", "64", "--betas", "0.4,0.9",
+            "--no-flip", "--reference-offsets", "1,3", "--vgg19-weights", "none", "--norm",
+            "instance", "--lr", "2e-4", "--seed", "5"]  # fmt: skip
     args = parser.parse_args(argv)
     cfg = args.train_options.call(lambda **kw: TrainConfig.preset("cpu", **kw), args)
     assert cfg == TrainConfig.preset(
@@ -352,7 +352,9 @@ def test_train_reaches_every_trainconfig_field():
 
 def test_train_bad_setting_is_one_line_naming_the_option(tmp_path, capsys):
     pytest.importorskip("torch")
-    rc, err = _run(["train", str(tmp_path), "--out", str(tmp_path / "r"), "--crop", "100"], capsys)
+    rc, err = _run(
+        ["train", "--store", str(tmp_path), "--out", str(tmp_path / "r"), "--crop", "100"], capsys
+    )
     assert rc == 2 and len(err) == 1
     assert err[0].startswith("icbtool train: error: --crop: TrainConfig.crop must be a multiple")
     assert not (tmp_path / "r").exists()
@@ -361,7 +363,7 @@ def test_train_bad_setting_is_one_line_naming_the_option(tmp_path, capsys):
 @pytest.mark.parametrize(
     "argv",
     [
-        ["train", "{store}", "--out", "{out}"],
+        ["train", "--store", "{store}", "--out", "{out}"],
         ["generate", "{store}", "cornell_box", "--out", "{out}"],
     ],
     ids=lambda a: a[0],
@@ -553,3 +555,114 @@ def test_store_evict_without_a_capacity_drops_only_damaged_records(tmp_path, cap
         assert st.check().ok
     assert main(["store", "evict", str(d)]) == 0  # a healthy store is left as it is
     assert "3 -> 3 records" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("command", [["train"], ["world", "grid"], ["world", "probes"]])
+def test_store_is_given_with_store_on_every_command(command, tmp_path, capsys):
+    """--store DIR as on bake/serve/gui; the old positional STORE works with one warning line;
+    both or neither: exit 2 before any work."""
+    from icbtool.cli import build_parser
+
+    args = build_parser().parse_args([*command, "--store", "S", "--out", "R"])
+    assert args.store == "S" and args.store_positional is None
+    nostore = str(tmp_path / "nostore")
+    rc, err = _run([*command, nostore, "--out", str(tmp_path / "r")], capsys)
+    name = " ".join(command[:1])
+    assert (
+        err[0]
+        == f"icbtool {name}: warning: a positional STORE is deprecated, use --store {nostore}"
+    )
+    assert rc == 1 and "does not exist" in err[1] and len(err) == 2
+    rc, err = _run([*command, "--store", nostore, "x", "--out", str(tmp_path / "r")], capsys)
+    assert rc == 2 and err == [
+        f"icbtool {name}: error: give the store once: --store {nostore!r} and 'x'"
+    ]
+    rc, err = _run([*command, "--out", str(tmp_path / "r")], capsys)
+    assert rc == 2 and err == [f"icbtool {name}: error: --store DIR is required"]
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_failed_command_leaves_no_empty_output_behind(tmp_path, capsys, monkeypatch):
+    """The folders a failing command created for its output (and their new parents) are gone;
+    one that existed before stays, and so does one that holds a file."""
+    from icbtool.cli import trace as trace_cmd
+
+    def fail(*a, **k):
+        raise ValueError("the scene is broken")
+
+    monkeypatch.setattr(trace_cmd, "load_scene", fail)
+    new = tmp_path / "a" / "b" / "out"
+    rc, err = _run(["trace", "cornell_box", "--out", str(new)], capsys)
+    assert rc == 1 and err == ["icbtool trace: error: the scene is broken"]
+    assert not (tmp_path / "a").exists()
+    (tmp_path / "old").mkdir()
+    rc, _ = _run(["trace", "cornell_box", "--out", str(tmp_path / "old")], capsys)
+    assert rc == 1 and (tmp_path / "old").is_dir()
+
+    def half(*a, **k):
+        (tmp_path / "kept" / "one.txt").write_text("x")
+        raise ValueError("the scene is broken")
+
+    monkeypatch.setattr(trace_cmd, "load_scene", half)
+    rc, _ = _run(["trace", "cornell_box", "--out", str(tmp_path / "kept")], capsys)
+    assert rc == 1 and (tmp_path / "kept" / "one.txt").is_file()
+
+
+def test_an_interrupted_bake_leaves_no_empty_store(tmp_path, capsys, monkeypatch):
+    from icbtool import bake as B
+
+    def interrupt(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(B, "bake", interrupt)
+    rc, err = _run(["bake", "cornell_box", "--path", "train", "--store", str(tmp_path / "s")],
+                   capsys)  # fmt: skip
+    assert rc == 130 and err == ["icbtool bake: interrupted"]
+    assert not (tmp_path / "s").exists()
+
+
+def test_bake_one_side_keeps_the_paths_aspect(tmp_path, capsys):
+    """--height alone: the width follows the path's aspect, as the help says."""
+    from icbtool import scene as sc
+    from icbtool import store as st
+
+    intr = sc.cornell_box().paths["test"].intrinsics
+    argv = ["bake", "cornell_box", "--path", "test", "--store", str(tmp_path / "s"), "--spp",
+            "1", "--height", "8", "--limit", "1", "--no-denoise"]  # fmt: skip
+    rc, err = _run(argv, capsys)
+    assert rc == 0, err
+    with st.open(tmp_path / "s", st.StoreConfig(readonly=True)) as s:
+        (rec,) = [s.get(i) for i in s.ids()]
+    assert rec.gi.shape[:2] == (8, round(intr.width * 8 / intr.height))
+    from icbtool.cli import build_parser
+    from icbtool.cli._common import commands
+
+    text = " ".join(commands(build_parser())["bake"].format_help().split())
+    assert "alone, the other side keeps the aspect" in text
+
+
+def test_train_help_says_what_the_presets_do():
+    """A field whose help says it is off in the presets is off in every preset; one that says
+    on (off) in a named preset is on (off) there: the help and the presets cannot drift."""
+    pytest.importorskip("torch")
+    import re
+    import typing
+
+    from icbtool.configdoc import field_docs
+    from icbtool.gan.training import TrainConfig
+
+    names = typing.get_args(typing.get_type_hints(TrainConfig.preset)["name"])
+    presets = {n: TrainConfig.preset(n) for n in names}
+    checked = 0
+    for field, doc in field_docs(TrainConfig).items():
+        text = " ".join(doc.split())
+        if "off in the presets" in text:
+            assert not any(getattr(p, field) for p in presets.values()), (field, text)
+            checked += 1
+        for state, which in re.findall(r"\b(on|off) in the ([\w-]+) presets?\b", text):
+            group = [n for n in names if n.startswith(which)]
+            assert group, (field, which)
+            for n in group:
+                assert bool(getattr(presets[n], field)) == (state == "on"), (field, n, text)
+                checked += 1
+    assert checked >= 4  # demodulate, warped_reference, reference_gate, ...

@@ -420,6 +420,7 @@ def test_cli_train_resume_export(store, tmp_path, capsys):
     def args(n: int, *more: str) -> list[str]:
         return [
             "train",
+            "--store",
             root,
             "--preset",
             "paper-cpu",
@@ -452,7 +453,7 @@ def test_cli_train_resume_export(store, tmp_path, capsys):
             main(["export", str(run), "--onnx", onnx_path, "--height", "32", "--width", "32"]) == 0
         )
         assert (tmp_path / "g.onnx").is_file() and (tmp_path / "g.onnx.json").is_file()
-    assert main(["train", str(tmp_path / "nostore"), "--out", str(tmp_path / "x")]) == 1
+    assert main(["train", "--store", str(tmp_path / "nostore"), "--out", str(tmp_path / "x")]) == 1
 
 
 @pytest.mark.gl

@@ -413,8 +413,8 @@ def test_cli_world_probes_fit_generate_and_export(tmp_path, capsys):
     test_recs = [st.get(i) for i in D.records_of_path(st, "test")]
     st.close()
     run = tmp_path / "probes"
-    argv = ["world", "probes", str(tmp_path / "s"), "--out", str(run), "--resolution", "5",
-            "--sh-order", "1", "--normal-offset", "0", "--cg-rtol", "1e-12",
+    argv = ["world", "probes", "--store", str(tmp_path / "s"), "--out", str(run),
+            "--resolution", "5", "--sh-order", "1", "--normal-offset", "0", "--cg-rtol", "1e-12",
             "--cg-maxiter", "20000", "--no-progress"]  # fmt: skip
     assert main(argv) == 0
     out = capsys.readouterr().out
@@ -431,7 +431,7 @@ def test_cli_world_grid_resumes_and_rejects_a_bad_setting(tmp_path, capsys):
 
     make_store(tmp_path / "s", smooth_irradiance, n_train=4, n_test=1, size=16).close()
     run = str(tmp_path / "grid")
-    base = ["world", "grid", str(tmp_path / "s"), "--out", run, "--levels", "4",
+    base = ["world", "grid", "--store", str(tmp_path / "s"), "--out", run, "--levels", "4",
             "--log2-table", "10", "--base-resolution", "2", "--max-resolution", "16",
             "--hidden", "16", "--batch-size", "512", "--eval-every", "10",
             "--checkpoint-every", "10", "--no-progress"]  # fmt: skip

@@ -123,18 +123,37 @@ def main(argv: list[str] | None = None) -> int:
             chosen.choices[args.command].error(f"unrecognized arguments: {' '.join(extras)}{hint}")
         command = f"icbtool {args.command}"
         from icbtool._optional import MissingOptionalDependency
-        from icbtool.cli._common import UsageError
+        from icbtool.cli._common import UsageError, resolve_store
 
         with one_line_warnings(args.command):
+            rc = 1
             try:
-                return int(args.func(args) or 0)
+                resolve_store(args, args.command)
+                rc = int(args.func(args) or 0)
+                return rc
             except UsageError as e:  # a bad argument, found before any work: exit 2
                 print(f"{command}: error: {e}", file=sys.stderr)
-                return 2
+                rc = 2
+                return rc
             except (ValueError, FileNotFoundError, OSError, MissingOptionalDependency) as e:
                 print(f"{command}: error: {e}", file=sys.stderr)  # user errors: one line
-                return 1
+                return rc
+            finally:  # a failure or Ctrl-C leaves no empty output folder or store behind
+                if rc != 0:
+                    _discard_empty_outputs()
     except KeyboardInterrupt:  # Ctrl-C: stores were closed on the way out (with blocks)
         lead = "\n" if sys.stderr.isatty() else ""  # off the terminal's ^C / progress bar line
         print(f"{lead}{command}: interrupted", file=sys.stderr)
         return 130
+
+
+def _discard_empty_outputs() -> None:
+    """:func:`icbtool.cli._common.discard_empty_outputs`, once more if Ctrl-C cuts it short."""
+    from icbtool.cli._common import discard_empty_outputs
+
+    for _ in range(2):
+        try:
+            discard_empty_outputs()
+            return
+        except KeyboardInterrupt:
+            continue

@@ -90,16 +90,68 @@ positive_float = float_in(0.0, lo_open=True)
 fov_deg = float_in(0.0, 180.0, lo_open=True)
 
 
-def check_out_dir(path: str | Path, option: str = "--out") -> Path:
+#: Output directories that this process's command created (:func:`check_out_dir`): the
+#: directory, the topmost folder created with it, and whether its content is worth nothing.
+_CREATED: list[tuple[Path, Path, Callable[[Path], bool]]] = []
+
+
+def holds_no_file(path: Path) -> bool:
+    """True when the folder ``path`` holds no file (at most empty folders)."""
+    return not any(p.is_file() for p in path.rglob("*"))
+
+
+def store_holds_no_record(path: Path) -> bool:
+    """True when the store folder ``path`` holds no record (or no store yet)."""
+    if holds_no_file(path):
+        return True
+    from icbtool import store as st
+
+    try:
+        with st.open(path, st.StoreConfig(readonly=True)) as s:
+            return len(s) == 0
+    except Exception:  # unreadable: not for this clean-up to judge, keep it
+        return False
+
+
+def discard_empty_outputs() -> list[Path]:
+    """Remove the output directories that :func:`check_out_dir` created for this command and
+    that hold nothing worth keeping, with the empty parents it created: called by ``icbtool``
+    after a failure or a Ctrl-C, so that a failed command leaves no empty ``--out`` folder or
+    empty store behind. Returns the removed directories."""
+    import shutil
+
+    removed = []
+    while _CREATED:
+        out, top, holds_nothing = _CREATED.pop()
+        try:
+            if not out.is_dir() or not holds_nothing(out):
+                continue
+            shutil.rmtree(out)
+            removed.append(out)
+            parent = out.parent
+            while parent != top.parent and parent.is_dir() and not any(parent.iterdir()):
+                parent.rmdir()
+                parent = parent.parent
+        except OSError:  # best effort: the command's own error is what the user needs
+            continue
+    return removed
+
+
+def check_out_dir(
+    path: str | Path, option: str = "--out", holds_nothing: Callable[[Path], bool] = holds_no_file
+) -> Path:
     """Make sure ``path`` is (or can be made) a writable directory, before any work is done.
 
     Creates the directory (and its parents) if missing, then creates and deletes a temporary file
     in it: permission bits alone say nothing when running as root, a read-only file system or a
-    full disk.
+    full disk. A directory created here is removed again when the command fails or is
+    interrupted while ``holds_nothing(path)`` (:func:`discard_empty_outputs`).
 
     Args:
         path: the output directory.
         option: the option's name, for the message.
+        holds_nothing: whether the output is worth nothing after a failure (default: it holds
+            no file; :func:`store_holds_no_record` for a store).
 
     Returns:
         The directory as a Path.
@@ -121,12 +173,18 @@ def check_out_dir(path: str | Path, option: str = "--out") -> Path:
                 break
     except OSError as e:  # e.g. a parent folder that cannot be searched
         raise UsageError(f"{option} {str(path)!r}: cannot access ({e.strerror or e})") from None
+    top = p.absolute()  # the topmost folder that mkdir creates
+    while not top.parent.exists():
+        top = top.parent
+    created = not top.exists()
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise UsageError(
             f"{option} {str(path)!r}: cannot create the directory ({e.strerror or e})"
         ) from None
+    if created:
+        _CREATED.append((p.absolute(), top, holds_nothing))
     try:
         with tempfile.TemporaryFile(dir=p, prefix=".icbtool-write-check-"):
             pass
@@ -192,6 +250,35 @@ def add_size_arguments(
             metavar=side[0].upper(),
             help=text,
         )
+
+
+def add_store_argument(p: argparse.ArgumentParser, help: str) -> None:
+    """``--store DIR`` (required): the one spelling of a store on every command. The positional
+    STORE of earlier versions still works, with a deprecation line (:func:`resolve_store`)."""
+    p.add_argument("--store", default=None, metavar="DIR", help=help + " (required)")
+    p.add_argument("store_positional", nargs="?", default=None, help=argparse.SUPPRESS)
+    p.set_defaults(store_required=True)
+
+
+def resolve_store(args: argparse.Namespace, command: str) -> None:
+    """Put a positional STORE (deprecated) into ``args.store``, saying so on one line.
+
+    Raises:
+        UsageError: no store given, or both spellings.
+    """
+    old = getattr(args, "store_positional", None)
+    if old is not None:
+        if args.store is not None:
+            raise UsageError(f"give the store once: --store {args.store!r} and {old!r}")
+        import sys
+
+        print(
+            f"icbtool {command}: warning: a positional STORE is deprecated, use --store {old}",
+            file=sys.stderr,
+        )
+        args.store = old
+    if getattr(args, "store_required", False) and args.store is None:
+        raise UsageError("--store DIR is required")
 
 
 def check_training_args(args: argparse.Namespace) -> Path:
@@ -273,7 +360,12 @@ __all__ = [
     "add_out_argument",
     "add_scene_argument",
     "add_size_arguments",
+    "add_store_argument",
+    "resolve_store",
     "check_out_dir",
+    "discard_empty_outputs",
+    "holds_no_file",
+    "store_holds_no_record",
     "float_in",
     "fov_deg",
     "int_at_least",

@@ -7,13 +7,14 @@ import contextlib
 
 from icbtool._optional import require
 from icbtool.cli._common import (
-    UsageError,
     add_command,
     add_scene_argument,
     add_size_arguments,
     check_out_dir,
     int_at_least,
     load_scene,
+    select_cameras,
+    store_holds_no_record,
 )
 from icbtool.cli._options import add_config
 
@@ -54,11 +55,9 @@ def _options(p: argparse.ArgumentParser) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    if (args.height is None) != (args.width is None):
-        raise UsageError("--height and --width go together (default: the path's size)")
-    size = None if args.height is None else (args.height, args.width)
+    size = None if args.height is None or args.width is None else (args.height, args.width)
     cfg = args.bake_options.build(args, resolution=size)  # a bad setting: exit 2, no work
-    check_out_dir(args.store, "--store")
+    check_out_dir(args.store, "--store", holds_nothing=store_holds_no_record)
     if cfg.denoise:
         require("pyoidn", "--denoise (Open Image Denoise)")
     from icbtool import bake as B
@@ -68,6 +67,11 @@ def _run(args: argparse.Namespace) -> int:
         require("distributed", "render workers on Dask (--workers N / --scheduler)")
 
     scene = load_scene(args.scene)
+    if (args.height is None) != (args.width is None):  # one side: the other keeps the aspect
+        from dataclasses import replace
+
+        (_, cam), *_ = select_cameras(scene, f"path:{args.path}", 1, args.height, args.width)
+        cfg = replace(cfg, resolution=(cam.height, cam.width))
     with contextlib.ExitStack() as stack:
         pool = None
         if args.workers or args.scheduler:

@@ -1,6 +1,6 @@
 """GAN pre-renderer commands (docs/gan.md):
 
-- ``icbtool train STORE --scene S --inputs I --preset cpu --out runs/NAME [--resume]``
+- ``icbtool train --store DIR --scene S --inputs I --preset cpu --out runs/NAME [--resume]``
 - ``icbtool generate RUN SCENE --camera default|path:NAME --out DIR [--height H --width W]``
 - ``icbtool export RUN --onnx FILE [--height H --width W]``
 
@@ -18,6 +18,7 @@ from icbtool.cli._common import (
     add_out_argument,
     add_scene_argument,
     add_size_arguments,
+    add_store_argument,
     check_out_dir,
     check_training_args,
     float_in,
@@ -57,7 +58,7 @@ def _train_options(p: argparse.ArgumentParser) -> None:
     from icbtool.gan.training import TrainConfig
 
     presets = typing.get_args(typing.get_type_hints(TrainConfig.preset)["name"])
-    p.add_argument("store", help="store directory (baked with `icbtool bake`)")
+    add_store_argument(p, "store directory (baked with `icbtool bake`)")
     p.add_argument("--scene", default=None, help="scene name or hash in the store (default: all)")
     p.add_argument("--preset", choices=presets, default=presets[0], help="the field defaults")
     add_out_argument(p, what=": the run (e.g. runs/sponza_I)")

@@ -1,8 +1,8 @@
 """World-space GI commands (docs/radiance.md):
 
-- ``icbtool world grid STORE --out runs/NAME [--resume] [RadianceConfig fields]``: train the
+- ``icbtool world grid --store DIR --out runs/NAME [--resume] [RadianceConfig fields]``: train the
   hash-grid + MLP irradiance model.
-- ``icbtool world probes STORE --out runs/NAME [ProbeConfig fields]``: fit the probe volume.
+- ``icbtool world probes --store DIR --out runs/NAME [ProbeConfig fields]``: fit the probe volume.
 
 ``icbtool generate`` and ``icbtool export`` take the run these write, as they take a GAN run.
 """
@@ -11,7 +11,12 @@ from __future__ import annotations
 
 import argparse
 
-from icbtool.cli._common import add_command, add_out_argument, check_training_args
+from icbtool.cli._common import (
+    add_command,
+    add_out_argument,
+    add_store_argument,
+    check_training_args,
+)
 from icbtool.cli._options import add_config
 
 
@@ -32,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _common(p: argparse.ArgumentParser, what: str) -> None:
-    p.add_argument("store", help="store directory (baked with `icbtool bake`)")
+    add_store_argument(p, "store directory (baked with `icbtool bake`)")
     p.add_argument("--scene", default=None, help="scene name or hash in the store (default: all)")
     add_out_argument(p, what=f": the run (e.g. runs/{what})")
     p.add_argument(

@@ -87,7 +87,8 @@ class TrainConfig:
         vgg19_weights: local torchvision VGG19 state-dict file; None or missing: L_p off + warning.
         hdr_scale, hdr_max: the :class:`~icbtool.gan.hdr.HDRTransform` of DL and GI.
         demodulate: learn the indirect irradiance GI / albedo and multiply the output by the
-            albedo (:class:`~icbtool.gan.data.InputEncoding`; our addition, off in the presets).
+            albedo (:class:`~icbtool.gan.data.InputEncoding`; our addition, on in the cpu
+            preset, off in the paper presets).
         warped_reference: the generator also reads the GI of another view of the path warped to
             this view and its hole mask (:class:`~icbtool.gan.data.WarpedReferences`; our
             addition, off in the presets): what a client holds when it warps a cached reference.
