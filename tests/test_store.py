@@ -782,8 +782,11 @@ def test_rebuild_quarantines_damaged_payloads_and_reports_orphans(tmp_path):
     rep = S.rebuild(d)
     assert [(x.record_id, x.problem) for x in rep.damaged] == [(ids[6], "payload file missing")]
     assert rep.hits_restored == 4 and rep.recovered == [ids[0], ids[2], ids[3], ids[5]]
-    kept = [p for p in d.glob("icbstore.sqlite.damaged-*") if not p.name.endswith(("-wal", "-shm"))]
-    assert len(kept) == 1  # the first rebuild had no database to keep
+    # that index was healthy: kept (not copied aside), without the lost record's row
+    assert not rep.rebuilt and rep.old_index is None
+    assert not list(d.glob("icbstore.sqlite.damaged-*"))
+    with S.open(d) as store:
+        assert store.ids() == rep.recovered and store.check().ok
 
 
 def test_rebuild_leaves_a_healthy_index_alone(tmp_path, capsys):
@@ -811,10 +814,17 @@ def test_rebuild_leaves_a_healthy_index_alone(tmp_path, capsys):
     assert not list(d.glob("icbstore.sqlite.damaged-*"))
     with S.open(d) as store:
         assert [store.info(r).hits for r in ids] == [before[r].hits for r in ids]
-    # a record the index lists but whose payload is gone: not healthy, rebuilt
-    before[ids[0]].payload.unlink()
+    # a healthy index that lists a record whose payload is bad: kept, without that row; the
+    # payload quarantined, no .damaged copy of the index
+    before[ids[0]].payload.write_bytes(b"ICBP garbage")
     rep = S.rebuild(d)
-    assert rep.rebuilt and rep.recovered == ids[1:] and rep.old_index is not None
+    assert not rep.rebuilt and rep.recovered == ids[1:] and rep.old_index is None
+    assert [x.record_id for x in rep.damaged] == [ids[0]] and len(rep.quarantined) == 1
+    assert not list(d.glob("icbstore.sqlite.damaged-*"))
+    with S.open(d) as store:
+        assert store.ids() == ids[1:] and store.check().ok
+    assert main(["store", "check", str(d), "--rebuild"]) == 0  # now healthy and complete
+    assert "healthy and complete: left alone (6 record(s)" in capsys.readouterr().out
 
 
 def test_cli_check_rebuild(tmp_path, capsys):
@@ -976,3 +986,43 @@ def test_bake_rerenders_damaged_records(tmp_path):
         assert store.info(first.rendered[0]).payload.read_bytes() == keep  # intact: untouched
         assert [store.info(r).meta.tags["index"] for r in again.rendered] == [1, 2]
         assert B.bake(scene, "tiny", store, cfg).rendered == []
+
+
+def _read_only_mount(d: Path, script: str) -> subprocess.CompletedProcess:
+    """Run ``script`` (bash) where ``d`` is a read-only bind mount (a private mount namespace),
+    as a user who may only read the store finds it; skipped where mounts are not allowed."""
+    probe = subprocess.run(["unshare", "-m", "true"], capture_output=True)
+    if probe.returncode != 0:
+        pytest.skip(f"no private mount namespace here (unshare -m: {probe.stderr.decode()!r})")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    cmd = f"mount --bind {d} {d} && mount -o remount,bind,ro {d} && {script}"
+    return subprocess.run(["unshare", "-m", "bash", "-c", cmd], capture_output=True, text=True,
+                          env=env, timeout=300)  # fmt: skip
+
+
+def test_a_store_the_user_may_only_read_is_readable(tmp_path):
+    """A closed store (SQLite removed its -wal and -shm files) on a read-only file system: the
+    reader, `store stats` and `store check` read it (they called it damaged: SQLite could not
+    create the -shm file a WAL reader needs); a writer is refused with a clear error."""
+    d = tmp_path / "s"
+    ids, before = _seven_records(d)
+    assert not Path(f"{d}/icbstore.sqlite-shm").exists()
+    code = textwrap.dedent(f"""
+        import icbtool.store as S
+        with S.open({str(d)!r}, S.StoreConfig(readonly=True)) as s:
+            assert s.ids() == {ids!r} and s.check().ok
+            assert [s.info(i).hits for i in s.ids()] == {[before[i].hits for i in ids]!r}
+            s.get({ids[3]})
+        try:
+            S.open({str(d)!r})
+        except OSError as e:
+            print("writer refused:", e)
+        print("read ok")
+    """)  # fmt: skip
+    (tmp_path / "read.py").write_text(code)
+    icbtool = f"{sys.executable} -m icbtool"
+    r = _read_only_mount(d, f"{sys.executable} {tmp_path / 'read.py'} && "
+                            f"{icbtool} store stats {d} && {icbtool} store check {d}")  # fmt: skip
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "read ok" in r.stdout and "writer refused:" in r.stdout
+    assert "records: 7" in r.stdout and "checked 7 records" in r.stdout and "OK" in r.stdout

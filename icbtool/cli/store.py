@@ -93,10 +93,15 @@ def _rebuild(args: argparse.Namespace) -> int:
     from icbtool import store
 
     r = store.rebuild(args.dir)
-    if not r.rebuilt:
+    if not r.rebuilt and not r.damaged:
         n = len(r.recovered)
         print(
             f"the index of {r.path} is healthy and complete: left alone ({n} record(s) recovered)"
+        )
+    elif not r.rebuilt:
+        print(
+            f"the index of {r.path} is healthy: kept, without the rows of its "
+            f"{len(r.damaged)} damaged record(s) ({len(r.recovered)} record(s) recovered)"
         )
     else:
         print(f"rebuilt the index of {r.path}: {len(r.recovered)} record(s) recovered")

@@ -205,9 +205,10 @@ def _salvage_old_index(db_path: Path) -> dict[str, tuple[int, int, float]]:
     return out
 
 
-def _index_matches(db_path: Path, found: list[tuple]) -> bool:
+def _index_matches(db_path: Path, found: list[tuple], damaged: set[str] = frozenset()) -> bool:
     """Whether the index database at ``db_path`` is healthy and lists exactly the payloads of
-    ``found`` (id, file, size, checksum and scene octree), so that a rebuild would only copy it.
+    ``found`` (id, file, size, checksum and scene octree), so that a rebuild would only copy it,
+    besides rows of the damaged payload files ``damaged`` (relative paths).
 
     ``found``: the rebuild's ``(id, rel, camera, meta, scene, present, nbytes, digest, geometry)``
     of every intact payload."""
@@ -234,12 +235,24 @@ def _index_matches(db_path: Path, found: list[tuple]) -> bool:
         return False
     finally:
         con.close()
-    if rows != {(f[0], f[1], f[6], f[7]) for f in found}:
+    if {r for r in rows if r[1] not in damaged} != {(f[0], f[1], f[6], f[7]) for f in found}:
         return False
     return all(
         scenes.get(f[3].scene_hash) == (tuple(f[8].root_min), f[8].root_size, f[8].depth)
         for f in found
     )
+
+
+def _drop_rows(db_path: Path, payloads: set[str]) -> None:
+    """Delete the rows of the index at ``db_path`` whose payload is one of ``payloads``."""
+    if not payloads:
+        return
+    con = sqlite3.connect(db_path, timeout=10.0)
+    try:
+        with con:
+            con.executemany("DELETE FROM records WHERE payload=?", [(p,) for p in payloads])
+    finally:
+        con.close()
 
 
 def _unused_name(path: Path) -> Path:
@@ -258,9 +271,11 @@ def rebuild(root: str | os.PathLike, config: StoreConfig | None = None) -> Rebui
     in with ``os.replace`` (their ids, metadata, cameras and scene octrees come from the payload
     headers; hit counts from the old database where it can still be read). The old database
     (and its -wal/-shm files) is kept as ``icbstore.sqlite.damaged-<YYYYmmdd-HHMMSS>``; damaged
-    payloads are moved to ``quarantine/<YYYYmmdd-HHMMSS>/``. Nothing is deleted. A healthy index
-    that already lists exactly the intact payloads is left alone (``report.rebuilt`` is False):
-    running the rebuild again changes nothing and leaves no file behind.
+    payloads are moved to ``quarantine/<YYYYmmdd-HHMMSS>/``. No payload is deleted. A healthy index
+    that lists exactly the intact payloads (and maybe damaged ones) is kept (``report.rebuilt``
+    is False, no ``.damaged`` copy): the rows of damaged payloads leave it, as with ``store check
+    --drop-damaged``, their files go to quarantine; running the rebuild again changes nothing
+    and leaves no file behind.
 
     Takes the writer lock (waits ``config.lock_timeout_s``, as :func:`open`).
 
@@ -291,13 +306,19 @@ def rebuild(root: str | os.PathLike, config: StoreConfig | None = None) -> Rebui
     try:
         old = _salvage_old_index(db_path)
         scan = _scan_payloads(payload_root, old)
-        if not scan.damaged and _index_matches(db_path, scan.found):
-            # a healthy index that lists exactly the intact payloads: left alone (no new file)
-            log.info("store %s: its index is healthy and complete; nothing to rebuild", root)
+        listed_damaged = set(old) - {f[1] for f in scan.found}
+        if _index_matches(db_path, scan.found, listed_damaged):
+            # a healthy index: kept (no new file, no .damaged copy); the rows of damaged
+            # payloads leave it and the files go to quarantine, as `store check --drop-damaged`
             ids = sorted(f[0] for f in scan.found)
+            quarantined = _quarantine(root / QUARANTINE_DIR / stamp, scan.bad_files)
+            _drop_rows(db_path, listed_damaged)
+            log.info("store %s: its index is healthy; %d damaged record(s) dropped from it",
+                     root, len(listed_damaged))  # fmt: skip
             return RebuildReport(
-                str(root), ids, [], [], scan.orphans, None, len(ids), {}, rebuilt=False
-            )
+                str(root), ids, scan.damaged, quarantined, scan.orphans, None, len(ids), {},
+                rebuilt=False,
+            )  # fmt: skip
         tmp = root / f"{DB_NAME}.rebuild-tmp"
         recovered, renumbered, hits_restored = _write_index(tmp, scan.found, old, cfg.fsync)
         old_index = _swap_in(tmp, db_path, stamp)

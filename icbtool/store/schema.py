@@ -200,6 +200,28 @@ def _camera_row(cam: Camera) -> np.ndarray:
     )
 
 
+def _connect_readonly(db_path: Path) -> sqlite3.Connection:
+    """A read-only connection to the index at ``db_path``, also where the user may only read.
+
+    The index is in WAL mode, whose readers need the ``-shm`` file beside it: SQLite creates it
+    when missing (a writer removes it on closing), which a folder the user may only read (or a
+    read-only file system) refuses ("unable to open database file"). There, with no writer that
+    could be writing, the file is opened ``immutable``: no ``-shm``, no locks."""
+    shm = Path(f"{db_path}-shm")
+    wal = Path(f"{db_path}-wal")
+    if shm.exists() or os.access(db_path.parent, os.W_OK):
+        uri = f"file:{db_path}?mode=ro"
+    elif wal.exists() and wal.stat().st_size > 0:  # a writer's commits not yet in the file
+        raise StoreIndexError(
+            f"store {db_path.parent}: may only be read, and its index has commits in "
+            f"{wal.name} without {shm.name}; open it once where it can be written (its "
+            "owner), which folds them in"
+        )
+    else:
+        uri = f"file:{db_path}?mode=ro&immutable=1"
+    return sqlite3.connect(uri, uri=True, timeout=30.0, isolation_level=None)
+
+
 def _has_payloads(payload_root: Path) -> bool:
     """Whether a store's payload folder holds at least one payload file."""
     if not payload_root.is_dir():
@@ -244,8 +266,7 @@ class SchemaMixin:
             self._acquire_lock()
             db_exists = self._db_path.exists() and self._db_path.stat().st_size > 0
         if self.readonly:
-            uri = f"file:{self._db_path}?mode=ro"
-            self._conn = sqlite3.connect(uri, uri=True, timeout=30.0, isolation_level=None)
+            self._conn = _connect_readonly(self._db_path)
         else:
             self._conn = sqlite3.connect(self._db_path, timeout=30.0, isolation_level=None)
         version = FORMAT_VERSION
