@@ -10,7 +10,7 @@ quality is timed as a filter committed once on fixed buffers with only ``execute
 OIDN's default threads and on one thread (:func:`execute_ms`; its output is checked equal to
 ``denoise``'s).
 
-    .venv/bin/python benchmarks/denoise_quality.py [--spp 4] [--repeats 5]
+    .venv/bin/python -m benchmarks.denoise_quality [--spp 4] [--repeats 5]
 
 Writes benchmarks/results/trace/denoise_quality.{json,png}.
 """
@@ -19,19 +19,16 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 import icbtool as icb
-from icbtool.cli._common import run_info, write_json
+from benchmarks.common import add_out_argument, run_info, write_json
+from benchmarks.trace_time_error import MAX_DEPTH, bench_scene, errors, reference_cache  # noqa: E402
 from icbtool.trace import TraceConfig
 from icbtool.trace.tracer import denoise_inputs
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from trace_time_error import MAX_DEPTH, bench_scene, errors, reference_cache  # noqa: E402
 
 OUT = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "trace"
 QUALITIES = ("high", "balanced", "fast")
@@ -92,7 +89,10 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--repeats", type=int, default=5)
+    add_out_argument(ap, "trace")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     load_start = os.getloadavg()
     rows = []
     for name in ("cornell_box", "sponza"):

@@ -12,7 +12,7 @@ what that time buys:
 3. Whole renders of the Cornell box and Sponza, robust and not, same seed and config: the
    difference of the mean images against the noise (per-pixel z-scores of the difference).
 
-    .venv/bin/python benchmarks/embree_robust.py [--spp 64] [--size 128] [--rays 4000000]
+    .venv/bin/python -m benchmarks.embree_robust [--spp 64] [--size 128] [--rays 4000000]
 
 Writes benchmarks/results/trace/embree_robust.json.
 """
@@ -27,7 +27,7 @@ import numpy as np
 import trimesh
 
 import icbtool as icb
-from icbtool.cli._common import run_info, write_json
+from benchmarks.common import add_out_argument, run_info, write_json
 from icbtool.trace import TraceConfig, render
 from icbtool.trace import kernels as K
 from icbtool.trace.rtc import RtcScene
@@ -136,7 +136,10 @@ def main() -> None:
     ap.add_argument("--rays", type=int, default=4_000_000)
     ap.add_argument("--spp", type=int, default=64)
     ap.add_argument("--size", type=int, default=128)
+    add_out_argument(ap, "trace")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     rng = np.random.default_rng(0)
     out = {
         "args": vars(args),

@@ -12,14 +12,13 @@ Reports the mean relative bias of our GI against Mitsuba's per channel (mean ove
 ours / mean of theirs - 1) and on the whole image (all channels), and writes
 benchmarks/results/emitters/emitter_split.{json,png} (PNG: ours | Mitsuba | |difference| x 4).
 
-    .venv/bin/python benchmarks/emitter_split.py [--size 96] [--spp 1024] [--mi-spp 2048]
+    .venv/bin/python -m benchmarks.emitter_split [--size 96] [--spp 1024] [--mi-spp 2048]
         [--variant llvm_ad_rgb]
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -27,16 +26,14 @@ from pathlib import Path
 import numpy as np
 
 import icbtool.scene as sc
-from icbtool.cli._common import run_info, write_json
+from benchmarks.common import add_out_argument, run_info, write_json
+from benchmarks.cornell_gltf import cornell_camera_m, write_cornell_gltf
+from benchmarks.trace_time_error import to_mitsuba
 from icbtool.imageio import to_display, write_png
 from icbtool.trace import TraceConfig, render
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "emitters"
-sys.path.insert(0, str(REPO / "tests"))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cornell_gltf import cornell_camera_m, write_cornell_gltf  # noqa: E402
-from trace_time_error import to_mitsuba  # noqa: E402  (a sibling benchmark script)
 
 
 def mitsuba_image(scene, cam, spp: int, max_depth: int, seed: int) -> np.ndarray:
@@ -55,7 +52,10 @@ def main() -> None:
     ap.add_argument("--mi-spp", type=int, default=2048, help="Mitsuba samples per pixel")
     ap.add_argument("--variant", default="llvm_ad_rgb", choices=["llvm_ad_rgb", "scalar_rgb"])
     ap.add_argument("--seed", type=int, default=0)
+    add_out_argument(ap, "emitters")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     try:
         import mitsuba as mi
     except ImportError as e:

@@ -9,7 +9,7 @@ Mitsuba gets as ``to_world``. Reported: the mean bias per channel (ours / Mitsub
 relative RMSE of the images blurred by a 5x5 box, and Mitsuba's own seed-to-seed value of that
 RMSE (its noise floor at the reference spp).
 
-    .venv/bin/python benchmarks/envmap_mitsuba.py [--size 128] [--spp 1024] [--ours-spp 512]
+    .venv/bin/python -m benchmarks.envmap_mitsuba [--size 128] [--spp 1024] [--ours-spp 512]
 
 Writes benchmarks/results/envmap/mitsuba.{json,png} (images side by side).
 """
@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import tempfile
 import time
 from dataclasses import replace
@@ -27,12 +26,10 @@ from pathlib import Path
 import numpy as np
 
 import icbtool as icb
-from icbtool.cli._common import run_info, write_json
+from benchmarks.common import add_out_argument, run_info, write_json
+from benchmarks.trace_time_error import load_mitsuba, to_mitsuba
 from icbtool.imageio import to_display, write_exr, write_png
 from icbtool.trace import TraceConfig
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from trace_time_error import load_mitsuba, to_mitsuba  # noqa: E402  (a sibling benchmark script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "envmap"
@@ -84,7 +81,10 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=1024, help="Mitsuba spp per reference render")
     ap.add_argument("--ours-spp", type=int, default=512)
     ap.add_argument("--mitsuba-variant", default="llvm_ad_rgb")
+    add_out_argument(ap, "envmap")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     mi = load_mitsuba(args.mitsuba_variant)
     tmp = Path(tempfile.mkdtemp(prefix="icb_envmap_"))
     exr = sky_exr(tmp / "sky.exr")

@@ -13,7 +13,7 @@ with seed replicates for the run-to-run spread, and the ``cpu`` preset is now it
 (resumable: a rerun continues), then every run is scored on ALL views of the test path and of
 the held-out walk.
 
-    ICBTOOL_GL_BACKEND=osmesa ICBTOOL_GAN_STORE=STORE .venv/bin/python benchmarks/gan_ablation.py \\
+    ICBTOOL_GL_BACKEND=osmesa ICBTOOL_GAN_STORE=STORE .venv/bin/python -m benchmarks.gan_ablation \\
         --runs /work/runs/ablation --iterations 3000
 
 Writes benchmarks/results/gan/ablation.json, ablation.csv, ablation.png (test SSIM against
@@ -25,14 +25,14 @@ from __future__ import annotations
 import argparse
 import csv
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import add_out_argument
+
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
-sys.path.insert(0, str(REPO / "benchmarks"))
 
 #: The generator's architecture when the ablation began (width 16, full-resolution position
 #: features, 3 x 3 head): the recipe pins it, so the rows measured before the speed study keep their
@@ -193,14 +193,13 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None, help="variant names (default: all)")
     ap.add_argument("--eval-paths", default="test,walk")
     ap.add_argument("--score-only", action="store_true", help="no training, score what exists")
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "gan")
     args = ap.parse_args()
     if not args.store:
         ap.error("--store (or ICBTOOL_GAN_STORE) is required")
 
-    from gan_figure7 import curves, train_round_robin
-
     import icbtool.store as S
+    from benchmarks.gan_figure7 import curves, train_round_robin
     from icbtool.provenance import run_info, write_json
 
     names = args.only or list(VARIANTS)

@@ -19,7 +19,7 @@ same: run again with ``--fit-paths train,cover``). Columns: mean SSIM / MSE (dis
 and FLIP per evaluation path, over ALL its views, the median coverage distance (distance from a
 view's pixels to the nearest pixel of the fit paths, % of the scene's diagonal), ms per frame.
 
-    ICBTOOL_GL_BACKEND=osmesa .venv/bin/python benchmarks/gan_baselines.py --store STORE \\
+    ICBTOOL_GL_BACKEND=osmesa .venv/bin/python -m benchmarks.gan_baselines --store STORE \\
         --run J=/work/runs/J --tag train
 
 Writes benchmarks/results/gan/baselines_TAG.json, .csv and .png (truth and every method on the
@@ -35,6 +35,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.common import add_out_argument
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
@@ -75,7 +77,7 @@ def main() -> None:
     ap.add_argument("--no-tracer", action="store_true")
     ap.add_argument("--exposure", type=float, default=1.0)
     ap.add_argument("--tag", default="train", help="results file suffix")
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "gan")
     args = ap.parse_args()
     if not args.store:
         ap.error("--store (or ICBTOOL_GAN_STORE) is required")
@@ -91,7 +93,7 @@ def main() -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     load0 = os.getloadavg()[0]
-    from icbtool.cli._common import load_scene
+    from icbtool.scene import load_scene
 
     scene = load_scene(args.scene)
     methods: dict = {}

@@ -9,10 +9,12 @@ far every evaluation view is from what training saw.
    pixels' world positions to the nearest training pixel (fraction of the scene's diagonal), with
    train alone and with train + cover.
 
-Writes benchmarks/results/gan/coverage.json and coverage.png.
+Writes coverage.json, coverage.png, coverage_plan.npz, coverage_bake.json and
+coverage_config.json to ``--out`` (default out/bench/gan; the committed ones are in
+benchmarks/results/gan). An evaluation path the store has no records of is an error naming it.
 
-    ICBTOOL_GL_BACKEND=osmesa ICBTOOL_GAN_STORE=STORE .venv/bin/python benchmarks/gan_coverage.py \\
-        --scene data/scenes/sponza.toml --views 150 --spp 64
+    ICBTOOL_GL_BACKEND=osmesa .venv/bin/python -m benchmarks.gan_coverage --store STORE \\
+        --scene data/scenes/sponza.toml --views 40 --spp 64 --out out/bench/gan_coverage
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.common import add_out_argument
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
@@ -54,7 +58,7 @@ def main() -> None:
     ap.add_argument("--cover-path", default="cover")
     ap.add_argument("--eval-paths", default="test,walk")
     ap.add_argument("--no-denoise", action="store_true")
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "gan")
     ap.add_argument(
         "--phase",
         choices=("all", "plan", "bake", "measure"),
@@ -139,6 +143,12 @@ def main() -> None:
         both = np.concatenate([train_pts, cover_pts])
         cov = {}
         for p in [s for s in args.eval_paths.split(",") if s]:
+            if not len(icb.store.Dataset(store, scene, "train", ("position",), paths={"train": p})):
+                raise SystemExit(
+                    f"gan_coverage: evaluation path {p!r} has no records in {args.store}: bake it "
+                    f"(icbtool bake SCENE --path {p} --store {args.store} ...) or leave it out of "
+                    "--eval-paths"
+                )
             cov[p] = {
                 "train": view_coverage(store, scene, p, train_pts),
                 "train+cover": view_coverage(store, scene, p, both),

@@ -9,7 +9,7 @@ the albedo; albedo, DL, normals and depth as a renderer would give them), and wi
 ImageNet weights (the perceptual loss's cost and code path, not its meaning). The same config runs
 on the CPU for a few iterations for the speed ratio.
 
-    python benchmarks/gan_device_check.py --device cuda --iterations 300 --out /tmp/gan_check
+    python -m benchmarks.gan_device_check --device cuda --iterations 300 --out /tmp/gan_check
 
 Writes OUT/gan_device_check.json (iterations per second on each device, first and last losses,
 the evaluation SSIM, peak GPU memory) and the run folders.

@@ -19,7 +19,7 @@ continues where it stopped. After every chunk it writes benchmarks/results/gan/f
 (curves, best configuration, world vs view normals, the first iteration reaching the target
 SSIM), figure7.png (the curves) and figure7_config.json (settings, versions, machine).
 
-    ICBTOOL_GAN_STORE=STORE ICBTOOL_GAN_CEILING=CEILING .venv/bin/python benchmarks/gan_figure7.py
+    ICBTOOL_GAN_STORE=STORE ICBTOOL_GAN_CEILING=CEILING .venv/bin/python -m benchmarks.gan_figure7
 """
 
 from __future__ import annotations
@@ -35,6 +35,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from benchmarks.common import add_out_argument
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
@@ -280,7 +282,7 @@ def main() -> None:
         "every view of these store paths (held-out views: walk)",
     )  # fmt: skip
     ap.add_argument("--runs", default=str(REPO / "out" / "gan_figure7"), help="run directories")
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "gan")
     args = ap.parse_args()
     if not args.store:
         raise SystemExit("give --store (or set ICBTOOL_GAN_STORE): a baked Sponza store")
@@ -319,9 +321,8 @@ def main() -> None:
 def final_scores(runs: Path, args: argparse.Namespace) -> dict:
     """Each run's generator on every view of ``args.score_paths``: {config: {path: {views, ssim,
     mse}, iteration}}."""
-    from gan_ablation import score
-
     import icbtool.store as S
+    from benchmarks.gan_ablation import score
 
     paths = [p for p in args.score_paths.split(",") if p]
     cfg = train_config(args, args.configs[0])

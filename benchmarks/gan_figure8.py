@@ -6,7 +6,7 @@ benchmarks/results/gan/figure7.json in ``--runs``. Frames are spread evenly over
 path. Writes benchmarks/results/gan/figure8.png (one row per frame: generated | real |
 |difference| x4) and figure8.json (per-frame and mean metrics, the run, its iteration).
 
-    ICBTOOL_GAN_STORE=STORE .venv/bin/python benchmarks/gan_figure8.py
+    ICBTOOL_GAN_STORE=STORE .venv/bin/python -m benchmarks.gan_figure8
 """
 
 from __future__ import annotations
@@ -17,7 +17,9 @@ import os
 from pathlib import Path
 
 import numpy as np
-from gan_figure7 import chosen_run  # noqa: E402  (a sibling benchmark script)
+
+from benchmarks.common import add_out_argument
+from benchmarks.gan_figure7 import chosen_run
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
@@ -30,7 +32,7 @@ def main() -> None:
     ap.add_argument("--run", default=None, help="training run directory (default: Figure 7's best)")
     ap.add_argument("--runs", default=str(REPO / "out" / "gan_figure7"))
     ap.add_argument("--frames", type=int, default=6)
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "gan")
     args = ap.parse_args()
     if not args.store:
         raise SystemExit("give --store (or set ICBTOOL_GAN_STORE): a baked Sponza store")

@@ -10,7 +10,7 @@ calls after 3 warm-up calls; the models take turns call by call, so a load that 
 hits them alike), and profiles one session per variant at the largest size (onnxruntime's
 profiler: median time per node over the profiled calls), so one sees which layers cost.
 
-    .venv/bin/python benchmarks/gan_speed.py --repeats 30
+    .venv/bin/python -m benchmarks.gan_speed --repeats 30
 
 With ``--store`` it also times one training iteration of the preset before and after the study
 (the new network trains more iterations, each cheaper).
@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import tempfile
 import time
 from collections import defaultdict
@@ -33,9 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import add_out_argument
+
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
-sys.path.insert(0, str(REPO / "benchmarks"))
 
 #: Ablation variants (benchmarks/gan_ablation.py) timed under their own names: the cpu preset
 #: before the speed study and each change to it.
@@ -71,7 +71,7 @@ def generator_config(name: str):
     configuration J (12 channels, positions in 9..12)."""
     import dataclasses
 
-    from gan_ablation import config
+    from benchmarks.gan_ablation import config
 
     if name in EXTRA:
         tc = dataclasses.replace(config("constant lr", 3000, 500), **EXTRA[name])
@@ -166,9 +166,9 @@ def iteration_ms(store_dir: str, scene: str, names: list[str], n: int = 100) -> 
     import tempfile as tf
 
     import torch
-    from gan_ablation import config
 
     import icbtool.store as S
+    from benchmarks.gan_ablation import config
     from icbtool.gan.training import _Run
 
     torch.set_num_threads(1)
@@ -201,7 +201,7 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None, help="variant names (default: all)")
     ap.add_argument("--run", nargs="*", default=[], help="trained runs to time as they are")
     ap.add_argument("--runs-only", action="store_true", help="time the --run runs alone")
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "gan")
     ap.add_argument("--name", default="speed", help="output file stem")
     ap.add_argument("--store", default=None, help="also time a training iteration on this store")
     ap.add_argument("--scene", default="sponza")

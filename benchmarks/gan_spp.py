@@ -8,7 +8,7 @@ the Figure 7 store so every run is scored on the same truth. Every run uses the 
 for ``--iterations``. Baking time is the sum of the records' ``render_time_s`` (raster + trace (+
 denoise)) measured when they were baked on this machine.
 
-    ICBTOOL_GAN_STORE=STORE .venv/bin/python benchmarks/gan_spp.py --stores /work/stores/spp
+    ICBTOOL_GAN_STORE=STORE .venv/bin/python -m benchmarks.gan_spp --stores /work/stores/spp
 
 Writes ``benchmarks/results/gan/spp/spp.{json,png}`` and ``spp_config.json``.
 """
@@ -23,7 +23,8 @@ import sys
 import time
 from pathlib import Path
 
-from gan_figure7 import (  # noqa: E402 (a sibling script)
+from benchmarks.common import add_out_argument
+from benchmarks.gan_figure7 import (
     add_training_arguments,
     train_config,
     train_round_robin,
@@ -86,7 +87,7 @@ def main() -> None:
     add_training_arguments(ap)
     ap.set_defaults(preset="paper-cpu")  # its committed results: the first Figure 7 settings
     ap.add_argument("--runs", default=str(REPO / "out" / "gan_spp"))
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "gan/spp")
     args = ap.parse_args()
     if not args.store:
         raise SystemExit("give --store (or set ICBTOOL_GAN_STORE): the Figure 7 Sponza store")

@@ -13,7 +13,7 @@ curve's monotone envelope; when the tracer's cheapest point is already better, o
 there, the result says so and no ratio is given). It also times the generator alone at
 128, 256 and 512 pixels. Writes benchmarks/results/gan/time_error.{json,png}.
 
-    ICBTOOL_GAN_STORE=STORE .venv/bin/python benchmarks/gan_time_error.py
+    ICBTOOL_GAN_STORE=STORE .venv/bin/python -m benchmarks.gan_time_error
 """
 
 from __future__ import annotations
@@ -26,7 +26,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from gan_figure7 import chosen_run  # noqa: E402  (a sibling benchmark script)
+
+from benchmarks.common import add_out_argument
+from benchmarks.gan_figure7 import chosen_run
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gan"
@@ -55,7 +57,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=8, help="test views, spread along the path")
     ap.add_argument("--spps", type=int, nargs="+", default=[1, 2, 4, 8, 16, 32, 64])
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "gan")
     args = ap.parse_args()
     if not args.store:
         raise SystemExit("give --store (or set ICBTOOL_GAN_STORE): a baked Sponza store")

@@ -29,7 +29,7 @@ Scores: SSIM / MSE of the whole frame, and the per-pixel SSIM map averaged over 
 Resumable (the runs train in chunks); writes ``benchmarks/results/gan/warped/warped.{json,png}``
 and ``warped_config.json``::
 
-    ICBTOOL_GAN_STORE=STORE .venv/bin/python benchmarks/gan_warped.py --iterations 2000
+    ICBTOOL_GAN_STORE=STORE .venv/bin/python -m benchmarks.gan_warped --iterations 2000
 """
 
 from __future__ import annotations
@@ -42,7 +42,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from gan_figure7 import (  # noqa: E402 (a sibling script)
+
+from benchmarks.common import add_out_argument
+from benchmarks.gan_figure7 import (
     add_training_arguments,
     train_config,
     train_round_robin,
@@ -191,7 +193,7 @@ def main() -> None:
     )
     ap.add_argument("--report-only", action="store_true", help="compare the runs as they are")
     ap.add_argument("--runs", default=str(REPO / "out" / "gan_warped"))
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "gan/warped")
     args = ap.parse_args()
     if not args.store:
         raise SystemExit("give --store (or set ICBTOOL_GAN_STORE): a baked Sponza store")

@@ -18,7 +18,7 @@ whether 0 and inf stay exact (depth is also coded with inf where no surface). Ab
 
 Writes benchmarks/results/net/gi_codec.{json,csv,png} (+ _config.json).
 
-    ICBTOOL_SPONZA=../shared/scenes/sponza nice -n 10 .venv/bin/python benchmarks/gi_codec.py
+    ICBTOOL_SPONZA=../shared/scenes/sponza nice -n 10 .venv/bin/python -m benchmarks.gi_codec
 """
 
 from __future__ import annotations
@@ -31,6 +31,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.common import add_out_argument
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "net"
@@ -296,7 +298,7 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-sponza", action="store_true")
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "net")
     ap.add_argument("--plot-only", action="store_true", help="redraw the PNG from the JSON")
     args = ap.parse_args()
     out = Path(args.out)

@@ -9,19 +9,20 @@ A gap between ticks is time the window could not react. Writes
 benchmarks/results/gui/responsiveness.json (largest gap, 99th percentile, ticks per phase, the
 load average, versions, machine). Needs an X display (``xvfb-run``).
 
-    xvfb-run -a .venv/bin/python benchmarks/gui_responsiveness.py
+    xvfb-run -a .venv/bin/python -m benchmarks.gui_responsiveness
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.common import add_out_argument
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "gui"
@@ -40,9 +41,11 @@ def _gaps(ticks: list[float]) -> dict[str, float | int]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=20.0, help="length of each phase")
+    add_out_argument(ap, "gui")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     os.environ.setdefault("QT_QPA_PLATFORM", "xcb")
-    sys.path.insert(0, str(REPO))
     from PySide6 import QtCore, QtWidgets
 
     import icbtool as icb

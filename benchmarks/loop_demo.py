@@ -7,7 +7,7 @@ benchmarks/results/loop/, with the wall time of the whole command and the machin
 ``loop_demo.json``. docs/benchmarks.md's loop numbers are generated from these files
 (benchmarks/page.py).
 
-    .venv/bin/python benchmarks/loop_demo.py
+    .venv/bin/python -m benchmarks.loop_demo
 """
 
 from __future__ import annotations
@@ -19,17 +19,17 @@ import tempfile
 import time
 from pathlib import Path
 
+from benchmarks.common import add_out_argument, run_info, write_json
 from icbtool.cli import main as icbtool_main
-from icbtool.cli._common import run_info, write_json
-
-OUT = Path(__file__).resolve().parent / "results" / "loop"
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="cornell_box")
+    add_out_argument(ap, "loop")
     args = ap.parse_args()
-    OUT.mkdir(parents=True, exist_ok=True)
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="icb_loop_demo_") as tmp:
         load_before = os.getloadavg()
         t0 = time.perf_counter()
@@ -38,9 +38,9 @@ def main() -> None:
         if rc != 0:
             raise SystemExit(f"loop_demo.py: `icbtool demo` failed with exit code {rc}")
         for name in ("summary.json", "config.json", "frames.csv"):
-            shutil.copyfile(Path(tmp) / name, OUT / name)
+            shutil.copyfile(Path(tmp) / name, out / name)
     write_json(
-        OUT / "loop_demo.json",
+        out / "loop_demo.json",
         {
             "command": f"icbtool demo {args.scene} --fresh --out TMP (CLI defaults otherwise)",
             "wall_s": wall_s,
@@ -51,7 +51,7 @@ def main() -> None:
             "run_info": run_info(),
         },
     )
-    print(f"demo took {wall_s:.1f} s; wrote {OUT}/{{summary,config,loop_demo}}.json, frames.csv")
+    print(f"demo took {wall_s:.1f} s; wrote {out}/{{summary,config,loop_demo}}.json, frames.csv")
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ fast-simplification and pyfqmr are NOT icbtool dependencies: install them aside,
 ``pip install --target /tmp/fsimp fast-simplification==0.2.0 pyfqmr==0.5.0`` and run with
 ``PYTHONPATH=/tmp/fsimp``; a missing one is reported as such.
 
-    PYTHONPATH=.:/tmp/fsimp nice -n 10 .venv/bin/python benchmarks/lpm_decimators.py
+    PYTHONPATH=.:/tmp/fsimp nice -n 10 .venv/bin/python -m benchmarks.lpm_decimators
 
 Writes benchmarks/results/lpm/decimators.json.
 """
@@ -24,6 +24,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.common import add_out_argument
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -102,7 +104,7 @@ def main() -> None:
     default = REPO / "data" / "scenes" / "sponza.toml"
     ap.add_argument("--scene", default=str(default))
     ap.add_argument("--ratios", default="0.05,0.1,0.25")
-    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "lpm"))
+    add_out_argument(ap, "lpm")
     a = ap.parse_args()
     v, f, diag = _input(a.scene)
     rows = []

@@ -2,7 +2,7 @@
 textures), build time, geometric error (RMS, Hausdorff), uv error, the client's depth and DL error,
 the warp with the client's LPM depth, and time to first frame against the full mesh.
 
-    ICBTOOL_GL_BACKEND=osmesa nice -n 10 .venv/bin/python benchmarks/lpm_levels.py
+    ICBTOOL_GL_BACKEND=osmesa nice -n 10 .venv/bin/python -m benchmarks.lpm_levels
 
 Sponza: $ICBTOOL_SPONZA or ../shared/scenes/sponza, through data/scenes/sponza.toml (its lights,
 sky and camera paths). Writes benchmarks/results/lpm/{sponza,cornell_box}.{json,csv},
@@ -21,12 +21,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 from pathlib import Path
 
+from benchmarks.common import add_out_argument
+
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 
 def _floats(s: str) -> tuple[float, ...]:
@@ -45,7 +45,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--cameras", type=int, default=3)
     ap.add_argument("--gi-spp", type=int, default=16)
-    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "lpm"))
+    add_out_argument(ap, "lpm")
     a = ap.parse_args()
     os.environ.setdefault("ICBTOOL_SPONZA", str(REPO.parent / "shared" / "scenes" / "sponza"))
 

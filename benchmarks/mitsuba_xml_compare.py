@@ -14,7 +14,7 @@ the mean of Mitsuba's image) of icbtool against Mitsuba seed A, next to the same
 Mitsuba seed B against Mitsuba seed A (Mitsuba's seed-to-seed noise, the floor), all at the same
 spp. Images side by side (icbtool | Mitsuba | |difference| x 4) in PNG.
 
-    nice -n 10 .venv/bin/python benchmarks/mitsuba_xml_compare.py \\
+    nice -n 10 .venv/bin/python -m benchmarks.mitsuba_xml_compare \\
         --scene /tmp/mitsuba_scenes/scenes/cbox/cbox-rgb.xml res=128 \\
         --scene /tmp/mitsuba_scenes/bitterli_cbox.xml resx=128 resy=128
 
@@ -34,8 +34,8 @@ from pathlib import Path
 import numpy as np
 
 import icbtool as icb
+from benchmarks.common import add_out_argument, run_info, write_json
 from icbtool._optional import require
-from icbtool.cli._common import run_info, write_json
 from icbtool.imageio import to_display
 from icbtool.scene.mitsuba import diffuse_twin
 from icbtool.scene.obj import MaterialApproximationWarning
@@ -82,7 +82,10 @@ def main() -> None:
     ap.add_argument("--blur", type=float, default=1.5, help="Gaussian sigma in pixels")
     ap.add_argument("--variant", default="llvm_ad_rgb")
     ap.add_argument("--seed", type=int, default=0)
+    add_out_argument(ap, "mitsuba_xml")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     mi = require("mitsuba", "the Mitsuba 3 benchmark peer (make bench-deps)")
     if args.variant not in mi.variants():
         raise SystemExit(f"FAIL: Mitsuba variant {args.variant!r} unavailable: {mi.variants()}")

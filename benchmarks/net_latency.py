@@ -14,7 +14,7 @@ The generator is the paper's U-Net shape (base 32, configuration I inputs) with 
 weights: its size and its time are those of a trained one; its images are not (quality is
 benchmarks/gan_*). Writes benchmarks/results/net/net_latency.json and net_latency.png.
 
-    nice -n 10 .venv/bin/python benchmarks/net_latency.py [--scene cornell_box] [--frames 8]
+    nice -n 10 .venv/bin/python -m benchmarks.net_latency [--scene cornell_box] [--frames 8]
 """
 
 from __future__ import annotations
@@ -30,10 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import add_out_argument, run_info, write_json
 from icbtool import pipeline, system
-from icbtool.cli._common import load_scene, run_info, write_json
 from icbtool.net import NetClientConfig, NetworkSource, Server, ServerConfig, ShaperConfig
 from icbtool.net.run import run_client
+from icbtool.scene import load_scene
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "net"
@@ -265,7 +266,10 @@ def main() -> None:
         help="scene of the LPM vs full-mesh first-frame runs (default: Sponza when found, "
         "else --scene)",
     )
+    add_out_argument(ap, "net")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     if args.first_frame_scene is None:
         sponza = Path(os.environ.get("ICBTOOL_SPONZA", REPO.parent / "shared/scenes/sponza"))
         if (sponza / "sponza_textured.obj").is_file():

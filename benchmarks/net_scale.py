@@ -28,8 +28,8 @@ Writes benchmarks/results/net/net_scale.json and net_scale.png; docs/benchmarks.
 ``net-scale`` block is generated from them (benchmarks/page.py). Each part replaces its own
 entry only.
 
-    nice -n 10 .venv/bin/python benchmarks/net_scale.py [--part profile|hits|bake|attack|all]
-    nice -n 10 .venv/bin/python benchmarks/net_scale.py --part ab --ab-repo /tmp/net_before
+    nice -n 10 .venv/bin/python -m benchmarks.net_scale [--part profile|hits|bake|attack|all]
+    nice -n 10 .venv/bin/python -m benchmarks.net_scale --part ab --ab-repo /tmp/net_before
 """
 
 from __future__ import annotations
@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.common import add_out_argument
 from icbtool import system
 from icbtool.net import crypto, protocol
 from icbtool.net.client import NetClientConfig, NetworkSource
@@ -887,7 +888,10 @@ def main() -> None:
     ap.add_argument("--profile-repeats", type=int, default=300, help="each step alone")
     ap.add_argument("--attack-rounds", type=int, default=3)
     ap.add_argument("--bake-repeats", type=int, default=3, help="interleaved rounds per mode")
+    add_out_argument(ap, "net")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     from icbtool import scene as sc
 
     scene = sc.PROCEDURAL["cornell_box"]()

@@ -19,7 +19,7 @@ for any signal) and the path-traced GI (icb.trace.render_gi, denoised) at walkin
 Speed scale: Sponza is in metres; the Cornell box (~2 units wide) is taken as a 2 m room, so
 1 unit = 1 m and walking speed is 1.4 units/s in both.
 
-    .venv/bin/python benchmarks/prefetch_experiment.py [--frames 8] [--size 128] [--gi-frames 3]
+    .venv/bin/python -m benchmarks.prefetch_experiment [--frames 8] [--size 128] [--gi-frames 3]
 
 Writes benchmarks/results/prefetch/{prefetch_experiment.json, *.png}.
 """
@@ -34,8 +34,8 @@ import numpy as np
 from tqdm import tqdm
 
 import icbtool as icb
+from benchmarks.common import add_out_argument, run_info, write_json
 from icbtool.camera import Camera
-from icbtool.cli._common import run_info, write_json
 from icbtool.imageio import auto_exposure
 from icbtool.metrics import ssim
 from icbtool.prefetch import PrefetchConfig, depth_range_from_depth, prefetch_camera
@@ -286,7 +286,10 @@ def main() -> None:
     ap.add_argument("--gi-spp", type=int, default=16)
     ap.add_argument("--margin-deg", type=float, default=2.0)
     ap.add_argument("--max-ref-pixels", type=int, default=512 * 512)
+    add_out_argument(ap, "prefetch")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     OUT.mkdir(parents=True, exist_ok=True)
     all_res = {}
     t0 = time.perf_counter()

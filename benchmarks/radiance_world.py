@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import add_out_argument
+
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "radiance"
 BINS = np.array([0.0, 0.0025, 0.005, 0.01, 0.02, 0.05, 0.1, 1.0])
@@ -76,7 +78,10 @@ def main() -> None:
     ap.add_argument("--probe-resolution", type=int, default=16)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=20, help="timed onnxruntime runs")
+    add_out_argument(ap, "radiance")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
 
     import torch
 

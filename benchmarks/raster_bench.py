@@ -18,7 +18,7 @@ data/scenes/sponza.toml) at 256x256 and 512x512:
 Writes benchmarks/results/raster/: results.json (numbers, configs, run info), raster_bench.png (bar
 plot), and PNG previews of the Sponza and Cornell box buffers (look at them).
 
-Usage: .venv/bin/python benchmarks/raster_bench.py [--frames 10] [--backends osmesa,egl]
+Usage: .venv/bin/python -m benchmarks.raster_bench [--frames 10] [--backends osmesa,egl]
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import add_out_argument
 from icbtool._optional import require
 
 REPO = Path(__file__).resolve().parents[1]
@@ -193,18 +194,21 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--backends", default="osmesa,egl")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    add_out_argument(ap, "raster")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     if args.frames < 10:
         raise SystemExit("--frames must be >= 10")
     OUT.mkdir(parents=True, exist_ok=True)
     if args.worker:
-        from icbtool.cli._common import to_jsonable
+        from benchmarks.common import to_jsonable
 
         print(json.dumps(to_jsonable(worker(args.worker, args.frames))))
         return 0
     from tqdm import tqdm
 
-    from icbtool.cli._common import run_info, write_json
+    from benchmarks.common import run_info, write_json
 
     load_start = os.getloadavg()
     all_results, configs, skipped = [], {}, {}

@@ -11,7 +11,7 @@ whose filtered radiance dominates (a)), and (c) on the penumbra and edge pixels 
 traced direct light differs from its 3x3 median by > 5 %); and the cost: median raster time of
 ``dl`` at 512^2 (the machine is shared: the 1-minute load is recorded).
 
-    .venv/bin/python benchmarks/raster_dl_accuracy.py [--obj CornellBox-Original.obj]
+    .venv/bin/python -m benchmarks.raster_dl_accuracy [--obj CornellBox-Original.obj]
         [--size 128] [--spp 2048]
 
 Default scene: the built-in ``cornell_box``; ``--obj`` adds an OBJ scene (McGuire's
@@ -30,8 +30,8 @@ import numpy as np
 from scipy.ndimage import binary_dilation, median_filter, uniform_filter
 
 import icbtool as icb
+from benchmarks.common import add_out_argument, run_info, write_json
 from icbtool.camera import Camera
-from icbtool.cli._common import run_info, write_json
 from icbtool.imageio import to_display, write_png
 from icbtool.raster import RasterConfig, Rasterizer
 from icbtool.trace import TraceConfig, render
@@ -131,7 +131,10 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--spp", type=int, default=2048)
     ap.add_argument("--repeats", type=int, default=5)
+    add_out_argument(ap, "raster")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     scenes = {}
     cb = icb.scene.cornell_box()
     scenes["cornell_box"] = (cb, cb.default_camera.resized(args.size, args.size))

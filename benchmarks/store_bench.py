@@ -10,7 +10,7 @@ Insert: ``put`` of realistic 128x128 CRT-buffers (all 8 maps), with fsync (durab
 loss) and without; payloads are a real baked Sponza record if out/store_sponza/train exists
 (written by store_sponza_experiment.py), else smooth synthetic maps.
 
-    .venv/bin/python benchmarks/store_bench.py
+    .venv/bin/python -m benchmarks.store_bench
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.common import add_out_argument
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "store"
@@ -210,12 +212,12 @@ def main() -> None:
     ap.add_argument("--alpha-dir", type=float, default=0.1)
     ap.add_argument("--inserts", type=int, default=100)
     ap.add_argument("--work", default=str(REPO / "out" / "store_bench"))
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "store")
     args = ap.parse_args()
 
     from tqdm import tqdm
 
-    from icbtool.cli._common import run_info, write_json
+    from benchmarks.common import run_info, write_json
 
     work, out = Path(args.work), Path(args.out)
     work.mkdir(parents=True, exist_ok=True)

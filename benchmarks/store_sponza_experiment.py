@@ -9,7 +9,7 @@
 
 Writes benchmarks/results/store/sponza_experiment.json (+ PNG plots, resolved config, run info).
 
-    ICBTOOL_GL_BACKEND=osmesa .venv/bin/python benchmarks/store_sponza_experiment.py
+    ICBTOOL_GL_BACKEND=osmesa .venv/bin/python -m benchmarks.store_sponza_experiment
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.common import add_out_argument
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "store"
@@ -38,13 +40,13 @@ def main() -> None:
     ap.add_argument("--test-stride", type=int, default=2)
     ap.add_argument("--ceiling-views", type=int, default=6, help="views for the noise ceiling")
     ap.add_argument("--stores", default=str(REPO / "out" / "store_sponza"))
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "store")
     args = ap.parse_args()
 
     import icbtool.bake as B
     import icbtool.store as S
+    from benchmarks.common import run_info, write_json
     from icbtool import metrics, warp
-    from icbtool.cli._common import run_info, write_json
     from icbtool.imageio import auto_exposure
     from icbtool.scene import load
 

@@ -7,7 +7,7 @@ result is the median of the per-round ratios B / A of the tracer's Mrays/s (whol
 of its rays per second of process CPU time (less sensitive to other processes' load; single-
 threaded by default), with the 1-minute load recorded every render.
 
-    .venv/bin/python benchmarks/trace_ab.py --a /tmp/before --b . [--rounds 9] [--size 128]
+    .venv/bin/python -m benchmarks.trace_ab --a /tmp/before --b . [--rounds 9] [--size 128]
 
 Writes benchmarks/results/trace/ab_<scene or --name>.json (with the machine, the versions and each
 checkout's commit; the oldest files have the load alone).
@@ -23,7 +23,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from icbtool.cli._common import run_info
+from benchmarks.common import add_out_argument, run_info
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -116,7 +116,10 @@ def main() -> None:
         default="default",
         help="Embree's robust mode in both (default: each checkout's TraceConfig default)",
     )
+    add_out_argument(ap, "trace")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     a = _start(args.a.resolve(), args.scene, args.size, args.spp, args.threads, args.robust)
     b = _start(args.b.resolve(), args.scene, args.size, args.spp, args.threads, args.robust)
     rows = []

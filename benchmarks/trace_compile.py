@@ -11,7 +11,7 @@ processes, so that docs/benchmarks.md can say what a new user waits for:
 - ``warm_render_s``: the same render again in that process (the render itself).
 - ``import_s``: ``import icbtool`` in each process (numba and the kernels are imported lazily).
 
-    .venv/bin/python benchmarks/trace_compile.py [--trials 1]
+    .venv/bin/python -m benchmarks.trace_compile [--trials 1]
 
 Writes benchmarks/results/trace/compile.json (with the 1-minute load at start and end). A trial
 takes about a minute and a half on the 2-core VM of this project.
@@ -27,6 +27,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from benchmarks.common import add_out_argument
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -65,7 +67,10 @@ def main() -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=1, help="fresh caches to compile into")
+    add_out_argument(ap, "trace")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     load_start = os.getloadavg()
     trials = []
     t_run = time.perf_counter()

@@ -5,7 +5,7 @@ sample only a little lower. This splits both images' errors (each renderer again
 reference, as trace_time_error.py measures them) by the display brightness of the reference pixel:
 pixel count, mean FLIP, RMS error and each bin's share of the summed squared error.
 
-    .venv/bin/python benchmarks/trace_error_by_brightness.py [--spp 8] [--scenes cornell_box,sponza]
+    .venv/bin/python -m benchmarks.trace_error_by_brightness [--spp 8] [--scenes cornell_box,sponza]
 
 It reads the references trace_time_error.py cached (run that first, same size and reference spp).
 Writes benchmarks/results/trace/error_by_brightness.json.
@@ -16,7 +16,10 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from trace_time_error import (
+
+import icbtool as icb
+from benchmarks.common import add_out_argument
+from benchmarks.trace_time_error import (
     MAX_DEPTH,
     MITSUBA_VARIANT,
     bench_scene,
@@ -25,8 +28,6 @@ from trace_time_error import (
     mitsuba_render,
     write_results,
 )
-
-import icbtool as icb
 from icbtool.imageio import to_display
 from icbtool.trace import TraceConfig
 
@@ -64,6 +65,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--scenes", default="cornell_box,sponza")
     ap.add_argument("--ref-spp", default="cornell_box:1024,sponza:512")
+    add_out_argument(ap, "trace")
     args = ap.parse_args()
     load_mitsuba(MITSUBA_VARIANT)
     ref_spp = dict(kv.split(":") for kv in args.ref_spp.split(","))
@@ -88,7 +90,7 @@ def main() -> None:
                 f"share of squared error {ro['share_of_squared_error']:.2f} / "
                 f"{rm['share_of_squared_error']:.2f} (ours / Mitsuba)"
             )
-    write_results(out, "error_by_brightness.json")
+    write_results(out, "error_by_brightness.json", args.out)
 
 
 if __name__ == "__main__":

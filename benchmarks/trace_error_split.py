@@ -6,7 +6,7 @@ render for the reference's leaves only the other half's noise: RMSE and FLIP of 
 with the GI's noise alone and with the direct light's noise alone, next to the whole render's,
 mean over seeds. A sampling change aimed at one half can only move the metric that half carries.
 
-    .venv/bin/python benchmarks/trace_error_split.py [--scenes cornell_box,sponza] [--spps 4,16]
+    .venv/bin/python -m benchmarks.trace_error_split [--scenes cornell_box,sponza] [--spps 4,16]
 
 It reads the references trace_time_error.py cached (run that first, same size and reference spp).
 Writes benchmarks/results/trace/error_split.json.
@@ -18,9 +18,16 @@ import argparse
 
 import numpy as np
 from tqdm import tqdm
-from trace_time_error import MAX_DEPTH, bench_scene, cached_references, errors, write_results
 
 import icbtool as icb
+from benchmarks.common import add_out_argument
+from benchmarks.trace_time_error import (
+    MAX_DEPTH,
+    bench_scene,
+    cached_references,
+    errors,
+    write_results,
+)
 from icbtool.trace import TraceConfig
 
 
@@ -31,6 +38,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--scenes", default="cornell_box,sponza")
     ap.add_argument("--ref-spp", default="cornell_box:1024,sponza:512")
+    add_out_argument(ap, "trace")
     args = ap.parse_args()
     ref_spp = dict(kv.split(":") for kv in args.ref_spp.split(","))
     out = {"args": vars(args), "scenes": {}}
@@ -62,7 +70,7 @@ def main() -> None:
                 flush=True,
             )
         out["scenes"][name] = rows
-    write_results(out, "error_split.json")
+    write_results(out, "error_split.json", args.out)
 
 
 if __name__ == "__main__":

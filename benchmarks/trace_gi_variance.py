@@ -19,7 +19,7 @@ distributed under every sampler, so the variance per pixel is the estimator's ow
   camera ray and first hit from above (the default sampler stratifies a sample's branches
   against each other, so V(k) can fall faster than 1 / k).
 
-    .venv/bin/python benchmarks/trace_gi_variance.py [--size 256] [--seeds 32] \
+    .venv/bin/python -m benchmarks.trace_gi_variance [--size 256] [--seeds 32] \
         [--scenes cornell_box,sponza]
 
 Writes benchmarks/results/trace/gi_variance.{json,png} (the 1-minute load at start and end).
@@ -35,9 +35,10 @@ from dataclasses import replace
 
 import numpy as np
 from tqdm import tqdm
-from trace_time_error import MAX_DEPTH, OUT, bench_scene, write_results
 
 import icbtool as icb
+from benchmarks.common import add_out_argument
+from benchmarks.trace_time_error import MAX_DEPTH, bench_scene, write_results
 from icbtool.imageio import to_display
 from icbtool.trace import TraceConfig
 
@@ -165,9 +166,10 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=32)
     ap.add_argument("--scenes", default="cornell_box,sponza")
     ap.add_argument("--replot", action="store_true", help="redraw the PNG from the JSON only")
+    add_out_argument(ap, "trace")
     args = ap.parse_args()
     if args.replot:
-        plot(json.loads((OUT / "gi_variance.json").read_text()), OUT / "gi_variance.png")
+        plot(json.loads((args.out / "gi_variance.json").read_text()), args.out / "gi_variance.png")
         return
     if args.seeds < 2:
         ap.error("--seeds must be >= 2 (a variance across seeds)")
@@ -189,9 +191,9 @@ def main() -> None:
                 flush=True,
             )
     out["load_average_end"] = list(os.getloadavg())
-    write_results(out, "gi_variance.json")
-    plot(out, OUT / "gi_variance.png")
-    print(f"wrote {OUT / 'gi_variance.png'}")
+    write_results(out, "gi_variance.json", args.out)
+    plot(out, args.out / "gi_variance.png")
+    print(f"wrote {args.out / 'gi_variance.png'}")
 
 
 if __name__ == "__main__":

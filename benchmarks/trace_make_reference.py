@@ -3,7 +3,7 @@
 Writes tests/data/trace_cornell_ref.npz: per-pixel mean and variance-of-the-mean of the traced GI
 (and direct), plus the config used (as JSON), at 32x32 with many samples.
 
-    .venv/bin/python benchmarks/trace_make_reference.py [--spp 4096]
+    .venv/bin/python -m benchmarks.trace_make_reference [--spp 4096]
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 import icbtool as icb
-from icbtool.cli._common import run_info
+from benchmarks.common import run_info
 from icbtool.trace import TraceConfig
 
 REPO = Path(__file__).resolve().parents[1]

@@ -37,7 +37,7 @@ runs of each):
 - ``oidn_high`` / ``oidn_fast``: Open Image Denoise on the render's GI (only for denoised runs;
   its wall time on 2 threads, as the system uses it), when pyoidn is installed.
 
-    .venv/bin/python benchmarks/trace_profile.py [--size 256] [--spp 8] [--scenes cornell_box]
+    .venv/bin/python -m benchmarks.trace_profile [--size 256] [--spp 8] [--scenes cornell_box]
 
 Writes benchmarks/results/trace/profile.{json,png} (with the 1-minute load at start and end).
 """
@@ -47,7 +47,6 @@ from __future__ import annotations
 import argparse
 import ctypes
 import os
-import sys
 import time
 from dataclasses import replace
 from functools import partial
@@ -60,13 +59,12 @@ from numba import types
 from numba.extending import intrinsic
 
 import icbtool as icb
+from benchmarks.common import add_out_argument
+from benchmarks.trace_throughput import ray_log, sponza, write_profile_results
 from icbtool.trace import TraceConfig
 from icbtool.trace import kernels as K
 from icbtool.trace.rtc import RtcScene, _lib
 from icbtool.trace.tracer import TraceStats, _Tracer
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from trace_throughput import ray_log, sponza, write_profile_results  # noqa: E402  (a sibling benchmark script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -270,7 +268,7 @@ def mitsuba_cpu(scene, cam, spp: int, repeats: int) -> dict:
     """Mitsuba 3 ``llvm_ad_rgb`` on the same scene and spp (as trace_time_error.py converts it):
     the fastest of ``repeats`` renders in process CPU seconds (all its threads) and wall seconds
     (after one untimed render that fills its kernel cache); {"unavailable": why} without it."""
-    from trace_time_error import PeerMissingError, load_mitsuba, mitsuba_render
+    from benchmarks.trace_time_error import PeerMissingError, load_mitsuba, mitsuba_render
 
     try:
         load_mitsuba("llvm_ad_rgb")
@@ -342,7 +340,8 @@ def embree_variants(scene, rays: dict, repeats: int) -> dict:
                 out[f"{tag}_{q}_{kind}"] = 1e9 * cpu / len(rays[kind]["tfar"])
     try:
         import drjit as dr
-        from trace_time_error import PeerMissingError, load_mitsuba, to_mitsuba
+
+        from benchmarks.trace_time_error import PeerMissingError, load_mitsuba, to_mitsuba
 
         mi = load_mitsuba("llvm_ad_rgb")
     except (ImportError, PeerMissingError) as e:
@@ -605,7 +604,10 @@ def main() -> None:
         help="Embree robust mode (1/0; default: TraceConfig's)",
     )
     ap.add_argument("--out-name", default="profile")
+    add_out_argument(ap, "trace")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     load_start = os.getloadavg()
     cfg = TraceConfig(spp=args.spp, spp_per_pass=4, max_depth=8, seed=0, robust=bool(args.robust))
     rows = []

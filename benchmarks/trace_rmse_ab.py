@@ -7,7 +7,7 @@ renders each scene at a few spp with many seeds in each checkout (one process ea
 independent sampler, so it shares no sampler structure with what it measures), with the standard
 error of each mean.
 
-    .venv/bin/python benchmarks/trace_rmse_ab.py --a /tmp/before --b . [--seeds 12] [--size 128]
+    .venv/bin/python -m benchmarks.trace_rmse_ab --a /tmp/before --b . [--seeds 12] [--size 128]
 
 Writes benchmarks/results/trace/rmse_ab_<name>.json.
 """
@@ -22,9 +22,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from trace_ab import add_checkout_args
 
-from icbtool.cli._common import run_info, write_json
+from benchmarks.common import add_out_argument, run_info, write_json
+from benchmarks.trace_ab import add_checkout_args
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -89,7 +89,10 @@ def main() -> None:
     ap.add_argument("--ref-spp", type=int, default=2048)
     ap.add_argument("--robust", choices=("0", "1"), default="1", help="Embree robust in both")
     ap.add_argument("--name", default=None, help="results file rmse_ab_<name>.json")
+    add_out_argument(ap, "trace")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     os.environ.setdefault("ICBTOOL_SPONZA", str(REPO.parent / "shared" / "scenes" / "sponza"))
     ref = Path(f"/tmp/icb_rmse_ab_ref_{args.scene}_{args.size}_{args.ref_spp}.npy")
     if not ref.is_file():

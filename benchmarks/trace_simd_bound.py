@@ -30,7 +30,7 @@ frame, light and BSDF sampling) times (1 - 1 / speed-up) at the most favourable 
 the most this vectorisation could take off the render; the missed FLIP points of the Cornell box
 need 15-25 % (docs/benchmarks.md, time against error).
 
-    .venv/bin/python benchmarks/trace_simd_bound.py [--size 256] [--spp 8] [--scenes cornell_box] \
+    .venv/bin/python -m benchmarks.trace_simd_bound [--size 256] [--spp 8] [--scenes cornell_box] \
         [--batches 32,64,128,256]
 
 Writes benchmarks/results/trace/simd_bound.json (with the 1-minute load at start and end).
@@ -42,7 +42,6 @@ import argparse
 import json
 import math
 import os
-import sys
 import time
 from pathlib import Path
 
@@ -50,13 +49,12 @@ import numba as nb
 import numpy as np
 
 import icbtool as icb
+from benchmarks.common import add_out_argument
+from benchmarks.trace_throughput import ray_log, sponza, write_profile_results
 from icbtool.trace import TraceConfig
 from icbtool.trace import kernels as K
 from icbtool.trace.rtc import RtcScene
 from icbtool.trace.tracer import TraceStats, _Tracer
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from trace_throughput import ray_log, sponza, write_profile_results  # noqa: E402  (a sibling benchmark script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -509,7 +507,10 @@ def main() -> None:
     ap.add_argument("--scenes", default="cornell_box,sponza")
     ap.add_argument("--batches", default="32,64,128,256", help="paths per wavefront batch")
     ap.add_argument("--out-name", default="simd_bound")
+    add_out_argument(ap, "trace")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     load_start = os.getloadavg()
     cfg = TraceConfig(spp=args.spp, spp_per_pass=4, max_depth=8, seed=0)
     shares = profile_shares()

@@ -6,7 +6,7 @@ then replayed through Embree alone, two ways: embreex's batched ``scene.run`` (E
 threads) and the tracer's own direct Embree calls without shading (icbtool.trace.rtc, 2 threads).
 The difference between the tracer's time and the replay is the cost of our shading code.
 
-    .venv/bin/python benchmarks/trace_throughput.py [--size 256] [--spp 8]
+    .venv/bin/python -m benchmarks.trace_throughput [--size 256] [--spp 8]
 
 Writes benchmarks/results/trace/throughput.{json,png}.
 """
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 import icbtool as icb
-from icbtool.cli._common import run_info, write_json
+from benchmarks.common import add_out_argument, run_info, sponza, write_json
 from icbtool.scene.raycast import EmbreeScene
 from icbtool.trace import TraceConfig
 from icbtool.trace import kernels as K
@@ -38,11 +38,12 @@ OUT = REPO / "benchmarks" / "results" / "trace"
 def write_profile_results(
     out_name: str, cfg: TraceConfig, args: argparse.Namespace, load_start, rows: list, method: str
 ) -> tuple[Path, tuple[float, float, float]]:
-    """A per-scene study's results as ``benchmarks/results/trace/<out_name>.json``: its config,
+    """A per-scene study's results as ``<args.out>/<out_name>.json``: its config,
     arguments, method (the script's docstring), rows, the load averages at start and now, and
     this machine's run info. Returns the file and the load averages now."""
-    OUT.mkdir(parents=True, exist_ok=True)
-    path = OUT / f"{out_name}.json"
+    out_dir = Path(getattr(args, "out", OUT))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / f"{out_name}.json"
     load_end = os.getloadavg()
     write_json(
         path,
@@ -57,11 +58,6 @@ def write_profile_results(
         },
     )
     return path, load_end
-
-
-def sponza():
-    os.environ.setdefault("ICBTOOL_SPONZA", str(REPO.parent / "shared" / "scenes" / "sponza"))
-    return icb.scene.load(REPO / "data" / "scenes" / "sponza.toml")
 
 
 def ray_log(scene, cam, cfg, capacity: int) -> tuple[dict[str, np.ndarray], int]:
@@ -170,7 +166,10 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--spp", type=int, default=8)
     ap.add_argument("--sampler", default="sobol", choices=["sobol", "independent"])
+    add_out_argument(ap, "trace")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     load_start = os.getloadavg()
     cfg = TraceConfig(spp=args.spp, spp_per_pass=4, max_depth=8, seed=0, sampler=args.sampler)
     rows = []

@@ -6,7 +6,7 @@ Each renderer is measured against its own high-spp reference (ours against ours,
 Mitsuba: they differ slightly in conventions, e.g. shading normals); the RMSE between the two
 references is reported as `reference_gap`. Mitsuba cannot split DL/GI, so "full" is compared.
 
-    .venv/bin/python benchmarks/trace_time_error.py [--size 256] [--ref-spp 1024]
+    .venv/bin/python -m benchmarks.trace_time_error [--size 256] [--ref-spp 1024]
 
 Variants of ours: raw (default config: sobol sampler, Embree not robust, as Mitsuba builds its
 scenes, 8 extra emission samples on emitter and sky edges), raw_robust (Embree's robust,
@@ -29,7 +29,7 @@ run whose load at the start is 1 or more is marked ``"quiet": false`` in its res
 seconds for the load to drop below 1 before starting (a previous run's load decays in a minute or
 two). docs/benchmarks.md's numbers come from one run per scene, e.g.
 
-    .venv/bin/python benchmarks/trace_time_error.py --size 256 --scenes cornell_box \
+    .venv/bin/python -m benchmarks.trace_time_error --size 256 --scenes cornell_box \
         --out-name time_error_cornell_box --wait-quiet 120
 
 Besides the fastest runs, the target check of the raw curve is also computed from the per-round
@@ -54,14 +54,12 @@ import numpy as np
 from tqdm import tqdm
 
 import icbtool as icb
+from benchmarks.common import add_out_argument, bench_scene, run_info, write_json
+from benchmarks.trace_throughput import n_rays, record, replay_direct
 from icbtool._optional import require
-from icbtool.cli._common import run_info, write_json
 from icbtool.imageio import to_display
 from icbtool.trace import TraceConfig
 from icbtool.trace.rtc import RtcScene
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from trace_throughput import n_rays, record, replay_direct  # noqa: E402  (a sibling benchmark script)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -180,16 +178,6 @@ def errors(ref: np.ndarray, img: np.ndarray) -> dict:
     return {"rmse": rmse, "flip": float(flip)}
 
 
-def sponza():
-    os.environ.setdefault("ICBTOOL_SPONZA", str(REPO.parent / "shared" / "scenes" / "sponza"))
-    return icb.scene.load(REPO / "data" / "scenes" / "sponza.toml")
-
-
-def bench_scene(name: str):
-    """A benchmark scene by name: the built-in Cornell box, or Sponza (``$ICBTOOL_SPONZA``)."""
-    return icb.scene.cornell_box() if name == "cornell_box" else sponza()
-
-
 def reference_cache(name: str, size: int, ref_spp: int | str) -> Path:
     """Where this script caches a scene's high-spp references (ours and Mitsuba's)."""
     return REF_CACHE / f"{name}_{size}_{ref_spp}.npz"
@@ -204,12 +192,14 @@ def cached_references(name: str, size: int, ref_spp: int | str):
     return np.load(cache)
 
 
-def write_results(out: dict, file_name: str) -> None:
-    """``out`` with this machine's run info, as ``benchmarks/results/trace/<file_name>``."""
+def write_results(out: dict, file_name: str, out_dir: Path | None = None) -> None:
+    """``out`` with this machine's run info, as ``<out_dir>/<file_name>`` (default: this
+    script's ``--out``)."""
+    out_dir = Path(out_dir if out_dir is not None else OUT)
     out["run_info"] = run_info()
-    OUT.mkdir(parents=True, exist_ok=True)
-    write_json(OUT / file_name, out)
-    print(f"wrote {OUT / file_name}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_json(out_dir / file_name, out)
+    print(f"wrote {out_dir / file_name}")
 
 
 def machine_probe() -> dict:
@@ -523,7 +513,10 @@ def main() -> None:
         f"{QUIET_LOAD} before starting (0: start at once); the load at the start is recorded "
         "either way and decides the results file's 'quiet' flag",
     )
+    add_out_argument(ap, "trace")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     if args.restat:
         path = OUT / f"{args.out_name}.json"
         saved = json.loads(path.read_text())

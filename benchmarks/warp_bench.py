@@ -8,7 +8,7 @@ the first call apart, and speed ratios over kornia as ratio of medians and of mi
 spread over repeats is reported with the machine load before each). Writes
 benchmarks/results/warp/{warp_bench.json, warp_bench.png}.
 
-    .venv/bin/python benchmarks/warp_bench.py [--size 512] [--runs 30] [--repeats 3]
+    .venv/bin/python -m benchmarks.warp_bench [--size 512] [--runs 30] [--repeats 3]
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from benchmarks.common import add_out_argument, run_info, write_json
 from icbtool.camera import Camera
-from icbtool.cli._common import run_info, write_json
 
 OUT = Path(__file__).resolve().parent / "results" / "warp"
 
@@ -107,7 +107,10 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=30)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=1)
+    add_out_argument(ap, "warp")
     args = ap.parse_args()
+    global OUT
+    OUT = args.out
     torch.set_num_threads(args.threads)
     import kornia
 

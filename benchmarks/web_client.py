@@ -19,7 +19,7 @@ orders of magnitude faster at the raster and warp stages.
 
 Writes benchmarks/results/web/web_client.{json,csv,png}.
 
-    nice -n 10 .venv/bin/python benchmarks/web_client.py [--scene cornell_box] [--frames 8]
+    nice -n 10 .venv/bin/python -m benchmarks.web_client [--scene cornell_box] [--frames 8]
 """
 
 from __future__ import annotations
@@ -31,6 +31,8 @@ import statistics
 import tempfile
 from pathlib import Path
 from typing import Any
+
+from benchmarks.common import add_out_argument
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "web"
@@ -215,10 +217,10 @@ def main() -> None:
     from playwright.sync_api import sync_playwright
 
     from icbtool import system
-    from icbtool.cli._common import load_scene
     from icbtool.net import web
     from icbtool.net.server import Server, ServerConfig
     from icbtool.provenance import run_info, write_json
+    from icbtool.scene import load_scene
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", default="cornell_box")
@@ -227,7 +229,7 @@ def main() -> None:
     ap.add_argument("--rtts", default="0,50,200")
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=3, help="first-frame runs per setting (median)")
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "web")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,7 @@ only its test-path truth is read) and the runs (GAN and world-space radiance):
 
 Writes OUT/web_model.json and OUT/web_model.csv (default benchmarks/results/web/model).
 
-    nice -n 10 .venv/bin/python benchmarks/web_model.py --scene data/scenes/sponza.toml \\
+    nice -n 10 .venv/bin/python -m benchmarks.web_model --scene data/scenes/sponza.toml \\
         --store /work/stores/sponza128 --models RUN[,RUN...] --evaluate-missing
 """
 
@@ -40,6 +40,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from benchmarks.common import add_out_argument
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "web" / "model"
@@ -115,12 +117,12 @@ def main() -> None:
     from playwright.sync_api import sync_playwright
 
     from icbtool import metrics, raster, system
-    from icbtool.cli._common import load_scene
     from icbtool.net import web
     from icbtool.net.client import NetClientConfig, NetworkSource
     from icbtool.net.client_model import ServedModel
     from icbtool.net.server import Server, ServerConfig
     from icbtool.provenance import run_info, write_json
+    from icbtool.scene import load_scene
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", required=True)
@@ -130,7 +132,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=4, help="frames along the test path per size")
     ap.add_argument("--sizes", default="128,256")
     ap.add_argument("--repeats", type=int, default=5, help="Python generate timings (median)")
-    ap.add_argument("--out", default=str(OUT))
+    add_out_argument(ap, "web/model")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -13,13 +13,8 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 def bench_module(name: str) -> types.ModuleType:
-    """benchmarks/<name>.py as a module (its sibling imports resolved from benchmarks/)."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.syspath_prepend(str(REPO / "benchmarks"))
-        spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-    return mod
+    """``benchmarks.<name>``, imported as ``python -m benchmarks.<name>`` would."""
+    return importlib.import_module(f"benchmarks.{name}")
 
 
 @pytest.fixture(scope="module")

@@ -5,14 +5,12 @@ from __future__ import annotations
 
 import logging
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-from cornell_gltf import (  # noqa: E402
+import icbtool.scene as sc  # noqa: E402
+from benchmarks.cornell_gltf import (
     LIGHT_RADIANCE,
     LIGHT_X,
     LIGHT_Y,
@@ -21,8 +19,6 @@ from cornell_gltf import (  # noqa: E402
     cornell_camera_m,
     write_cornell_gltf,
 )
-
-import icbtool.scene as sc  # noqa: E402
 from icbtool.camera import Camera  # noqa: E402
 from icbtool.scene.emitters import light_faces, promote_emitters  # noqa: E402
 
