@@ -2010,6 +2010,72 @@ def block_net_scale(results: Path) -> str:
     )
 
 
+def _bytes(n: int) -> str:
+    """``12 B``, ``103 kB``, ``1.4 MB``."""
+    if n < 1000:
+        return f"{n} B"
+    return f"{n / 1e3:.0f} kB" if n < 1e6 else f"{n / 1e6:.1f} MB"
+
+
+def block_radiance_world(results: Path) -> str:
+    """World-space GI on Sponza (``benchmarks.radiance_world``, one file per training set)."""
+    runs = [
+        ("train", load("radiance/world_sponza128.json", results)),
+        ("train + cover", load("radiance/world_sponza128_cover.json", results)),
+    ]
+    names = {"hash grid": "hash grid", "probes": "probe volume", "albedo x k": "albedo x k"}
+    names["constant"] = "constant"
+    rows = []
+    for fitted, d in runs:
+        for key, label in names.items():
+            if key == "constant" and fitted != "train":
+                continue  # the constant is the same colour fitted on more pixels
+            if key in d["table"]:
+                rows.append((fitted, label, d["table"][key], d["speed"][key]["onnx_bytes"]))
+    best = {
+        (path, m): (min if m == "mse" or m == "flip" else max)(r[2][path][m] for r in rows)
+        for path in ("test", "walk")
+        for m in ("ssim", "mse", "flip")
+    }
+
+    def cell(e: dict, path: str) -> str:
+        fmt = {"ssim": "{:.3f}", "mse": "{:.0f}", "flip": "{:.3f}"}
+        return " / ".join(
+            bold(
+                fmt[m].format(e[path][m]), fmt[m].format(e[path][m]) == fmt[m].format(best[path, m])
+            )
+            for m in ("ssim", "mse", "flip")
+        )
+
+    c0, c1 = runs[0][1]["config"], runs[1][1]["config"]
+    views = {p: runs[0][1]["table"]["hash grid"][p]["views"] for p in ("test", "walk")}
+    grid_min = span([d["grid_train_s_total"] / 60 for _, d in runs], lambda x: f"{x:.1f}")
+    probe_s = span([d["probe_fit_s"] for _, d in runs])
+    loads = span([x for _, d in runs for x in (d["load_1min_before"], d["load_1min_after"])],
+                 lambda x: f"{x:.1f}")  # fmt: skip
+    lines = [
+        "Sponza 128x128 (`benchmarks.radiance_world`, results in `benchmarks/results/radiance/`): "
+        "mean SSIM / MSE (display scale 0-255) / FLIP (LDR) over all "
+        f"{views['test']} test-path views and all {views['walk']} held-out random-walk views; "
+        f"every method is fitted on the same train pixels ({runs[0][1]['train_records']} "
+        f'train-path views; "+ cover": {runs[1][1]["train_records"]} views, the train path plus '
+        "the views `benchmarks.gan_coverage` planned from the scene's geometry to see what the "
+        f"train path missed, never from test cameras). Hash grid: {c0['levels']} levels, "
+        f"2^{c0['log2_table']} entries, {c0['iterations']} iterations of {c0['batch_size']} pixels "
+        f"({grid_min} min of training); probe volume of resolution {c1['probe_resolution']} "
+        f"along the longest axis, L1 ({probe_s} s with reading the store); 1-minute load "
+        f"{loads}.",
+        "",
+        "| fitted on | method | test path: SSIM / MSE / FLIP | held-out walk: SSIM / MSE / FLIP "
+        "| ONNX bytes |",
+        "|---|---|---|---|---|",
+    ]
+    for fitted, label, e, nbytes in rows:
+        lines.append(f"| {fitted} | {label} | {cell(e, 'test')} | {cell(e, 'walk')} | "
+                     f"{_bytes(nbytes)} |")  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "intro": block_intro,
     "raster": block_raster,
@@ -2039,6 +2105,41 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "net": block_net,
     "web": block_web,
     "net-scale": block_net_scale,
+    "radiance-world": block_radiance_world,
+}
+
+
+#: The benchmark that owns each block: its module writes the results the block is made from,
+#: and the block names it (tests/test_benchmarks_page.py checks both).
+OWNERS: dict[str, str] = {
+    "raster": "raster_bench",
+    "trace-throughput": "trace_throughput",
+    "trace-time-error": "trace_time_error",
+    "trace-profile": "trace_profile",
+    "trace-speed": "trace_ab",
+    "denoise": "denoise_quality",
+    "store": "store_bench",
+    "warp": "warp_bench",
+    "prefetch": "prefetch_experiment",
+    "loop": "loop_demo",
+    "emitters": "emitter_split",
+    "mitsuba-xml": "mitsuba_xml_compare",
+    "envmap": "envmap_mitsuba",
+    "dl-accuracy": "raster_dl_accuracy",
+    "trace-refactor": "trace_ab",
+    "gan-figure7": "gan_figure7",
+    "gan-figure8": "gan_figure8",
+    "gan-time-error": "gan_time_error",
+    "gan-warped": "gan_warped",
+    "gan-spp": "gan_spp",
+    "gan-baselines": "gan_baselines",
+    "gan-ablation": "gan_ablation",
+    "gan-coverage": "gan_coverage",
+    "lpm": "lpm_levels",
+    "net": "net_latency",
+    "web": "web_client",
+    "net-scale": "net_scale",
+    "radiance-world": "radiance_world",
 }
 
 

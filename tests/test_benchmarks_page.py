@@ -94,3 +94,12 @@ def test_trace_time_error_claims_only_from_quiet_runs(tmp_path):
     quiet = cornell_block(True, 0.4)
     assert "not a quiet run" not in quiet and "quiet run: the RMSE target is met" in quiet
     assert "**0." in quiet  # the ratios <= 0.5 are bold (met)
+
+
+def test_every_block_has_an_owning_benchmark_that_it_names():
+    """Each table belongs to one benchmark module (intro aside): the module exists, runs as
+    ``python -m benchmarks.NAME`` and the block says which it is."""
+    assert set(rt.OWNERS) == set(rt.BLOCKS) - {"intro"}
+    for name, owner in rt.OWNERS.items():
+        assert (REPO / "benchmarks" / f"{owner}.py").is_file(), (name, owner)
+        assert f"benchmarks.{owner}" in rt.BLOCKS[name](rt.RESULTS), (name, owner)
