@@ -6,7 +6,7 @@ benchmarks. It lives with the scene, below the renderers, so that nothing under 
 ``camera`` imports ``trace``.
 
 embreex runs each ``scene.run`` call as a serial loop inside ``nogil``, so splitting a batch of rays
-over a few Python threads scales almost linearly with the cores (1.8-1.9x on 2 cores).
+over a few Python threads scales almost linearly with the cores.
 
 embreex has no ``tnear``: rays always start at t = 0. :meth:`EmbreeScene.intersect` emulates
 ``tnear`` by moving the origin along the direction and adding ``tnear`` back to the hit distance.

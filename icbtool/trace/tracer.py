@@ -122,9 +122,9 @@ class TraceConfig:
     denoise: bool = False
     """Denoise ``gi`` (and ``full``) with Open Image Denoise using the first-hit albedo/normal."""
     denoise_quality: DenoiseQuality = "high"
-    """OIDN's quality setting. 'fast' takes half the time at 256x256 on the CPU (60 vs 120 ms)
-    for about the same error (Cornell/Sponza at 4 spp: RMSE 0.0568/0.0320 vs 0.0568/0.0316,
-    FLIP 0.043/0.083 vs 0.044/0.080); 'balanced' gave the same images as 'high' here."""
+    """OIDN's quality setting. 'fast' takes about half the time of 'high' on the CPU for about
+    the same error; 'balanced' gave the same images as 'high' on the scenes measured
+    (docs/benchmarks.md, "Denoising")."""
     pixel_jitter: bool = True
     """Box-filter pixels by jittering primary rays; False samples pixel centres (like a raster)."""
     shading_normals: bool = True
@@ -134,12 +134,11 @@ class TraceConfig:
     threads: int = 2
     """Threads for Embree queries (results do not depend on it)."""
     robust: bool = False
-    """Embree's robust (watertight) traversal. Off by default, as in Mitsuba 3: it costs 20-45 %
-    of Embree's time per ray, and the rays a path tracer shoots hardly ever slip through an edge
-    without it (4 million random rays inside closed icospheres: 0 and 5 leaks, robust 0;
-    same-seed renders of the Cornell box and Sponza differ by 2e-7 and 2e-6 of their mean; see
-    docs/design.md, section 8). Turn it on for rays aimed exactly at shared edges or vertices:
-    about 10 % of those slip through without it, 0.1-0.2 % with it."""
+    """Embree's robust (watertight) traversal. Off by default, as in Mitsuba 3: it costs a
+    share of Embree's time per ray, and the rays a path tracer shoots hardly ever slip through
+    an edge without it (same-seed renders differ far inside the noise; docs/design.md, section
+    8, and `benchmarks.embree_robust`). Turn it on for rays aimed exactly at shared edges or
+    vertices, which slip through far more often without it."""
     aux: bool = True
     """Compute the first-hit albedo and normal buffers (forced on by ``denoise``)."""
     sky_sampling: Literal["auto", "mis", "bsdf"] = "auto"
@@ -148,8 +147,8 @@ class TraceConfig:
     'bsdf' relies on cosine BSDF sampling alone; 'auto' uses 'mis' only for a peaked sky (the
     brightest direction more than :data:`SKY_MIS_PEAK` times the sky's mean luminance). A smooth
     sky is found by cosine sampling as well as by a light sample, which would only add a shadow
-    ray per vertex: on Sponza's sky (peak 2.0) MIS cut the GI variance by 1 % for 1.3x the time;
-    on a 400:1 zenith/horizon sky (peak 3.0) by 47 % for 1.2x the time."""
+    ray per vertex for almost no less variance; on a strongly peaked sky MIS cuts the GI
+    variance by far more than it costs."""
     sampler: Literal["zsobol", "sobol", "independent"] = "zsobol"
     """Random numbers: 'zsobol' (Owen-scrambled Sobol pairs for the pixel area, BSDF and light
     dimensions, indexed in screen-space Z order so that neighbouring pixels share one stratified
@@ -166,8 +165,8 @@ class TraceConfig:
     edge_samples: int = 8
     """Extra camera rays per sample, for the emission seen directly only, on the pixels that an
     emitter's or the sky's edge crosses (0: none). A pixel half on a light is otherwise its
-    worst: one sample sees the light or not, and those few pixels held about 90 % of the Cornell
-    box's squared error at 2 spp. The pixels are found once per render, before any sample, by
+    worst: one sample sees the light or not, and at a few spp those few pixels hold most of
+    the image's squared error. The pixels are found once per render, before any sample, by
     comparing the emission seen through each pixel's four corners (deterministic, so the
     estimate stays unbiased); their emission term becomes the mean over this sample's own
     camera ray and the extras, which cost a closest hit each and no shading (docs/design.md,
@@ -1049,8 +1048,8 @@ class _Workspace:
     ) -> tuple[np.ndarray, np.ndarray]:
         """(pix, sid) of a pass that gives each pixel of ``active`` (sorted) its samples
         ``first .. first + k - 1``, pixel by pixel. A pass over the whole image keeps its pixel
-        indices and in-pixel offsets here, built once per (image size, k): building them took
-        5-10 ms a pass at 256^2, 4 spp (numpy repeats and page faults)."""
+        indices and in-pixel offsets here, built once per (image size, k): building them every
+        pass (numpy repeats and page faults) was a measurable share of a low-spp render."""
 
         def layout(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             """Each pixel k times, and the in-pixel offsets 0 .. k - 1 beside them."""
@@ -1172,9 +1171,7 @@ def _output_buffers(H: int, W: int, want_aux: bool) -> tuple[np.ndarray, ...]:
     """A render's float32 outputs: gi, direct, full, variance (H, W, 3), mask (H, W, 1) and,
     with ``want_aux``, albedo and normal (H, W, 3) (else None), as views of one block. One
     allocation of 4 MiB or more gets huge pages from numpy, so writing it first costs few page
-    faults: at 256^2, 0.2 ms against 3.3 ms for six fresh buffers. Where the allocator hands
-    back pages a previous render freed, the gain is smaller: 2 % of a 1-spp render in a paired
-    A/B (docs/benchmarks.md, tracer speed changes)."""
+    faults (the paired A/B: docs/benchmarks.md, tracer speed changes)."""
     npix = H * W
     n3 = 6 if want_aux else 4
     block = np.empty(npix * (3 * n3 + 1), np.float32)
