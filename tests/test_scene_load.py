@@ -677,6 +677,7 @@ def test_cli_render_bare_mesh_is_not_black(tmp_path):
             "32",
             "--buffers",
             "dl",
+            "--default-light",
         ]
     )
     assert rc == 0
@@ -685,6 +686,18 @@ def test_cli_render_bare_mesh_is_not_black(tmp_path):
     mask = read_exr(out / "mask.exr") > 0
     assert mask.shape == (32, 32) and mask.mean() > 0.1  # the framed mesh is in view
     assert np.median(dl[mask].max(-1)) > 0.05  # lit by the default sun
+
+
+@pytest.mark.parametrize("command", ["trace", "render", "lpm"])
+def test_cli_unlit_scene_needs_default_light(tmp_path, command, capsys):
+    """Without --default-light, a scene with no light is an error naming the option (no
+    silent substitution of a light the file does not have)."""
+    from icbtool.cli import main
+
+    rc = main([command, str(_bare_mesh(tmp_path)), "--out", str(tmp_path / "o")])
+    assert rc != 0
+    err = capsys.readouterr().err
+    assert "bare.obj: the scene has no light" in err and "--default-light" in err
 
 
 def test_cli_trace_bare_mesh_is_not_black(tmp_path):
@@ -704,6 +717,7 @@ def test_cli_trace_bare_mesh_is_not_black(tmp_path):
             "2",
             "--threads",
             "1",
+            "--default-light",
         ]
     )
     assert rc == 0

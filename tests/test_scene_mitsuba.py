@@ -792,6 +792,34 @@ def test_a_second_bsdf_in_a_shape_is_an_error(tmp_path):
         load(tmp_path / "s.xml")
 
 
+def test_unrenderable_only_light_fails_unless_default_light_is_asked(tmp_path, capsys):
+    """A scene lit only by emitters icbtool cannot render (here sunsky and sun) is an error
+    naming each with its line, on load and on the command line; ``default_light=True``
+    (``--default-light``) replaces them by the default sun and sky, with a warning naming them.
+    Beside a light icbtool renders, they are skipped with a warning (nothing substituted)."""
+    from icbtool.cli import main
+
+    text = (
+        '<scene version="3.0.0">\n<shape type="cube"/>\n<emitter type="sunsky"/>\n'
+        '<emitter type="sun"/>\n</scene>'
+    )
+    (tmp_path / "s.xml").write_text(text)
+    with pytest.raises(SceneError, match=r"<emitter sunsky> \(.*s.xml:3\), <emitter sun> "):
+        load(tmp_path / "s.xml")
+    rc = main(["trace", str(tmp_path / "s.xml"), "--out", str(tmp_path / "o")])
+    assert rc != 0 and "--default-light" in capsys.readouterr().err
+    s, msgs, _ = _load(tmp_path / "s.xml", default_light=True)
+    assert [lt.name for lt in s.lights] == ["default_sun"] and s.sky is not None
+    assert any("s.xml:3), <emitter sun>" in x and "replaced by" in x for x in msgs)
+    (tmp_path / "lit.xml").write_text(text.replace('<emitter type="sun"/>', _POINT))
+    s, msgs, _ = _load(tmp_path / "lit.xml")
+    assert [lt.kind for lt in s.lights] == ["point"] and s.sky is None
+    assert any("lit.xml:3: <emitter sunsky> emitter type is not supported" in x for x in msgs)
+
+
+_POINT = '<emitter type="point"><point name="position" value="0, 3, 0"/></emitter>'
+
+
 def test_fixture_shapes_equal_mitsubas_own_parse(tmp_path):
     """Each shape's bounding box and area as Mitsuba itself reads the fixture."""
     import re
@@ -937,6 +965,116 @@ def test_serialized_shapes(tmp_path, version):
     theirs = mi.load_file(str(tmp_path / "s.xml"))
     assert sum(sh.surface_area() for sh in theirs.shapes()) == pytest.approx(3.0)
     np.testing.assert_allclose(np.array(theirs.bbox().max), s.bounds[1], atol=1e-6)
+
+
+def test_loud_failures_name_the_file_and_line(tmp_path, capsys):
+    """A missing texture, a truncated .serialized or .ply and a scene with nothing icbtool can
+    render are one-line errors naming the file (and the element's line), never a default
+    material, a traceback or an exit code of 0."""
+    from icbtool.cli import main
+
+    def scene(body: str) -> Path:
+        (tmp_path / "s.xml").write_text(f'<scene version="3.0.0">\n{body}\n</scene>')
+        return tmp_path / "s.xml"
+
+    tex = (
+        '<shape type="cube"><bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
+        '<string name="filename" value="gone.png"/></texture></bsdf></shape>'
+    )
+    with pytest.raises(FileNotFoundError, match=r"s.xml:2: texture file not found: .*gone.png"):
+        load(scene(tex))
+    (tmp_path / "bad.png").write_bytes(b"not an image")
+    with pytest.raises(SceneError, match=r"s.xml:2: texture .*bad.png is not a readable image"):
+        load(scene(tex.replace("gone.png", "bad.png")))
+    tri = (np.eye(3), np.array([[0, 1, 2]]), None, None)
+    _write_serialized(tmp_path / "m.serialized", [tri, tri])
+    data = (tmp_path / "m.serialized").read_bytes()
+    for cut in (len(data) // 2, len(data) - 3):
+        (tmp_path / "m.serialized").write_bytes(data[:cut])
+        body = '<shape type="serialized"><string name="filename" value="m.serialized"/></shape>'
+        with pytest.raises(SceneError, match=r"s.xml:2: .*m.serialized: truncated or corrupt"):
+            load(scene(body))
+    ply = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+    ply += "property float z\nelement face 2\nproperty list uchar int vertex_indices\n"
+    (tmp_path / "t.ply").write_text(ply + "end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    body = '<shape type="ply"><string name="filename" value="t.ply"/></shape>'
+    with pytest.raises(SceneError, match=r"s.xml:2: <shape ply>: .*t.ply: truncated or corrupt"):
+        load(scene(body))
+    rc = main(["trace", str(scene('<shape type="bsplinecurve"/>')), "--out", str(tmp_path / "o")])
+    assert rc != 0
+    assert "s.xml: the scene has no shape icbtool can read" in capsys.readouterr().err
+
+
+_INSTANCES = """<scene version="3.0.0">
+  <shape type="rectangle"><transform name="to_world"><scale value="6"/>
+    <rotate x="1" angle="-90"/></transform>
+    <bsdf type="diffuse" id="floor"/></shape>
+  <shape type="shapegroup" id="chair">
+    <shape type="cube"><transform name="to_world"><scale x="0.5" y="0.1" z="0.5"/>
+      <translate y="0.6"/></transform><bsdf type="diffuse" id="seat"/></shape>
+    <shape type="obj"><string name="filename" value="leg.obj"/>
+      <transform name="to_world"><translate x="0.7" z="0.7"/></transform>
+      <bsdf type="diffuse" id="leg"><rgb name="reflectance" value="0.2, 0.1, 0.05"/></bsdf>
+    </shape>
+  </shape>
+  <shape type="instance"><ref id="chair"/></shape>
+  <shape type="instance"><ref name="shapegroup" id="chair"/>
+    <transform name="to_world"><rotate y="1" angle="30"/><scale value="1.5"/>
+      <translate x="3" z="-1"/></transform></shape>
+  <shape type="instance"><ref id="chair"/>
+    <transform name="to_world"><translate x="-3" z="1"/></transform></shape>
+</scene>
+"""
+
+
+def test_instances_render_whole_as_in_mitsuba(tmp_path):
+    """A floor and three instances of a two-shape group (each shape with its own to_world,
+    each instance with another): icbtool's flattened copies are hit where Mitsuba's instances
+    are (a 48 x 48 grid of rays from above at an angle, same distances), and every shape keeps
+    its own material."""
+    from icbtool.scene.raycast import EmbreeScene
+
+    mi = _mitsuba()
+    (tmp_path / "leg.obj").write_text(
+        "v -0.15 0 -0.15\nv 0.15 0 -0.15\nv 0.15 0 0.15\nv -0.15 0 0.15\n"
+        "v -0.15 0.6 -0.15\nv 0.15 0.6 -0.15\nv 0.15 0.6 0.15\nv -0.15 0.6 0.15\n"
+        "f 1 2 6 5\nf 2 3 7 6\nf 3 4 8 7\nf 4 1 5 8\n"
+    )
+    (tmp_path / "s.xml").write_text(_INSTANCES)
+    ours = read_mitsuba(tmp_path / "s.xml")
+    assert ours.shapes == 1 + 3 * 2
+    assert ours.scene.n_triangles == 2 + 3 * (12 + 8)
+    theirs = mi.load_file(str(tmp_path / "s.xml"))
+    g = (np.arange(48) + 0.5) / 48 * 10 - 5
+    x, z = np.meshgrid(g, g)
+    origins = np.column_stack([x.ravel(), np.full(x.size, 8.0), z.ravel()])
+    d = np.array([0.3, -1.0, 0.2]) / np.linalg.norm([0.3, -1.0, 0.2])
+    hits = EmbreeScene.from_scene(ours.scene).intersect(origins, np.tile(d, (len(origins), 1)))
+    names = [m.name for m in ours.scene.materials]
+    seen = set()
+    for i, o in enumerate(origins):
+        si = theirs.ray_intersect(mi.Ray3f(mi.ScalarPoint3f(o), mi.ScalarVector3f(d)))
+        assert bool(si.is_valid()) == bool(hits.hit[i]), i
+        if hits.hit[i]:
+            assert float(hits.t[i]) == pytest.approx(float(si.t), abs=1e-4), i
+            seen.add(names[ours.scene.face_material[hits.prim[i]]])
+    assert seen == {"floor", "seat", "leg"}
+
+
+def test_nested_instancing_is_refused_as_in_mitsuba(tmp_path):
+    (tmp_path / "s.xml").write_text(
+        '<scene version="3.0.0">\n<shape type="shapegroup" id="a"><shape type="cube"/></shape>\n'
+        '<shape type="shapegroup" id="b">\n<shape type="instance"><ref id="a"/></shape>'
+        '</shape>\n<shape type="instance"><ref id="b"/></shape>\n</scene>'
+    )
+    with pytest.raises(SceneError, match=r"s.xml:4: <shape instance> inside the shapegroup at"):
+        load(tmp_path / "s.xml")
+    (tmp_path / "s.xml").write_text(
+        '<scene version="3.0.0"><shape type="shapegroup" id="a"><shape type="cube"/></shape>'
+        "</scene>"
+    )  # a group nothing instances: nothing to render
+    with pytest.raises(SceneError, match=r"no shape icbtool can read"):
+        load(tmp_path / "s.xml")
 
 
 def test_diffuse_twin_renders_what_icbtool_renders(tmp_path):

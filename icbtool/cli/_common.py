@@ -336,12 +336,27 @@ def add_up_axis_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
-def load_scene(spec: str, up_axis: str | None = None, default_light: bool = False) -> Any:
+def add_default_light_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--default-light",
+        action="store_true",
+        help="light a scene that has no light icbtool can render with icbtool's default sun "
+        "and gradient sky (icbtool.scene.with_default_light); without it such a scene is an "
+        "error naming what is missing",
+    )
+
+
+def load_scene(
+    spec: str,
+    up_axis: str | None = None,
+    default_light: bool = False,
+    require_light: bool = False,
+) -> Any:
     """:func:`icbtool.scene.load_scene`, imported when called: ``icbtool --help`` imports every
     command's module, and ``icbtool.scene`` takes about a second to import."""
     from icbtool.scene.select import load_scene
 
-    return load_scene(spec, up_axis, default_light)
+    return load_scene(spec, up_axis, default_light, require_light)
 
 
 def select_cameras(scene: Any, spec: str, *args: Any, **kwargs: Any) -> list[tuple[str, Any]]:
@@ -372,6 +387,7 @@ __all__ = [
     "positive_float",
     "positive_int",
     "add_up_axis_argument",
+    "add_default_light_argument",
     "load_scene",
     "run_info",
     "scene_spec",

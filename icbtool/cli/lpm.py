@@ -11,6 +11,7 @@ import time
 from icbtool.cli._common import (
     UsageError,
     add_command,
+    add_default_light_argument,
     add_out_argument,
     add_scene_argument,
     add_up_axis_argument,
@@ -41,6 +42,7 @@ def _options(p: argparse.ArgumentParser) -> None:
     add_out_argument(p)
     p.add_argument("--chunks", action="store_true", help="also write every chunk to OUT/chunks")
     add_up_axis_argument(p)
+    add_default_light_argument(p)
     lpm = add_config(p, LPMConfig)
     ev = add_config(
         p,
@@ -77,7 +79,9 @@ def run(args: argparse.Namespace) -> int:
     cfg = args.lpm_options.call(lambda **kw: lpm.LPMConfig(**kw), args, **given)
     ecfg = args.eval_options.build(args)
     out = check_out_dir(args.out)  # before any work
-    scene = load_scene(args.scene, args.up_axis, default_light=True)
+    scene = load_scene(
+        args.scene, args.up_axis, default_light=args.default_light, require_light=True
+    )
     t0 = time.perf_counter()
     built = lpm.build(scene, cfg, progress=sys.stderr.isatty())
     build_s = time.perf_counter() - t0

@@ -10,6 +10,7 @@ import numpy as np
 
 from icbtool.cli._common import (
     add_command,
+    add_default_light_argument,
     add_out_argument,
     add_scene_argument,
     add_size_arguments,
@@ -69,6 +70,7 @@ def _options(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     add_up_axis_argument(p)
     add_time_argument(p)
+    add_default_light_argument(p)
     raster = add_config(
         p,
         RasterConfig,
@@ -91,7 +93,9 @@ def run(args: argparse.Namespace) -> int:
     from icbtool.imageio import preview, write_exr, write_png
 
     names = raster.check_buffers(args.buffers)
-    scene = load_scene(args.scene, args.up_axis, default_light=True).at(args.time)
+    scene = load_scene(
+        args.scene, args.up_axis, default_light=args.default_light, require_light=True
+    ).at(args.time)
     spec = args.camera
     cams = [
         c for _, c in select_cameras(scene, spec, args.every, args.height, args.width, args.fov)

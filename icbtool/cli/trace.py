@@ -9,6 +9,7 @@ from dataclasses import asdict, replace
 from icbtool._optional import require
 from icbtool.cli._common import (
     add_command,
+    add_default_light_argument,
     add_out_argument,
     add_scene_argument,
     add_size_arguments,
@@ -60,6 +61,7 @@ def _options(p: argparse.ArgumentParser) -> None:
     add_size_arguments(p)
     add_up_axis_argument(p)
     add_time_argument(p)
+    add_default_light_argument(p)
     trace = add_config(
         p,
         TraceConfig,
@@ -92,7 +94,9 @@ def run(args: argparse.Namespace) -> int:
     from icbtool.trace import render
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    scene = load_scene(args.scene, args.up_axis, default_light=True).at(args.time)
+    scene = load_scene(
+        args.scene, args.up_axis, default_light=args.default_light, require_light=True
+    ).at(args.time)
     if depth is None and scene.max_depth is not None:
         cfg = replace(cfg, max_depth=scene.max_depth)
     cams = select_cameras(scene, args.camera, args.every, args.height, args.width)

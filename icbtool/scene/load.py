@@ -49,7 +49,7 @@ log = logging.getLogger(__name__)
 #: Scene fields that may be given to :func:`load` for a bare mesh.
 SCENE_FIELDS = ("lights", "sky", "paths", "default_camera")
 #: Options of :func:`load` itself (for meshes and descriptions alike).
-LOAD_OPTIONS = ("emitter_budget", "progress")
+LOAD_OPTIONS = ("emitter_budget", "progress", "default_light")
 
 
 def load(
@@ -57,6 +57,7 @@ def load(
     *,
     emitter_budget: int = DEFAULT_EMITTER_BUDGET,
     progress: bool = False,
+    default_light: bool = False,
     **overrides: Any,
 ) -> Scene:
     """Load a scene description (.toml), a Mitsuba 3 scene (.xml) or a bare mesh file (.obj,
@@ -75,6 +76,9 @@ def load(
             :data:`~icbtool.scene.emitters.DEFAULT_EMITTER_BUDGET` (64).
         progress: show a tqdm bar (stderr) over a Mitsuba file's shapes as they load (other
             files load as one step).
+        default_light: light a scene that has no light with :func:`with_default_light` (a
+            warning says so). Without it an unlit scene loads unlit, except a Mitsuba file whose
+            only emitters icbtool cannot render (``sunsky``...): that is an error naming them.
         **overrides: for a mesh, any of ``name``, ``scale``, ``up_axis``, ``translation``,
             ``textures`` (see :func:`load_mesh`) and the Scene fields ``lights``, ``sky``,
             ``paths``, ``default_camera``. For a description, the same keys replace the
@@ -88,7 +92,9 @@ def load(
 
     Raises:
         FileNotFoundError: missing file (or missing mesh named by a description).
-        SceneError: unknown file type, unusable content, bad description (message names the file).
+        SceneError: unknown file type, unusable content, bad description (message names the
+            file); a Mitsuba file whose only emitters cannot be rendered, without
+            ``default_light``.
         TypeError: an unknown override.
     """
     p = check_file(path, MESH_SUFFIXES + DESCRIPTION_SUFFIXES + MITSUBA_SUFFIXES)
@@ -100,10 +106,10 @@ def load(
         raise SceneError(f"{p}: emitter_budget must be an integer >= 0, got {emitter_budget!r}")
     if p.suffix.lower() in DESCRIPTION_SUFFIXES:
         scene = read_description(p).build(**overrides)
-        return promote_emitters(scene, int(emitter_budget))
+        return _lit(promote_emitters(scene, int(emitter_budget)), default_light)
     if p.suffix.lower() in MITSUBA_SUFFIXES:
-        scene = load_mitsuba(p, progress=progress, **overrides)
-        return promote_emitters(scene, int(emitter_budget))
+        scene = load_mitsuba(p, progress=progress, default_light=default_light, **overrides)
+        return _lit(promote_emitters(scene, int(emitter_budget)), default_light)
     unknown = set(overrides) - set(MESH_OPTIONS) - set(SCENE_FIELDS)
     if unknown:
         raise TypeError(
@@ -113,7 +119,11 @@ def load(
     mesh_kw = {k: v for k, v in overrides.items() if k in MESH_OPTIONS}
     scene = load_mesh(p, **mesh_kw)
     scene = dataclasses.replace(scene, **{k: overrides[k] for k in SCENE_FIELDS if k in overrides})
-    return promote_emitters(scene, int(emitter_budget))
+    return _lit(promote_emitters(scene, int(emitter_budget)), default_light)
+
+
+def _lit(scene: Scene, default_light: bool) -> Scene:
+    return with_default_light(scene) if default_light else scene
 
 
 #: Irradiance (W/m^2, white) of the default sun of :func:`with_default_light`.

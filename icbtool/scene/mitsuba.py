@@ -92,6 +92,7 @@ from icbtool.scene.types import (
 from icbtool.scene.validate import (
     MITSUBA_SUFFIXES,
     SceneError,
+    SceneRepairWarning,
     check_arrays,
     check_file,
     repair_warning,
@@ -315,12 +316,14 @@ class MitsubaScene:
         shapes: number of shapes read (skipped ones not counted).
         skipped: ``"<element> (file:line)"`` of everything skipped with a warning.
         params: the resolved ``$`` parameters.
+        dropped_lights: ``"<emitter kind> (file:line)"`` of the emitters icbtool cannot render.
     """
 
     scene: Scene
     shapes: int
     skipped: list[str]
     params: dict[str, str]
+    dropped_lights: list[str] = field(default_factory=list)
 
 
 # --------------------------------------------------------------------------- reader
@@ -337,6 +340,7 @@ class _Values:
         self.ids: dict[str, _Node] = {}
         self.via: dict[int, _Node] = {}  # id(object) -> the <ref> that last reached it
         self.skipped: list[str] = []
+        self.dropped_lights: list[str] = []  # "<emitter kind> (file:line)" of emitters not read
         self.materials: list[Material] = []
         self.mat_keys: dict[Any, int] = {}
         self.bsdfs: dict[int, _Bsdf] = {}
@@ -350,6 +354,8 @@ class _Values:
         self.cam_up: np.ndarray | None = None
         self.max_depth: int | None = None
         self.n_shapes = 0
+        self.n_instances = 0
+        self.geo_cache: dict[int, tuple | None] = {}  # id(shape node) -> its geometry
         self.version = (3, 0, 0)
         self.progress = False  # a tqdm bar over the shapes while they load
 
@@ -707,11 +713,9 @@ class _Materials(_Values):
         key = f"{path}|{raw}"
         if key not in self.tex_cache:
             tex = None
-            if not self.textures:
-                pass
-            elif not path.is_file():
-                repair_warning(node.where, f"texture file {path} not found: mean grey 0.5 used")
-            else:
+            if not path.is_file():
+                raise FileNotFoundError(f"{self.where(node)}: texture file not found: {path}")
+            if self.textures:
                 try:
                     from PIL import Image
 
@@ -723,7 +727,9 @@ class _Materials(_Values):
 
                             tex = decode_texture(im)
                 except Exception as e:  # noqa: BLE001 - any decoder failure = unreadable image
-                    repair_warning(node.where, f"texture {path} unreadable ({e}): 0.5 grey used")
+                    raise SceneError(
+                        f"{self.where(node)}: texture {path} is not a readable image ({e})"
+                    ) from None
             self.tex_cache[key] = tex
         return self.tex_cache[key]
 
@@ -1016,8 +1022,16 @@ class _Materials(_Values):
 class _Reader(_Materials):
     """Shapes, emitters, the sensor and the integrator, assembled into one Scene."""
 
-    def shape(self, node: _Node) -> None:
+    def shape(self, node: _Node, parent: np.ndarray | None = None) -> None:
+        """Read one shape into ``self.parts`` (``parent``: the to_world of the instance that
+        places it, for the shapes of a shapegroup)."""
         kind = node.attrs.get("type", "")
+        if kind == "shapegroup":
+            self.check_group(node)  # rendered only through its instances
+            return
+        if kind == "instance":
+            self.instance(node, parent)
+            return
         props = self.props(node)
         for tag in ("bsdf", "emitter"):
             given = [c for c in node.children if self.deref(c).tag == tag]
@@ -1027,7 +1041,16 @@ class _Reader(_Materials):
                     f"<{tag}> (Mitsuba allows one per shape)"
                 )
         to_world = self.transform(props.get("to_world"))
-        geo = self.geometry(node, kind, props)
+        if parent is not None:
+            to_world = parent @ to_world
+        if parent is None:
+            geo = self.geometry(node, kind, props)
+        else:  # a shapegroup's shape is read once for all its instances
+            if id(node) not in self.geo_cache:
+                self.geo_cache[id(node)] = self.geometry(node, kind, props)
+            else:  # warned about at its first instance
+                props.used.update(props)
+            geo = self.geo_cache[id(node)]
         if geo is None:
             return
         v, f, n, uv = geo
@@ -1055,6 +1078,7 @@ class _Reader(_Materials):
         em = props.get("emitter")
         if em is not None:
             if em.attrs.get("type") != "area":
+                self.dropped_lights.append(f"{em.describe()} ({self.where(em)})")
                 self.skip(em, "inside a shape must be an area emitter")
             else:
                 ep = self.props(em)
@@ -1066,6 +1090,45 @@ class _Reader(_Materials):
         self.finish(node, props)
         self.parts.append(_Part(v, f, n, uv, mat))
         self.n_shapes += 1
+
+    def check_group(self, node: _Node) -> list[_Node]:
+        """The shapes of a ``<shape type="shapegroup">``; what Mitsuba refuses in one (a nested
+        group or instance, an emitter) is an error naming its line."""
+        shapes = []
+        for c in node.children:
+            t = self.deref(c)
+            if t.tag != "shape":
+                if t.tag not in _PROPERTY_TAGS:
+                    self.skip(t, "in a shapegroup is not a shape")
+                continue
+            kind = t.attrs.get("type")
+            if kind in ("shapegroup", "instance"):
+                raise SceneError(
+                    f"{c.where}: <shape {kind}> inside the shapegroup at {node.where}: nested "
+                    "instancing is not permitted (Mitsuba refuses it too)"
+                )
+            if any(self.deref(e).tag == "emitter" for e in t.children):
+                raise SceneError(
+                    f"{c.where}: a shape with an emitter inside the shapegroup at {node.where}: "
+                    "instancing of emitters is not supported (Mitsuba refuses it too)"
+                )
+            shapes.append(t)
+        return shapes
+
+    def instance(self, node: _Node, parent: np.ndarray | None) -> None:
+        """``<shape type="instance">``: a copy of every shape of the referenced shapegroup,
+        moved by the instance's ``to_world`` (the copies are flattened into the mesh)."""
+        if parent is not None:
+            raise SceneError(f"{node.where}: nested instancing is not permitted")
+        props = self.props(node)
+        group = props.get("shape") or props.get("shapegroup")
+        if group is None or group.attrs.get("type") != "shapegroup":
+            raise SceneError(f"{node.where}: an instance needs a <ref> to a shapegroup")
+        to_world = self.transform(props.get("to_world"))
+        self.finish(node, props)
+        for s in self.check_group(group):
+            self.shape(s, to_world)
+        self.n_instances += 1
 
     def geometry(self, node: _Node, kind: str, props: dict) -> tuple | None:
         """(vertices, faces, normals (NaN rows: compute), uvs | None) in the shape's space."""
@@ -1086,7 +1149,10 @@ class _Reader(_Materials):
                 return mesh.vertices, mesh.faces, n, uv
             from icbtool.scene.mesh import load_mesh
 
-            m = load_mesh(p, up_axis="y", textures=False)
+            try:
+                m = load_mesh(p, up_axis="y", textures=False)
+            except SceneError as e:
+                raise SceneError(f"{node.where}: {node.describe()}: {e}") from None
             uv = None if m.uvs is None else np.column_stack([m.uvs[:, 0], 1.0 - m.uvs[:, 1]])
             return (
                 m.vertices.astype(float),
@@ -1133,6 +1199,7 @@ class _Reader(_Materials):
         name = node.attrs.get("id") or f"{kind}@{node.line}"
         m = self.transform(props.get("to_world"))
         if kind not in ("area", "point", "spot", "directional", "constant", "envmap"):
+            self.dropped_lights.append(f"{node.describe()} ({self.where(node)})")
             self.skip(node, "emitter type is not supported")
             return
         try:
@@ -1447,11 +1514,18 @@ def read_serialized(path: Path, index: int = 0, where: str | None = None) -> tup
     if version not in (3, 4):
         raise SceneError(f"{who}: serialized format version {version} is not supported (3, 4)")
     count = struct.unpack_from("<I", data, len(data) - 4)[0]
-    if not 0 <= index < count:
-        raise SceneError(f"{who}: shape_index {index} out of range: the file has {count} shapes")
     width = 8 if version == 4 else 4
     table = len(data) - 4 - width * count
+    if table < 4:
+        raise SceneError(
+            f"{who}: truncated or corrupt serialized file ({len(data)} bytes cannot hold the "
+            f"{count} shapes its last 4 bytes declare)"
+        )
+    if not 0 <= index < count:
+        raise SceneError(f"{who}: shape_index {index} out of range: the file has {count} shapes")
     (offset,) = struct.unpack_from("<Q" if width == 8 else "<I", data, table + width * index)
+    if not 0 <= offset < table:
+        raise SceneError(f"{who}: truncated or corrupt serialized file (shape {index} offset)")
     try:
         raw = zlib.decompressobj().decompress(data[offset + 4 : table])
         pos = 0
@@ -1673,15 +1747,23 @@ def read_mitsuba(
         "yes" if scene.default_camera is not None else "no",
         scene.max_depth,
     )
-    return MitsubaScene(scene, reader.n_shapes, reader.skipped, dict(reader.params))
+    return MitsubaScene(
+        scene, reader.n_shapes, reader.skipped, dict(reader.params), reader.dropped_lights
+    )
 
 
-def load_mitsuba(path: str | os.PathLike, **overrides: Any) -> Scene:
+def load_mitsuba(
+    path: str | os.PathLike, *, default_light: bool = False, **overrides: Any
+) -> Scene:
     """A Mitsuba scene file as a Scene (emissive faces not yet promoted; see
     :func:`icbtool.scene.load`, which does that).
 
     Args:
         path: the .xml file.
+        default_light: when every emitter of the file is one icbtool cannot render (``sunsky``,
+            ``sun``, ``sky``...), return the unlit scene with a warning naming what the default
+            sun and sky replace (:func:`icbtool.scene.load` then adds them with
+            :func:`icbtool.scene.with_default_light`) instead of failing.
         **overrides: ``params`` (dict of ``$`` parameters), ``textures`` (bool), ``progress``
             (bool: a bar over the shapes), ``name`` and the Scene fields ``lights``, ``sky``,
             ``paths``, ``default_camera``, ``max_depth``.
@@ -1689,6 +1771,8 @@ def load_mitsuba(path: str | os.PathLike, **overrides: Any) -> Scene:
     Raises:
         TypeError: an unknown override.
         FileNotFoundError, SceneError: as :func:`read_mitsuba`.
+        SceneError: the file's only emitters cannot be rendered and ``default_light`` is False
+            (the message names each emitter and its line).
     """
     allowed = {"params", "textures", "name", "lights", "sky", "paths", "default_camera"}
     allowed.update(("max_depth", "progress"))
@@ -1708,7 +1792,22 @@ def load_mitsuba(path: str | os.PathLike, **overrides: Any) -> Scene:
         textures=overrides.pop("textures", True),
         progress=overrides.pop("progress", False),
     )
-    return dataclasses.replace(ms.scene, **overrides) if overrides else ms.scene
+    scene = dataclasses.replace(ms.scene, **overrides) if overrides else ms.scene
+    lit = bool(scene.lights) or scene.sky is not None or len(scene.emissive_faces) > 0
+    if ms.dropped_lights and not lit:
+        dropped = ", ".join(ms.dropped_lights)
+        if not default_light:
+            raise SceneError(
+                f"{path}: the scene's only light(s) cannot be rendered by icbtool: {dropped}; "
+                "pass default_light=True (command line: --default-light) to render it with "
+                "icbtool's default sun and sky instead"
+            )
+        warnings.warn(
+            f"{path}: {dropped} replaced by icbtool's default sun and sky (default_light)",
+            SceneRepairWarning,
+            stacklevel=2,
+        )
+    return scene
 
 
 __all__ = [

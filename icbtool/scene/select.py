@@ -10,20 +10,28 @@ from __future__ import annotations
 import sys
 
 from icbtool.camera import Camera
-from icbtool.scene.load import load, with_default_light
+from icbtool.scene.load import has_light, load, with_default_light
 from icbtool.scene.procedural import PROCEDURAL
 from icbtool.scene.types import Scene
 from icbtool.scene.view import default_view
 
 
-def load_scene(spec: str, up_axis: str | None = None, default_light: bool = False) -> Scene:
+def load_scene(
+    spec: str,
+    up_axis: str | None = None,
+    default_light: bool = False,
+    require_light: bool = False,
+) -> Scene:
     """A procedural scene by name, else a file through :func:`icbtool.scene.load`.
 
     Args:
         spec: procedural scene name or file.
         up_axis: the file's up axis (None: the file's or description's default).
         default_light: light a scene that has no light at all with
-            :func:`icbtool.scene.with_default_light` (which logs a note).
+            :func:`icbtool.scene.with_default_light` (which logs a note); the command line's
+            ``--default-light``.
+        require_light: a scene without any light (and no ``default_light``) is an error (the
+            commands that render light: an unlit scene would render black).
 
     On a terminal (stderr), a Mitsuba file shows a bar over its shapes while they load.
 
@@ -32,20 +40,26 @@ def load_scene(spec: str, up_axis: str | None = None, default_light: bool = Fals
 
     Raises:
         ValueError: ``up_axis`` given for a procedural scene.
+        SceneError: no light with ``require_light``; a Mitsuba file whose only emitters cannot
+            be rendered, without ``default_light``.
     """
+    from icbtool.scene.validate import SceneError
+
     if spec in PROCEDURAL:
         if up_axis is not None:
             raise ValueError(f"--up-axis applies to scene files, not to procedural '{spec}'")
         scene = PROCEDURAL[spec]()
     else:
         bar = sys.stderr.isatty()  # a bar over a Mitsuba file's shapes while they load
-        scene = (
-            load(spec, progress=bar)
-            if up_axis is None
-            else load(spec, up_axis=up_axis, progress=bar)
-        )
+        kw = {} if up_axis is None else {"up_axis": up_axis}
+        scene = load(spec, progress=bar, default_light=default_light, **kw)
     if default_light:  # logs a note (WARNING) when it adds the default light
         scene = with_default_light(scene)
+    if require_light and not has_light(scene):
+        raise SceneError(
+            f"{spec}: the scene has no light (no lights, sky or emissive faces) and would render "
+            "black; pass --default-light to light it with icbtool's default sun and sky"
+        )
     return scene
 
 
