@@ -13,6 +13,11 @@ refused). What is read, element by element:
   ``cube``, ``sphere`` (``center``, ``radius``), ``disk``, ``cylinder`` (``p0``, ``p1``,
   ``radius``), each with ``to_world``, ``flip_normals``, ``face_normals``, a nested or referenced
   BSDF and an area emitter. Analytic shapes are tessellated (:data:`SPHERE_SEGMENTS`).
+  ``shapegroup`` + ``instance``: each instance is a flattened, transformed copy of the group.
+* ``<ref>``: every form Mitsuba accepts (unnamed, ``_arg_N``, ``name="bsdf"``, any name); a
+  shape takes BSDFs and emitters by type. Warnings about a referenced object name the ``<ref>``.
+* Mitsuba 0.6/1 files (``version`` < 2) are upgraded on load as Mitsuba 3 upgrades them
+  (:func:`_upgrade_v1`; one INFO line).
 * ``<transform>``: ``translate``, ``rotate`` (axis, degrees), ``scale``, ``matrix`` (16 or 9
   numbers, row-major), ``lookat``; each applies after the previous ones.
 * ``<bsdf>``: ``diffuse`` and ``twosided`` exactly; every other type by the rule below.
@@ -20,7 +25,8 @@ refused). What is read, element by element:
 * ``<emitter>``: ``area`` (in a shape: its faces' emission, promoted to area lights on load),
   ``point``, ``spot``, ``directional``, ``constant`` (a uniform
   :class:`~icbtool.scene.types.Sky`), ``envmap`` (``Sky.from_envmap`` with ``scale`` and the
-  rotation of ``to_world``).
+  rotation of ``to_world``). A file whose only emitters are of other types (``sunsky``...) is
+  an error unless ``default_light=True`` (:func:`load_mitsuba`).
 * ``<sensor>``: ``perspective`` (``fov`` on every ``fov_axis``, ``focal_length``, film size and
   crop, principal point offsets, ``to_world``): the scene's default camera, exactly as Mitsuba
   casts its rays; ``thinlens`` (its pinhole) and ``orthographic`` (a distant pinhole) with a
@@ -30,8 +36,10 @@ refused). What is read, element by element:
   default, unbounded), ``direct`` means 2; a file without an integrator leaves the tracer's own
   default.
 
-Anything else (an unknown element, plugin type or property) is skipped with a
-:class:`~icbtool.scene.validate.SceneRepairWarning` naming the element, the file and the line.
+A missing file (mesh, texture, spectrum, include) or a truncated mesh is an error naming the
+element's ``file:line``. Anything else (an unknown element, plugin type or property) is skipped
+with a :class:`~icbtool.scene.validate.SceneRepairWarning` naming the element, the file and the
+line.
 Parameters read but not needed to render (``sampler``, ``rfilter``, clip planes, film formats) are
 ignored silently.
 
@@ -204,31 +212,60 @@ def _parse_xml(path: Path) -> _Node:
     return root[0]
 
 
-def _upgrade_v1(node: _Node) -> None:
-    """Mitsuba 0.6/1 elements as Mitsuba 3 spells them (names are snake-cased in ``props``):
-    ``<lookAt>`` -> ``<lookat>``; ``<blackbody temperature="6500K" scale=".."/>`` -> ``<spectrum
-    type="blackbody">`` with a ``scale``."""
-    for c in node.children:
-        if c.tag == "lookAt":
-            c.tag = "lookat"
-        elif c.tag == "blackbody":
-            kids = []
-            for key in ("temperature", "scale"):
-                if key in c.attrs:
-                    value = c.attrs[key].strip().rstrip("kK")
-                    kids.append(_Node("float", {"name": key, "value": value}, c.file, c.line))
-            c.tag = "spectrum"
-            c.attrs = {"name": c.attrs.get("name", ""), "type": "blackbody"}
-            c.children = kids
-        _upgrade_v1(c)
-
-
-_CAMEL = re.compile(r"(?<=[a-z0-9])([A-Z])")
-
-
 def _snake(name: str) -> str:
-    """Mitsuba 0.6/1 camelCase names (``toWorld``, ``fovAxis``) as Mitsuba 3 spells them."""
-    return _CAMEL.sub(lambda m: "_" + m.group(1).lower(), name)
+    """A Mitsuba 0.6 camelCase name as Mitsuba 3's upgrade spells it: ``_`` at each lower-case
+    to upper-case step, the run of capitals lower-cased (``toWorld`` -> ``to_world``,
+    ``intIOR`` -> ``int_ior``)."""
+    return re.sub(r"(?<=[a-z])([A-Z]+)", lambda m: "_" + m.group(1).lower(), name)
+
+
+#: What :func:`_upgrade_v1` changes, for its one log line.
+_UPGRADE_NOTE = (
+    "camelCase names to snake_case, <lookAt> to <lookat>, <blackbody> to a blackbody spectrum, "
+    "diffuse_reflectance of diffuse BSDFs to reflectance, uoffset/voffset/uscale/vscale to "
+    "to_uv"
+)
+
+
+def _upgrade_v1(node: _Node) -> None:
+    """A Mitsuba 0.6/1 element tree upgraded in place as Mitsuba 3 upgrades it on load, plus
+    what Mitsuba 3.0-3.5 also upgraded (``<lookAt>``) and the 0.6 ``<blackbody
+    temperature="6500K" scale=".."/>`` property (a ``<spectrum type="blackbody">`` with a
+    ``scale``), which Mitsuba 3.9 no longer reads."""
+    if "name" in node.attrs and node.tag != "default":
+        node.attrs["name"] = _snake(node.attrs["name"])
+    if node.tag == "lookAt":
+        node.tag = "lookat"
+    elif node.tag == "blackbody":
+        kids = []
+        for key in ("temperature", "scale"):
+            if key in node.attrs:
+                value = node.attrs[key].strip().rstrip("kK")
+                kids.append(_Node("float", {"name": key, "value": value}, node.file, node.line))
+        node.tag = "spectrum"
+        node.attrs = {"name": node.attrs.get("name", ""), "type": "blackbody"}
+        node.children = kids
+    for c in node.children:
+        _upgrade_v1(c)
+    if node.tag == "bsdf" and node.attrs.get("type") == "diffuse":
+        for c in node.children:
+            if c.attrs.get("name") == "diffuse_reflectance":
+                c.attrs["name"] = "reflectance"
+    uv = {c.attrs.get("name"): c for c in node.children if c.tag == "float"}
+    keys = [k for k in ("uoffset", "voffset", "uscale", "vscale") if k in uv]
+    if keys:
+        where = uv[keys[0]]
+        ops = []
+        if "uoffset" in uv or "voffset" in uv:
+            xy = {"x": uv.get("uoffset"), "y": uv.get("voffset")}
+            attrs = {k: n.attrs.get("value", "0") for k, n in xy.items() if n is not None}
+            ops.append(_Node("translate", attrs, where.file, where.line))
+        if "uscale" in uv or "vscale" in uv:
+            xy = {"x": uv.get("uscale"), "y": uv.get("vscale")}
+            attrs = {k: n.attrs.get("value", "1") for k, n in xy.items() if n is not None}
+            ops.append(_Node("scale", attrs, where.file, where.line))
+        node.children = [c for c in node.children if c not in [uv[k] for k in keys]]
+        node.children.append(_Node("transform", {"name": "to_uv"}, where.file, where.line, ops))
 
 
 # --------------------------------------------------------------------------- transforms
@@ -416,6 +453,12 @@ class _Values:
             raise SceneError(f"{root.where}: bad scene version {ver!r}") from None
         if self.version < (2, 0, 0):
             _upgrade_v1(root)
+            log.info(
+                "%s: Mitsuba %s file upgraded on load as Mitsuba 3 does (%s)",
+                root.file,
+                ver,
+                _UPGRADE_NOTE,
+            )
         out: list[_Node] = []
         for node in root.children:
             if node.tag == "default":
@@ -475,8 +518,6 @@ class _Values:
         out = _Props()
         for c in node.children:
             name = c.attrs.get("name")
-            if name is not None and self.version < (2, 0, 0):
-                name = _snake(name)
             if c.tag in _PROPERTY_TAGS:
                 if name is None:
                     raise SceneError(f"{c.where}: <{c.tag}> property without a name")

@@ -7,7 +7,14 @@ the outer walls and nothing of what the scene is about. :func:`default_view` pic
 
 1. the scene's own camera (``scene.default_camera``: a description's ``[default_camera]``, a
    Mitsuba file's ``<sensor>``, a procedural scene's);
-2. a view from inside the largest enclosed open volume: candidate points on a
+2. for an *open box* (geometry closed on five sides of its bounds and open on one horizontal
+   side, as a Cornell box without its camera): a view from outside the opening, looking in, that
+   frames the whole box (:func:`open_box_view`). A side is *open* when, from at least one of
+   3 x 3 x 3 points inside the bounds, at least :data:`OPEN_SIDE_ESCAPE` of a cone of rays
+   (:data:`SIDE_CONE_DEG` around the side's axis) leave the bounds through that side without a
+   hit, *closed* when from every point at most :data:`CLOSED_SIDE_ESCAPE` do; an open box has
+   exactly one open horizontal side and five closed ones;
+3. a view from inside the largest enclosed open volume: candidate points on a
    :data:`GRID` ^3 grid inside the bounds (5 % inset) each cast :data:`N_RAYS` rays over the sphere;
    a point is *enclosed* when at least :data:`ENCLOSED_HIT_FRACTION` of them hit geometry and at
    most :data:`MAX_BACK_FRACTION` hit back faces (it is in a room, not inside a solid); the scene
@@ -16,7 +23,7 @@ the outer walls and nothing of what the scene is about. :func:`default_view` pic
    stands on the far side of that point: along the horizontal direction with the longest free
    distance from it, the camera is moved back by :data:`BACK_OFF` of the free distance behind,
    and looks across the room, :data:`PITCH_DEG` down;
-3. otherwise :meth:`Camera.frame` of the bounds from outside.
+4. otherwise :meth:`Camera.frame` of the bounds from outside.
 
 The choice and its evidence are logged (logger ``icbtool.scene.view``, INFO): which rule, the
 share of enclosed candidate points, the chosen point.
@@ -52,6 +59,12 @@ MIN_ENCLOSED_SHARE = 0.1
 BACK_OFF = 0.8
 #: Downward pitch of the interior view in degrees.
 PITCH_DEG = 10.0
+#: Half-angle (degrees) of the cone of rays that tests a side of the bounds for an opening.
+SIDE_CONE_DEG = 25.0
+#: A side is open when at least this share of its cone escapes, closed when at most
+#: CLOSED_SIDE_ESCAPE does.
+OPEN_SIDE_ESCAPE = 0.6
+CLOSED_SIDE_ESCAPE = 0.1
 
 
 def default_view(
@@ -71,10 +84,84 @@ def default_view(
         log.info("scene '%s': its own camera", scene.name)
         cam = scene.default_camera
         return cam if (cam.height, cam.width) == (height, width) else cam.resized(height, width)
+    box = open_box_view(scene, height=height, width=width, fov_y_deg=fov_y_deg)
+    if box is not None:
+        return box
     inside = interior_view(scene, height=height, width=width, fov_y_deg=fov_y_deg)
     if inside is not None:
         return inside
     return Camera.frame(scene.bounds, up=scene.up, fov_y_deg=fov_y_deg, height=height, width=width)
+
+
+def _side_escapes(scene: Scene, es: object) -> dict[tuple[int, float], float]:
+    """For each side ``(axis, sign)`` of the bounds, the largest share of a cone of rays that
+    leaves the bounds through it without a hit, over a 3 x 3 x 3 grid of points inside the
+    bounds (so that objects in the box do not hide an opening from every point)."""
+    lo, hi = scene.bounds
+    f = np.array([0.25, 0.5, 0.75])
+    grid = np.stack(np.meshgrid(f, f, f, indexing="ij"), -1).reshape(-1, 3)
+    origins = lo + grid * (hi - lo)
+    k = np.linspace(-1.0, 1.0, 7)
+    a, b = np.meshgrid(k, k)
+    spread = math.tan(math.radians(SIDE_CONE_DEG))
+    out = {}
+    for axis in range(3):
+        others = [i for i in range(3) if i != axis]
+        for sign in (-1.0, 1.0):
+            d = np.zeros((a.size, 3))
+            d[:, axis] = sign
+            d[:, others[0]] = spread * a.ravel()
+            d[:, others[1]] = spread * b.ravel()
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            o = np.repeat(origins, len(d), axis=0)
+            dd = np.tile(d, (len(origins), 1))
+            h = es.intersect(o, dd)  # type: ignore[attr-defined]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t_exit = np.where(dd > 0, (hi - o) / dd, np.where(dd < 0, (lo - o) / dd, np.inf))
+            through = (h.prim < 0) & (np.argmin(t_exit, axis=1) == axis)  # out by this side
+            out[(axis, sign)] = float(through.reshape(len(origins), -1).mean(1).max())
+    return out
+
+
+def open_box_view(
+    scene: Scene, *, height: int = 256, width: int = 256, fov_y_deg: float = 45.0
+) -> Camera | None:
+    """For an open box (closed on five sides, open on one horizontal side: a Cornell box), a
+    camera outside the opening looking in that frames the whole box; else None.
+
+    Args:
+        scene: the scene.
+        height, width: image size.
+        fov_y_deg: vertical field of view.
+
+    Returns:
+        The camera, or None when the scene is not an open box.
+    """
+    from icbtool.scene.raycast import EmbreeScene
+
+    up = np.asarray(scene.up, np.float64)
+    up_axis = int(np.argmax(np.abs(up)))
+    escapes = _side_escapes(scene, EmbreeScene.from_scene(scene))
+    open_sides = [s for s, e in escapes.items() if e >= OPEN_SIDE_ESCAPE]
+    closed = [s for s, e in escapes.items() if e <= CLOSED_SIDE_ESCAPE]
+    if len(open_sides) != 1 or len(closed) != 5 or open_sides[0][0] == up_axis:
+        return None
+    axis, sign = open_sides[0]
+    look = np.zeros(3)
+    look[axis] = -sign  # from outside the opening, into the box
+    log.info(
+        "scene '%s': open box view: the side %s%s of the bounds is open (up to %.0f %% of its "
+        "rays escape, the five others' at most %.0f %%); the camera looks in along %s",
+        scene.name,
+        "+" if sign > 0 else "-",
+        "xyz"[axis],
+        100 * escapes[open_sides[0]],
+        100 * CLOSED_SIDE_ESCAPE,
+        look.tolist(),
+    )
+    return Camera.frame(
+        scene.bounds, up=up, fov_y_deg=fov_y_deg, height=height, width=width, view_direction=look
+    )
 
 
 def interior_view(
@@ -157,4 +244,4 @@ def interior_view(
     return cam
 
 
-__all__ = ["default_view", "interior_view"]
+__all__ = ["default_view", "interior_view", "open_box_view"]
