@@ -14,7 +14,7 @@ with seed replicates for the run-to-run spread, and the ``cpu`` preset is now it
 the held-out walk.
 
     ICBTOOL_GL_BACKEND=osmesa ICBTOOL_GAN_STORE=STORE .venv/bin/python -m benchmarks.gan_ablation \\
-        --runs /work/runs/ablation --iterations 3000
+        --runs out/runs/ablation --iterations 3000
 
 Writes benchmarks/results/gan/ablation.json, ablation.csv, ablation.png (test SSIM against
 iterations, one curve per variant) and ablation_config.json.
@@ -187,7 +187,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--store", default=os.environ.get("ICBTOOL_GAN_STORE"))
     ap.add_argument("--scene", default="sponza")
-    ap.add_argument("--runs", default="/work/runs/ablation")
+    ap.add_argument("--runs", default="out/runs/ablation")
     ap.add_argument("--iterations", type=int, default=3000)
     ap.add_argument("--chunk", type=int, default=500)
     ap.add_argument("--only", nargs="*", default=None, help="variant names (default: all)")

@@ -20,7 +20,7 @@ and FLIP per evaluation path, over ALL its views, the median coverage distance (
 view's pixels to the nearest pixel of the fit paths, % of the scene's diagonal), ms per frame.
 
     ICBTOOL_GL_BACKEND=osmesa .venv/bin/python -m benchmarks.gan_baselines --store STORE \\
-        --run J=/work/runs/J --tag train
+        --run J=out/runs/J --tag train
 
 Writes benchmarks/results/gan/baselines_TAG.json, .csv and .png (truth and every method on the
 views with the best and worst coverage).

@@ -8,7 +8,7 @@ the Figure 7 store so every run is scored on the same truth. Every run uses the 
 for ``--iterations``. Baking time is the sum of the records' ``render_time_s`` (raster + trace (+
 denoise)) measured when they were baked on this machine.
 
-    ICBTOOL_GAN_STORE=STORE .venv/bin/python -m benchmarks.gan_spp --stores /work/stores/spp
+    ICBTOOL_GAN_STORE=STORE .venv/bin/python -m benchmarks.gan_spp --stores out/stores/spp
 
 Writes ``benchmarks/results/gan/spp/spp.{json,png}`` and ``spp_config.json``.
 """

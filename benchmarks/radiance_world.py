@@ -19,10 +19,11 @@ of each path's pixels have no train pixel within 1 % / 5 % of the diagonal. Spee
 ONNX model in onnxruntime with 1 thread on 128^2 and 256^2 points (every pixel a surface pixel:
 the upper bound), and the bytes a client downloads (the .onnx file).
 
-    nice -n 10 env ICBTOOL_GL_BACKEND=osmesa PYTHONPATH=. .venv/bin/python \\
-        benchmarks/radiance_world.py --store /work/stores/sponza128 --tag sponza128
+    nice -n 10 env ICBTOOL_GL_BACKEND=osmesa .venv/bin/python -m benchmarks.radiance_world \\
+        --store out/stores/sponza128 --tag sponza128 --levels 8 --iterations 1000
 
-Writes benchmarks/results/radiance/world_TAG.json, world_TAG_views.csv, world_TAG_strip.png
+Writes to ``--out`` (default out/bench/radiance; the committed ones: benchmarks/results/radiance)
+world_TAG.json, world_TAG_views.csv, world_TAG_strip.png
 (per method: prediction | truth | |difference| on the best- and worst-covered test view and a
 held-out view) and world_TAG_coverage.png. The 1-minute load average is recorded before and
 after (the machine is shared: times are upper bounds).
@@ -66,14 +67,19 @@ def _onnx_ms(path: Path, pos: np.ndarray, nrm: np.ndarray, n: int, repeat: int) 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--store", default=os.environ.get("ICB_STORE", "/work/stores/sponza128"))
+    ap.add_argument(
+        "--store",
+        default=os.environ.get("ICB_STORE"),
+        required="ICB_STORE" not in os.environ,
+        help='the Sponza store (docs/benchmarks.md, "What held learned GI back")',
+    )
     ap.add_argument("--tag", default="sponza128")
     ap.add_argument("--train-paths", default="train")
     ap.add_argument("--eval-paths", default="test,walk")
     ap.add_argument("--work", default="/tmp/icb_radiance_runs", help="run directories")
-    ap.add_argument("--iterations", type=int, default=1500)
+    ap.add_argument("--iterations", type=int, default=1000)
     ap.add_argument("--batch-size", type=int, default=4096)
-    ap.add_argument("--levels", type=int, default=12)
+    ap.add_argument("--levels", type=int, default=8)
     ap.add_argument("--log2-table", type=int, default=15)
     ap.add_argument("--probe-resolution", type=int, default=16)
     ap.add_argument("--threads", type=int, default=2)

@@ -21,7 +21,7 @@ only its test-path truth is read) and the runs (GAN and world-space radiance):
 Writes OUT/web_model.json and OUT/web_model.csv (default benchmarks/results/web/model).
 
     nice -n 10 .venv/bin/python -m benchmarks.web_model --scene data/scenes/sponza.toml \\
-        --store /work/stores/sponza128 --models RUN[,RUN...] --evaluate-missing
+        --store out/stores/sponza128 --models RUN[,RUN...] --evaluate-missing
 """
 
 from __future__ import annotations
