@@ -85,14 +85,14 @@ def interior_pixels(fine: RasterBuffers, k: int, margin: int = 1) -> np.ndarray:
     plane = (n * fine.position).sum(-1, keepdims=True)  # the plane's offset along its normal
     key = np.concatenate([n, plane], -1)
     size = k + 2 * margin
-    same = fine.mask[..., 0] > 0.5
+    # each fine pixel's window of ``size``: for fine pixel (k i + k // 2, k j + k // 2) it is
+    # exactly pixel (i, j)'s k x k footprint plus the margin (scipy centres even windows so)
+    same = minimum_filter(fine.mask[..., 0] > 0.5, size)
     # normals to 1e-3; the plane offset to 1e-3 of the largest one seen
     tol = [1e-3] * 3 + [1e-3 * max(1.0, float(np.abs(plane).max()))]
     for c in range(key.shape[-1]):
         spread = maximum_filter(key[..., c], size) - minimum_filter(key[..., c], size)
         same &= spread < tol[c]
-    same = minimum_filter(same, size)
-    # fine pixel (k i + k // 2, k j + k // 2): its window covers pixel (i, j)'s k x k (+ margin)
     return same[k // 2 :: k, k // 2 :: k][: hk // k, : wk // k].copy()
 
 
