@@ -54,12 +54,11 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:  # pragma: no cover
-    from icbtool.scene.types import Scene
+from icbtool.scene.types import Material, Scene
 
 #: Light fields that may be keyed, by light kind (the rest describe what a light is, not its state).
 KEYABLE_LIGHT_FIELDS: Mapping[str, tuple[str, ...]] = MappingProxyType(
@@ -296,8 +295,6 @@ class Animation:
 
     def apply(self, scene: Scene, t: float) -> Scene:
         """The static scene at time ``t`` (``scene`` shares this animation)."""
-        from icbtool.scene.types import Material
-
         if not math.isfinite(t):
             raise ValueError(f"scene time must be finite, got {t}")
         v = self.rest_vertices.copy()

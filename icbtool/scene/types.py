@@ -34,7 +34,6 @@ from icbtool.scene.derived import derived
 
 if TYPE_CHECKING:  # pragma: no cover
     from icbtool.camera import Camera, CameraPath
-    from icbtool.scene.animation import Animation
 
 
 def _vec3(x: Any, name: str, nonneg: bool = False) -> np.ndarray:
@@ -564,7 +563,7 @@ class Scene:
     up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
     source: str = ""
     max_depth: int | None = None
-    animation: Animation | None = None
+    animation: Any = None  # an icbtool.scene.animation.Animation (which imports this module)
     time: float = 0.0
 
     def __post_init__(self) -> None:
