@@ -101,7 +101,7 @@ def test_paired_target_check_uses_the_median_round_ratio_and_mitsubas_median_tim
 
 @pytest.mark.slow  # about 20 s, most of it numba compiling the benchmark's loops
 def test_simd_bound_stages_match_the_kernels_helpers_and_are_vectorised():
-    """benchmarks/trace_simd_bound.py's wavefront stages compute what the megakernel's helpers
+    """benchmarks.trace_simd_bound's wavefront stages compute what the megakernel's helpers
     compute, on a real render's hits (emitter and sun scenes), and compile to packed AVX2 code:
     its bound on docs/benchmarks.md would mean nothing otherwise."""
     import icbtool as icb

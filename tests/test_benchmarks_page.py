@@ -1,6 +1,6 @@
 """docs/benchmarks.md's numbers are the ones in the committed results files (benchmarks/results/).
 
-benchmarks/page.py writes every number between ``<!-- bench:NAME -->`` markers from the results
+benchmarks.page writes every number between ``<!-- bench:NAME -->`` markers from the results
 JSON; a page edited by hand, or a results file rerun without regenerating the page, fails here.
 """
 

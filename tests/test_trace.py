@@ -19,7 +19,7 @@ from icbtool.scene.raycast import EmbreeScene
 from icbtool.trace import TraceConfig, render
 
 DATA = Path(__file__).parent / "data"
-#: the stored 4096-spp GI reference of the Cornell box (benchmarks/trace_make_reference.py)
+#: the stored 4096-spp GI reference of the Cornell box (benchmarks.trace_make_reference)
 CORNELL_REF = DATA / "trace_cornell_ref.npz"
 #: a strongly peaked sky (zenith 400x the horizon): where a sky light sample pays off
 PEAKY_SKY = dict(zenith=(20.0, 20.0, 22.0), horizon=(0.05, 0.05, 0.06), ground=(0.01,) * 3)
@@ -298,7 +298,7 @@ def test_cornell_box_matches_stored_reference(tmp_path):
     5 % scale of the GI is rejected (asserted below).
     """
     assert CORNELL_REF.is_file(), (
-        f"missing reference {CORNELL_REF}: run benchmarks/trace_make_reference.py"
+        f"missing reference {CORNELL_REF}: run python -m benchmarks.trace_make_reference"
     )
     ref, scene, cam, cfg = _cornell_reference_config(spp=64, seed=99, spp_per_pass=16)
     res = render(scene, cam, cfg)

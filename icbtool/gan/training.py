@@ -121,7 +121,7 @@ class TrainConfig:
         position_resolution, head_kernel, skip_features, input_reduce, top_width: the
             generator's cost at the client (:class:`~icbtool.gan.models.GeneratorConfig`
             ``fourier_resolution``, ``head_kernel``, ``skip_features``, ``reduce``,
-            ``top_width``; benchmarks/gan_speed.py): the Fourier features at "full" or "half"
+            ``top_width``; benchmarks.gan_speed): the Fourier features at "full" or "half"
             resolution, the full-resolution head's kernel (3 or 1), whether the
             full-resolution skip carries the full-resolution features, a 1 x 1 reduction of the
             input to this many channels (0: none), the last level's width (0: ``base``). The
@@ -273,12 +273,12 @@ class TrainConfig:
           configuration J (albedo, DL, world normals, positions) with 6 octaves of Fourier
           features of the position computed at half resolution, demodulated targets, the
           full-resolution skip with a 1 x 1 head (the client's 256 x 256 frame budget:
-          benchmarks/gan_speed.py), width 8,
+          benchmarks.gan_speed), width 8,
           L1 + SSIM without the critic, a constant learning rate of 2e-4 (measured better than a
           cosine decay over 3000 iterations), weight averaging,
           64-pixel crops in batches of 8, 20000 iterations (the narrow network needs several
           times the iterations of the width-16 one for the same SSIM; each costs about a third).
-          Give it the coverage views too (``train_path="train,cover"``, benchmarks/gan_coverage.py).
+          Give it the coverage views too (``train_path="train,cover"``, benchmarks.gan_coverage).
         - ``paper-cpu``: the paper's design at CPU size (configuration I, L_a + 100 L_c with the
           WGAN-GP critic, base 32, 128-pixel crops, no VGG): what ``cpu`` was before.
         - ``paper``: 256 x 256, base 64, VGG19 perceptual loss (``vgg19_weights`` defaults to

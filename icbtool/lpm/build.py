@@ -13,9 +13,9 @@ How a level is made from the full :class:`~icbtool.scene.Scene` (ratio ``r`` of 
    Heckbert) to ``ratio`` of their triangles, so the budget goes where the error is smallest;
    with ``budget="per_group"`` each is decimated alone to ``ratio`` of its own. On Sponza the
    global queue's RMS surface error is 11-14x lower at 5-15 % of the triangles (notes in
-   benchmarks/lpm_levels.py). Every level is decimated from the full mesh (levels are
+   benchmarks.lpm_levels). Every level is decimated from the full mesh (levels are
    independent, not a chain of decimations). open3d was measured against fast-simplification
-   0.2.0 and pyfqmr 0.5.0 on the same input (benchmarks/lpm_decimators.py): at 5-25 % of
+   0.2.0 and pyfqmr 0.5.0 on the same input (benchmarks.lpm_decimators): at 5-25 % of
    Sponza's triangles open3d's RMS error is 2-400x lower (pyfqmr with borders kept stops at 27 %).
 3. open3d drops ``triangle_uvs`` when it decimates (it warns "triangle uvs that are not handled"),
    so uvs and shading normals are transferred back from the full group (nearest points by

@@ -32,7 +32,7 @@ class LPMConfig:
             4847 kB, at a mean texel error of 0.9 / 255 on the full-size textures).
         jpeg_quality: JPEG quality (1-100) when ``texture_format == "jpeg"``.
         boundary_weight: open3d's quadric weight on boundary edges (material groups are
-            welded apart, so their borders are boundaries). On Sponza (benchmarks/lpm_levels.py
+            welded apart, so their borders are boundaries). On Sponza (benchmarks.lpm_levels
             notes) 1 (open3d's default) gave lower surface and depth error than 10 or 100 at
             every ratio from 0.03 to 0.15, and about the same as 0.1.
         weld_tolerance: vertices of a material group closer than this fraction of the scene's

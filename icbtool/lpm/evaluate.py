@@ -1,6 +1,6 @@
 """Measure every level of an LPM: size, geometric and uv error, client-side WRT-buffer error,
 warping with the client's LPM depth, and time to first frame. Shared by ``icbtool lpm`` and
-benchmarks/lpm_levels.py.
+benchmarks.lpm_levels.
 
 Cameras: ``n_cameras`` spread evenly over the scene's ``test`` path (else its default camera),
 at ``height`` x ``width``. The reference of each (where the cloud renders the GI map) is what the

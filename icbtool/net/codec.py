@@ -28,7 +28,8 @@ u[i-1, j-1]`` modulo 2^16 (the residual of the predictor left + up - up-left), s
 ``(s << 1) ^ (s >> 15)`` of its int16 value ``s``; the decoder takes cumulative sums over both
 axes. zstd frames carry their content size. PNGs hold channels in R, G, B(, A)
 order, as a PNG decoder returns them. Which codec is the default for GI and for depth was chosen
-by ``benchmarks/gi_codec.py`` (results in ``benchmarks/results/net/``): :data:`DEFAULT_GI_CODEC`,
+by ``python -m benchmarks.gi_codec`` (results in ``benchmarks/results/net/``):
+:data:`DEFAULT_GI_CODEC`,
 :data:`DEFAULT_DEPTH_CODEC`.
 """
 
@@ -342,12 +343,12 @@ CODECS: dict[str, Codec] = {
               _rgbe_encode, _rgbe_decode),
     )
 }  # fmt: skip
-#: Codec of GI maps unless a client asks for another, chosen by benchmarks/gi_codec.py: the
-#: fewest bytes among codecs whose displayed GI keeps SSIM >= 0.999 on every view (denoised GI,
-#: 256x256: 75 KiB Cornell box / 135 KiB Sponza, against 211 / 241 KiB for f16-zstd).
+#: Codec of GI maps unless a client asks for another, chosen by benchmarks.gi_codec: the
+#: fewest bytes among codecs whose displayed GI keeps SSIM >= 0.999 on every view (the bytes
+#: per map: benchmarks/results/net/gi_codec.json).
 DEFAULT_GI_CODEC = "f16m7-diff-zstd"
 #: Codec of depth (and masks) unless a client asks for another: the fewest bytes among codecs
-#: that keep 0 and inf exactly with relative error <= 1e-3 (7 KiB / 19 KiB per 256x256 map).
+#: that keep 0 and inf exactly with relative error <= 1e-3 (benchmarks/results/net/gi_codec.json).
 DEFAULT_DEPTH_CODEC = "f16-diff-zstd"
 
 

@@ -59,7 +59,7 @@ SECURITY_HEADERS: dict[str, str] = {
 
 
 #: Debian's chromium, headless with software WebGL2 (SwiftShader): how the tests and
-#: benchmarks/web_client.py open the page on a machine without a GPU (docs/protocol.md is
+#: benchmarks.web_client open the page on a machine without a GPU (docs/protocol.md is
 #: spoken over loopback only; a fresh --user-data-dir is added by the caller).
 CHROMIUM = "/usr/bin/chromium"
 HEADLESS_CHROMIUM_ARGS: tuple[str, ...] = (

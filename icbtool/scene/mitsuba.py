@@ -1706,7 +1706,7 @@ def diffuse_twin(
     bitmap; a BSDF icbtool traces exactly, :mod:`icbtool.scene.bsdf`, stays), and every pixel filter
     becomes ``box`` (icbtool's pixel footprint). Everything else (shapes, transforms, emitters,
     the sensor, ``$`` parameters) is written as read. Used to verify icbtool against Mitsuba
-    (``benchmarks/mitsuba_xml_compare.py``).
+    (``benchmarks.mitsuba_xml_compare``).
 
     Args:
         path: the scene file.

@@ -79,7 +79,7 @@ class GeneratorSource(GISource):
                 "this generator reads a warped reference GI (trained with "
                 "TrainConfig.warped_reference): the loop's GeneratorSource makes GI from the "
                 "client's own buffers only; use Generator.generate with 'warped_gi' and "
-                "'warp_holes' maps (see benchmarks/gan_warped.py)"
+                "'warp_holes' maps (see benchmarks.gan_warped)"
             )
         self.generator = generator
         self.fallback = fallback
