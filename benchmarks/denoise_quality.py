@@ -12,7 +12,7 @@ OIDN's default threads and on one thread (:func:`execute_ms`; its output is chec
 
     .venv/bin/python -m benchmarks.denoise_quality [--spp 4] [--repeats 5]
 
-Writes benchmarks/results/trace/denoise_quality.{json,png}.
+Writes --out/denoise_quality.{json,png}.
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ what that time buys:
 
     .venv/bin/python -m benchmarks.embree_robust [--spp 64] [--size 128] [--rays 4000000]
 
-Writes benchmarks/results/trace/embree_robust.json.
+Writes --out/embree_robust.json.
 """
 
 from __future__ import annotations

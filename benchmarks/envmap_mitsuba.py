@@ -11,7 +11,7 @@ RMSE (its noise floor at the reference spp).
 
     .venv/bin/python -m benchmarks.envmap_mitsuba [--size 128] [--spp 1024] [--ours-spp 512]
 
-Writes benchmarks/results/envmap/mitsuba.{json,png} (images side by side).
+Writes --out/mitsuba.{json,png} (images side by side).
 """
 
 from __future__ import annotations

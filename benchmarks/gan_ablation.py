@@ -16,7 +16,7 @@ the held-out walk.
     ICBTOOL_GL_BACKEND=osmesa ICBTOOL_GAN_STORE=STORE .venv/bin/python -m benchmarks.gan_ablation \\
         --runs out/runs/ablation --iterations 3000
 
-Writes benchmarks/results/gan/ablation.json, ablation.csv, ablation.png (test SSIM against
+Writes --out/ablation.json, ablation.csv, ablation.png (test SSIM against
 iterations, one curve per variant) and ablation_config.json.
 """
 

@@ -22,7 +22,7 @@ view's pixels to the nearest pixel of the fit paths, % of the scene's diagonal),
     ICBTOOL_GL_BACKEND=osmesa .venv/bin/python -m benchmarks.gan_baselines --store STORE \\
         --run J=out/runs/J --tag train
 
-Writes benchmarks/results/gan/baselines_TAG.json, .csv and .png (truth and every method on the
+Writes --out/baselines_TAG.json, .csv and .png (truth and every method on the
 views with the best and worst coverage).
 """
 

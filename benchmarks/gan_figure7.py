@@ -4,18 +4,16 @@ per input configuration A-J (docs/design.md section 5), with the test truth's ow
 Data: a store baked with ``icbtool bake`` holding the scene's "train" path and its "test" path
 (records tagged by path), and a second store holding some of the same test cameras traced with
 other seeds (the noise ceiling: SSIM of two truths). The 128x128 stores used for the committed
-results were made by::
+results are the Sponza store of docs/benchmarks.md ("What held learned GI back": train, test
+every 5th camera, walk, cover views); the noise ceiling's second store, when measured, holds
+some of the test cameras traced with another seed::
 
-    icbtool bake data/scenes/sponza.toml --path train --store STORE --spp 64 \\
-        --height 128 --width 128 --denoise
-    icbtool bake data/scenes/sponza.toml --path test --store STORE --spp 256 --stride 3 \\
-        --seed 100000 --height 128 --width 128 --denoise
     icbtool bake data/scenes/sponza.toml --path test --store CEILING --spp 256 --stride 15 \\
         --seed 200000 --height 128 --width 128 --denoise
 
 Training is round-robin in chunks (every configuration to 250 iterations, then every one to 500,
 ...), each run resumable, so an interrupted experiment always has comparable curves and a rerun
-continues where it stopped. After every chunk it writes benchmarks/results/gan/figure7.json
+continues where it stopped. After every chunk it writes --out/figure7.json
 (curves, best configuration, world vs view normals, the first iteration reaching the target
 SSIM), figure7.png (the curves) and figure7_config.json (settings, versions, machine).
 

@@ -3,7 +3,7 @@ MSE (display scale, RGB 0-255, as the paper) and FLIP.
 
 The generator is a training run (``--run DIR``), by default the best configuration of
 benchmarks/results/gan/figure7.json in ``--runs``. Frames are spread evenly over the store's test
-path. Writes benchmarks/results/gan/figure8.png (one row per frame: generated | real |
+path. Writes --out/figure8.png (one row per frame: generated | real |
 |difference| x4) and figure8.json (per-frame and mean metrics, the run, its iteration).
 
     ICBTOOL_GAN_STORE=STORE .venv/bin/python -m benchmarks.gan_figure8

@@ -15,7 +15,7 @@ profiler: median time per node over the profiled calls), so one sees which layer
 With ``--store`` it also times one training iteration of the preset before and after the study
 (the new network trains more iterations, each cheaper).
 
-Writes benchmarks/results/gan/speed.json (and speed_config.json). Timings are taken on a shared
+Writes --out/speed.json (and speed_config.json). Timings are taken on a shared
 machine: the 1-minute load before and after each variant is recorded next to its numbers.
 """
 

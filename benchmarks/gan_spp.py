@@ -10,7 +10,7 @@ denoise)) measured when they were baked on this machine.
 
     ICBTOOL_GAN_STORE=STORE .venv/bin/python -m benchmarks.gan_spp --stores out/stores/spp
 
-Writes ``benchmarks/results/gan/spp/spp.{json,png}`` and ``spp_config.json``.
+Writes ``--out/spp.{json,png}`` and ``spp_config.json``.
 """
 
 from __future__ import annotations

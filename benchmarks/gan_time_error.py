@@ -11,7 +11,7 @@ and reports, for the generator's SSIM, the tracer's time to reach it and the spe
 (:func:`icbtool.gan.baselines.equal_quality`: linear in log time between measured spp on the
 curve's monotone envelope; when the tracer's cheapest point is already better, or it never gets
 there, the result says so and no ratio is given). It also times the generator alone at
-128, 256 and 512 pixels. Writes benchmarks/results/gan/time_error.{json,png}.
+128, 256 and 512 pixels. Writes --out/time_error.{json,png}.
 
     ICBTOOL_GAN_STORE=STORE .venv/bin/python -m benchmarks.gan_time_error
 """

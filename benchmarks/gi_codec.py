@@ -16,7 +16,7 @@ jobs: compare codecs, not machines). Depth: bytes, largest relative error on sur
 whether 0 and inf stay exact (depth is also coded with inf where no surface). Ablations of
 ``f16-zstd`` / ``f32-zstd``: byte shuffle on/off and zstd levels.
 
-Writes benchmarks/results/net/gi_codec.{json,csv,png} (+ _config.json).
+Writes --out/gi_codec.{json,csv,png} (+ _config.json).
 
     ICBTOOL_SPONZA=../shared/scenes/sponza nice -n 10 .venv/bin/python -m benchmarks.gi_codec
 """

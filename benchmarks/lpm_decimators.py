@@ -10,7 +10,7 @@ fast-simplification and pyfqmr are NOT icbtool dependencies: install them aside,
 
     PYTHONPATH=.:/tmp/fsimp nice -n 10 .venv/bin/python -m benchmarks.lpm_decimators
 
-Writes benchmarks/results/lpm/decimators.json.
+Writes --out/decimators.json.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ the warp with the client's LPM depth, and time to first frame against the full m
     ICBTOOL_GL_BACKEND=osmesa nice -n 10 .venv/bin/python -m benchmarks.lpm_levels
 
 Sponza: $ICBTOOL_SPONZA or ../shared/scenes/sponza, through data/scenes/sponza.toml (its lights,
-sky and camera paths). Writes benchmarks/results/lpm/{sponza,cornell_box}.{json,csv},
+sky and camera paths). Writes --out/{sponza,cornell_box}.{json,csv},
 *_levels.png (error and bytes per level), *_dl.png (DL per level, then the full mesh) and
 summary.csv (both scenes).
 

@@ -18,7 +18,7 @@ spp. Images side by side (icbtool | Mitsuba | |difference| x 4) in PNG.
         --scene /tmp/mitsuba_scenes/scenes/cbox/cbox-rgb.xml res=128 \\
         --scene /tmp/mitsuba_scenes/bitterli_cbox.xml resx=128 resy=128
 
-Writes benchmarks/results/mitsuba_xml/compare.json and <folder>_<stem>.png per scene. Mitsuba is
+Writes --out/compare.json and <folder>_<stem>.png per scene. Mitsuba is
 a benchmark peer only (``make bench-deps``).
 """
 

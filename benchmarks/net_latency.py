@@ -12,7 +12,7 @@
 
 The generator is the paper's U-Net shape (base 32, configuration I inputs) with untrained
 weights: its size and its time are those of a trained one; its images are not (quality is
-benchmarks/gan_*). Writes benchmarks/results/net/net_latency.json and net_latency.png.
+benchmarks/gan_*). Writes --out/net_latency.json and net_latency.png.
 
     nice -n 10 .venv/bin/python -m benchmarks.net_latency [--scene cornell_box] [--frames 8]
 """

@@ -24,7 +24,7 @@ and checked).
 COMMIT | tar -x -C DIR``) and this one, alternately, ``--ab-rounds`` times, 32 lean clients, hits
 alone: before / after on the same machine state.
 
-Writes benchmarks/results/net/net_scale.json and net_scale.png; docs/benchmarks.md's
+Writes --out/net_scale.json and net_scale.png; docs/benchmarks.md's
 ``net-scale`` block is generated from them (benchmarks/page.py). Each part replaces its own
 entry only.
 

@@ -21,7 +21,7 @@ Speed scale: Sponza is in metres; the Cornell box (~2 units wide) is taken as a 
 
     .venv/bin/python -m benchmarks.prefetch_experiment [--frames 8] [--size 128] [--gi-frames 3]
 
-Writes benchmarks/results/prefetch/{prefetch_experiment.json, *.png}.
+Writes --out/{prefetch_experiment.json, *.png}.
 """
 
 from __future__ import annotations

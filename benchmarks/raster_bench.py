@@ -15,7 +15,7 @@ data/scenes/sponza.toml) at 256x256 and 512x512:
   casting them is timed. Raster and Open3D frames are interleaved so that both see the same
   machine load.
 
-Writes benchmarks/results/raster/: results.json (numbers, configs, run info), raster_bench.png (bar
+Writes --out/: results.json (numbers, configs, run info), raster_bench.png (bar
 plot), and PNG previews of the Sponza and Cornell box buffers (look at them).
 
 Usage: .venv/bin/python -m benchmarks.raster_bench [--frames 10] [--backends osmesa,egl]

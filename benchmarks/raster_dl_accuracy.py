@@ -16,7 +16,7 @@ traced direct light differs from its 3x3 median by > 5 %); and the cost: median 
 
 Default scene: the built-in ``cornell_box``; ``--obj`` adds an OBJ scene (McGuire's
 CornellBox-Original, fetched into a temporary folder; not shipped) seen from (0, 1, 3.4).
-Writes benchmarks/results/raster/dl_accuracy.{json,png}.
+Writes --out/dl_accuracy.{json,png}.
 """
 
 from __future__ import annotations

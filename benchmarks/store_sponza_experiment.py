@@ -7,7 +7,7 @@
    exposure = auto_exposure of the true GI, the same for both images): as is ("unwarped") and
    warped to the test camera with ``icbtool.warp.backward`` (holes stay black and count).
 
-Writes benchmarks/results/store/sponza_experiment.json (+ PNG plots, resolved config, run info).
+Writes --out/sponza_experiment.json (+ PNG plots, resolved config, run info).
 
     ICBTOOL_GL_BACKEND=osmesa .venv/bin/python -m benchmarks.store_sponza_experiment
 """

@@ -9,7 +9,7 @@ threaded by default), with the 1-minute load recorded every render.
 
     .venv/bin/python -m benchmarks.trace_ab --a /tmp/before --b . [--rounds 9] [--size 128]
 
-Writes benchmarks/results/trace/ab_<scene or --name>.json (with the machine, the versions and each
+Writes --out/ab_<scene or --name>.json (with the machine, the versions and each
 checkout's commit; the oldest files have the load alone).
 """
 

@@ -13,7 +13,7 @@ processes, so that docs/benchmarks.md can say what a new user waits for:
 
     .venv/bin/python -m benchmarks.trace_compile [--trials 1]
 
-Writes benchmarks/results/trace/compile.json (with the 1-minute load at start and end). A trial
+Writes --out/compile.json (with the 1-minute load at start and end). A trial
 takes about a minute and a half on the 2-core VM of this project.
 """
 

@@ -8,7 +8,7 @@ pixel count, mean FLIP, RMS error and each bin's share of the summed squared err
     .venv/bin/python -m benchmarks.trace_error_by_brightness [--spp 8] [--scenes cornell_box,sponza]
 
 It reads the references trace_time_error.py cached (run that first, same size and reference spp).
-Writes benchmarks/results/trace/error_by_brightness.json.
+Writes --out/error_by_brightness.json.
 """
 
 from __future__ import annotations

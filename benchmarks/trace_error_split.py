@@ -9,7 +9,7 @@ mean over seeds. A sampling change aimed at one half can only move the metric th
     .venv/bin/python -m benchmarks.trace_error_split [--scenes cornell_box,sponza] [--spps 4,16]
 
 It reads the references trace_time_error.py cached (run that first, same size and reference spp).
-Writes benchmarks/results/trace/error_split.json.
+Writes --out/error_split.json.
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ distributed under every sampler, so the variance per pixel is the estimator's ow
     .venv/bin/python -m benchmarks.trace_gi_variance [--size 256] [--seeds 32] \
         [--scenes cornell_box,sponza]
 
-Writes benchmarks/results/trace/gi_variance.{json,png} (the 1-minute load at start and end).
+Writes --out/gi_variance.{json,png} (the 1-minute load at start and end).
 """
 
 from __future__ import annotations

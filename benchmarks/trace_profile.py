@@ -39,7 +39,7 @@ runs of each):
 
     .venv/bin/python -m benchmarks.trace_profile [--size 256] [--spp 8] [--scenes cornell_box]
 
-Writes benchmarks/results/trace/profile.{json,png} (with the 1-minute load at start and end).
+Writes --out/profile.{json,png} (with the 1-minute load at start and end).
 """
 
 from __future__ import annotations

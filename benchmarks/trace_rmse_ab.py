@@ -9,7 +9,7 @@ error of each mean.
 
     .venv/bin/python -m benchmarks.trace_rmse_ab --a /tmp/before --b . [--seeds 12] [--size 128]
 
-Writes benchmarks/results/trace/rmse_ab_<name>.json.
+Writes --out/rmse_ab_<name>.json.
 """
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ need 15-25 % (docs/benchmarks.md, time against error).
     .venv/bin/python -m benchmarks.trace_simd_bound [--size 256] [--spp 8] [--scenes cornell_box] \
         [--batches 32,64,128,256]
 
-Writes benchmarks/results/trace/simd_bound.json (with the 1-minute load at start and end).
+Writes --out/simd_bound.json (with the 1-minute load at start and end).
 """
 
 from __future__ import annotations

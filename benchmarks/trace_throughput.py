@@ -8,7 +8,7 @@ The difference between the tracer's time and the replay is the cost of our shadi
 
     .venv/bin/python -m benchmarks.trace_throughput [--size 256] [--spp 8]
 
-Writes benchmarks/results/trace/throughput.{json,png}.
+Writes --out/throughput.{json,png}.
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ Besides the fastest runs, the target check of the raw curve is also computed fro
 medians (``target_*_paired``: :func:`paired_target_check`), which move less between quiet runs;
 ``--restat`` adds it to a saved results file without rendering.
 
-Writes benchmarks/results/trace/<out-name>.{json,png} (default time_error). Mitsuba is a
+Writes --out/<out-name>.{json,png} (default time_error). Mitsuba is a
 benchmark peer only.
 """
 

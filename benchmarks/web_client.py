@@ -17,7 +17,7 @@ orders of magnitude faster at the raster and warp stages.
    with lpm=False: the mesh as one level). The store is warm (the first frame's GI is a hit).
 3. Bytes received per frame (gi_reply, default codecs) and for the mesh.
 
-Writes benchmarks/results/web/web_client.{json,csv,png}.
+Writes --out/web_client.{json,csv,png}.
 
     nice -n 10 .venv/bin/python -m benchmarks.web_client [--scene cornell_box] [--frames 8]
 """

@@ -18,7 +18,7 @@ only its test-path truth is read) and the runs (GAN and world-space radiance):
    the page's final frames against the Python client's with the same served model (SSIM).
 4. The Python client's ``ServedModel.generate`` (onnxruntime, 1 thread) at each size.
 
-Writes OUT/web_model.json and OUT/web_model.csv (default benchmarks/results/web/model).
+Writes --out/web_model.json and web_model.csv (default out/bench/web/model).
 
     nice -n 10 .venv/bin/python -m benchmarks.web_model --scene data/scenes/sponza.toml \\
         --store out/stores/sponza128 --models RUN[,RUN...] --evaluate-missing
