@@ -106,8 +106,9 @@ def block_intro(results: Path) -> str:
     cores = "/".join(str(c) for c in sorted(cpus))
     load_span = span(loads, lambda x: f"{x:.1f}")
     return (
-        "Scripts in `benchmarks/`; each writes its numbers (JSON), a PNG plot, the resolved "
-        "config and the\nmachine/library versions to `benchmarks/results/<topic>/`. Timings "
+        "Modules in `benchmarks/`; each writes its numbers (JSON), plots, the resolved "
+        "config and the\nmachine/library versions to its `--out`; the committed ones are in "
+        "`benchmarks/results/<topic>/`. Timings "
         f"below are from this {cores}-core,\nGPU-less machine while other jobs were running "
         f"(1-minute load average {load_span} over\nthe runs); each benchmark interleaves "
         "icbtool and its peer in one run so both see the same load.\n"
