@@ -2018,6 +2018,47 @@ def _bytes(n: int) -> str:
     return f"{n / 1e3:.0f} kB" if n < 1e6 else f"{n / 1e6:.1f} MB"
 
 
+def block_gi_codec(results: Path) -> str:
+    """The codecs of GI and depth maps on the wire (``benchmarks.gi_codec``)."""
+    d = load("net/gi_codec.json", results)
+    rows = {(r["scene"], r["map"], r["codec"]): r for r in d["rows"]}
+    codecs = ["f32-zstd", "f16-zstd", "f16-diff-zstd", "f16m7-diff-zstd", "log-u16-png", "rgbe-png"]
+
+    def kib(scene: str, kind: str, codec: str, fmt: str = "{:.0f}") -> str:
+        r = rows.get((scene, kind, codec))
+        return "-" if r is None else fmt.format(r["bytes_mean"] / 1024)
+
+    lines = [
+        "**Codecs on the wire** (`benchmarks.gi_codec`, 256 x 256 maps of 3 views of the test "
+        "path of the Cornell box and of Sponza, GI path-traced at 16 spp and denoised as the "
+        'cloud does (and the same GI undenoised, "raw"), depth from a primary ray cast). '
+        "Bytes are the mean per frame (raw float32 GI: 768 KiB; depth: 256 KiB); SSIM on the "
+        "display scale, worst of all views and GI maps; relative error on values in "
+        "[2^-14, 65504] (rgbe-png: of the pixel's largest channel); times are medians on a "
+        "shared 2-core machine (compare codecs, not machines).",
+        "",
+        "| codec | Cornell GI denoised KiB | raw KiB | Sponza GI denoised KiB | raw KiB | worst "
+        "display SSIM | largest rel. error | encode / decode ms (Sponza, denoised) | Cornell "
+        "depth KiB | Sponza depth KiB |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for c in codecs:
+        gi = [r for (_, m, cc), r in rows.items() if cc == c and m.startswith("gi")]
+        key = "max_pixel_rel_error" if c == "rgbe-png" else "max_rel_error"
+        rel = f"{max(r[key] for r in gi):.1e}" + (" (of pixel max)" if c == "rgbe-png" else "")
+        sp = rows["sponza", "gi_denoised", c]
+        lines.append(
+            f"| `{c}` | {kib('cornell_box', 'gi_denoised', c)} | {kib('cornell_box', 'gi_raw', c)}"
+            f" | {kib('sponza', 'gi_denoised', c)} | {kib('sponza', 'gi_raw', c)} | "
+            f"{min(r['ssim_min'] for r in gi):.5f} | {rel} | {sp['encode_ms']:.1f} / "
+            f"{sp['decode_ms']:.1f} | {kib('cornell_box', 'depth', c, '{:.1f}')} | "
+            f"{kib('sponza', 'depth', c, '{:.1f}')} |"
+        )
+    ch = d["choice"]
+    lines += ["", f"Chosen: `{ch['gi']}` for GI, `{ch['depth']}` for depth and mask. {ch['rule']}"]
+    return "\n".join(lines) + "\n"
+
+
 def block_radiance_world(results: Path) -> str:
     """World-space GI on Sponza (``benchmarks.radiance_world``, one file per training set)."""
     runs = [
@@ -2107,6 +2148,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "web": block_web,
     "net-scale": block_net_scale,
     "radiance-world": block_radiance_world,
+    "gi-codec": block_gi_codec,
 }
 
 
@@ -2141,6 +2183,7 @@ OWNERS: dict[str, str] = {
     "web": "web_client",
     "net-scale": "net_scale",
     "radiance-world": "radiance_world",
+    "gi-codec": "gi_codec",
 }
 
 
