@@ -224,3 +224,104 @@ def test_face_normals_and_areas_from_one_pass_equal_their_formulas():
     np.testing.assert_array_equal(s.face_normals, normals)
     assert s.face_areas[3] == 0 and not s.face_normals[3].any()
     assert s.face_normals is s.face_normals and s.face_areas is s.face_areas  # cached
+
+
+# --------------------------------------------------------------------------- binary PLY
+def _write_ply(path: Path, v, faces, normals=None, uvs=None, face_colour=False, ascii_=False):
+    """A PLY file: vertices (float32 x y z [nx ny nz] [u v]), faces (uchar count, int indices)."""
+    props = ["x", "y", "z"] + (["nx", "ny", "nz"] if normals is not None else [])
+    props += ["u", "v"] if uvs is not None else []
+    cols = [np.asarray(v, np.float32)]
+    cols += [np.asarray(normals, np.float32)] if normals is not None else []
+    cols += [np.asarray(uvs, np.float32)] if uvs is not None else []
+    vert = np.concatenate(cols, axis=1)
+    k = len(faces[0])
+    head = ["ply", f"format {'ascii' if ascii_ else 'binary_little_endian'} 1.0"]
+    head += [f"element vertex {len(v)}"] + [f"property float {p}" for p in props]
+    head += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    head += ["property uchar red"] if face_colour else []
+    head += ["end_header"]
+    out = ("\n".join(head) + "\n").encode()
+    if ascii_:
+        lines = [" ".join(f"{x:.9g}" for x in row) for row in vert]
+        lines += [f"{k} " + " ".join(str(i) for i in f) for f in faces]
+        out += ("\n".join(lines) + "\n").encode()
+    else:
+        fields = [("n", "u1"), ("i", "<i4", (k,))] + ([("c", "u1")] if face_colour else [])
+        rec = np.zeros(len(faces), np.dtype(fields))
+        rec["n"], rec["i"] = k, faces
+        out += vert.astype("<f4").tobytes() + rec.tobytes()
+    path.write_bytes(out)
+
+
+@pytest.mark.parametrize("kind", ["triangles", "normals_uvs_colours", "quads"])
+def test_binary_ply_reader_equals_the_general_reader(tmp_path, kind):
+    from icbtool.scene.mesh import load_mesh
+    from icbtool.scene.ply import read_binary_ply
+
+    rng = np.random.default_rng(7)
+    v = rng.normal(size=(30, 3))
+    faces = rng.integers(0, 30, (40, 4 if kind == "quads" else 3))
+    faces = faces[[len(set(f)) == len(f) for f in faces]]
+    extra = {}
+    if kind == "normals_uvs_colours":
+        n = rng.normal(size=(30, 3))
+        extra = dict(normals=n / np.linalg.norm(n, axis=1, keepdims=True), face_colour=True,
+                     uvs=rng.uniform(size=(30, 2)))  # fmt: skip
+    _write_ply(tmp_path / "m.ply", v, faces, **extra)
+    fv, ff, fn, fuv = read_binary_ply(tmp_path / "m.ply")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ref = load_mesh(tmp_path / "m.ply", up_axis="y", textures=False)
+    np.testing.assert_array_equal(fv.astype(np.float32), ref.vertices)
+    # the same triangles (a quad's two, each in the general reader's rotation or ours)
+    canon = lambda f: np.sort([tuple(np.roll(t, -int(np.argmin(t)))) for t in f], axis=0)  # noqa: E731
+    np.testing.assert_array_equal(canon(ff), canon(ref.faces))
+    if kind == "normals_uvs_colours":
+        np.testing.assert_allclose(fn, ref.normals, atol=1e-6)
+        np.testing.assert_array_equal(fuv.astype(np.float32), ref.uvs)
+    else:
+        assert np.isnan(fn).all() and fuv is None
+
+
+def test_binary_ply_reader_leaves_other_files_to_the_general_reader(tmp_path):
+    from icbtool.scene.ply import read_binary_ply
+
+    v, f = _mesh(8, 10, 12)
+    _write_ply(tmp_path / "a.ply", v, f, ascii_=True)
+    assert read_binary_ply(tmp_path / "a.ply") is None
+    (tmp_path / "t.ply").write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n"
+        b"property float y\nproperty float z\nelement face 1\n"
+        b"property list uchar int vertex_indices\nproperty list uchar float texcoord\n"
+        b"end_header\n"
+        + np.zeros(9, "<f4").tobytes()
+        + b"\x03"
+        + np.arange(3, dtype="<i4").tobytes()
+        + b"\x06"
+        + np.zeros(6, "<f4").tobytes()
+    )
+    assert read_binary_ply(tmp_path / "t.ply") is None  # per-corner uvs: not this reader's
+
+
+def test_mitsuba_ply_shapes_read_fast_equal_the_general_reader(tmp_path, monkeypatch):
+    import icbtool.scene.ply as ply
+
+    rng = np.random.default_rng(9)
+    v = rng.normal(size=(40, 3))
+    f = rng.integers(0, 40, (60, 3))
+    f = f[[len(set(t)) == 3 for t in f]]
+    _write_ply(tmp_path / "a.ply", v, f, uvs=rng.uniform(size=(40, 2)))
+    _write_ply(tmp_path / "b.ply", v + 3, f)
+    (tmp_path / "s.xml").write_text(
+        '<scene version="3.0.0">'
+        '<shape type="ply"><string name="filename" value="a.ply"/>'
+        '<transform name="to_world"><scale value="2"/></transform></shape>'
+        '<shape type="ply"><string name="filename" value="b.ply"/></shape></scene>'
+    )
+    fast = _scene_arrays(tmp_path / "s.xml")
+    monkeypatch.setattr(ply, "read_binary_ply", lambda path: None)
+    general = _scene_arrays(tmp_path / "s.xml")
+    for key in ("vertices", "faces", "face_material", "uvs"):
+        np.testing.assert_array_equal(fast[key], general[key], err_msg=key)
+    np.testing.assert_allclose(fast["normals"], general["normals"], atol=2e-6)

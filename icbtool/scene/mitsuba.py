@@ -1188,6 +1188,13 @@ class _Reader(_Materials):
                 if uv is not None and not self.bool_(props, "flip_tex_coords", True):
                     uv = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])
                 return mesh.vertices, mesh.faces, n, uv
+            from icbtool.scene.ply import read_binary_ply
+
+            fast = read_binary_ply(p)  # a binary triangle PLY: numpy alone, no per-file Scene
+            if fast is not None:
+                v, f, n, uv = fast
+                uv = None if uv is None else np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])
+                return v, f, n, uv
             from icbtool.scene.mesh import load_mesh
 
             try:
