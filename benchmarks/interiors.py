@@ -29,7 +29,7 @@ The machine may be shared: the load average is recorded before and after every c
 ratios reported are those of runs made back to back (icbtool then Mitsuba, ``--repeats`` times,
 median of the per-pair ratios), not absolute times.
 
-    .venv/bin/python benchmarks/interiors.py --scenes ~/scenes/interiors --spp 256 \\
+    .venv/bin/python -m benchmarks.interiors --scenes ~/scenes/interiors --spp 256 \\
         --width 160 --height 90 --ref-spp 2048 --out benchmarks/results/interiors
 
 Writes ``<out>/interiors.json`` and ``<out>/<scene>.png`` (icbtool | Mitsuba | reference |
@@ -53,8 +53,8 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-OUT = REPO / "benchmarks" / "results" / "interiors"
+from benchmarks.common import REPO, add_out_argument, load_average, write_results
+
 #: Scene files searched for under --scenes: any .xml up to this many folders down.
 MAX_SCENE_DEPTH = 2
 #: Most mesh files Mitsuba cannot read that a scene may lose before the benchmark gives up.
@@ -346,20 +346,17 @@ def main() -> None:
     ap.add_argument("--max-depth", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--variant", default="llvm_ad_rgb")
-    ap.add_argument("--out", type=Path, default=OUT)
+    add_out_argument(ap, "interiors")
     ap.add_argument("--keep", action="store_true", help="keep the work folder (prepared files)")
     args = ap.parse_args()
     scenes = list(args.scene) + (find_scenes(args.scenes) if args.scenes else [])
     if not scenes:
         raise SystemExit("FAIL: no scene: give --scenes DIR (or $ICBTOOL_INTERIORS) or --scene")
-    from icbtool.provenance import run_info, write_json
-
     args.out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="interiors_"))
+    load_start = load_average()
     results: dict = {
-        "run_info": run_info(),
         "config": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-        "load_average_start": list(os.getloadavg()),
         "scenes": {},
     }
     try:
@@ -375,8 +372,7 @@ def main() -> None:
                 f"{r['time_to_equal_rmse']:.2f}x, peak memory {r['peak_memory']:.2f}x",
                 flush=True,
             )
-            results["load_average_end"] = list(os.getloadavg())
-            write_json(args.out / "interiors.json", results)
+            write_results(args.out / "interiors.json", results, load_start)
     finally:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
