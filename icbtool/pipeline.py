@@ -418,7 +418,7 @@ def run_loop(
                         cam,
                         trace.TraceConfig(
                             spp=cfg.truth_spp,
-                            seed=cfg.cloud.seed + 5000 + k,
+                            seed=truth_seed(cfg.cloud, k),
                             max_depth=cfg.cloud.max_depth,
                         ),
                     )
@@ -437,6 +437,7 @@ def run_loop(
                                 out / "frames" / f"{k:03d}_gi.png",
                                 [fc.gi, fr.gi, truth.gi],
                                 imageio,
+                                ["cloud GI", "generated GI", f"truth GI {cfg.truth_spp}spp"],
                             )
                 report.frames.append(fs)
                 if out is not None:
@@ -447,6 +448,7 @@ def run_loop(
                         fr.final,
                         truth,
                         imageio,
+                        cfg.truth_spp,
                     )
                 if bar is not None:
                     bar.update(1)
@@ -502,8 +504,60 @@ def _comparison_client(cfg: LoopConfig, scene: Any, cloud: Any, rz: Any) -> Any:
     return system.Client(scene, cloud, cfg.client, rasterizer=rz)
 
 
-def _write_tiles(path: Path, tiles: list[np.ndarray], imageio: Any) -> None:
-    """(H, W_k, 3) uint8 tiles side by side, white 2-pixel gaps, as a PNG."""
+def truth_seed(cloud: CloudConfig, index: int) -> int:
+    """The seed of the truth of frame ``index`` (the desktop app renders the same truths)."""
+    return cloud.seed + 5000 + index
+
+
+def truth_noise_ssim(scene: Any, config: LoopConfig) -> float:
+    """SSIM of two truths of the loop's first frame that differ only in their seed: the truth's
+    own Monte Carlo noise, the best SSIM any frame can score against a truth at
+    ``config.truth_spp`` (a final frame near it is as good as the truth can tell).
+
+    Returns:
+        The SSIM in [-1, 1].
+    """
+    from icbtool import metrics, trace
+
+    path = _client_path(scene, config)
+    cam = path.camera_at(float(path.times[0]))  # run_loop's first frame
+    a, b = (
+        trace.render(
+            scene,
+            cam,
+            trace.TraceConfig(
+                spp=config.truth_spp,
+                seed=config.cloud.seed + 9000 + k,
+                max_depth=config.cloud.max_depth,
+            ),
+        )  # fmt: skip
+        for k in range(2)
+    )
+    return float(metrics.ssim(a.full, b.full))
+
+
+#: Height in pixels of the caption band above each panel of a frame strip.
+LABEL_HEIGHT = 14
+
+
+def _label(tile: np.ndarray, text: str) -> np.ndarray:
+    """``tile`` (H, W, 3) uint8 under a black band of :data:`LABEL_HEIGHT` pixels holding
+    ``text`` in white (clipped to the tile's width)."""
+    import cv2
+
+    band = np.zeros((LABEL_HEIGHT, tile.shape[1], 3), np.uint8)
+    cv2.putText(band, text, (2, LABEL_HEIGHT - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.33,
+                (255, 255, 255), 1, cv2.LINE_AA)  # fmt: skip
+    return np.concatenate([band, tile], axis=0)
+
+
+def _write_tiles(
+    path: Path, tiles: list[np.ndarray], imageio: Any, labels: list[str] | None = None
+) -> None:
+    """(H, W_k, 3) uint8 tiles side by side, white 2-pixel gaps, as a PNG; with ``labels``,
+    each under a caption band (:func:`_label`)."""
+    if labels is not None:
+        tiles = [_label(t, text) for t, text in zip(tiles, labels, strict=True)]
     sep = np.full((tiles[0].shape[0], 2, 3), 255, np.uint8)
     strip = tiles[0]
     for t in tiles[1:]:
@@ -511,13 +565,18 @@ def _write_tiles(path: Path, tiles: list[np.ndarray], imageio: Any) -> None:
     imageio.write_png(path, strip)
 
 
-def _write_strip(path: Path, images: list[np.ndarray], imageio: Any) -> None:
+def _write_strip(
+    path: Path, images: list[np.ndarray], imageio: Any, labels: list[str] | None = None
+) -> None:
     """Linear HDR images side by side (display transform), white 2-pixel gaps."""
-    _write_tiles(path, [imageio.to_display(a, _EXPOSURE) for a in images], imageio)
+    _write_tiles(path, [imageio.to_display(a, _EXPOSURE) for a in images], imageio, labels)
 
 
-def _write_frame(path: Path, wrt: Any, w: Any, final: np.ndarray, truth: Any, imageio: Any) -> None:
-    """One strip: DL | warped GI | holes by cause | final | truth (when rendered)."""
+def _write_frame(
+    path: Path, wrt: Any, w: Any, final: np.ndarray, truth: Any, imageio: Any, truth_spp: int
+) -> None:
+    """One strip, each panel labelled: DL | warped GI | holes by cause | final | truth (when
+    rendered, with its samples per pixel)."""
     from icbtool.warp import HOLE_COLOURS
 
     holes = np.zeros((*w.holes.shape, 3), np.uint8)
@@ -529,9 +588,11 @@ def _write_frame(path: Path, wrt: Any, w: Any, final: np.ndarray, truth: Any, im
         holes,
         imageio.to_display(final, _EXPOSURE),
     ]
+    labels = ["DL (client)", "warped GI", "holes", "final"]
     if truth is not None:
         tiles.append(imageio.to_display(truth.full, _EXPOSURE))
-    _write_tiles(path, tiles, imageio)
+        labels.append(f"truth {truth_spp}spp")
+    _write_tiles(path, tiles, imageio, labels)
 
 
 def _write_report(out: Path, report: LoopReport) -> None:

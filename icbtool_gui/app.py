@@ -30,7 +30,14 @@ import icbtool as icb
 from icbtool_gui.calls import CallLog, CallLogView
 from icbtool_gui.forms import DataclassForm, call_repr
 from icbtool_gui.frames import FrameProcess
-from icbtool_gui.model import FrameResult, Session, ViewerConfig, frustum_depth, load_scene
+from icbtool_gui.model import (
+    FrameResult,
+    Session,
+    ViewerConfig,
+    frustum_depth,
+    load_scene,
+    truth_seed,
+)
 from icbtool_gui.panels import FramePanels, PanelsArea
 from icbtool_gui.scene_view import SceneView
 from icbtool_gui.trainer import TrainerPanel
@@ -407,7 +414,7 @@ class MainWindow(QtWidgets.QMainWindow):
             flip = "" if f.flip is None else f"; icb.metrics.flip(truth, f.final) = {f.flip:.4f}"
             self.calls.call(
                 f"truth = icb.trace.render(scene, cam, icb.trace.TraceConfig("
-                f"spp={self.session.viewer.truth_spp}, seed={5000 + f.index})).full\n"
+                f"spp={f.truth_spp}, seed={truth_seed(self.session.cloud, f.index)})).full\n"
                 f"icb.metrics.ssim(f.final, truth)  # {f.ssim:.4f}{flip}",
                 "heatmaps",
             )

@@ -28,7 +28,7 @@ import icbtool as icb
 from icbtool import metrics, prefetch, system
 from icbtool.camera import Camera, CameraPath
 from icbtool.imageio import HOLE_COLOURS, to_display  # not icbtool.warp's: it imports torch
-from icbtool.pipeline import PathConfig
+from icbtool.pipeline import PathConfig, truth_seed
 from icbtool.scene import load_scene  # re-exported: SCENE as the command line reads it
 
 
@@ -42,7 +42,8 @@ class ViewerConfig(PathConfig):
     velocities, hence the prefetch camera, scale with it)."""
     truth_spp: int = 32
     """Samples per pixel of the path-traced truth of each frame, for the truth panel and the
-    SSIM / FLIP heatmaps (0: none)."""
+    SSIM / FLIP heatmaps (0: none). On a demo's store, the demo's (:func:`demo_settings`), so
+    that the window scores a frame as the demo's frames.csv does."""
     exposure: float = 1.0
     """Exposure of the display transform (panels and metrics)."""
     play_interval_ms: int = 200
@@ -135,6 +136,7 @@ class FrameResult:
     generated_gi: np.ndarray | None = None
     generated_note: str = ""
     truth: np.ndarray | None = None
+    truth_spp: int = 0
     ssim_map: np.ndarray | None = None
     ssim: float | None = None
     flip_map: np.ndarray | None = None
@@ -380,9 +382,11 @@ class FrameComputer:
             truth = icb.trace.render(
                 s.scene,
                 cam,
-                icb.trace.TraceConfig(spp=v.truth_spp, seed=5000 + k, max_depth=s.cloud.max_depth),
-            )
+                icb.trace.TraceConfig(spp=v.truth_spp, seed=truth_seed(s.cloud, k),
+                                      max_depth=s.cloud.max_depth),
+            )  # fmt: skip
             out.truth = truth.full
+            out.truth_spp = v.truth_spp
             times["truth"] = 1e3 * (time.perf_counter() - t0)
             add_heatmaps(out, v.exposure)
         out.timings_ms.update(times)
@@ -447,7 +451,8 @@ def demo_settings(
     if not p.is_file():
         return None
     cfg = icb.pipeline.LoopConfig.from_dict(json.loads(p.read_text()).get("loop", {}))
-    viewer = ViewerConfig(path=cfg.path, frames=cfg.frames, height=cfg.height, width=cfg.width)
+    viewer = ViewerConfig(path=cfg.path, frames=cfg.frames, height=cfg.height, width=cfg.width,
+                          truth_spp=cfg.truth_spp)  # fmt: skip
     return viewer, cfg.cloud, cfg.client
 
 
@@ -464,5 +469,6 @@ __all__ = [
     "frustum_depth",
     "frustum_points",
     "hole_image",
+    "truth_seed",  # icbtool.pipeline's: the demo's truths
     "load_scene",
 ]

@@ -315,7 +315,7 @@ class FramePanels(QtWidgets.QWidget):
             for k in ("truth", "SSIM", "FLIP"):
                 P[k].show_image(None, note=note)
             return
-        P["truth"].show_image(display(f.truth, exposure), "path traced")
+        P["truth"].show_image(display(f.truth, exposure), f"path traced, {f.truth_spp} spp")
         P["SSIM"].show_image(
             colormap(f.ssim_map, *COLOUR_BARS["SSIM"][1:3], COLOUR_BARS["SSIM"][0]),
             f"mean SSIM {f.ssim:.4f} (final vs truth)",

@@ -666,3 +666,29 @@ def test_train_help_says_what_the_presets_do():
                 assert bool(getattr(presets[n], field)) == (state == "on"), (field, n, text)
                 checked += 1
     assert checked >= 4  # demodulate, warped_reference, reference_gate, ...
+
+
+def test_demo_verdict_says_what_good_values_are():
+    from icbtool.cli.demo import verdict
+
+    s = {"mean_ssim_final_vs_truth": 0.9, "mean_ssim_dl_only_vs_truth": 0.7,
+         "cache_hit_rate": 0.5, "mean_hole_ratio_combined": 0.02,
+         "median_cloud_render_on_miss_ms": 800.0, "median_raster_ms": 4.0,
+         "median_warp_ms": 6.0}  # fmt: skip
+    text = verdict(s, 0.95, 128)
+    lines = text.splitlines()
+    assert lines[0] == "verdict" and len(lines) == 9
+    names = ["final SSIM vs truth", "DL only (no cloud)", "truth vs truth (128 spp)",
+             "cache hit rate", "holes after combining", "cloud render on a miss",
+             "client raster + warp"]  # fmt: skip
+    row = dict(zip(names, lines[1:-1], strict=True))
+    assert all(name in row[name] for name in names)
+    assert "0.900" in row["final SSIM vs truth"] and "0.700" in row["DL only (no cloud)"]
+    assert "0.950" in row["truth vs truth (128 spp)"] and "50%" in row["cache hit rate"]
+    assert "2.0%" in row["holes after combining"] and "below 5 % is good" in text
+    assert "10 ms" in row["client raster + warp"]
+    assert lines[-1].strip() == (
+        "the cloud's GI helps: SSIM +0.200 over DL alone, 0.050 below the truth's own noise"
+    )
+    worse = verdict({**s, "mean_ssim_final_vs_truth": 0.6}, None, 128)
+    assert "does NOT help: SSIM -0.100" in worse and "-" in worse.splitlines()[3]

@@ -41,6 +41,16 @@ def test_loop_end_to_end_tiny(tmp_path):
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["frames"] == 4 and s["cloud_renders"] == rep.cloud_renders
     assert (tmp_path / "frames" / "003.png").is_file() and (tmp_path / "loop.png").is_file()
+    # labelled panels: DL | warped GI | holes | final | truth, each under a caption band
+    from icbtool.imageio import read_png
+    from icbtool.pipeline import LABEL_HEIGHT
+
+    strip = read_png(tmp_path / "frames" / "003.png")
+    assert strip.shape[:2] == (LABEL_HEIGHT + 32, 5 * 32 + 4 * 2)
+    for k in range(5):  # white caption text in each band, on black
+        band = strip[:LABEL_HEIGHT, k * 34 : k * 34 + 32]
+        assert band.max() > 200 and np.median(band) == 0
+    assert read_png(tmp_path / "frames" / "001.png").shape[1] == 4 * 32 + 3 * 2  # no truth
     # a second run over the same cache hits for the cameras it already rendered
     rep2 = run_loop(scene, cfg, out_dir=tmp_path, progress=False)
     assert rep2.cloud_renders == 0 and all(f.cache_hit for f in rep2.frames)
@@ -71,3 +81,37 @@ def test_cli_unknown_scene_is_one_clear_line(capsys, tmp_path):
         "scene; built-in scenes: boxes_on_floor, cornell_box, plane, white_furnace"
     ]
     assert not (tmp_path / "o").exists()
+
+
+def test_truth_noise_is_the_ssim_of_two_truths_that_differ_in_their_seed():
+    from icbtool import metrics, trace
+    from icbtool.pipeline import truth_noise_ssim
+
+    scene = icb.scene.cornell_box()
+    cfg = LoopConfig(height=24, width=24, truth_spp=4, denoise=False)
+    noise = truth_noise_ssim(scene, cfg)
+    cam = scene.paths[cfg.path].camera_at(float(scene.paths[cfg.path].times[0])).resized(24, 24)
+    a, b = (trace.render(scene, cam, trace.TraceConfig(spp=4, seed=cfg.cloud.seed + 9000 + k,
+                                                       max_depth=cfg.cloud.max_depth))
+            for k in range(2))  # fmt: skip
+    assert noise == pytest.approx(metrics.ssim(a.full, b.full), abs=1e-12)
+    assert 0.0 < noise < 1.0  # 4 spp: clearly noisy, clearly the same picture
+    more = truth_noise_ssim(scene, LoopConfig(height=24, width=24, truth_spp=64, denoise=False))
+    assert more > noise  # more samples, less noise
+
+
+def test_the_window_scores_against_the_demos_truths(tmp_path):
+    """Opened on a demo's output, the desktop app renders each frame's truth as the demo did
+    (its samples per pixel, the same seed), so its SSIM is the demo's frames.csv's."""
+    import dataclasses
+
+    from icbtool.provenance import write_json
+
+    model = pytest.importorskip("icbtool_gui.model")
+    from icbtool import pipeline
+
+    cfg = LoopConfig(truth_spp=77, frames=9)
+    write_json(tmp_path / "config.json", {"loop": dataclasses.asdict(cfg)})
+    viewer, cloud, _ = model.demo_settings(tmp_path)
+    assert viewer.truth_spp == 77 and viewer.frames == 9 and cloud == cfg.cloud
+    assert model.truth_seed is pipeline.truth_seed

@@ -92,14 +92,80 @@ def run(args: argparse.Namespace) -> int:
     print(f"client buffers at the default camera -> {out / 'buffers'}")
     report = pipeline.run_loop(scene, cfg, out_dir=out)
     s = report.summary()
-    print(json.dumps(s, indent=2))
     if args.network:
         run_network(args, scene, cfg, shaper, out / "network")
+    noise = pipeline.truth_noise_ssim(scene, cfg) if cfg.truth_every else None
     print(
         f"done in {time.perf_counter() - t0:.1f} s; outputs in {out}/ "
-        "(frames/*.png, loop.png, summary.json, frames.csv, buffers/*.png)"
+        "(frames/*.png, loop.png, summary.json: every number, frames.csv, buffers/*.png)"
     )
+    print(verdict(s, noise, cfg.truth_spp))
     return 0
+
+
+def verdict(summary: dict, truth_noise: float | None, truth_spp: int) -> str:
+    """The main job's result for people: a short table of what matters, each with what a good
+    value is (the whole summary is in summary.json).
+
+    Args:
+        summary: :meth:`icbtool.pipeline.LoopReport.summary`.
+        truth_noise: :func:`icbtool.pipeline.truth_noise_ssim` (None: no truth rendered).
+        truth_spp: samples per pixel of the truth.
+
+    Returns:
+        The table, lines joined by newlines.
+    """
+
+    def num(v: float | None, fmt: str) -> str:
+        return "-" if v is None else format(v, fmt)
+
+    final = summary.get("mean_ssim_final_vs_truth")
+    dl = summary.get("mean_ssim_dl_only_vs_truth")
+    holes = summary.get("mean_hole_ratio_combined")
+    rows = [
+        ("final SSIM vs truth", num(final, ".3f"), "higher is better; 1 = the truth"),
+        ("  DL only (no cloud)", num(dl, ".3f"), "the final must beat it: the GI's gain"),
+        (
+            f"  truth vs truth ({truth_spp} spp)",
+            num(truth_noise, ".3f"),
+            "the truth's own noise: the best any frame can score",
+        ),
+        (
+            "cache hit rate",
+            num(summary.get("cache_hit_rate"), ".0%"),
+            "frames answered from the store; higher = fewer cloud renders",
+        ),
+        (
+            "holes after combining",
+            num(holes, ".1%"),
+            "pixels no reference saw (inpainted); below 5 % is good",
+        ),
+        (
+            "cloud render on a miss",
+            num(summary.get("median_cloud_render_on_miss_ms"), ".0f") + " ms",
+            "median; the prefetch hides it up to the latency",
+        ),
+        (
+            "client raster + warp",
+            num(_add(summary.get("median_raster_ms"), summary.get("median_warp_ms")), ".0f")
+            + " ms",
+            "median per frame; below 33 ms keeps 30 fps",
+        ),
+    ]
+    w0 = max(len(r[0]) for r in rows)
+    w1 = max(len(r[1]) for r in rows)
+    lines = ["verdict", *(f"  {a:<{w0}}  {b:>{w1}}  {c}" for a, b, c in rows)]
+    if final is not None and dl is not None:
+        gain = final - dl
+        below = None if truth_noise is None else truth_noise - final
+        ceiling = "" if below is None else f", {below:.3f} below the truth's own noise"
+        word = "helps" if gain > 0 else "does NOT help"
+        lines.append(f"  the cloud's GI {word}: SSIM {gain:+.3f} over DL alone{ceiling}")
+    return "\n".join(lines)
+
+
+def _add(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None else a + b
 
 
 def run_network(
