@@ -22,7 +22,7 @@ name             C   preview  content
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -104,7 +104,30 @@ def check_names(names: tuple[str, ...] | list[str], allowed: tuple[str, ...], wh
         raise ValueError(f"unknown {what} buffer(s) {unknown}; choose from {list(allowed)}")
 
 
+@runtime_checkable
+class GIModel(Protocol):
+    """What every learned or baseline GI answers: "GI for these buffers".
+
+    Implemented by the GAN generator (:class:`icbtool.gan.Generator`), the world-space models
+    (:mod:`icbtool.radiance`) and the baselines (:mod:`icbtool.gan.baselines`); the ICB loop,
+    the server and the benchmarks take any of them.
+    """
+
+    def generate(self, buffers: Any) -> np.ndarray:
+        """GI from the client's buffers.
+
+        Args:
+            buffers: the input maps by name: a mapping of ``(H, W, C)`` arrays, a CRT-buffer
+                record or a raster result (each model reads the names it needs).
+
+        Returns:
+            (H, W, 3) float32 linear HDR GI, 0 on the background.
+        """
+        ...
+
+
 __all__ = [
+    "GIModel",
     "BUFFERS",
     "CHANNELS",
     "RASTER_BUFFERS",

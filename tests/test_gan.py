@@ -524,7 +524,9 @@ def test_loop_compares_generated_with_cloud_gi_and_truth(store, tmp_path):
     assert rep.frames[0].ssim_gi_cloud == pytest.approx(ref.frames[0].ssim_gi, abs=1e-12)
     assert rep.frames[0].ssim_gi != rep.frames[0].ssim_gi_cloud  # the generated GI is its own
     strip = read_png(tmp_path / "gen" / "frames" / "000_gi.png")
-    assert strip.shape[:2] == (32, 3 * 32 + 2 * 2)
+    from icbtool.pipeline import LABEL_HEIGHT
+
+    assert strip.shape[:2] == (LABEL_HEIGHT + 32, 3 * 32 + 2 * 2)  # under caption bands
     assert not (tmp_path / "gen" / "frames" / "001_gi.png").exists()
     s = rep.summary()
     assert s["mean_ssim_gi_cloud_vs_truth"] == pytest.approx(
@@ -1043,3 +1045,21 @@ def test_reference_dropout_empties_whole_references_at_its_rate(plane_store):
         D.BatchSampler(data, 2, 32, False, seed=0, reference_dropout=1.0)
     with pytest.raises(ValueError, match="reference_dropout"):
         tiny(warped_reference=True, reference_dropout=-0.1)
+
+
+def test_every_gi_model_declares_the_one_interface():
+    """The generator, the world-space model and the baselines all answer "GI for these
+    buffers" through icbtool.buffers.GIModel; a baseline instance is one at run time."""
+    from icbtool.buffers import GIModel
+    from icbtool.gan import baselines
+    from icbtool.gan.generate import Generator
+    from icbtool.radiance.model import RadianceModel
+
+    for cls in (Generator, RadianceModel, baselines.ConstantGI, baselines.AlbedoScaledGI,
+                baselines.NearestIrradiance):  # fmt: skip
+        assert issubclass(cls, GIModel), cls
+    albedo = np.full((2, 3, 3), 0.5, np.float32)
+    model = baselines.ConstantGI(np.array([0.1, 0.2, 0.3], np.float32))
+    assert isinstance(model, GIModel)
+    assert model.generate({"albedo": albedo}).shape == (2, 3, 3)
+    assert not isinstance(object(), GIModel)

@@ -24,6 +24,7 @@ LAYERS: dict[str, int] = {
     "configdoc": 0,
     "imageio": 0,
     "camera": 1,
+    "runs": 1,
     "metrics": 1,
     "scene": 2,
     "prefetch": 2,

@@ -19,7 +19,6 @@ with bit-identical weights to an uninterrupted run on the same machine and threa
 from __future__ import annotations
 
 import copy
-import csv
 import json
 import math
 import os
@@ -50,16 +49,20 @@ from icbtool.gan.models import (
     UNetGenerator,
     init_weights,
 )
-from icbtool.imageio import to_display, write_png
 from icbtool.metrics import mse as mse_metric
 from icbtool.metrics import ssim as ssim_metric
 from icbtool.provenance import run_info, write_json
+from icbtool.runs import atomic_save, sample_png, scene_key, write_evals
 from icbtool.store.dataset import Dataset
 
 
 class TrainingDivergedError(RuntimeError):
     """A loss became NaN/Inf or exceeded ``TrainConfig.divergence_limit``; training stopped and
     the last good checkpoint is kept."""
+
+
+#: The columns of a GAN run's evals.csv.
+_EVAL_COLUMNS = ("iteration", "ssim", "mse", "l1", "seconds", "views")
 
 
 @dataclass(frozen=True)
@@ -368,12 +371,6 @@ def _device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def _atomic_save(obj: Any, path: Path) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
 def _eval_frames(
     data: PairData, n: int, reference_offset: int = 1
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -433,29 +430,6 @@ def evaluate(
         "views": len(x),
     }
     return metrics, first
-
-
-def _sample_png(path: Path, pred: np.ndarray, truth: np.ndarray, exposure: float) -> None:
-    a, b = to_display(pred, exposure), to_display(truth, exposure)
-    diff = np.abs(a.astype(np.int16) - b.astype(np.int16)).astype(np.uint8)
-    write_png(path, np.concatenate([a, b, diff], axis=1))
-
-
-def _scene_key(scene: Any) -> str | None:
-    if scene is None or isinstance(scene, str):
-        return scene
-    return f"{getattr(scene, 'name', '?')} ({scene.content_hash}, light {scene.light_hash})"
-
-
-def _write_evals(run_dir: Path, evals: list[dict[str, float]]) -> None:
-    write_json(run_dir / "evals.json", evals)
-    cols = ["iteration", "ssim", "mse", "l1", "seconds", "views"]
-    tmp = run_dir / "evals.csv.tmp"
-    with open(tmp, "w", newline="") as f:
-        wr = csv.DictWriter(f, cols, extrasaction="ignore")
-        wr.writeheader()
-        wr.writerows(evals)
-    os.replace(tmp, run_dir / "evals.csv")
 
 
 def learning_rate(config: TrainConfig, step: int) -> float:
@@ -577,7 +551,7 @@ class _Run:
             self.run_dir / "config.json",
             {
                 "train_config": self.config.to_dict(),
-                "scene": _scene_key(scene),
+                "scene": scene_key(scene),
                 "store": str(getattr(store, "root", store)),
                 "encoding": self.enc.to_dict(),
                 "generator_config": asdict(self.g_cfg),
@@ -708,8 +682,8 @@ class _Run:
             "seconds": self.elapsed0 + time.perf_counter() - t0,
         }
         self.evals.append(row)
-        _write_evals(self.run_dir, self.evals)
-        _sample_png(
+        write_evals(self.run_dir, self.evals, _EVAL_COLUMNS)
+        sample_png(
             self.run_dir / "samples" / f"iter_{self.step:06d}.png",
             first,
             self.gi_eval[0].transpose(1, 2, 0),
@@ -736,8 +710,8 @@ class _Run:
         }
         if self.ema is not None:
             ck["generator_ema"] = g_state
-        _atomic_save(ck, self.ckpt_path)
-        _atomic_save(
+        atomic_save(ck, self.ckpt_path)
+        atomic_save(
             {
                 "step": self.step,
                 "generator": g_state,
@@ -848,7 +822,7 @@ def train(
         if writer is not None:
             writer.close()
     if run.evals:
-        _write_evals(run_dir, run.evals)
+        write_evals(run_dir, run.evals, _EVAL_COLUMNS)
     return TrainResult(
         run_dir, run.step, run.evals, run.p_status, time.perf_counter() - t0, n_views
     )

@@ -21,7 +21,6 @@ threads); the ``seconds`` column goes on from the stopped run's elapsed time.
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import os
@@ -34,7 +33,6 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from icbtool.imageio import to_display, write_png
 from icbtool.metrics import mse as mse_metric
 from icbtool.metrics import ssim as ssim_metric
 from icbtool.provenance import run_info, write_json
@@ -54,6 +52,7 @@ from icbtool.radiance.models import (
     ProbeVolume,
     corner_lookup_np,
 )
+from icbtool.runs import atomic_save, sample_png, scene_key, write_evals
 
 
 class RadianceDivergedError(RuntimeError):
@@ -314,28 +313,6 @@ def evaluate_views(
     return {"views": len(views), "ssim": float(np.mean(s)), "mse": float(np.mean(m))}, first
 
 
-def _sample_png(path: Path, pred: np.ndarray, truth: np.ndarray, exposure: float) -> None:
-    a, b = to_display(pred, exposure), to_display(truth, exposure)
-    diff = np.abs(a.astype(np.int16) - b.astype(np.int16)).astype(np.uint8)
-    write_png(path, np.concatenate([a, b, diff], axis=1))
-
-
-def _write_evals(run_dir: Path, evals: list[dict[str, Any]]) -> None:
-    write_json(run_dir / "evals.json", evals)
-    tmp = run_dir / "evals.csv.tmp"
-    with open(tmp, "w", newline="") as f:
-        wr = csv.DictWriter(f, list(EVAL_COLUMNS), extrasaction="ignore")
-        wr.writeheader()
-        wr.writerows(evals)
-    os.replace(tmp, run_dir / "evals.csv")
-
-
-def _scene_key(scene: Any) -> str | None:
-    if scene is None or isinstance(scene, str):
-        return scene
-    return f"{getattr(scene, 'name', '?')} ({scene.content_hash}, light {scene.light_hash})"
-
-
 def _eval_sets(store: Any, cfg: Any, scene: Any) -> dict[str, list[int]]:
     out = {}
     for p in cfg.eval_paths:
@@ -490,7 +467,7 @@ def _fit_probes_run(
             "kind": "probes",
             "probe_config": cfg.to_dict(),
             "spec": spec.to_dict(),
-            "scene": _scene_key(scene),
+            "scene": scene_key(scene),
             "store": str(getattr(store, "root", store)),
             "train_records": list(samples.record_ids),
             "train_pixels": len(samples),
@@ -507,13 +484,13 @@ def _fit_probes_run(
         m, first = evaluate_views(model, views, cfg.display_exposure)
         evals.append({"iteration": 0, "path": path, **m, "seconds": time.perf_counter() - t0})
         if first is not None:
-            _sample_png(
+            sample_png(
                 run_dir / "samples" / f"{path}_000000.png", first, views[0].gi,
                 cfg.display_exposure,
             )  # fmt: skip
         if progress:
             print(f"probes: {path} ({m['views']} views): SSIM {m['ssim']:.4f}  MSE {m['mse']:.1f}")
-    _write_evals(run_dir, evals)
+    write_evals(run_dir, evals, EVAL_COLUMNS)
     return RadianceResult(run_dir, 0, evals, time.perf_counter() - t0)
 
 
@@ -534,12 +511,6 @@ def field_spec(bounds: Bounds, cfg: RadianceConfig, scale: float) -> FieldSpec:
         cfg.normal_offset * cell,
         scale,
     )
-
-
-def _atomic_save(obj: Any, path: Path) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
 
 
 def train(
@@ -647,7 +618,7 @@ def _train_grid(
             "kind": "grid",
             "radiance_config": cfg.to_dict(),
             "spec": spec.to_dict(),
-            "scene": _scene_key(scene),
+            "scene": scene_key(scene),
             "store": str(getattr(store, "root", store)),
             "train_records": list(samples.record_ids),
             "train_pixels": len(samples),
@@ -666,7 +637,7 @@ def _train_grid(
         return elapsed0 + time.perf_counter() - t0
 
     def save() -> None:
-        _atomic_save(
+        atomic_save(
             {
                 "step": step,
                 "model": module.state_dict(),
@@ -685,7 +656,7 @@ def _train_grid(
             m, first = evaluate_views(model, vs, cfg.display_exposure)
             evals.append({"iteration": step, "path": path, **m, "seconds": elapsed()})
             if first is not None:
-                _sample_png(
+                sample_png(
                     run_dir / "samples" / f"{path}_{step:06d}.png", first, vs[0].gi,
                     cfg.display_exposure,
                 )  # fmt: skip
@@ -695,7 +666,7 @@ def _train_grid(
                     f"MSE {m['mse']:.1f}"
                 )
         module.train()
-        _write_evals(run_dir, evals)
+        write_evals(run_dir, evals, EVAL_COLUMNS)
 
     from tqdm import tqdm
 
