@@ -382,6 +382,7 @@ class _Values:
         self.mat_keys: dict[Any, int] = {}
         self.bsdfs: dict[int, _Bsdf] = {}
         self.rendered: dict[str, _Bsdf] = {}  # "file:line" of a shape's BSDF -> what renders
+        self.checkers: list[str] = []  # "file:line" of the checkerboard textures read
         self.files: list[Path] = [path]  # the scene file and the files it includes
         self.tex_cache: dict[str, np.ndarray | None] = {}
         self.parts: list[_Part] = []
@@ -711,6 +712,13 @@ class _Values:
         return m
 
 
+def _has_to_uv(node: _Node) -> bool:
+    """Whether a texture inside ``node`` has a ``to_uv`` transform."""
+    if node.tag == "transform" and node.attrs.get("name") == "to_uv":
+        return True
+    return any(_has_to_uv(c) for c in node.children)
+
+
 class _Unsupported(Exception):
     """A BSDF or texture the tracer does not evaluate exactly (approximated instead)."""
 
@@ -745,7 +753,7 @@ class _Materials(_Values):
         if kind == "checkerboard":
             a = self.reflectance(props.get("color0"), 0.4)[0]
             b = self.reflectance(props.get("color1"), 0.2)[0]
-            repair_warning(node.where, "checkerboard texture rendered as its mean colour")
+            self.checkers.append(node.where)  # bsdf() warns unless the tracer renders it
             return 0.5 * (a + b), None, False
         self.skip(node, "texture type is not supported (0.5 grey instead)")
         return np.full(3, 0.5), None, False
@@ -781,7 +789,15 @@ class _Materials(_Values):
         key = id(node)
         if key not in self.bsdfs:
             notes: list[str] = []
+            n_checkers = len(self.checkers)
             b = self._bsdf(node, notes)
+            if not notes and (len(self.checkers) > n_checkers or _has_to_uv(node)):
+                # a diffuse BSDF with a checkerboard (or a to_uv transform): Mitsuba's one-sided
+                # diffuse with the texture, traced exactly
+                b = _Bsdf(b.name, b.albedo, b.texture, b.raw, self._declared(node))
+            for where in self.checkers[n_checkers:]:
+                if b.declared is None:
+                    repair_warning(where, "checkerboard texture rendered as its mean colour")
             if notes:
                 albedo, rule = approximated_albedo(b.albedo)
                 declared = self._declared(node)

@@ -15,8 +15,8 @@ GGX exact), ``plastic``'s and ``roughplastic``'s internal scattering (``nonlinea
 probabilities, ``dielectric``'s radiance scaling by 1 / eta^2 on refraction, ``thindielectric``'s
 series of inter-reflections, ``blendbsdf``'s mixture density. Microfacet normals are drawn from
 the visible-normal distribution for GGX (Heitz 2018) and from D(m) cos(m) for Beckmann: a
-different (valid) importance sampling than Mitsuba's Beckmann VNDF, so images agree in
-expectation, not sample for sample.
+different (valid) importance sampling than Mitsuba's Beckmann VNDF (noisier at grazing angles
+and for sharp anisotropic lobes), so images agree in expectation, not sample for sample.
 
 The scene's BSDFs are one node table (:class:`BsdfTable`, built by :func:`pack`): a material's
 root node, nodes' types, constants, texture ids and children; ``twosided``, ``blendbsdf`` and
@@ -235,7 +235,7 @@ def mf_g1(ggx, au, av, vx, vy, vz, mx, my, mz):
 @nb.njit(**_JIT)
 def mf_sample(ggx, au, av, wx, wy, wz, u1, u2):
     """A microfacet normal for the direction w (upper hemisphere) and its density: GGX from the
-    visible normals (Heitz 2018), Beckmann from D(m) cos(m). (mx, my, mz, pdf)."""
+    normals visible from w (Heitz 2018), Beckmann from D(m) cos(m). (mx, my, mz, pdf)."""
     if ggx:
         vx = au * wx
         vy = av * wy
@@ -266,17 +266,14 @@ def mf_sample(ggx, au, av, wx, wy, wz, u1, u2):
         mx = au * nx
         my = av * ny
         mz = max(nz, 1e-9)
-        ln = math.sqrt(mx * mx + my * my + mz * mz)
-        mx /= ln
-        my /= ln
-        mz /= ln
-        return mx, my, mz, mf_pdf(ggx, au, av, wx, wy, wz, mx, my, mz)
-    rr = math.sqrt(-math.log(max(1.0 - u1, 1e-300)))
-    phi = 2.0 * _PI * u2
-    sx = au * rr * math.cos(phi)
-    sy = av * rr * math.sin(phi)
-    ln = math.sqrt(sx * sx + sy * sy + 1.0)
-    mx, my, mz = -sx / ln, -sy / ln, 1.0 / ln
+    else:  # Beckmann: slopes from the (stretched Gaussian) slope distribution, density D cos
+        rr = math.sqrt(-math.log(max(1.0 - u1, 1e-300)))
+        phi = 2.0 * _PI * u2
+        mx, my, mz = -au * rr * math.cos(phi), -av * rr * math.sin(phi), 1.0
+    ln = math.sqrt(mx * mx + my * my + mz * mz)
+    mx /= ln
+    my /= ln
+    mz /= ln
     return mx, my, mz, mf_pdf(ggx, au, av, wx, wy, wz, mx, my, mz)
 
 

@@ -18,16 +18,23 @@ kernels share their sampling and their DL/GI split:
 
 Not done here (the Lambert kernel's performance features): ``gi_splits`` (one branch per
 sample) and deferred texel loads.
+
+numba's disk cache of a function is keyed on its own file only, but this kernel compiles in the
+helpers of :mod:`icbtool.trace.kernels` and :mod:`icbtool.trace.bsdfs`:
+:func:`_drop_stale_cache` empties its cache when either file changed since it was written.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
+from pathlib import Path
 
 import numba as nb
 import numpy as np
 
 from icbtool.trace import bsdfs as bs
+from icbtool.trace import kernels as _kernels
 from icbtool.trace.kernels import (
     _GOLD,
     _JIT,
@@ -443,3 +450,25 @@ def _nee(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps, diag, t0, t1, t2, to_dl
                     _add_to(direct, gi, False, row, t0 * f0 * le[0] * g, t1 * f1 * le[1] * g,
                             t2 * f2 * le[2] * g)  # fmt: skip
     return n_shadow
+
+
+def _drop_stale_cache() -> None:
+    """Empty the disk cache of the kernel and of :func:`_nee` when the modules whose helpers they
+    compile in (kernels.py, bsdfs.py) differ from those they were cached with (a stamp file
+    beside the cache); a read-only or missing cache is left alone."""
+    try:
+        deps = hashlib.sha256(
+            b"".join(Path(m.__file__).read_bytes() for m in (_kernels, bs))
+        ).hexdigest()
+        cache = trace_paths_general._cache
+        stamp = Path(cache._cache_path) / "general_deps.sha256"
+        if stamp.is_file() and stamp.read_text() == deps:
+            return
+        trace_paths_general._cache.flush()
+        _nee._cache.flush()
+        stamp.write_text(deps)
+    except (OSError, AttributeError):  # pragma: no cover - read-only cache, other numba
+        return
+
+
+_drop_stale_cache()
