@@ -468,9 +468,19 @@ def test_cli_generate_on_a_procedural_scene(store, tmp_path, capsys):
     assert rc == 0, capsys.readouterr().err
     gi = read_exr(out / "default_gi.exr")
     assert gi.shape == (64, 64, 3) and np.isfinite(gi).all() and gi.min() >= 0
+    from icbtool.cli.gan import GAN_SIZE_MULTIPLE
+    from icbtool.gan.models import MULTIPLE
+
+    assert GAN_SIZE_MULTIPLE == MULTIPLE
+    bad = tmp_path / "bad"
     rc = main(["generate", str(tmp_path / "run"), "cornell_box", "--height", "60", "--width", "64",
-               "--out", str(out)])  # fmt: skip
-    assert rc == 1 and "multiples of 32" in capsys.readouterr().err
+               "--out", str(bad)])  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and err == [
+        "icbtool generate: error: --height 60: a GAN generator's sides are multiples of 32 "
+        "(e.g. 64)"
+    ]
+    assert not bad.exists()  # refused before any work
 
 
 def test_package_names_are_not_shadowed_by_submodules():

@@ -12,8 +12,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
+from pathlib import Path
 
 from icbtool.cli._common import (
+    UsageError,
     add_command,
     add_out_argument,
     add_scene_argument,
@@ -29,6 +31,10 @@ from icbtool.cli._common import (
     write_json,
 )
 from icbtool.cli._options import Spelling, add_config
+
+#: A GAN generator's image sides are multiples of this (icbtool.gan.models.MULTIPLE, which
+#: imports torch; a test checks they agree): checked before any work.
+GAN_SIZE_MULTIPLE = 32
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -146,6 +152,18 @@ def _generate(args: argparse.Namespace) -> int:
     from icbtool.imageio import to_display, write_exr, write_png
     from icbtool.pipeline import load_client_model
 
+    run = Path(args.run)
+    if not run.exists():
+        raise UsageError(f"RUN {args.run!r}: no such run directory")
+    if not (run / "radiance.pt").is_file():  # a GAN run: the U-Net wants multiples of 32
+        for side in ("height", "width"):
+            v = getattr(args, side)
+            if v is not None and v % GAN_SIZE_MULTIPLE:
+                m = GAN_SIZE_MULTIPLE
+                raise UsageError(
+                    f"--{side} {v}: a GAN generator's sides are multiples of {m} "
+                    f"(e.g. {max(m, round(v / m) * m)})"
+                )
     out = check_out_dir(args.out)  # before any work
     gen = load_client_model(args.run)  # a GAN run or a world-space one (icbtool world)
     scene = load_scene(args.scene)
