@@ -1512,10 +1512,10 @@ class _Reader(_Materials):
             v, f, n, uv, fm = check_arrays(where, v, f, n, uv, fm)
         fill_vertex_normals(v, f, n, ~np.isfinite(n).all(axis=1))
         mats = self.materials
-        if not any(m.is_textured for m in mats):
-            uv = None
+        if not any(m.is_textured or m.bsdf is not None for m in mats):
+            uv = None  # (declared BSDFs keep them: textures, the anisotropy's tangent frame)
         elif uv is None:
-            mats = [Material(m.name, m.albedo, m.emission) for m in mats]
+            mats = [dataclasses.replace(m, texture=None, texture_path=None) for m in mats]
         up = np.array([0.0, 1.0, 0.0])
         if self.cam_up is not None:
             k = int(np.argmax(np.abs(self.cam_up)))
