@@ -1261,6 +1261,48 @@ def block_dl_accuracy(results: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def block_shadow_accuracy(results: Path) -> str:
+    d = load("raster/shadow_accuracy.json", results)
+
+    def pcts(x: list[float]) -> str:
+        return " / ".join(f"{100 * v:+.2f}" for v in x)
+
+    lines = [
+        "**Client soft shadows** (`benchmarks.raster_shadow_accuracy`): the raster's DL against "
+        "the tracer's direct light\n(max_depth 2, the reference spp below), bias per channel "
+        "(R / G / B, %) of the sums over interior pixels (footprint on one\nplane, not the "
+        "emitter seen) in a penumbra (traced / unshadowed light in 0.05-0.95) and fully lit "
+        "(>= 0.98),\n`icbtool.raster.accuracy.shadow_bias`; `before`: the raster before the "
+        "along-the-ray area offset and penumbra\nsamples; `dl` ms at 512x512 (median; before "
+        "and after run back to back, 1-minute load "
+        f"{d['load_average_start'][0]:.1f} at the start\non 2 cores: the sun-only Sponza, "
+        "whose shading code is unchanged, shows how far such times move).",
+        "",
+        "| view, size | raster | penumbra bias % (px) | lit bias % (px) | dl ms at 512^2 |",
+        "|---|---|---|---|---|",
+    ]
+    order = ("before_default", "before_supersample2", "default", "supersample2")
+    names = {
+        "before_default": "before, default",
+        "before_supersample2": "before, dl_supersample 2",
+        "default": "default",
+        "supersample2": "dl_supersample 2",
+    }
+    for view, v in d["views"].items():
+        h, w = v["size"]
+        for key in order:
+            if key not in v["configs"]:
+                continue
+            c = v["configs"][key]
+            lines.append(
+                f"| {view} {h}x{w} ({v['reference']['spp']} spp) | {names[key]} | "
+                f"{pcts(c['penumbra_bias_per_channel'])} ({c['penumbra_pixels']}) | "
+                f"{pcts(c['lit_bias_per_channel'])} ({c['lit_pixels']}) | "
+                f"{c['dl_ms_512_median']:.0f} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
 def block_trace_refactor(results: Path) -> str:
     rows = []
     for name, label in (("cornell_box", "Cornell box"), ("sponza", "Sponza"), ("aa", "A/A")):
@@ -2134,6 +2176,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "mitsuba-xml": block_mitsuba_xml,
     "envmap": block_envmap,
     "dl-accuracy": block_dl_accuracy,
+    "shadow-accuracy": block_shadow_accuracy,
     "trace-refactor": block_trace_refactor,
     "gan-figure7": block_gan_figure7,
     "gan-figure8": block_gan_figure8,
@@ -2169,6 +2212,7 @@ OWNERS: dict[str, str] = {
     "mitsuba-xml": "mitsuba_xml_compare",
     "envmap": "envmap_mitsuba",
     "dl-accuracy": "raster_dl_accuracy",
+    "shadow-accuracy": "raster_shadow_accuracy",
     "trace-refactor": "trace_ab",
     "gan-figure7": "gan_figure7",
     "gan-figure8": "gan_figure8",
