@@ -17,21 +17,33 @@ store's bake and the window's own construction instead of delaying the first fra
 from __future__ import annotations
 
 import multiprocessing
+import signal
 from pathlib import Path
 from typing import Any
 
 from PySide6 import QtCore
 
 
+def _recv(conn: Any) -> Any:
+    """The window's next message; None (stop) when its end of the pipe is gone: the window was
+    closed or killed, and the frame process ends quietly instead of with an EOFError."""
+    try:
+        return conn.recv()
+    except (EOFError, OSError):
+        return None
+
+
 def serve(conn: Any) -> None:
     """The frame process: import what frames need, receive ``(scene_spec, store_dir, run_dir,
     settings)`` (or ``None``: stop unused), then answer ``(k, viewer, cloud, client)`` messages
-    until ``None``."""
+    until ``None`` or until the window is gone. Ctrl-C in the terminal is the window's to handle
+    (it stops this process): ignored here, so that it prints no traceback of its own."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     import icbtool.raster  # noqa: F401 - imported now, while the window is being built
     import icbtool.warp  # noqa: F401 - (torch, kornia)
     from icbtool_gui.model import FrameComputer, Session, load_scene
 
-    opened = conn.recv()
+    opened = _recv(conn)
     if opened is None:
         return
     scene_spec, store_dir, run_dir, settings = opened
@@ -39,16 +51,20 @@ def serve(conn: Any) -> None:
     computer = FrameComputer(session)
     try:
         while True:
-            msg = conn.recv()
+            msg = _recv(conn)
             if msg is None:
                 break
             k, viewer, cloud, client = msg
             try:
                 session.set_viewer(viewer)
                 session.cloud, session.client = cloud, client
-                conn.send(("ok", computer.compute(k)))
+                reply = ("ok", computer.compute(k))
             except Exception as e:  # noqa: BLE001 - reported to the window, the process goes on
-                conn.send(("error", k, f"{type(e).__name__}: {e}"))
+                reply = ("error", k, f"{type(e).__name__}: {e}")
+            try:
+                conn.send(reply)
+            except OSError:  # the window is gone (BrokenPipeError): stop quietly
+                break
     finally:
         computer.close()
         session.close()

@@ -671,3 +671,27 @@ def test_a_prestarted_frame_process_waits_once_and_is_stopped_when_no_window_tak
         open_window("no_such_scene.obj")
     assert frames._PRESTARTED is None
     assert frame_processes() <= before
+
+
+def test_a_killed_window_leaves_its_frame_process_ending_quietly(tmp_path):
+    """The window's process dies without a word (kill -9): its frame process finds the pipe
+    closed and ends without a traceback (it printed an EOFError's)."""
+    code = (
+        "import os, time\n"
+        "from icbtool_gui import frames\n"
+        "process, conn = frames._spawn()\n"
+        "print(process.pid, flush=True)\n"
+        "time.sleep(1.0)\n"
+        "os._exit(0)\n"  # as a killed window: no clean-up, the pipe closes with the process
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    r = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
+    )  # fmt: skip  (returns once the frame process closed stderr)
+    assert r.returncode == 0, r.stderr[-2000:]
+    pid = int(r.stdout.split()[0])
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and Path(f"/proc/{pid}").exists():
+        time.sleep(0.2)
+    assert not Path(f"/proc/{pid}").exists(), "the frame process outlived its window"
+    assert "Traceback" not in r.stderr and "EOFError" not in r.stderr, r.stderr[-2000:]
