@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
 import threading
 import time
@@ -111,11 +112,13 @@ def run(job_path: str | Path) -> int:
             (out / CHECKPOINT_NOTE).unlink(missing_ok=True)
     new = not losses.exists()
     t0 = time.perf_counter()
+    stop = threading.Event()  # SIGTERM (the window's Stop, or closing it): checkpoint, end
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     with open(losses, "a", buffering=1) as f:  # line-buffered: one flush per iteration
         if new:
             f.write(",".join(LOSS_COLUMNS) + "\n")
 
-        def on_step(step: int, values: dict[str, float]) -> None:
+        def on_step(step: int, values: dict[str, float]) -> bool:
             # icbtool.gan.train saves a checkpoint after the update that ends a multiple of
             # checkpoint_every, before the next update: by now the one of step - 1 is complete
             if step > 1 and (step - 1) % cfg.checkpoint_every == 0:
@@ -123,6 +126,7 @@ def run(job_path: str | Path) -> int:
             row = {**values, "iteration": step, "seconds": time.perf_counter() - t0}
             f.write(",".join("" if row.get(k) is None else f"{row[k]:.6g}" for k in LOSS_COLUMNS))
             f.write("\n")
+            return stop.is_set()
 
         ro = icb.store.StoreConfig(readonly=True, record_hits=False)
         try:

@@ -73,6 +73,11 @@ def default_config(image_size: int | None = None) -> Any:
     return cfg
 
 
+#: How long Stop (and closing the window) waits for the training to checkpoint the iteration
+#: it is at and end before killing it (an iteration of the paper preset takes seconds).
+STOP_GRACE_S = 60.0
+
+
 class TrainerPanel(QtWidgets.QWidget):
     """Start / pause / resume / stop a GAN training on the session's store, with live curves.
 
@@ -270,11 +275,13 @@ class TrainerPanel(QtWidgets.QWidget):
             self.start()
 
     def stop(self, wait: bool = False) -> None:
-        """End the training process (its last checkpoint stays; Start continues from it).
+        """End the training process: SIGTERM, on which it checkpoints the iteration it is at
+        and ends (Start continues from there: closing the window loses no iteration done).
 
         Args:
             wait: block until it has ended (closing the window); otherwise :attr:`finished`
-                says when (SIGTERM, then SIGKILL after 3 s), and the window keeps drawing.
+                says when, and the window keeps drawing. Either way SIGKILL after
+                :data:`STOP_GRACE_S` (the last periodic checkpoint then stays).
         """
         if not self.running():
             return
@@ -284,15 +291,16 @@ class TrainerPanel(QtWidgets.QWidget):
             os.kill(pid, signal.SIGCONT)
         self._stopping = True
         proc.terminate()
-        self.calls.call(f"os.kill({pid}, signal.SIGTERM)", "stop (the last checkpoint stays)")
-        self.status.setText("stopping ...")
+        self.calls.call(f"os.kill({pid}, signal.SIGTERM)", "stop (checkpoints where it is)")
+        self.status.setText("stopping: checkpointing ...")
+        grace_ms = int(1000 * STOP_GRACE_S)
         if wait:
-            if not proc.waitForFinished(3000):
+            if not proc.waitForFinished(grace_ms):
                 proc.kill()
                 proc.waitForFinished(1000)
         else:
             QtCore.QTimer.singleShot(
-                3000, lambda: proc.state() != QtCore.QProcess.NotRunning and proc.kill()
+                grace_ms, lambda: proc.state() != QtCore.QProcess.NotRunning and proc.kill()
             )
 
     def checkpoint_iteration(self) -> int | None:

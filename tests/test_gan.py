@@ -1073,3 +1073,19 @@ def test_every_gi_model_declares_the_one_interface():
     assert isinstance(model, GIModel)
     assert model.generate({"albedo": albedo}).shape == (2, 3, 3)
     assert not isinstance(object(), GIModel)
+
+
+def test_on_step_true_stops_with_a_checkpoint_that_resumes_bitwise(store, tmp_path):
+    """Stopping between periodic checkpoints (the desktop app's Stop, or closing it) loses no
+    iteration: the run checkpoints where it is, and resuming ends where the uninterrupted run
+    does, bit for bit."""
+    cfg = tiny(iterations=5, eval_every=5, checkpoint_every=100)
+    T.train(store, cfg, tmp_path / "full", progress=False)
+    res = T.train(store, cfg, tmp_path / "cut", progress=False, on_step=lambda s, _: s == 3)
+    assert res.step == 3
+    ck = torch.load(tmp_path / "cut" / "checkpoints" / "last.pt", weights_only=False)
+    assert ck["step"] == 3
+    assert T.train(store, cfg, tmp_path / "cut", resume=True, progress=False).step == 5
+    a = torch.load(tmp_path / "full" / "generator.pt", weights_only=False)["generator"]
+    b = torch.load(tmp_path / "cut" / "generator.pt", weights_only=False)["generator"]
+    assert all(torch.equal(v, b[k]) for k, v in a.items())

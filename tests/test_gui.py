@@ -399,16 +399,15 @@ def test_training_from_the_window_grows_the_curves_while_the_loop_ticks(qtbot, w
         tr.poll()
         assert tr.curve_points()[0] == n_paused < 150
         tr.resume()
-        # Stop between checkpoints (every 50): Start continues from the checkpoint, and the
-        # status, the progress bar and the curves go back to it
+        # Stop between periodic checkpoints (every 50): the job checkpoints the iteration it
+        # is at, so Start continues from there and no iteration done is lost
         qtbot.waitUntil(lambda: tr.curve_points()[0] >= 60, timeout=90_000)
-        with qtbot.waitSignal(tr.finished, timeout=10_000):
+        with qtbot.waitSignal(tr.finished, timeout=90_000):
             tr.stop()  # the window keeps drawing while the process ends
         assert not tr.running()
         ckpt = tr.checkpoint_iteration()
-        assert ckpt is not None and ckpt % 50 == 0 and ckpt < 150
         stopped_at = int(tr.losses[-1]["iteration"])
-        assert stopped_at >= 60
+        assert stopped_at >= 60 and ckpt == stopped_at < 150
         assert f"stopped at iteration {stopped_at}" in tr.status.text()
         assert f"continues from the last checkpoint, iteration {ckpt}" in tr.status.text()
         assert tr.start()

@@ -745,7 +745,7 @@ def train(
     scene: Any = None,
     resume: bool = False,
     progress: bool = True,
-    on_step: Callable[[int, dict[str, float]], None] | None = None,
+    on_step: Callable[[int, dict[str, float]], bool | None] | None = None,
 ) -> TrainResult:
     """Train a generator on a store's train path, evaluating on its test path.
 
@@ -761,7 +761,9 @@ def train(
         on_step: called after every generator update with the iteration (1-based) and that
             iteration's losses (``g``, ``l1``, and with a critic ``d``, ``gp``, ``w``, ``g_adv``;
             ``g_p`` with the perceptual term, ``g_ssim`` with the SSIM term), e.g. to log live
-            loss curves (``icbtool_gui.train_job`` writes them to ``losses.csv``).
+            loss curves (``icbtool_gui.train_job`` writes them to ``losses.csv``). Returning
+            True stops the training after that iteration, with a checkpoint of it (the
+            desktop app's Stop and closing window keep every iteration done).
 
     Returns:
         The :class:`TrainResult`.
@@ -800,8 +802,7 @@ def train(
             losses = run.iteration()
             step = run.step
             bar.update(1)
-            if on_step is not None:
-                on_step(step, dict(losses))
+            stop = on_step is not None and bool(on_step(step, dict(losses)))
             bar.set_postfix({k: f"{v:.3g}" for k, v in losses.items()})
             if writer is not None:
                 for k, v in losses.items():
@@ -815,8 +816,10 @@ def train(
                     f"iteration {step}: test SSIM {row['ssim']:.4f}  MSE {row['mse']:.2f} "
                     f"(mean of {n_views} test views)"
                 )
-            if step % config.checkpoint_every == 0 or step == config.iterations:
+            if step % config.checkpoint_every == 0 or step == config.iterations or stop:
                 run.save(t0)
+            if stop:
+                break
     finally:
         bar.close()
         if writer is not None:
