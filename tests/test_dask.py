@@ -1,8 +1,10 @@
 """Render workers on Dask distributed (icbtool.system.workers): known answers against the
 single-process path, a worker killed mid-render, the scene lost with every worker.
 
-One local cluster (two worker processes of one thread, every socket on 127.0.0.1, no dashboard)
-serves the whole module; images are tiny. Every wait is bounded; nothing asserts a time.
+One local cluster (two worker processes of one thread, every socket on 127.0.0.1, TLS with its own
+key, no HTTP port) serves the whole module; images are tiny. Its doors are tested too: a process
+without the cluster's key cannot connect to any of its ports.
+Every wait is bounded; nothing asserts a time.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from icbtool import bake as B  # noqa: E402
 from icbtool import scene as sc  # noqa: E402
 from icbtool import store as st  # noqa: E402
 from icbtool import system  # noqa: E402
+from icbtool.system.dask_cluster import JoinSecurity, check_join, local_cluster  # noqa: E402
 from icbtool.system.workers import DaskPool, LocalPool, open_pool  # noqa: E402
 
 pytestmark = [pytest.mark.network, pytest.mark.gl]
@@ -36,21 +39,29 @@ def scene():
 
 @pytest.fixture(scope="module")
 def cluster():
-    """Started once for the module: 2 workers, 1 thread each, loopback only."""
-    with distributed.LocalCluster(
-        n_workers=2,
-        threads_per_worker=1,
-        host="127.0.0.1",
-        dashboard_address=None,
-        processes=True,
-    ) as c:
+    """Started once for the module: 2 workers, 1 thread each, loopback only, TLS with its own
+    key (the cluster a server starts with ``workers=2``)."""
+    with local_cluster(2) as c:
         yield c
+
+
+@pytest.fixture(scope="module")
+def creds(cluster, tmp_path_factory):
+    """The cluster's credentials as PEM files, as an operator hands them to a joining server."""
+    d = tmp_path_factory.mktemp("dask-tls")
+    sec = cluster.security
+    files = {"ca": sec.tls_ca_file, "cert": sec.tls_client_cert, "key": sec.tls_client_key}
+    for name, pem in files.items():
+        (d / f"{name}.pem").write_text(pem)
+    return JoinSecurity(str(d / "ca.pem"), str(d / "cert.pem"), str(d / "key.pem"))
 
 
 @pytest.fixture(scope="module")
 def watcher(cluster):
     """A client of the test's own, to look at and kill workers."""
-    with distributed.Client(cluster.scheduler_address, set_as_default=False) as c:
+    with distributed.Client(
+        cluster.scheduler_address, set_as_default=False, security=cluster.security
+    ) as c:
         yield c
 
 
@@ -64,11 +75,11 @@ def _bake_cfg(limit: int = 4) -> B.BakeConfig:
     )
 
 
-def test_dask_bake_equals_the_single_process_bake_bit_for_bit(scene, cluster, tmp_path):
+def test_dask_bake_equals_the_single_process_bake_bit_for_bit(scene, cluster, creds, tmp_path):
     with st.open(tmp_path / "one") as s1:
         r1 = B.bake(scene, "test", s1, _bake_cfg())
         one = [s1.get(i) for i in r1.rendered]
-    with open_pool(scene, scheduler=cluster.scheduler_address) as pool:
+    with open_pool(scene, scheduler=cluster.scheduler_address, security=creds) as pool:
         assert isinstance(pool, DaskPool) and pool.capacity == 2
         with st.open(tmp_path / "two") as s2:
             r2 = B.bake(scene, "test", s2, _bake_cfg(limit=2), pool=pool)  # interrupted...
@@ -83,13 +94,14 @@ def test_dask_bake_equals_the_single_process_bake_bit_for_bit(scene, cluster, tm
             assert np.array_equal(getattr(a, name), getattr(b, name)), name
 
 
-def test_trace_gbuffers_on_workers_equal_the_local_pool(scene, cluster):
+def test_trace_gbuffers_on_workers_equal_the_local_pool(scene, cluster, creds):
     job = B.RenderJob(
         scene.paths["test"].camera_at(1.0).resized(12, 16),
         _tcfg(),
         "trace",
     )
-    with LocalPool(scene) as here, DaskPool(scene, scheduler=cluster.scheduler_address) as there:
+    there = DaskPool(scene, scheduler=cluster.scheduler_address, security=creds)
+    with LocalPool(scene) as here, there:
         a, b = here.submit(job).result(T), there.submit(job).result(T)
     for name in ("gi", "dl", "depth", "mask"):
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
@@ -102,7 +114,7 @@ def _tcfg():
 
 
 def test_worker_killed_mid_render_the_request_is_answered_store_intact(
-    scene, cluster, watcher, tmp_path
+    scene, cluster, creds, watcher, tmp_path
 ):
     pytest.importorskip("websockets")
     from icbtool.net.client import NetClientConfig, NetError, NetworkSource
@@ -111,7 +123,12 @@ def test_worker_killed_mid_render_the_request_is_answered_store_intact(
     _wait_workers(watcher, 2)
     token = new_token()
     slow = system.CloudConfig(spp=64, denoise=False, max_depth=4)
-    cfg = ServerConfig(scheduler=cluster.scheduler_address)
+    cfg = ServerConfig(
+        scheduler=cluster.scheduler_address,
+        dask_tls_ca=creds.tls_ca,
+        dask_tls_cert=creds.tls_cert,
+        dask_tls_key=creds.tls_key,
+    )
     store_dir = tmp_path / "store"
     with Server(scene, store_dir, token, cfg, slow) as srv:
         assert srv.workers_address == cluster.scheduler_address
@@ -130,9 +147,7 @@ def test_worker_killed_mid_render_the_request_is_answered_store_intact(
                 answered = False
                 assert e.code == "internal"
             assert answered or srv.stats.render_failures == 1
-            # the next request needs one worker (the other one lives): not the killed one's
-            # restart, which can take minutes on a loaded machine
-            _wait_workers(watcher, 1)
+            _wait_workers(watcher, 2)
             nxt = src.request(system.GIRequest(cam, time_s=1.5, seq=2, depth_range=(0.5, 8)))
             assert np.isfinite(nxt.reference.gi).all()
     with st.open(store_dir, st.StoreConfig(readonly=True)) as s:
@@ -151,12 +166,72 @@ def _wait_processing(client) -> str:
     raise AssertionError("no task started on the workers")
 
 
-def test_scene_lost_with_every_worker_is_scattered_again(scene, cluster, watcher):
+# ---------------------------------------------------------------------------- doors
+def _ports(cluster, watcher) -> list[str]:
+    """Every address the cluster accepts Dask connections on: scheduler, workers, nannies."""
+    info = watcher.scheduler_info()["workers"]
+    nannies = [w["nanny"] for w in info.values() if w.get("nanny")]
+    return [cluster.scheduler_address, *info, *nannies]
+
+
+def test_a_process_without_the_clusters_key_cannot_connect(cluster, watcher):
+    from distributed.security import Security
+
+    _wait_workers(watcher, 2)
+    addrs = _ports(cluster, watcher)
+    assert len(addrs) == 5 and all(a.startswith("tls://127.0.0.1:") for a in addrs)
+    stranger = Security.temporary()  # a valid certificate, of another cluster
+    for addr in addrs:
+        for attempt in (
+            {"address": addr},  # a plain Client, as any local process could write
+            {"address": addr.replace("tls://", "tcp://")},
+            {"address": addr, "security": stranger},
+        ):
+            with pytest.raises((OSError, TypeError, AssertionError)):
+                c = distributed.Client(**attempt, timeout=5, set_as_default=False)
+                c.close()  # not reached: connecting failed
+
+
+def test_the_cluster_listens_on_its_dask_ports_only_no_http(cluster, watcher):
+    import psutil
+
+    _wait_workers(watcher, 2)
+    pids = {os.getpid(), *watcher.run(os.getpid).values()}  # scheduler + nannies, workers
+    listening = {
+        (c.laddr.ip, c.laddr.port)
+        for c in psutil.net_connections("tcp")
+        if c.status == psutil.CONN_LISTEN and c.pid in pids
+    }
+    dask_ports = {
+        (a.split("://")[1].rsplit(":", 1)[0], int(a.rsplit(":", 1)[1]))
+        for a in _ports(cluster, watcher)
+    }
+    # no HTTP server (Dask starts one on every scheduler and worker): nothing beyond the
+    # scheduler's, the nannies' and the workers' own ports, all on loopback
+    assert listening == dask_ports, listening - dask_ports
+
+
+@pytest.mark.parametrize(
+    "address, how, words",
+    [
+        ("tcp://10.0.0.1:8786", JoinSecurity(), "--dask-insecure"),
+        ("10.0.0.1:8786", JoinSecurity(), "name the protocol"),
+        ("ucx://10.0.0.1:8786", JoinSecurity(), "tls://"),
+        ("tls://10.0.0.1:8786", JoinSecurity(), "--dask-tls-ca"),
+    ],
+)
+def test_joining_without_tls_or_credentials_is_refused_before_connecting(address, how, words):
+    with pytest.raises(ValueError, match=words):
+        check_join(address, how)
+    check_join("tcp://10.0.0.1:8786", JoinSecurity(insecure=True))  # said explicitly: allowed
+
+
+def test_scene_lost_with_every_worker_is_scattered_again(scene, cluster, creds, watcher):
     """Last in the module: it kills every worker and needs only one of them back (a restart
     can take minutes on a loaded machine; no later test waits for the others)."""
     _wait_workers(watcher, 1)
     job = B.RenderJob(scene.paths["test"].camera_at(2.0).resized(12, 12), _tcfg(), "trace")
-    with DaskPool(scene, scheduler=cluster.scheduler_address, retries=2) as pool:
+    with DaskPool(scene, scheduler=cluster.scheduler_address, retries=2, security=creds) as pool:
         before = pool.submit(job).result(T)
         killed = watcher.run(os.getpid)
         for pid in killed.values():  # every holder of the scene dies

@@ -7,6 +7,7 @@ import contextlib
 
 from icbtool._optional import require
 from icbtool.cli._common import (
+    UsageError,
     add_command,
     add_scene_argument,
     add_size_arguments,
@@ -48,10 +49,14 @@ def _options(p: argparse.ArgumentParser) -> None:
         "--scheduler",
         default=None,
         metavar="ADDRESS",
-        help="render on an existing Dask cluster (e.g. tcp://127.0.0.1:8786) instead",
+        help="render on an existing Dask cluster (tls://HOST:8786 with the --dask-tls-* or "
+        "--dask-config credentials; tcp:// only with --dask-insecure; docs/network.md) instead",
     )
     bake = add_config(p, BakeConfig, skip=("resolution", "prefetch_config", "progress", "tags"))
-    p.set_defaults(func=_run, bake_options=bake)
+    from icbtool.system.dask_cluster import JoinSecurity
+
+    join = add_config(p, JoinSecurity, prefix="dask-", title="joining a Dask cluster")
+    p.set_defaults(func=_run, bake_options=bake, join_options=join)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -65,6 +70,15 @@ def _run(args: argparse.Namespace) -> int:
 
     if args.workers or args.scheduler:
         require("distributed", "render workers on Dask (--workers N / --scheduler)")
+    join = None
+    if args.scheduler:
+        from icbtool.system.dask_cluster import check_join
+
+        try:
+            join = args.join_options.build(args)
+            check_join(args.scheduler, join)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
 
     scene = load_scene(args.scene)
     if (args.height is None) != (args.width is None):  # one side: the other keeps the aspect
@@ -77,7 +91,9 @@ def _run(args: argparse.Namespace) -> int:
         if args.workers or args.scheduler:
             from icbtool.system.workers import open_pool
 
-            pool = stack.enter_context(open_pool(scene, args.workers, args.scheduler))
+            pool = stack.enter_context(
+                open_pool(scene, args.workers, args.scheduler, security=join)
+            )
             print(f"render workers: {pool.capacity} at {pool.address}", flush=True)
         store = stack.enter_context(st.open(args.store))
         rep = B.bake(scene, args.path, store, cfg, pool=pool)

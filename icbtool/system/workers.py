@@ -8,12 +8,13 @@ Scaling out). Two pools behind one interface (``submit(job) -> concurrent.future
 
 * :class:`LocalPool` (``workers=0``): one render thread in this process, with its own
   rasterizer (the tracer already uses every core of the machine).
-* :class:`DaskPool`: tasks on a Dask cluster, either a :class:`distributed.LocalCluster` that it
-  starts on loopback (``workers=N``: N worker processes of one thread each, every socket on
-  127.0.0.1, no dashboard) or an existing one (``scheduler="tcp://host:8786"``: workers started
-  with ``dask worker`` on other machines, or any deployment Dask supports). The scene goes to the
-  workers once (scattered to every worker, no shared filesystem assumed); each worker process
-  keeps one rasterizer per scene.
+* :class:`DaskPool`: tasks on a Dask cluster, either a local one that it starts
+  (``workers=N``: N worker processes of one thread each, every socket on 127.0.0.1, TLS with a
+  per-cluster key, no HTTP port: :func:`icbtool.system.dask_cluster.local_cluster`) or an
+  existing one (``scheduler="tls://host:8786"`` with credentials: workers started with ``dask
+  worker`` on other machines, or any deployment Dask supports; docs/network.md). The scene
+  goes to the workers once (scattered to every worker, no shared filesystem assumed); each
+  worker process keeps one rasterizer per scene.
 
 A server runs its renders at a lower CPU priority (``nice``: :data:`RENDER_NICE` on the render
 thread of a :class:`LocalPool` or in the workers of a local cluster; Linux priorities are per
@@ -40,6 +41,12 @@ from typing import Any
 
 from icbtool._optional import require
 from icbtool.bake import RenderJob, render_job
+from icbtool.system.dask_cluster import (
+    DEFAULT_WORKER_MEMORY,
+    JoinSecurity,
+    join_security,
+    local_cluster,
+)
 
 log = logging.getLogger(__name__)
 
@@ -175,10 +182,14 @@ class DaskPool:
         timeout_s: how long to wait for the scheduler and for a first worker.
         nice: nice value of the render threads of a local cluster (0: unchanged); ignored with
             ``scheduler`` (a joined cluster's workers are left as their owner started them).
+        security: credentials to join ``scheduler`` (:class:`~icbtool.system.dask_cluster.
+            JoinSecurity`; None: none, which only an insecure ``tcp://`` join accepts).
+        memory_limit: Dask memory limit of each worker of a local cluster, bytes.
 
     Raises:
         MissingOptionalDependency: dask/distributed are not installed (the ``cloud`` extra).
-        ValueError: neither a positive ``workers`` nor a ``scheduler``.
+        ValueError: neither a positive ``workers`` nor a ``scheduler``; a ``scheduler`` that is
+            not ``tls://`` with credentials (or ``tcp://`` with ``security.insecure``).
     """
 
     def __init__(
@@ -189,23 +200,23 @@ class DaskPool:
         retries: int = 1,
         timeout_s: float = 60.0,
         nice: int = 0,
+        security: JoinSecurity | None = None,
+        memory_limit: int = DEFAULT_WORKER_MEMORY,
     ) -> None:
         distributed = require("distributed", "render workers on Dask distributed")
         if scheduler is None and (not isinstance(workers, int) or workers < 1):
             raise ValueError(f"DaskPool: workers must be an integer >= 1, got {workers!r}")
         self.cluster: Any = None
         if scheduler is None:
-            self.cluster = distributed.LocalCluster(
-                n_workers=workers,
-                threads_per_worker=1,
-                processes=True,
-                host="127.0.0.1",
-                dashboard_address=None,
-                silence_logs=logging.WARNING,
-            )
+            self.cluster = local_cluster(workers, memory_limit)
             scheduler = self.cluster.scheduler_address
+            sec = self.cluster.security
+        else:
+            sec = join_security(scheduler, security or JoinSecurity())
         self.address = scheduler
-        self.client = distributed.Client(scheduler, timeout=timeout_s, set_as_default=False)
+        self.client = distributed.Client(
+            scheduler, timeout=timeout_s, set_as_default=False, security=sec
+        )
         try:
             self.client.wait_for_workers(1, timeout=timeout_s)
             self.capacity = max(1, sum(self.client.nthreads().values()))
@@ -216,6 +227,7 @@ class DaskPool:
             self.close()
             raise
         self.retries = retries
+        self.timeout_s = timeout_s
         self.resubmitted = 0
         self.nice = nice if self.cluster is not None else 0
 
@@ -260,7 +272,10 @@ class DaskPool:
         try:
             with self._lock:
                 if self._scene_future is scene_f and scene_f.status != "finished":
-                    self._scene_future = self._scatter()  # the scene was lost with its workers
+                    # the scene was lost with its workers: send it again once one is back (a
+                    # scatter to a cluster with no worker fails, and can take the nannies down)
+                    self.client.wait_for_workers(1, timeout=self.timeout_s)
+                    self._scene_future = self._scatter()
             self._submit(job, out, attempt + 1)
         except Exception as e:  # the cluster is gone
             out.set_exception(RenderError(f"render failed and could not be retried: {e!r}"))
@@ -288,7 +303,12 @@ class DaskPool:
 
 
 def open_pool(
-    scene: Any, workers: int = 0, scheduler: str | None = None, nice: int = 0
+    scene: Any,
+    workers: int = 0,
+    scheduler: str | None = None,
+    nice: int = 0,
+    security: JoinSecurity | None = None,
+    memory_limit: int = DEFAULT_WORKER_MEMORY,
 ) -> LocalPool | DaskPool:
     """The render pool for ``workers`` / ``scheduler`` (see the module docstring).
 
@@ -297,15 +317,19 @@ def open_pool(
         workers: 0: :class:`LocalPool` (this process); N >= 1: a local Dask cluster of N workers.
         scheduler: join this Dask scheduler instead (``workers`` is then ignored).
         nice: nice value of the render threads this pool starts (a server: :data:`RENDER_NICE`).
+        security: credentials to join ``scheduler`` (see :class:`DaskPool`).
+        memory_limit: Dask memory limit of each local worker, bytes.
 
     Raises:
-        ValueError: ``workers`` < 0.
+        ValueError: ``workers`` < 0; a ``scheduler`` refused (see :class:`DaskPool`).
     """
     if not isinstance(workers, int) or isinstance(workers, bool) or workers < 0:
         raise ValueError(f"workers must be an integer >= 0, got {workers!r}")
     if scheduler is None and workers == 0:
         return LocalPool(scene, nice)
-    return DaskPool(scene, workers, scheduler, nice=nice)
+    return DaskPool(
+        scene, workers, scheduler, nice=nice, security=security, memory_limit=memory_limit
+    )
 
 
 __all__ = ["DaskPool", "LocalPool", "RenderError", "ShippedScene", "open_pool", "run_job"]
