@@ -200,13 +200,14 @@ def test_protocol_test_vectors_and_kinds_in_javascript(page):
       try { await r.open(await new P.Channel(s.key, P.SERVER_TO_CLIENT).seal("bye")); }
       catch (e) { replay = e.code; }
       return {transcript: P.hex(tr), shared_secret: P.hex(shared),
-              mac: P.hex(await P.authMac(v.token, tr)), key_c2s: P.hex(keys.c2s),
+              auth_key: P.hex(keys.auth), mac: P.hex(await P.authMac(keys.auth, tr)),
+              key_c2s: P.hex(keys.c2s),
               key_s2c: P.hex(keys.s2c), frame: P.hex(frame), opened, replay,
               kinds: P.KINDS, errors: P.ERROR_CODES};
     }""",
         v,
     )
-    for k in ("transcript", "shared_secret", "mac", "key_c2s", "key_s2c"):
+    for k in ("transcript", "shared_secret", "auth_key", "mac", "key_c2s", "key_s2c"):
         assert got[k] == v[k], k
     assert got["frame"] == v["first_client_message"]["frame"]
     assert got["opened"]["kind"] == "lpm_done" and got["opened"]["fields"] == {"level": 3}
@@ -358,8 +359,12 @@ def test_handshake_every_level_and_frames_without_console_errors(page, server, s
     for s in stats:
         assert s["level"] == max(levels)
         assert s["bytes"] > 0 and 0 <= s["hole_ratio"] < 0.5
-        for k in ("raster_ms", "request_ms", "decode_ms", "warp_ms", "transfer_ms"):
+        for k in ("raster_ms", "request_ms", "decode_ms", "warp_ms", "transfer_ms", "wait_ms"):
             assert s[k] >= 0, k
+        # the request's parts: network + server up to the reply's arrival, then the wait for
+        # the main thread, then decoding (the page's stalls are not the network's)
+        parts = s["transfer_ms"] + s["server_ms"] + s["wait_ms"] + s["decode_ms"]
+        assert parts == pytest.approx(s["request_ms"], abs=0.5) or s["transfer_ms"] == 0
     # the page's path interpolation is icbtool.camera.CameraPath's
     intr = path.intrinsics.resized(SIZE, SIZE)
     for s in stats:

@@ -1,7 +1,8 @@
 """``icbtool serve``: the ICB cloud as a WebSocket server (icbtool.net.Server).
 
 Clients authenticate with a token: --token / $ICBTOOL_TOKEN (at least 32 characters unless
---allow-weak-token), or none given: a fresh 256-bit token is generated and printed once. They
+--allow-weak-token; an empty one is an error), or none given: a fresh 256-bit token is
+generated and printed once. They
 receive the scene's mesh levels (never the full-detail
 mesh's source), ask for GI maps (answered from the store or path traced, coalesced, encoded) and
 the client model (--models RUN[,RUN...]: GAN and world-space radiance runs; the one whose
@@ -78,9 +79,20 @@ def run(args: argparse.Namespace) -> int:
     require("websockets", "icbtool serve")
     server_cfg = args.server_options.build(args)  # a bad setting: one line, exit 2, no work
     cloud_cfg = args.cloud_options.build(args)
-    token = args.token or os.environ.get("ICBTOOL_TOKEN")
-    generated = not token
-    if generated:
+    if args.token is not None and not args.token:
+        raise UsageError(
+            "--token: empty; give the clients' shared secret, or leave --token out to get a "
+            "256-bit one"
+        )
+    env_token = os.environ.get("ICBTOOL_TOKEN")
+    if args.token is None and env_token is not None and not env_token:
+        raise UsageError(
+            "$ICBTOOL_TOKEN: set but empty; unset it to get a 256-bit token, or set it to the "
+            "clients' shared secret"
+        )
+    token = args.token if args.token is not None else env_token
+    generated = token is None
+    if token is None:
         token = new_token()
     elif len(token) < MIN_TOKEN_CHARS and not server_cfg.allow_weak_token:
         raise UsageError(

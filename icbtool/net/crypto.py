@@ -4,17 +4,21 @@ The handshake (docs/protocol.md, section Handshake) in three plain messages::
 
     client -> hello   {pub: client X25519 public key, nonce: 32 random bytes, ...}
     server -> welcome {session, pub: server X25519 public key, nonce: 32 random bytes, ...}
-    client -> auth    {mac: HMAC-SHA256(token, transcript)}
+    client -> auth    {mac: HMAC-SHA256(auth key, transcript)}
 
     transcript = "icbtool/net/v1" | 0x00 | client pub (32) | client nonce (32)
                  | server pub (32) | server nonce (32) | session (UTF-8)
 
-The token itself never travels. The server checks the mac in constant time
-(:func:`hmac.compare_digest`) and answers a wrong one with an ``auth`` error. Both sides derive
-one AES-256-GCM key per direction with HKDF-SHA256 from the X25519 shared secret *and the token*
-(ikm = shared secret | token; salt = SHA-256(transcript); info = "icbtool/net/v1 c2s" or
-"icbtool/net/v1 s2c"), so a peer that does not hold the token cannot read or forge anything, even
-one that runs the key exchange itself. Keys are ephemeral: one pair per connection.
+The token itself never travels. Both sides derive three keys with HKDF-SHA256 from the X25519
+shared secret *and the token* (ikm = shared secret | token; salt = SHA-256(transcript); info =
+"icbtool/net/v1 c2s", "icbtool/net/v1 s2c" and "icbtool/net/v1 auth"): one AES-256-GCM key per
+direction and the key of the mac. The server checks the mac in constant time
+(:func:`hmac.compare_digest`) and answers a wrong one with an ``auth`` error. So a peer that does
+not hold the token cannot read or forge anything, even one that runs the key exchange itself, and
+since the mac's key needs the shared secret, a recorded handshake does not let an eavesdropper
+test token guesses offline (an active man in the middle, who runs the key exchange with the
+client itself, still can: TLS closes that; docs/protocol.md section Threat model). Keys are
+ephemeral: one pair per connection.
 
 Every message after the handshake is sealed by a :class:`Channel`: the GCM nonce is the 4-byte
 direction id (``00 00 00 01`` client to server, ``00 00 00 02`` server to client) followed by the
@@ -99,9 +103,19 @@ def transcript(
     )
 
 
-def auth_mac(token: str | bytes, transcript_bytes: bytes) -> bytes:
-    """HMAC-SHA256(token, transcript): what the client sends in ``auth.mac``."""
-    return hmac.new(_token_bytes(token), transcript_bytes, hashlib.sha256).digest()
+def auth_mac(auth_key: bytes, transcript_bytes: bytes) -> bytes:
+    """HMAC-SHA256(auth key, transcript): what the client sends in ``auth.mac``; ``auth_key``
+    from :func:`derive_auth_key` (it needs the shared secret: no offline guessing from a
+    recorded handshake)."""
+    return hmac.new(auth_key, transcript_bytes, hashlib.sha256).digest()
+
+
+def _hkdf(shared: bytes, token: str | bytes, transcript_bytes: bytes, what: bytes) -> bytes:
+    _, HKDF, hashes, _ = _primitives()
+    ikm = shared + _token_bytes(token)
+    salt = hashlib.sha256(transcript_bytes).digest()
+    kdf = HKDF(algorithm=hashes.SHA256(), length=KEY_BYTES, salt=salt, info=LABEL + b" " + what)
+    return bytes(kdf.derive(ikm))
 
 
 def derive_keys(shared: bytes, token: str | bytes, transcript_bytes: bytes) -> tuple[bytes, bytes]:
@@ -110,14 +124,15 @@ def derive_keys(shared: bytes, token: str | bytes, transcript_bytes: bytes) -> t
     HKDF-SHA256 with ikm = ``shared | token``, salt = SHA-256(transcript), info =
     ``"icbtool/net/v1 c2s"`` / ``"icbtool/net/v1 s2c"``, 32 bytes each.
     """
-    _, HKDF, hashes, _ = _primitives()
-    ikm = shared + _token_bytes(token)
-    salt = hashlib.sha256(transcript_bytes).digest()
-    out = []
-    for direction in (b" c2s", b" s2c"):
-        kdf = HKDF(algorithm=hashes.SHA256(), length=KEY_BYTES, salt=salt, info=LABEL + direction)
-        out.append(kdf.derive(ikm))
-    return out[0], out[1]
+    return (
+        _hkdf(shared, token, transcript_bytes, b"c2s"),
+        _hkdf(shared, token, transcript_bytes, b"s2c"),
+    )
+
+
+def derive_auth_key(shared: bytes, token: str | bytes, transcript_bytes: bytes) -> bytes:
+    """The key of ``auth.mac``: HKDF as :func:`derive_keys` with info ``"icbtool/net/v1 auth"``."""
+    return _hkdf(shared, token, transcript_bytes, b"auth")
 
 
 class Channel:
@@ -304,10 +319,11 @@ class ClientHandshake:
         if not isinstance(session, str):
             raise ProtocolError("bad_field", "welcome.session: missing or not a string")
         t = transcript(self.pub, self.nonce, spub, snonce, session)
-        c2s, s2c = derive_keys(_exchange(self._priv, spub), self._token, t)
+        shared = _exchange(self._priv, spub)
+        c2s, s2c = derive_keys(shared, self._token, t)
         self.session = session
         channel = Channel(c2s, s2c, CLIENT_TO_SERVER, SERVER_TO_CLIENT)
-        return channel, {"mac": b64(auth_mac(self._token, t))}
+        return channel, {"mac": b64(auth_mac(derive_auth_key(shared, self._token, t), t))}
 
 
 class ServerHandshake:
@@ -324,6 +340,7 @@ class ServerHandshake:
         self.session = secrets.token_urlsafe(12)
         self._transcript: bytes | None = None
         self._keys: tuple[bytes, bytes] | None = None
+        self._auth_key = b""
 
     def welcome(self, hello_fields: dict[str, Any], server: str | None = None) -> dict[str, Any]:
         """The fields of the ``welcome`` answering a client's ``hello``.
@@ -335,7 +352,9 @@ class ServerHandshake:
         cpub = _field_bytes(hello_fields, "hello", "pub", KEY_BYTES)
         cnonce = _field_bytes(hello_fields, "hello", "nonce", NONCE_BYTES)
         t = transcript(cpub, cnonce, self.pub, self.nonce, self.session)
-        self._keys = derive_keys(_exchange(self._priv, cpub), self._token, t)
+        shared = _exchange(self._priv, cpub)
+        self._keys = derive_keys(shared, self._token, t)
+        self._auth_key = derive_auth_key(shared, self._token, t)
         self._transcript = t
         return {
             "session": self.session,
@@ -363,7 +382,7 @@ class ServerHandshake:
             got = unb64(mac, "auth.mac") if isinstance(mac, str) else b""
         except ProtocolError:
             got = b""
-        want = auth_mac(self._token, self._transcript)
+        want = auth_mac(self._auth_key, self._transcript)
         if not hmac.compare_digest(got, want):
             raise ProtocolError("auth", "authentication failed: wrong token")
         c2s, s2c = self._keys
@@ -378,6 +397,7 @@ __all__ = [
     "ClientHandshake",
     "ServerHandshake",
     "auth_mac",
+    "derive_auth_key",
     "derive_keys",
     "transcript",
 ]

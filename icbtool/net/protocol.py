@@ -331,7 +331,14 @@ KINDS: dict[str, KindSpec] = {
             "auth",
             "client",
             "proves the client holds the token (third and last handshake message)",
-            (_f("mac", "base64", "HMAC-SHA256(token, transcript), 32 bytes", **_B64_KEY),),
+            (
+                _f(
+                    "mac",
+                    "base64",
+                    "HMAC-SHA256(auth_key, transcript), 32 bytes (auth_key: section 4.2)",
+                    **_B64_KEY,
+                ),
+            ),
             sealed=False,
         ),
         KindSpec(
@@ -493,7 +500,8 @@ KINDS: dict[str, KindSpec] = {
                 _f(
                     "depth_codec",
                     "string",
-                    "codec wanted for the depth part (default: the server's choice)",
+                    "codec wanted for the depth and mask parts, one that carries depth "
+                    "(section Codecs; default: the server's choice)",
                     required=False,
                 ),
             ),

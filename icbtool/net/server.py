@@ -66,9 +66,11 @@ import numpy as np
 from icbtool._optional import require
 from icbtool.net import codec as codec_mod
 from icbtool.net import crypto, protocol
+from icbtool.net.doors import LoginThrottle, exposure_warning, origin_allowed, usable_host
 from icbtool.net.mesh_stream import MeshStream
 from icbtool.net.reply_cache import EncodedReply, ReplyCache
 from icbtool.system.cloud import Cloud, CloudConfig
+from icbtool.system.dask_cluster import DEFAULT_WORKER_MEMORY, JoinSecurity, check_join
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +79,13 @@ log = logging.getLogger(__name__)
 #: test token guesses offline (docs/protocol.md, section Threat model): only a token that cannot
 #: be guessed is safe.
 MIN_TOKEN_CHARS = 32
+
+
+#: The error message of a WebSocket text message (every protocol message is binary).
+TEXT_FRAME = (
+    "a WebSocket text message: every protocol message is one binary message (docs/protocol.md, "
+    "section Transport and framing)"
+)
 
 
 def new_token() -> str:
@@ -127,8 +136,25 @@ class ServerConfig:
     """Render workers: 0 renders on one thread of this process; N >= 1 starts a local Dask
     cluster of N worker processes on 127.0.0.1 (the ``cloud`` extra)."""
     scheduler: str | None = None
-    """Address of an existing Dask scheduler (``tcp://host:8786``) whose workers render the
+    """Address of an existing Dask scheduler (``tls://host:8786``, with the ``dask_tls_*`` or
+    ``dask_config`` credentials; ``tcp://`` only with ``dask_insecure``) whose workers render the
     misses; overrides ``workers``."""
+    dask_tls_ca: str | None = None
+    """PEM file of the CA of the Dask cluster joined with ``scheduler`` (``tls://``;
+    docs/network.md)."""
+    dask_tls_cert: str | None = None
+    """PEM certificate this server presents to that cluster (signed by its CA)."""
+    dask_tls_key: str | None = None
+    """PEM private key of ``dask_tls_cert`` (None: in the certificate file)."""
+    dask_config: str | None = None
+    """A Dask config file (YAML) whose ``distributed.comm.tls`` section gives the CA,
+    certificate and key (instead of the three above)."""
+    dask_insecure: bool = False
+    """Join a plain ``tcp://`` scheduler: no encryption, no authentication, anyone who reaches
+    the cluster runs code as its user (a network you trust only)."""
+    worker_memory_bytes: int = DEFAULT_WORKER_MEMORY
+    """Dask memory limit of each worker of the local cluster (``workers``): its nanny restarts a
+    worker whose memory stays above 95 % of it."""
     max_queued_renders: int = 32
     """Cache misses waiting for a render worker, all clients together (more: ``error busy``)."""
     max_request_side: int = 2048
@@ -140,6 +166,12 @@ class ServerConfig:
     """PEM certificate (chain) file: serve ``wss://`` (needs ``tls_key``)."""
     tls_key: str | None = None
     """PEM private key file of ``tls_cert``."""
+    login_free_failures: int = 5
+    """Failed logins (wrong token, handshake timeout) an address may make before its connections
+    are refused (HTTP 429) for a pause that doubles with each further failure
+    (:mod:`icbtool.net.doors`); a successful login clears the address."""
+    login_backoff_max_s: float = 60.0
+    """The longest pause of an address that keeps failing to log in."""
     allow_weak_token: bool = False
     """Accept a token shorter than :data:`MIN_TOKEN_CHARS` (tests, a trusted network only)."""
     models: tuple[str, ...] = ()
@@ -179,11 +211,23 @@ class ServerConfig:
                 f"ServerConfig.reply_cache_bytes must be an integer >= 0, got "
                 f"{self.reply_cache_bytes!r}"
             )
-        for k in ("send_timeout_s", "handshake_timeout_s", "hit_flush_s"):
+        if not isinstance(self.login_free_failures, int) or self.login_free_failures < 0:
+            raise ValueError(
+                f"ServerConfig.login_free_failures must be an integer >= 0, got "
+                f"{self.login_free_failures!r}"
+            )
+        for k in ("send_timeout_s", "handshake_timeout_s", "hit_flush_s", "login_backoff_max_s"):
             if not getattr(self, k) > 0:
                 raise ValueError(f"ServerConfig.{k} must be > 0")
         if not isinstance(self.workers, int) or isinstance(self.workers, bool) or self.workers < 0:
             raise ValueError(f"ServerConfig.workers must be an integer >= 0, got {self.workers!r}")
+        if not isinstance(self.worker_memory_bytes, int) or self.worker_memory_bytes < 2**28:
+            raise ValueError(
+                f"ServerConfig.worker_memory_bytes must be >= 268435456 (256 MiB), got "
+                f"{self.worker_memory_bytes!r}"
+            )
+        if self.scheduler is not None:
+            check_join(self.scheduler, self.join_security())
         if (self.tls_cert is None) != (self.tls_key is None):
             raise ValueError("ServerConfig.tls_cert and tls_key go together (both or neither)")
         for k in ("tls_cert", "tls_key"):
@@ -194,6 +238,16 @@ class ServerConfig:
             raise ValueError(
                 f"ServerConfig.render_nice must be in [0, 19], got {self.render_nice!r}"
             )
+        if self.gi_codec not in codec_mod.CODECS:
+            raise ValueError(
+                f"ServerConfig.gi_codec: {self.gi_codec!r} is not one of {sorted(codec_mod.CODECS)}"
+            )
+        depth_ok = sorted(c for c, v in codec_mod.CODECS.items() if v.for_depth)
+        if self.depth_codec not in depth_ok:
+            raise ValueError(
+                f"ServerConfig.depth_codec: {self.depth_codec!r} is not one of the depth codecs "
+                f"{depth_ok}"
+            )
         object.__setattr__(self, "models", tuple(str(m) for m in self.models))
         if any(not m for m in self.models):
             raise ValueError(f"ServerConfig.models holds an empty run path: {self.models!r}")
@@ -202,6 +256,13 @@ class ServerConfig:
                 f"ServerConfig.max_render_side ({self.max_render_side}) must be >= "
                 f"max_request_side ({self.max_request_side})"
             )
+
+    def join_security(self) -> JoinSecurity:
+        """The credentials to join ``scheduler`` with (the ``dask_*`` fields)."""
+        return JoinSecurity(
+            self.dask_tls_ca, self.dask_tls_cert, self.dask_tls_key, self.dask_config,
+            self.dask_insecure,
+        )  # fmt: skip
 
 
 @dataclass
@@ -212,6 +273,8 @@ class ServerStats:
     connections: int = 0
     authenticated: int = 0
     auth_failures: int = 0
+    throttled: int = 0
+    origin_refused: int = 0
     protocol_errors: int = 0
     gi_requests: int = 0
     gi_replies: int = 0
@@ -225,6 +288,12 @@ class ServerStats:
     generator_sent: int = 0
     dropped_slow: int = 0
     bytes_sent: dict[str, int] = field(default_factory=dict)
+
+
+def _peer(connection: Any) -> str:
+    """The peer's IP address of a websockets connection ("?" when unknown)."""
+    addr = getattr(connection, "remote_address", None)
+    return str(addr[0]) if addr else "?"
 
 
 def camera_key(cam: Any) -> str:
@@ -299,9 +368,10 @@ class _Damaged(Exception):
 class _Closing(Exception):
     """This connection ends (the reason was logged / sent) with WebSocket close ``code``."""
 
-    def __init__(self, reason: str, code: int = 1000) -> None:
+    def __init__(self, reason: str, code: int = 1000, quiet: bool = False) -> None:
         super().__init__(reason)
         self.code = code
+        self.quiet = quiet
 
 
 class _FairQueue:
@@ -432,6 +502,9 @@ class Server:
         self.token = token
         self.cloud_config = cloud_config or CloudConfig()
         self.stats = ServerStats()
+        self.throttle = LoginThrottle(
+            free=self.config.login_free_failures, max_s=self.config.login_backoff_max_s
+        )
         self.mesh = MeshStream(
             scene,
             lpm=self.config.lpm,
@@ -475,7 +548,10 @@ class Server:
         if self.port is None:
             raise RuntimeError("server is not listening")
         scheme = "wss" if self.config.tls_cert is not None else "ws"
-        return f"{scheme}://{self.config.host}:{self.port}"
+        host = usable_host(self.config.host)
+        if ":" in host and not host.startswith("["):
+            host = f"[{host}]"
+        return f"{scheme}://{host}:{self.port}"
 
     @property
     def generator_offered(self) -> bool:
@@ -533,8 +609,35 @@ class Server:
             "ping_timeout": 60,
             "close_timeout": 2,
             "ssl": self._tls_context(),
-            "process_request": self._http_handler(),
+            "process_request": self._process_request_hook(),
         }
+
+    def _process_request_hook(self) -> Any:
+        """``process_request`` of every HTTP request before the WebSocket handshake: a WebSocket
+        upgrade passes the login throttle and the Origin check (:mod:`icbtool.net.doors`), any
+        other request goes to the web page's handler (``--web``) or is refused by websockets."""
+        web = self._http_handler()
+        tls = self.config.tls_cert is not None
+
+        def hook(connection: Any, request: Any) -> Any:
+            if "upgrade" not in request.headers.get("Connection", "").lower():
+                return None if web is None else web(connection, request)
+            wait = self.throttle.admit(_peer(connection))
+            if wait > 0:
+                self.stats.throttled += 1
+                r = connection.respond(
+                    429, f"too many failed logins from this address; retry in {math.ceil(wait)} s\n"
+                )
+                r.headers["Retry-After"] = str(math.ceil(wait))
+                return r
+            if not origin_allowed(request.headers, tls):
+                self.stats.origin_refused += 1
+                return connection.respond(
+                    403, "this server accepts WebSockets from its own pages (Origin) only\n"
+                )
+            return None
+
+        return hook
 
     async def serve(self) -> None:
         """Serve until :meth:`stop` (or the stop event) is set; then shut down cleanly."""
@@ -555,7 +658,13 @@ class Server:
             await asyncio.wrap_future(self._writer.submit(self._open_writer))
             await asyncio.wrap_future(self._lookup.submit(self._open_reader))
             self._pool = await asyncio.to_thread(
-                open_pool, self.scene, cfg.workers, cfg.scheduler, cfg.render_nice
+                open_pool,
+                self.scene,
+                cfg.workers,
+                cfg.scheduler,
+                cfg.render_nice,
+                cfg.join_security() if cfg.scheduler else None,
+                cfg.worker_memory_bytes,
             )
             self._renders = _FairQueue(self._pool.capacity, cfg.max_queued_renders)
             async with serve(self._handle, cfg.host, cfg.port, **self.serve_options()) as ws:
@@ -566,12 +675,16 @@ class Server:
                     self.scene.name,
                     self.workers_address,
                 )
+                warning = exposure_warning(cfg.host, cfg.tls_cert is not None)
+                if warning is not None:
+                    log.warning(warning)
                 self._ready.set()
                 if self.on_listening is not None:
                     self.on_listening(self.url)
                 flusher = asyncio.get_running_loop().create_task(self._flush_hits_every())
                 await self._stop.wait()
                 await flusher
+                self.throttle.flush()
                 log.info("shutting down: closing connections")
                 ws.close(close_connections=True)
                 await ws.wait_closed()
@@ -676,6 +789,28 @@ class Server:
     def codecs(self) -> list[str]:
         """The codecs this server encodes."""
         return list(codec_mod.CODECS)
+
+    def codecs_of(self, fields: dict[str, Any], rid: Any = None) -> tuple[str, str]:
+        """The (GI, depth) codecs a ``gi_request`` asks for, checked before any work.
+
+        Raises:
+            ProtocolError: ``bad_field`` naming the field: a GI codec not in :attr:`codecs`, or
+                a depth codec that is not one or cannot carry depth (keep 0 and inf exactly).
+        """
+        gi = fields.get("codec", self.config.gi_codec)
+        depth = fields.get("depth_codec", self.config.depth_codec)
+        if gi not in self.codecs:
+            raise protocol.ProtocolError(
+                "bad_field", f"gi_request.codec: {gi!r} is not one of {self.codecs}", rid
+            )
+        depth_ok = [c for c in self.codecs if codec_mod.CODECS[c].for_depth]
+        if depth not in depth_ok:
+            raise protocol.ProtocolError(
+                "bad_field",
+                f"gi_request.depth_codec: {depth!r} is not one of the depth codecs {depth_ok}",
+                rid,
+            )
+        return gi, depth
 
     def scene_info(self) -> dict[str, Any]:
         """The fields of ``scene_info``: the base (lights, sky; the paths go in its payload,
@@ -903,6 +1038,7 @@ class Server:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._stop.wait(), self.config.hit_flush_s)
             await self._flush_hits()
+            self.throttle.tick()
 
     async def _flush_hits(self) -> None:
         """Hand the hit counts gathered since the last call to the store's writer (one batch)."""
@@ -932,7 +1068,9 @@ class Server:
             await conn.run()
         except _Closing as e:
             conn.close_code, conn.close_reason = e.code, str(e)[:100]
-            log.info("connection %d closed: %s", conn.id, e)
+            # a failed handshake is counted by the throttle, which sums them up in its log lines
+            level = logging.DEBUG if e.quiet else logging.INFO
+            log.log(level, "connection %d closed: %s", conn.id, e)
         except ConnectionClosed as e:
             log.info("connection %d lost: %s", conn.id, e)
         except Exception as e:  # one connection's failure never reaches the server
@@ -1017,7 +1155,7 @@ class _Connection:
     async def recv_plain(self, expect: str) -> protocol.Message:
         data = await asyncio.wait_for(self.ws.recv(), self.server.config.handshake_timeout_s)
         if isinstance(data, str):
-            data = data.encode()
+            raise protocol.ProtocolError("bad_field", TEXT_FRAME, None)
         msg = protocol.decode(data, max_bytes=self.server.config.max_message_bytes)
         if msg.kind != expect:
             raise protocol.ProtocolError("auth", f"expected {expect!r}, got {msg.kind!r}", None)
@@ -1033,11 +1171,14 @@ class _Connection:
         except protocol.ProtocolError as e:
             if e.code == "auth":
                 self.server.stats.auth_failures += 1
+            self.server.throttle.failed(_peer(self.ws))
             await self.error(e.code, e.message, e.ref, sealed=False)
-            raise _Closing(f"handshake: {e.code}: {e.message}", 1008) from None
+            raise _Closing(f"handshake: {e.code}: {e.message}", 1008, quiet=True) from None
         except TimeoutError:
+            self.server.throttle.failed(_peer(self.ws))
             await self.error("auth", "handshake not completed in time", sealed=False)
-            raise _Closing("handshake timeout", 1008) from None
+            raise _Closing("handshake timeout", 1008, quiet=True) from None
+        self.server.throttle.succeeded(_peer(self.ws))
         self.server.stats.authenticated += 1
 
     async def run(self) -> None:
@@ -1049,7 +1190,9 @@ class _Connection:
             if self.writer.done():
                 raise _Closing("writer stopped")
             if isinstance(data, str):
-                data = data.encode()
+                srv.stats.protocol_errors += 1
+                await self.error("bad_field", TEXT_FRAME)
+                continue
             try:
                 msg = protocol.decode(data, self.channel, max_bytes=srv.config.max_message_bytes)
             except protocol.ProtocolError as e:
@@ -1112,14 +1255,8 @@ class _Connection:
         srv = self.server
         t_in = time.perf_counter()
         try:
+            gi_codec, depth_codec = srv.codecs_of(fields, rid)  # before any lookup or render
             req = protocol.request_from_json(fields["request"])
-            gi_codec = fields.get("codec") or srv.config.gi_codec
-            depth_codec = fields.get("depth_codec") or srv.config.depth_codec
-            for c in (gi_codec, depth_codec):
-                if c not in srv.codecs:
-                    raise protocol.ProtocolError(
-                        "bad_field", f"gi_request.codec: {c!r} is not one of {srv.codecs}", rid
-                    )
             ans, coalesced = await srv.answer(req, self.id)
             t0 = time.perf_counter()
             try:

@@ -268,10 +268,14 @@ class WebClient {
     const decodeMs = performance.now() - tReply;
     const requestMs = performance.now() - t0;
     const server = m.fields.timings_ms.server || 0;
+    // transfer: from sending to the reply's arrival, less the server's time; the time from its
+    // arrival to its handling here (main thread busy, decryption) is "wait", not the network's
+    const arrived = m.arrivedMs ?? tReply;
     if (m.fields.cache_hit) state.hits++; else state.misses++;
     return {camera: m.fields.camera, parts, cacheHit: m.fields.cache_hit, bytes: m.bytes,
             timings: {request: requestMs, decode: decodeMs, server,
-                      transfer: Math.max(0, requestMs - server - decodeMs),
+                      transfer: Math.max(0, arrived - t0 - server),
+                      wait: Math.max(0, tReply - arrived),
                       render: m.fields.timings_ms.render || 0}};
   }
 
@@ -428,7 +432,7 @@ function overlay() {
   const r = client?.renderer;
   o.textContent = [
     `${MODES[state.mode]} | LPM level ${state.level} of ${(client?.levelsOffered?.length ?? 0) - 1} | ${r?.size?.[1]}x${r?.size?.[0]}`,
-    `raster ${fmt(s.raster_ms)} | request ${fmt(s.request_ms)} (server ${fmt(s.server_ms)}, transfer ${fmt(s.transfer_ms)}) | decode ${fmt(s.decode_ms)} | warp ${fmt(s.warp_ms)} | generate ${fmt(s.generate_ms)} ms`,
+    `raster ${fmt(s.raster_ms)} | request ${fmt(s.request_ms)} (server ${fmt(s.server_ms)}, transfer ${fmt(s.transfer_ms)}, wait ${fmt(s.wait_ms)}) | decode ${fmt(s.decode_ms)} | warp ${fmt(s.warp_ms)} | generate ${fmt(s.generate_ms)} ms`,
     `${state.model ? `client model: ${state.model.kind} (${(state.model.info.bytes / 1024).toFixed(0)} KiB, ${state.generated} frames)` : client?.info?.generator ? "client model: downloading" : "client model: none offered"}`,
     `holes ${fmt(100 * (s.hole_ratio ?? 1))} % | cache hit ${state.hits} / miss ${state.misses} | ${fmt((s.bytes || 0) / 1024)} KiB/reply`,
     `${r?.glRenderer ?? ""}`,

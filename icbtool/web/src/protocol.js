@@ -198,14 +198,14 @@ export function transcript(clientPub, clientNonce, serverPub, serverNonce, sessi
                 serverNonce, enc.encode(session));
 }
 
-/** HMAC-SHA256(token, transcript) (section 4.2). */
-export async function authMac(token, tr) {
-  const key = await crypto.subtle.importKey("raw", enc.encode(token),
+/** HMAC-SHA256(auth key, transcript) (section 4.2; the key from sessionKeyBytes). */
+export async function authMac(authKey, tr) {
+  const key = await crypto.subtle.importKey("raw", authKey,
                                             {name: "HMAC", hash: "SHA-256"}, false, ["sign"]);
   return new Uint8Array(await crypto.subtle.sign("HMAC", key, tr));
 }
 
-/** The raw 32-byte session keys {c2s, s2c} (section 4.2). */
+/** The raw 32-byte keys {c2s, s2c, auth} (section 4.2). */
 export async function sessionKeyBytes(sharedSecret, token, tr) {
   if (sharedSecret.every((x) => x === 0)) {
     throw new ProtocolError("crypto", "X25519 shared secret is all zero (low-order key)");
@@ -215,7 +215,7 @@ export async function sessionKeyBytes(sharedSecret, token, tr) {
   const salt = new Uint8Array(await crypto.subtle.digest("SHA-256", tr));
   const derive = async (dir) => new Uint8Array(await crypto.subtle.deriveBits(
     {name: "HKDF", hash: "SHA-256", salt, info: enc.encode(`${LABEL} ${dir}`)}, ikm, 256));
-  return {c2s: await derive("c2s"), s2c: await derive("s2c")};
+  return {c2s: await derive("c2s"), s2c: await derive("s2c"), auth: await derive("auth")};
 }
 
 export async function x25519Shared(privateKey, peerPub) {
@@ -352,7 +352,10 @@ export class Session {
     });
     ws.onmessage = (ev) => {
       const b = new Uint8Array(ev.data);
-      if (this.delayMs > 0) setTimeout(() => this._onRaw(b), this.delayMs); else this._onRaw(b);
+      // arrival: when the event was made (before any wait for the main thread), plus the
+      // emulated network delay; replies carry it as msg.arrivedMs (performance.now() clock)
+      const at = (ev.timeStamp > 0 ? ev.timeStamp : performance.now()) + this.delayMs;
+      if (this.delayMs > 0) setTimeout(() => this._onRaw(b, at), this.delayMs); else this._onRaw(b, at);
     };
     ws.onclose = (ev) => this._onWsClose(ev);
     ws.onerror = null;
@@ -367,7 +370,7 @@ export class Session {
     const keys = await sessionKeyBytes(shared, this.token, tr);
     this.send_ = await Channel.create(keys.c2s, CLIENT_TO_SERVER);
     this.recv_ = await Channel.create(keys.s2c, SERVER_TO_CLIENT);
-    this._send(plainFrame("auth", {mac: b64(await authMac(this.token, tr))}), "auth");
+    this._send(plainFrame("auth", {mac: b64(await authMac(keys.auth, tr))}), "auth");
     this.session = w.session;
     this.server = w.server;
     const first = await this._next(timeoutMs);
@@ -407,16 +410,16 @@ export class Session {
     this._send(await this.send_.seal(kind, fields), kind);
   }
 
-  _onRaw(bytes) {
+  _onRaw(bytes, arrivedMs = performance.now()) {
     if (!this._sealedMode) {
       const w = this._waiters.shift();
       if (w) w.resolve(bytes); else this._queue.push(bytes);
       return;
     }
-    this._dispatch(bytes);
+    this._dispatch(bytes, arrivedMs);
   }
 
-  _dispatch(bytes) {
+  _dispatch(bytes, arrivedMs) {
     // decrypt in arrival order: ctr must grow, so chain the opens
     this._opening = (this._opening || Promise.resolve()).then(async () => {
       let msg;
@@ -427,6 +430,7 @@ export class Session {
         return;
       }
       msg.bytes = bytes.length;
+      msg.arrivedMs = arrivedMs;
       this._count(this.bytesReceived, msg.kind, bytes.length);
       try {
         this.onMessage(msg);
