@@ -238,23 +238,8 @@ def peer_compare(tmp_path, name, size=48, spp=64):
     return bias, rmse, own
 
 
-_PEER_KNOWN_GAPS = {
-    "roughdielectric": "mean bias 2.0 % (limit 2 %) on the tessellated sphere: under study",
-    "twosided_roughconductor_aniso": "blurred RMSE 6.8 %: the anisotropy's tangent frame "
-    "(dp/du of the reader's tessellated sphere) differs from Mitsuba's analytic sphere",
-}
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "name",
-    [
-        pytest.param(n, marks=pytest.mark.xfail(reason=_PEER_KNOWN_GAPS[n], strict=False))
-        if n in _PEER_KNOWN_GAPS
-        else n
-        for n in PEER_BSDFS
-    ],
-)
+@pytest.mark.parametrize("name", list(PEER_BSDFS))
 def test_peer_mitsuba_material_preview(tmp_path, name):
     bias, rmse, own = peer_compare(tmp_path, name)
     assert np.all(np.abs(bias) < 0.02), (name, bias)
