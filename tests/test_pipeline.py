@@ -78,7 +78,7 @@ def test_cli_unknown_scene_is_one_clear_line(capsys, tmp_path):
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("icbtool")]
     assert err == [
         "icbtool demo: error: argument scene: 'no_such_scene' is neither a file nor a built-in "
-        "scene; built-in scenes: boxes_on_floor, cornell_box, plane, white_furnace"
+        "scene; built-in scenes: " + ", ".join(sorted(icb.scene.PROCEDURAL))
     ]
     assert not (tmp_path / "o").exists()
 
