@@ -1272,14 +1272,17 @@ def block_shadow_accuracy(results: Path) -> str:
         "the tracer's direct light\n(max_depth 2, the reference spp below), bias per channel "
         "(R / G / B, %) of the sums over interior pixels (footprint on one\nplane, not the "
         "emitter seen) in a penumbra (traced / unshadowed light in 0.05-0.95) and fully lit "
-        "(>= 0.98),\n`icbtool.raster.accuracy.shadow_bias`; `before`: the raster before the "
+        "(>= 0.98),\n`icbtool.raster.accuracy.shadow_bias`; shading: the same on "
+        "`dl / albedo` (each renderer's own albedo: apart from texture\nfiltering); "
+        "`before`: the raster before the "
         "along-the-ray area offset and penumbra\nsamples; `dl` ms at 512x512 (median; before "
         "and after run back to back, 1-minute load "
         f"{d['load_average_start'][0]:.1f} at the start\non 2 cores: the sun-only Sponza, "
         "whose shading code is unchanged, shows how far such times move).",
         "",
-        "| view, size | raster | penumbra bias % (px) | lit bias % (px) | dl ms at 512^2 |",
-        "|---|---|---|---|---|",
+        "| view, size | raster | penumbra bias % (px) | lit bias % (px) | shading: penumbra / "
+        "lit bias % | dl ms at 512^2 |",
+        "|---|---|---|---|---|---|",
     ]
     order = ("before_default", "before_supersample2", "default", "supersample2")
     names = {
@@ -1294,10 +1297,12 @@ def block_shadow_accuracy(results: Path) -> str:
             if key not in v["configs"]:
                 continue
             c = v["configs"][key]
+            sh = c["shading"]
             lines.append(
                 f"| {view} {h}x{w} ({v['reference']['spp']} spp) | {names[key]} | "
                 f"{pcts(c['penumbra_bias_per_channel'])} ({c['penumbra_pixels']}) | "
                 f"{pcts(c['lit_bias_per_channel'])} ({c['lit_pixels']}) | "
+                f"{pcts(sh['penumbra_bias_per_channel'])}; {pcts(sh['lit_bias_per_channel'])} | "
                 f"{c['dl_ms_512_median']:.0f} |"
             )
     return "\n".join(lines) + "\n"

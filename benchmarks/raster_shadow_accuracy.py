@@ -11,6 +11,10 @@ from a 4x finer raster, without the emitter seen). Raster configurations:
   checkout's Python (``--before-python``, e.g. main's venv before this change; its ``dl`` images
   come back through a temporary .npz, so only the public ``Rasterizer`` API is used there).
 
+Each is judged twice: on ``dl`` itself, and on its shading (``dl / albedo``, each renderer's own
+albedo: the raster's at the points it shaded, the tracer's box-filtered ``albedo``), which sets the
+light apart from how the two filter textures (Sponza).
+
 Timing: median ``dl``-only raster time at 512^2 of each configuration (warm Rasterizer, shadow maps
 cached, ``--frames`` frames), over ``--rounds`` rounds that run the baseline's process and this
 checkout's back to back, so that both see the same load; the 1-minute load average at the start
@@ -168,12 +172,21 @@ def main() -> None:
     for name, (key, cam) in views(args.size).items():
         scene = load_scene(key)
         t0 = time.perf_counter()
-        ref = render(scene, cam, TraceConfig(spp=args.spp, max_depth=2, seed=1)).direct
+        traced = render(scene, cam, TraceConfig(spp=args.spp, max_depth=2, seed=1))
+        ref = traced.direct
         t_ref = time.perf_counter() - t0
         h, w = cam.height, cam.width
         with Rasterizer(scene, RasterConfig(shadows=False)) as r:
             fine = r.render(cam.resized(4 * h, 4 * w), ("normal_world", "albedo", "position", "dl"))
+            # the albedo each config's dl was shaded with: pixel centres, or a 2x2 box
+            alb = {
+                "default": r.render(cam, "albedo").albedo,
+                "supersample2": r.render(cam.resized(2 * h, 2 * w), "albedo")
+                .albedo.reshape(h, 2, w, 2, 3)
+                .mean((1, 3)),
+            }
         free = fine.dl.reshape(h, 4, w, 4, 3).mean((1, 3))
+        free_alb = fine.albedo.reshape(h, 4, w, 4, 3).mean((1, 3))
         # the emitters seen, and 2 pixels around them (a ceiling pixel beside a light's edge
         # lies in the light's plane, and its footprint may hold some of the light)
         seen_light = binary_dilation(free.mean(-1) > 0.5 * free.mean(-1).max(), iterations=2)
@@ -184,10 +197,22 @@ def main() -> None:
             for cfg_name in CONFIGS:
                 dl = arrays[f"{name}/{cfg_name}/dl"]
                 b = shadow_bias(dl, ref, free, select)
+                # shading (dl / albedo): the light alone, apart from how each renderer filters
+                # textures (the raster: a mipmapped sRGB8 array; the tracer: bilinear texels)
+                a = alb[cfg_name]
+                ok = select & (np.minimum(a, traced.albedo).min(-1) > 1e-3)
+                ok &= free_alb.min(-1) > 1e-3
+                sh = shadow_bias(
+                    dl / np.maximum(a, 1e-3),
+                    ref / np.maximum(traced.albedo, 1e-3),
+                    free / np.maximum(free_alb, 1e-3),
+                    ok,
+                )
                 full = f"{label}_{cfg_name}" if label else cfg_name
                 ms = arrays[f"{name}/{cfg_name}/ms"]
                 rows[full] = {
                     **b.as_dict(),
+                    "shading": sh.as_dict(),
                     "dl_ms_512_median": float(np.median(ms)),
                     "dl_ms_512_all": ms.tolist(),
                     "load_average_1min_start_end": loads,
@@ -196,7 +221,8 @@ def main() -> None:
                 print(
                     f"{name:20s} {full:22s} penumbra % {np.round(100 * b.penumbra, 2)} "
                     f"({b.penumbra_pixels} px)  lit % {np.round(100 * b.lit, 2)} "
-                    f"({b.lit_pixels} px)  dl {np.median(ms):.0f} ms @512^2"
+                    f"({b.lit_pixels} px)  shading: penumbra % {np.round(100 * sh.penumbra, 2)} "
+                    f"lit % {np.round(100 * sh.lit, 2)}  dl {np.median(ms):.0f} ms @512^2"
                 )
         results[name] = {
             "size": [h, w],
