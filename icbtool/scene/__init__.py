@@ -7,6 +7,7 @@ scene and cameras as the command line names them (a built-in name or a file; ``d
 ``path:NAME``).
 """
 
+from icbtool.scene import bsdf
 from icbtool.scene.animation import Animation, LightTrack, MeshTrack, Track, animate
 from icbtool.scene.description import SceneDescription, read_description
 from icbtool.scene.emitters import light_faces, promote_emitters
@@ -41,6 +42,7 @@ from icbtool.scene.view import default_view
 from icbtool.scene.walk import check_camera, random_walk, surroundings
 
 __all__ = [
+    "bsdf",
     "Animation",
     "LightTrack",
     "MeshTrack",
