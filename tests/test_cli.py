@@ -692,3 +692,20 @@ def test_demo_verdict_says_what_good_values_are():
     )
     worse = verdict({**s, "mean_ssim_final_vs_truth": 0.6}, None, 128)
     assert "does NOT help: SSIM -0.100" in worse and "-" in worse.splitlines()[3]
+
+
+def test_scene_help_names_every_built_in_scene():
+    """The SCENE help is made from the table of built-in scenes (it listed four of five)."""
+    from icbtool.cli import build_parser
+    from icbtool.cli._common import commands
+    from icbtool.scene import PROCEDURAL
+
+    with_scene = {
+        name: p
+        for name, p in commands(build_parser()).items()
+        if any(a.dest == "scene" and not a.option_strings for a in p._actions)
+    }
+    assert {"render", "trace", "bake", "demo", "serve"} <= set(with_scene)
+    for name, p in with_scene.items():
+        text = " ".join(p.format_help().split())
+        assert f"a built-in scene ({', '.join(sorted(PROCEDURAL))})" in text, name

@@ -213,11 +213,15 @@ def scene_spec(text: str) -> str:
 
 scene_spec.__name__ = "scene"
 
-SCENE_HELP = (
-    "a built-in scene (cornell_box, cornell_box_moving_light, white_furnace, plane, "
-    "boxes_on_floor), a scene description (.toml), a Mitsuba 3 scene file (.xml) or a mesh file "
-    "(.obj, .ply, .glb, .gltf)"
-)
+
+def scene_help() -> str:
+    """The help of SCENE, naming every built-in scene (from the one table of them)."""
+    from icbtool.scene.procedural import PROCEDURAL
+
+    return (
+        f"a built-in scene ({', '.join(sorted(PROCEDURAL))}), a scene description (.toml), a "
+        "Mitsuba 3 scene file (.xml) or a mesh file (.obj, .ply, .glb, .gltf)"
+    )
 
 
 def add_scene_argument(p: argparse.ArgumentParser, optional: bool = False) -> None:
@@ -228,10 +232,10 @@ def add_scene_argument(p: argparse.ArgumentParser, optional: bool = False) -> No
             nargs="?",
             default="cornell_box",
             type=scene_spec,
-            help=SCENE_HELP + " (default: cornell_box)",
+            help=scene_help() + " (default: cornell_box)",
         )
     else:
-        p.add_argument("scene", type=scene_spec, help=SCENE_HELP)
+        p.add_argument("scene", type=scene_spec, help=scene_help())
 
 
 def add_size_arguments(
@@ -370,7 +374,7 @@ __all__ = [
     "add_command",
     "commands",
     "populate",
-    "SCENE_HELP",
+    "scene_help",
     "UsageError",
     "add_out_argument",
     "add_scene_argument",
