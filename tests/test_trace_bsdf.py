@@ -238,7 +238,6 @@ def peer_compare(tmp_path, name, size=48, spp=64):
     return bias, rmse, own
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name", list(PEER_BSDFS))
 def test_peer_mitsuba_material_preview(tmp_path, name):
     bias, rmse, own = peer_compare(tmp_path, name)
