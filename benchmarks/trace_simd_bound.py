@@ -237,14 +237,16 @@ def soa_suns(suns, ob):
 
 @nb.njit(nogil=True, error_model="numpy")
 def soa_emitter_point(cols, diag, ob):
-    """Stage 3b (vectorisable): the point on the gathered emitter face, the direction to it
-    (rows 9-11 of ``ob``), its distance (row 19) and its ray offset (row 20)."""
+    """Stage 3b (vectorisable): the point on the gathered emitter face (rows 21-23 of ``ob``),
+    the direction to it (rows 9-11), its distance (row 19) and its ray offset (row 20)."""
     e0, e1, e2, e3, e4, e5, e6, e7, e8 = (
         cols[21], cols[22], cols[23], cols[24], cols[25], cols[26], cols[27], cols[28], cols[29]
     )  # fmt: skip
     cr, crb = cols[35], cols[42]
     x0s, x1s, x2s = ob[0], ob[1], ob[2]
-    o9, o10, o11, od, oel = ob[9], ob[10], ob[11], ob[19], ob[20]
+    o9, o10, o11, od, oel, oy0, oy1, oy2 = (
+        ob[9], ob[10], ob[11], ob[19], ob[20], ob[21], ob[22], ob[23]
+    )  # fmt: skip
     for i in range(len(cr)):
         r1 = math.sqrt(cr[i])
         ca = r1 * (1 - crb[i])
@@ -261,6 +263,9 @@ def soa_emitter_point(cols, diag, ob):
         o10[i] = v1 / dd
         o11[i] = v2 / dd
         od[i] = dist
+        oy0[i] = y0
+        oy1[i] = y1
+        oy2[i] = y2
         mag = max(abs(y0), max(abs(y1), abs(y2)))
         oel[i] = 3e-5 * (mag + abs(dist)) + 1e-6 * diag
 
@@ -268,12 +273,14 @@ def soa_emitter_point(cols, diag, ob):
 @nb.njit(nogil=True, error_model="numpy")
 def soa_emitter_weight(cols, ob):
     """Stage 3c (vectorisable): the emitter sample's geometry times its MIS weight (added to
-    row 12 of ``ob``) and its shadow-ray length (row 13)."""
+    row 12 of ``ob``), its shadow ray's direction from the offset origin (rows 9-11) and
+    length (row 13)."""
     l0, l1, l2, cpmf, carea = cols[30], cols[31], cols[32], cols[33], cols[34]
     o3, o4, o5, o6, o7, o8 = ob[3], ob[4], ob[5], ob[6], ob[7], ob[8]
     o9, o10, o11, o12, o13, oe, od, oel = (
         ob[9], ob[10], ob[11], ob[12], ob[13], ob[18], ob[19], ob[20]
     )  # fmt: skip
+    o0, o1, o2, oy0, oy1, oy2 = ob[0], ob[1], ob[2], ob[21], ob[22], ob[23]
     for i in range(len(l0)):
         wi0 = o9[i]
         wi1 = o10[i]
@@ -286,7 +293,15 @@ def soa_emitter_weight(cols, ob):
         pl = cpmf[i] / carea[i] * dist * dist / (cl if ok else 1.0)
         pb = c * K._INV_PI
         ge = c * pl / (pl * pl + pb * pb)
-        tf = np.float64(np.float32(max(dist - oe[i] - oel[i], 0.0)))
+        v0 = oy0[i] - np.float64(np.float32(o0[i] + o3[i] * oe[i]))
+        v1 = oy1[i] - np.float64(np.float32(o1[i] + o4[i] * oe[i]))
+        v2 = oy2[i] - np.float64(np.float32(o2[i] + o5[i] * oe[i]))
+        sdist = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        sd = max(sdist, 1e-300)
+        tf = np.float64(np.float32(max(sdist - oel[i], 0.0)))
+        o9[i] = v0 / sd if ok else wi0
+        o10[i] = v1 / sd if ok else wi1
+        o11[i] = v2 / sd if ok else wi2
         o12[i] += ge if ok else 0.0
         o13[i] = tf if ok else 0.0
 
@@ -437,7 +452,7 @@ def bound(
         b_out = np.zeros((N_OUT, n))
         args_b[batch] = (tri, fn, vn, suns, emit_faces, emit_cdf, pmf, area, diag, h["d"],
                          h["prim"], h["u"], h["v"], h["t"], rnd, b_out,
-                         np.zeros((N_COLS, batch)), np.zeros((N_OUT + 3, batch)))  # fmt: skip
+                         np.zeros((N_COLS, batch)), np.zeros((N_OUT + 6, batch)))  # fmt: skip
         soa_vertices(*args_b[batch], 4, True)
         if len(emit_faces) == 0:  # no emitter sample: the scalar loop leaves those at zero
             b_out[9:12] = 0.0
