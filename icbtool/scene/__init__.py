@@ -25,6 +25,8 @@ from icbtool.scene.procedural import (
 from icbtool.scene.select import load_scene, select_cameras
 from icbtool.scene.types import (
     LIGHT_TYPES,
+    SHAPE_KINDS,
+    AnalyticShape,
     AreaLight,
     DirectionalLight,
     Light,
@@ -50,6 +52,8 @@ __all__ = [
     "animate",
     "cornell_box_moving_light",
     "LIGHT_TYPES",
+    "SHAPE_KINDS",
+    "AnalyticShape",
     "light_parameters",
     "PROCEDURAL",
     "AreaLight",

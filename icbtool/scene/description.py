@@ -491,7 +491,10 @@ def transform_scene(scene: Scene, world_from_file: np.ndarray) -> Scene:
         if hasattr(lt, "direction"):
             ch["direction"] = lin @ lt.direction
         lights.append(dataclasses.replace(lt, **ch) if ch else lt)
-    return dataclasses.replace(scene, vertices=v, normals=n, faces=f, lights=lights)
+    shapes = [
+        dataclasses.replace(sh, world_from_local=m @ sh.world_from_local) for sh in scene.shapes
+    ]
+    return dataclasses.replace(scene, vertices=v, normals=n, faces=f, lights=lights, shapes=shapes)
 
 
 def merge_meshes(scenes: list[Scene], name: str) -> Scene:
@@ -499,9 +502,10 @@ def merge_meshes(scenes: list[Scene], name: str) -> Scene:
 
     A material whose name another mesh already uses is renamed ``<mesh name>:<material>``.
     """
-    v, f, n, fm, uv, mats, lights = [], [], [], [], [], [], []
+    v, f, n, fm, uv, mats, lights, shapes = [], [], [], [], [], [], [], []
     any_uv = any(s.uvs is not None for s in scenes)
     offset = 0
+    n_faces = 0
     names: set[str] = set()
     for s in scenes:
         base = len(mats)
@@ -518,7 +522,12 @@ def merge_meshes(scenes: list[Scene], name: str) -> Scene:
         if any_uv:
             uv.append(s.uvs if s.uvs is not None else np.zeros((len(s.vertices), 2), np.float32))
         lights += list(s.lights)
+        for sh in s.shapes:
+            a, b = sh.faces
+            fa = (a + n_faces, b + n_faces)
+            shapes.append(dataclasses.replace(sh, material=sh.material + base, faces=fa))
         offset += len(s.vertices)
+        n_faces += len(s.faces)
     return Scene(
         name=name,
         vertices=np.concatenate(v),
@@ -529,6 +538,7 @@ def merge_meshes(scenes: list[Scene], name: str) -> Scene:
         uvs=np.concatenate(uv) if any_uv else None,
         lights=lights,
         source=scenes[0].source,
+        shapes=shapes,
     )
 
 
@@ -562,6 +572,7 @@ def add_area_lights(scene: Scene, lights: list[AreaLight]) -> Scene:
         sky=scene.sky,
         up=scene.up,
         source=scene.source,
+        shapes=scene.shapes,  # the new faces come after theirs
     )
 
 

@@ -12,7 +12,10 @@ refused). What is read, element by element:
   (``shape_index``; :func:`read_serialized`), ``rectangle``,
   ``cube``, ``sphere`` (``center``, ``radius``), ``disk``, ``cylinder`` (``p0``, ``p1``,
   ``radius``), each with ``to_world``, ``flip_normals``, ``face_normals``, a nested or referenced
-  BSDF and an area emitter. Analytic shapes are tessellated (:data:`SPHERE_SEGMENTS`).
+  BSDF and an area emitter. Analytic shapes are tessellated (:data:`SPHERE_SEGMENTS`) for the
+  client; ``sphere``, ``disk`` and ``cylinder`` are also exact shapes the path tracer intersects
+  and samples (``Scene.shapes``, :class:`~icbtool.scene.types.AnalyticShape`; docs/mitsuba.md,
+  "Emitters").
   ``shapegroup`` + ``instance``: each instance is a flattened, transformed copy of the group.
 * ``<ref>``: every form Mitsuba accepts (unnamed, ``_arg_N``, ``name="bsdf"``, any name); a
   shape takes BSDFs and emitters by type. Warnings about a referenced object name the ``<ref>``.
@@ -89,6 +92,7 @@ import numpy as np
 from icbtool.scene import spectra
 from icbtool.scene.obj import approximated_albedo, material_warning, parse_obj
 from icbtool.scene.types import (
+    AnalyticShape,
     DirectionalLight,
     Material,
     PointLight,
@@ -334,6 +338,7 @@ class _Part:
     normals: np.ndarray  # (V, 3), NaN rows: computed
     uvs: np.ndarray | None  # (V, 2) Scene convention
     material: int
+    exact: tuple | None = None  # an analytic shape: (kind, world_from_local, flip_normals, name)
 
     def __post_init__(self) -> None:
         # the Scene's float32 now (what the merge would round them to): half the memory while
@@ -1144,8 +1149,11 @@ class _Reader(_Materials):
                     repair_warning(em.where, "textured radiance: its mean colour is emitted")
                 emission = np.maximum(emission, 0.0)
         mat = self.material(bsdf, emission)
+        exact = None
+        if kind in ("sphere", "disk", "cylinder"):
+            exact = self.exact_shape(node, kind, props, to_world, bsdf)
         self.finish(node, props)
-        self.parts.append(_Part(v, f, n, uv, mat))
+        self.parts.append(_Part(v, f, n, uv, mat, exact))
         self.n_shapes += 1
 
     def check_group(self, node: _Node) -> list[_Node]:
@@ -1186,6 +1194,38 @@ class _Reader(_Materials):
         for s in self.check_group(group):
             self.shape(s, to_world)
         self.n_instances += 1
+
+    def exact_shape(
+        self, node: _Node, kind: str, props: dict, to_world: np.ndarray, bsdf: _Bsdf
+    ) -> tuple | None:
+        """(kind, world_from_local, flip_normals, name) of a sphere, disk or cylinder for the
+        tracer's exact shape (:class:`~icbtool.scene.types.AnalyticShape`), or None (it stays
+        tessellated, with a warning) when the shape is textured or ``to_world`` distorts it
+        beyond what the exact shape takes (a non-uniformly scaled sphere, an elliptic
+        cylinder)."""
+        m = np.array(to_world, np.float64)  # a sphere's: centre and radius already applied
+        if kind == "cylinder":
+            p0 = self.point(props, "p0", (0, 0, 0))
+            p1 = self.point(props, "p1", (0, 0, 1))
+            r = float(self.float_(props, "radius", 1.0))
+            w = p1 - p0
+            a = np.cross(w, [1.0, 0, 0] if abs(w[0]) < 0.9 * np.linalg.norm(w) else [0, 1.0, 0])
+            a /= np.linalg.norm(a)
+            b = np.cross(w / np.linalg.norm(w), a)
+            local = np.eye(4)
+            local[:3, 0], local[:3, 1], local[:3, 2], local[:3, 3] = r * a, r * b, w, p0
+            m = m @ local
+        flip = self.bool_(props, "flip_normals", False)
+        name = node.attrs.get("id") or f"{kind}@{node.line}"
+        if bsdf.texture is not None:
+            repair_warning(node.where, f"textured {kind}: kept as triangles, not exact")
+            return None
+        try:
+            AnalyticShape(kind, m, 0, (0, 1), flip, name)  # type: ignore[arg-type]
+        except ValueError as e:
+            repair_warning(node.where, f"{kind} kept as triangles, not exact: {e}")
+            return None
+        return (kind, m, flip, name)
 
     def geometry(self, node: _Node, kind: str, props: dict) -> tuple | None:
         """(vertices, faces, normals (NaN rows: compute), uvs | None) in the shape's space."""
@@ -1505,11 +1545,23 @@ class _Reader(_Materials):
                     for p in self.parts
                 ]
             )
+        part_faces = [len(p.faces) for p in self.parts]
+        exacts = [(p.exact, p.material) for p in self.parts]
         self.parts = []  # merged: the shapes' own copies go (peak memory)
+        face_id = np.arange(len(f))  # which faces check_arrays keeps (shapes' ranges)
         with warnings.catch_warnings():
             # NaN rows are the normals to compute (no normal in the file), not a repair
             warnings.filterwarnings("ignore", r".*vertex normal\(s\) are NaN", UserWarning)
-            v, f, n, uv, fm = check_arrays(where, v, f, n, uv, fm)
+            v, f, n, uv, face_id = check_arrays(where, v, f, n, uv, face_id)
+        fm = fm[face_id]
+        shapes = []
+        start = np.cumsum([0, *part_faces])
+        for (exact, mat), a, b in zip(exacts, start[:-1], start[1:]):
+            if exact is not None:
+                lo, hi = np.searchsorted(face_id, [a, b])
+                if hi > lo:  # its tessellation's kept faces are one run of the scene's
+                    kind, m, flip, name = exact
+                    shapes.append(AnalyticShape(kind, m, mat, (int(lo), int(hi)), flip, name))
         fill_vertex_normals(v, f, n, ~np.isfinite(n).all(axis=1))
         mats = self.materials
         if not any(m.is_textured or m.bsdf is not None for m in mats):
@@ -1535,6 +1587,7 @@ class _Reader(_Materials):
             up=up,
             max_depth=self.max_depth,
             source=where,
+            shapes=shapes,
         )
 
 

@@ -488,6 +488,113 @@ def envmap_mean_radiance(envmap: np.ndarray) -> np.ndarray:
     return (m.mean(axis=1) * w[:, None]).sum(0) / w.sum()
 
 
+#: The kinds of :class:`AnalyticShape`.
+SHAPE_KINDS = ("sphere", "disk", "cylinder")
+
+
+@dataclass(frozen=True, eq=False)
+class AnalyticShape:
+    """An exact quadric of the scene (Mitsuba 3's ``sphere``, ``disk``, ``cylinder``).
+
+    The path tracer intersects, shades and (when its material is emissive) samples the shape
+    itself: a sphere light by the cone of directions it subtends, a disk or cylinder light by
+    area, as Mitsuba 3 does. The Scene's mesh keeps a tessellation of it (faces ``faces[0] ..
+    faces[1] - 1``) for everything else (the client's raster, LPM, GUI, the raster DL's area
+    lights); the tracer ignores those faces.
+
+    The local shapes, mapped by ``world_from_local``: ``sphere`` the unit sphere about the
+    origin (the map must be a similarity: rotation, uniform scale, translation); ``disk`` the
+    unit disk in the local xy plane, facing local +z (any invertible affine map: an ellipse is
+    exact too); ``cylinder`` the open tube of radius 1 about local z, 0 <= z <= 1 (the map must
+    keep its cross-section a circle: local x and y mapped to orthogonal vectors of one length,
+    both orthogonal to the image of z). Normals point outwards (sphere, cylinder) or along the
+    image of local +z under the inverse transpose (disk), reversed with ``flip_normals``; an
+    emissive material emits on that side only (Mitsuba's area emitter), and the material must
+    be untextured.
+
+    Attributes:
+        kind: one of :data:`SHAPE_KINDS`.
+        world_from_local: (4, 4) float64 affine map, read-only.
+        material: index into ``Scene.materials``.
+        faces: (start, stop): the shape's tessellation in the Scene's faces.
+        flip_normals: the normal (and the emitting side) reversed.
+        name: label (messages).
+    """
+
+    kind: Literal["sphere", "disk", "cylinder"]
+    world_from_local: np.ndarray
+    material: int
+    faces: tuple[int, int]
+    flip_normals: bool = False
+    name: str = "shape"
+
+    def __post_init__(self) -> None:
+        where = f"shape '{self.name}'"
+        if self.kind not in SHAPE_KINDS:
+            raise ValueError(f"{where}: kind must be one of {list(SHAPE_KINDS)}, got {self.kind!r}")
+        m = np.array(self.world_from_local, np.float64)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise ValueError(f"{where}: world_from_local must be a finite 4x4 matrix")
+        if not np.allclose(m[3], [0, 0, 0, 1]):
+            raise ValueError(f"{where}: world_from_local must be affine (last row 0 0 0 1)")
+        lin = m[:3, :3]
+        scale = float(np.abs(lin).max())
+        if not scale > 0 or abs(np.linalg.det(lin)) < 1e-12 * scale**3:
+            raise ValueError(f"{where}: world_from_local is singular")
+        ex, ey, ez = lin[:, 0], lin[:, 1], lin[:, 2]
+        tol = 1e-6 * scale * scale
+
+        def orthogonal(a: np.ndarray, b: np.ndarray) -> bool:
+            return abs(float(a @ b)) <= tol
+
+        if self.kind == "sphere" and not (
+            orthogonal(ex, ey) and orthogonal(ex, ez) and orthogonal(ey, ez)
+            and abs(ex @ ex - ey @ ey) <= tol and abs(ex @ ex - ez @ ez) <= tol
+        ):  # fmt: skip
+            raise ValueError(
+                f"{where}: a sphere's world_from_local must be a similarity (rotation, uniform "
+                "scale, translation)"
+            )
+        if self.kind == "cylinder" and not (
+            orthogonal(ex, ey) and orthogonal(ex, ez) and orthogonal(ey, ez)
+            and abs(ex @ ex - ey @ ey) <= tol
+        ):  # fmt: skip
+            raise ValueError(
+                f"{where}: a cylinder's world_from_local must keep its cross-section a circle "
+                "(local x, y mapped to orthogonal vectors of one length, orthogonal to z's)"
+            )
+        fa = tuple(int(x) for x in np.asarray(self.faces).reshape(-1))
+        if len(fa) != 2 or not 0 <= fa[0] < fa[1]:
+            raise ValueError(f"{where}: faces must be (start, stop) with 0 <= start < stop")
+        if isinstance(self.material, bool) or int(self.material) != self.material:
+            raise ValueError(f"{where}: material must be an integer index")
+        m.setflags(write=False)
+        object.__setattr__(self, "world_from_local", m)
+        object.__setattr__(self, "faces", fa)
+        object.__setattr__(self, "material", int(self.material))
+        object.__setattr__(self, "flip_normals", bool(self.flip_normals))
+
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) the image of the local origin (a sphere's or disk's centre, a cylinder's p0)."""
+        return self.world_from_local[:3, 3].copy()
+
+    @property
+    def radius(self) -> float:
+        """World radius of a sphere or cylinder (a disk: of its local x axis)."""
+        return float(np.linalg.norm(self.world_from_local[:3, 0]))
+
+    @property
+    def area(self) -> float:
+        """World surface area."""
+        lin = self.world_from_local[:3, :3]
+        if self.kind == "sphere":
+            return 4.0 * math.pi * self.radius**2
+        if self.kind == "disk":
+            return math.pi * float(np.linalg.norm(np.cross(lin[:, 0], lin[:, 1])))
+        return 2.0 * math.pi * self.radius * float(np.linalg.norm(lin[:, 2]))
+
+
 Light = DirectionalLight | PointLight | SpotLight | AreaLight
 
 #: Every light type by its ``kind``: the one place a light type is declared. Its parameters are
@@ -534,6 +641,8 @@ class Scene:
         face_material: (F,) int32 index into ``materials``.
         materials: the materials (a tuple).
         lights: analytic and area lights (a tuple; area lights are also in the mesh).
+        shapes: exact spheres, disks and cylinders (:class:`AnalyticShape`, a tuple), each
+            also tessellated in the mesh; the path tracer uses the exact shape.
         sky: environment radiance, or None (black).
         paths: named camera paths (e.g. "train", "test"), a read-only mapping.
         default_camera: a good first view, or None.
@@ -565,6 +674,7 @@ class Scene:
     max_depth: int | None = None
     animation: Any = None  # an icbtool.scene.animation.Animation (which imports this module)
     time: float = 0.0
+    shapes: Sequence[AnalyticShape] = ()
 
     def __post_init__(self) -> None:
         where = f"scene '{self.name}'" + (f" ({self.source})" if self.source else "")
@@ -617,6 +727,9 @@ class Scene:
         object.__setattr__(self, "materials", tuple(self.materials))
         object.__setattr__(self, "lights", tuple(self.lights))
         object.__setattr__(self, "paths", MappingProxyType(dict(self.paths)))
+        object.__setattr__(self, "shapes", tuple(self.shapes))
+        self._check_shapes(where)
+
         if self.animation is not None:
             try:
                 self.animation.check(self)
@@ -642,6 +755,28 @@ class Scene:
         if self.animation is None or float(t) == self.time:
             return self
         return self.animation.apply(self, float(t))
+
+    def _check_shapes(self, where: str) -> None:
+        taken = np.zeros(len(self.faces), bool)
+        for sh in self.shapes:
+            if not isinstance(sh, AnalyticShape):
+                raise ValueError(f"{where}: shapes must be AnalyticShape, got {type(sh).__name__}")
+            a, b = sh.faces
+            if b > len(self.faces):
+                raise ValueError(
+                    f"{where}: shape '{sh.name}' faces {a}..{b - 1} lie beyond the "
+                    f"{len(self.faces)} faces"
+                )
+            if taken[a:b].any():
+                raise ValueError(f"{where}: shape '{sh.name}' shares faces with another shape")
+            taken[a:b] = True
+            if not 0 <= sh.material < len(self.materials):
+                raise ValueError(f"{where}: shape '{sh.name}' material {sh.material} out of range")
+            if self.materials[sh.material].is_textured:
+                raise ValueError(
+                    f"{where}: shape '{sh.name}' has a textured material (analytic shapes take "
+                    "untextured ones; keep a textured shape as a mesh)"
+                )
 
     # ------------------------------------------------------------------ derived
     @property
@@ -720,6 +855,9 @@ class Scene:
 
                 h.update(fingerprint(m.bsdf))
         h.update(self.light_hash.encode())
+        for sh in self.shapes:  # none: the hash is as before shapes existed (stores stay valid)
+            h.update(repr((sh.kind, sh.faces, sh.material, sh.flip_normals)).encode())
+            h.update(np.round(sh.world_from_local, 9).tobytes())
         return h.hexdigest()
 
     @property

@@ -426,8 +426,13 @@ def _nee(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps, diag, t0, t1, t2, to_dl
                 g = pl / (pl * pl + pb * pb)  # w / pl, w = power heuristic
                 n_shadow += 1
                 eps_l = _eps(y[0], y[1], y[2], dist, diag)
-                tf = np.float32(max(dist - eps - eps_l, 0.0))
-                if _visible(rtc, fn_occl, ray, log, so, w0, w1, w2, tf):
+                # aimed from the offset origin at y (see kernels._emitter_sample: along x -> y
+                # the ray met a light seen at a grazing angle before y)
+                s0, s1, s2, sdist = _towards(
+                    np.float64(so[0]), np.float64(so[1]), np.float64(so[2]), y[0], y[1], y[2]
+                )
+                tf = np.float32(max(sdist - eps_l, 0.0))
+                if _visible(rtc, fn_occl, ray, log, so, s0, s1, s2, tf):
                     me = face_mat[lf]
                     _add_to(direct, gi, to_dl and face_is_area[lf], row,
                             t0 * f0 * mat_emission[me, 0] * g, t1 * f1 * mat_emission[me, 1] * g,

@@ -48,8 +48,20 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from icbtool.trace.layout import RAYHIT_WORDS
+from icbtool.trace.shapes import (
+    shape_frame,
+    shape_pdf,
+    shape_sample,
+    shapes_intersect,
+    shapes_occluded,
+)
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy", boundscheck=False)
+
+#: The first 16 hex digits of the SHA-256 of icbtool/trace/shapes.py, whose helpers these
+#: kernels inline. numba's cache is keyed on the text of this file alone: a change there must
+#: change this line too (a test checks), or cached kernels would keep the old shapes code.
+SHAPES_SOURCE = "b7867323bc8227e5"
 
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
 _M2 = np.uint64(0x94D049BB133111EB)
@@ -577,6 +589,25 @@ def _occluded(rtc, fn, ray, ox, oy, oz, dx, dy, dz, tfar):
     return f[k + 8] == -np.inf
 
 
+@nb.njit(inline="always", **_JIT)
+def _closest(rtc, fn, ray, shp, n_tri, ox, oy, oz, dx, dy, dz):
+    """Closest hit of the ray from the float32 origin (ox, oy, oz) along the unit float64
+    (dx, dy, dz) among Embree's triangles and the analytic shapes ``shp``: (t float64, prim or
+    -1, u, v); shape k's prim is ``n_tri + k``."""
+    h_t, prim, h_u, h_v = _intersect(
+        rtc, fn, ray, ox, oy, oz, np.float32(dx), np.float32(dy), np.float32(dz)
+    )
+    th = np.float64(h_t)
+    if shp.shape[0] > 0:
+        t, k = shapes_intersect(
+            shp, np.float64(ox), np.float64(oy), np.float64(oz), dx, dy, dz,
+            th if prim >= 0 else np.inf,
+        )  # fmt: skip
+        if k >= 0:
+            return t, n_tri + k, h_u, h_v
+    return th, prim, h_u, h_v
+
+
 @nb.njit(**_JIT)
 def rtc_intersect_batch(rtc, fn, o, d, t, prim, u, v, lo, hi):
     """Closest hits of float32 rays lo..hi-1 (o, d (N, 3)) into t, prim (-1 = miss), u, v."""
@@ -724,12 +755,16 @@ View = namedtuple("View", ["intr", "r_wc", "pos", "width", "jitter", "edge_extra
 #: float64, texture offset into the texels (-1: untextured) and (h, w); texels: uint8 codes into
 #: tex_lut, or empty with tex_lut the float32 texels (one dtype pair either way: one compiled
 #: kernel); nearest (1: nearest texel, 0: bilinear), shading_normals
-#: (1: interpolated, 0: flat), scene diagonal.
+#: (1: interpolated, 0: flat), scene diagonal; the analytic shapes' table (S, SHAPE_COLS)
+#: (:func:`icbtool.trace.shapes.pack_shapes`; S = 0: none). A shape k is primitive F + k of the
+#: per-primitive arrays: ``face_mat`` and the Lights' ``face_light_pmf``, ``face_area``,
+#: ``face_is_area`` have F + S entries (``tri``, ``face_n``, ``vn``, ``face_uv``: F).
 Surfaces = namedtuple(
     "Surfaces",
     [
         "tri", "face_n", "vn", "face_mat", "face_uv", "mat_albedo", "mat_emission",
         "tex_flat", "tex_lut", "tex_off", "tex_hw", "nearest", "shading_normals", "diag",
+        "shapes",
     ],
 )  # fmt: skip
 #: Lights: suns (S, 6) direction, irradiance; punct (Q, 12) position, intensity, axis, cos_in,
@@ -831,10 +866,13 @@ def _ray_through(intr, r_wc, px, py):
 
 
 @nb.njit(inline="always", **_JIT)
-def _emission_seen(fn, face_mat, mat_emission, sky_kind, sky, env, rot, scale, prim, dx, dy, dz):
+def _emission_seen(
+    fn, face_mat, mat_emission, sky_kind, sky, env, rot, scale, prim, dx, dy, dz, shape_front_seen
+):
     """Radiance a camera ray along (dx, dy, dz) gets from what it reaches first, emission only:
-    the front of an emissive face ``prim`` (one-sided, as :func:`_hit_frame` decides front), the
-    sky when it misses (``prim < 0``), else 0."""
+    the front of an emissive face ``prim`` (one-sided, as :func:`_hit_frame` decides front; for
+    an analytic shape, ``prim`` >= F, ``shape_front_seen`` says it), the sky when it misses
+    (``prim < 0``), else 0."""
     if prim < 0:
         if sky_kind == SKY_NONE:
             return 0.0, 0.0, 0.0
@@ -845,6 +883,8 @@ def _emission_seen(fn, face_mat, mat_emission, sky_kind, sky, env, rot, scale, p
     e2 = mat_emission[m, 2]
     if not (e0 > 0 or e1 > 0 or e2 > 0):
         return 0.0, 0.0, 0.0
+    if prim >= fn.shape[0]:  # an analytic shape: front = its (flipped) normal faces the ray
+        return (e0, e1, e2) if shape_front_seen else (0.0, 0.0, 0.0)
     g0 = np.float64(fn[prim, 0])
     g1 = np.float64(fn[prim, 1])
     g2 = np.float64(fn[prim, 2])
@@ -858,7 +898,8 @@ def _emission_through(rtc, fn_isect, ray, log, p0, intr, r_wc, px, py, surf, sky
     """Emission seen (:func:`_emission_seen`) along the camera ray from the float32 origin
     ``p0`` (3-tuple) through the image point (px, py): one closest hit, logged as a camera ray.
     ``surf`` = (face normals, face materials, material emission), ``sky_p`` = the first five
-    fields of :data:`SkyParams`."""
+    fields of :data:`SkyParams`. Triangles only: :func:`_emission_through_all` sees the
+    analytic shapes too."""
     ox, oy, oz = p0
     dx, dy, dz = _ray_through(intr, r_wc, px, py)
     _log_ray(log, 0, ox, oy, oz, dx, dy, dz, np.float32(np.inf))
@@ -867,7 +908,26 @@ def _emission_through(rtc, fn_isect, ray, log, p0, intr, r_wc, px, py, surf, sky
     fn, face_mat, mat_emission = surf
     sky_kind, sky, env, rot, scale = sky_p
     return _emission_seen(
-        fn, face_mat, mat_emission, sky_kind, sky, env, rot, scale, prim, dx, dy, dz
+        fn, face_mat, mat_emission, sky_kind, sky, env, rot, scale, prim, dx, dy, dz, False
+    )
+
+
+@nb.njit(inline="always", **_JIT)
+def _emission_through_all(rtc, fn_isect, ray, log, p0, intr, r_wc, px, py, surf, sky_p, shp):
+    """:func:`_emission_through` among the triangles and the analytic shapes ``shp``."""
+    ox, oy, oz = p0
+    dx, dy, dz = _ray_through(intr, r_wc, px, py)
+    _log_ray(log, 0, ox, oy, oz, dx, dy, dz, np.float32(np.inf))
+    fn, face_mat, mat_emission = surf
+    n_tri = fn.shape[0]
+    th, prim, _, _ = _closest(rtc, fn_isect, ray, shp, n_tri, ox, oy, oz, dx, dy, dz)
+    front = False
+    if prim >= n_tri:
+        front = shape_frame(shp, prim - n_tri, np.float64(ox), np.float64(oy), np.float64(oz),
+                            dx, dy, dz, th)[3]  # fmt: skip
+    sky_kind, sky, env, rot, scale = sky_p
+    return _emission_seen(
+        fn, face_mat, mat_emission, sky_kind, sky, env, rot, scale, prim, dx, dy, dz, front
     )
 
 
@@ -879,14 +939,15 @@ def emission_at(p, lum_w, pts, out, lo, hi):
     rtc, fn_isect, _ = p.embree
     intr, r_wc, pos = p.cam[:3]
     surf = (p.surf.face_n, p.surf.face_mat, p.surf.mat_emission)
+    shp = p.surf.shapes
     pw, pf = _stack_words()
     ray = (pw, pf, np.int64(0), _address(pw))
     no_log = (np.zeros((1, 3), np.float32), np.zeros((1, 3), np.float32),
               np.zeros(1, np.float32), np.zeros(1, np.int8), np.zeros(1, np.int64))  # fmt: skip
     p0 = (np.float32(pos[0]), np.float32(pos[1]), np.float32(pos[2]))
     for n in range(lo, hi):
-        e0, e1, e2 = _emission_through(
-            rtc, fn_isect, ray, no_log, p0, intr, r_wc, pts[n, 0], pts[n, 1], surf, p.sky[:5]
+        e0, e1, e2 = _emission_through_all(
+            rtc, fn_isect, ray, no_log, p0, intr, r_wc, pts[n, 0], pts[n, 1], surf, p.sky[:5], shp
         )
         out[n] = e0 * lum_w[0] + e1 * lum_w[1] + e2 * lum_w[2]
 
@@ -1028,17 +1089,20 @@ def _punctual_sample(punct, j, x, nf, ns, eps):
 
 
 @nb.njit(inline="always", **_JIT)
-def _emitter_point(tri, emit_faces, emit_cdf, ul, ra, r2, reuse):
-    """An emissive face drawn by power (ul) and a uniform point on it (ra, r2): (face, point).
-    With ``reuse``, ``ra`` is ignored and ul's remainder within the face's CDF cell takes its
-    place, so that the whole light sample is one 2D point (ul, r2): stratifying that pair
-    stratifies the point over all the emitters' area (with one face pick and a separate pair,
-    the pick and the point were stratified apart)."""
+def _emitter_pick(emit_faces, emit_cdf, ul, ra, reuse):
+    """The emitter (a face, or an analytic shape F + k) drawn by power (ul), and the first
+    number of its point: ``ra``, or with ``reuse`` ul's remainder within the emitter's CDF cell
+    (see :func:`_emitter_point`)."""
     if reuse:
         k, ra = _cdf_pick(emit_cdf, 0, ul)
     else:
         k = min(_search_right(emit_cdf, 0, ul), len(emit_faces) - 1)
-    lf = emit_faces[k]
+    return emit_faces[k], ra
+
+
+@nb.njit(inline="always", **_JIT)
+def _triangle_point(tri, lf, ra, r2):
+    """The uniform point (ra, r2) on face lf: (y0, y1, y2)."""
     r1 = math.sqrt(ra)
     ca = r1 * (1 - r2)
     cb = r1 * r2
@@ -1057,7 +1121,39 @@ def _emitter_point(tri, emit_faces, emit_cdf, ul, ra, r2, reuse):
         + ca * (np.float64(tri[lf, 1, 2]) - np.float64(tri[lf, 0, 2]))
         + cb * (np.float64(tri[lf, 2, 2]) - np.float64(tri[lf, 0, 2]))
     )
-    return lf, (y0, y1, y2)
+    return y0, y1, y2
+
+
+@nb.njit(inline="always", **_JIT)
+def _shape_light_sample(shp, k, pmf, diag, x, nf, ns, eps, u1, u2):
+    """Analytic emitter shape k (pick pmf) sampled from x as Mitsuba 3 does
+    (:func:`icbtool.trace.shapes.shape_sample`): as :func:`_emitter_sample`, (usable, shadow-ray
+    direction from the offset origin, its length, geometry times the power-heuristic MIS
+    weight against cosine BSDF sampling)."""
+    ok, wi0, wi1, wi2, dist, pdf, y, _ = shape_sample(shp, k, x[0], x[1], x[2], u1, u2)
+    c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
+    if not (ok and c > 0 and nf[0] * wi0 + nf[1] * wi1 + nf[2] * wi2 > 0):
+        return False, wi0, wi1, wi2, np.float32(0.0), 0.0
+    pl = pmf * pdf
+    pb = c * _INV_PI
+    g = c * pl / (pl * pl + pb * pb)
+    eps_l = _eps(y[0], y[1], y[2], dist, diag)
+    s0 = np.float64(np.float32(x[0] + nf[0] * eps))
+    s1 = np.float64(np.float32(x[1] + nf[1] * eps))
+    s2 = np.float64(np.float32(x[2] + nf[2] * eps))
+    sw0, sw1, sw2, sdist = _towards(s0, s1, s2, y[0], y[1], y[2])
+    return True, sw0, sw1, sw2, np.float32(max(sdist - eps_l, 0.0)), g
+
+
+@nb.njit(inline="always", **_JIT)
+def _emitter_point(tri, emit_faces, emit_cdf, ul, ra, r2, reuse):
+    """An emissive face drawn by power (ul) and a uniform point on it (ra, r2): (face, point).
+    With ``reuse``, ``ra`` is ignored and ul's remainder within the face's CDF cell takes its
+    place, so that the whole light sample is one 2D point (ul, r2): stratifying that pair
+    stratifies the point over all the emitters' area (with one face pick and a separate pair,
+    the pick and the point were stratified apart)."""
+    lf, ra = _emitter_pick(emit_faces, emit_cdf, ul, ra, reuse)
+    return lf, _triangle_point(tri, lf, ra, r2)
 
 
 @nb.njit(inline="always", **_JIT)
@@ -1216,6 +1312,8 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
     mat_albedo, mat_emission = sf.mat_albedo, sf.mat_emission
     tex, lut, tex_off, tex_hw = sf.tex_flat, sf.tex_lut, sf.tex_off, sf.tex_hw
     nearest, shading_normals, diag = sf.nearest, sf.shading_normals, sf.diag
+    shp = sf.shapes
+    n_tri = tri.shape[0]
     suns, punct, face_light_pmf, face_area, face_is_area, emit_faces, emit_cdf = p.lights
     sky_kind, sky, env, rot, scale, frame, marg, cond, spdf, rows, phi0, mis = p.sky
     (seed_mix, salts, pixseed0, sampler, limit, rr_depth, want_aux, log2spp, zshift, splits,
@@ -1278,9 +1376,9 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                         jy = _u01(bj, salts[1])
                     px = np.float64(pix_x) + jx
                     py = np.float64(pix_y) + jy
-                    le = _emission_through(
+                    le = _emission_through_all(
                         rtc, fn_isect, ray, log, (ox, oy, oz), intr, r_wc, px, py,
-                        (fn, face_mat, mat_emission), (sky_kind, sky, env, rot, scale),
+                        (fn, face_mat, mat_emission), (sky_kind, sky, env, rot, scale), shp,
                     )  # fmt: skip
                     n_prim += 1
                     direct[row, 0] += le[0] * w_seen
@@ -1324,9 +1422,8 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                         _log_ray(
                             log, 0 if depth == 1 else 2, ox, oy, oz, dx, dy, dz, np.float32(np.inf)
                         )
-                        dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
-                        h_t, prim, h_u, h_v = _intersect(
-                            rtc, fn_isect, ray, ox, oy, oz, dx32, dy32, dz32
+                        th, prim, h_u, h_v = _closest(
+                            rtc, fn_isect, ray, shp, n_tri, ox, oy, oz, dx, dy, dz
                         )
                         if depth == 1:
                             n_prim += 1
@@ -1354,10 +1451,15 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                                     gi[row, 1] += le[1] * t1 * w
                                     gi[row, 2] += le[2] * t2 * w
                             break
-                        th = np.float64(h_t)
-                        x, bary, cos_o, front, nf, ns = _hit_frame(
-                            tri, fn, vn, shading_normals, prim, h_u, h_v, dx, dy, dz
-                        )
+                        if prim >= n_tri:  # an analytic shape (icbtool.trace.shapes)
+                            x, bary, cos_o, front, nf, ns = shape_frame(
+                                shp, prim - n_tri, np.float64(ox), np.float64(oy),
+                                np.float64(oz), dx, dy, dz, th,
+                            )  # fmt: skip
+                        else:
+                            x, bary, cos_o, front, nf, ns = _hit_frame(
+                                tri, fn, vn, shading_normals, prim, h_u, h_v, dx, dy, dz
+                            )
                         # ---- emission seen (one-sided): direct for a camera ray and for a bounce
                         # off the first hit into an AreaLight (MIS-weighted); else gi (MIS-weighted)
                         m = face_mat[prim]
@@ -1370,9 +1472,20 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                                 direct[row, 1] += e1 * w_seen
                                 direct[row, 2] += e2 * w_seen
                             else:
-                                w = _emission_mis_weight(
-                                    face_light_pmf[prim], face_area[prim], th, cos_o, pdf_prev
-                                )
+                                if prim >= n_tri:
+                                    pl = face_light_pmf[prim] * shape_pdf(
+                                        shp, prim - n_tri, np.float64(ox), np.float64(oy),
+                                        np.float64(oz), dx, dy, dz, th, cos_o,
+                                    )  # fmt: skip
+                                    w = (
+                                        pdf_prev
+                                        * pdf_prev
+                                        / max(pdf_prev * pdf_prev + pl * pl, 1e-300)
+                                    )
+                                else:
+                                    w = _emission_mis_weight(
+                                        face_light_pmf[prim], face_area[prim], th, cos_o, pdf_prev
+                                    )
                                 _add_to(
                                     direct,
                                     gi,
@@ -1439,9 +1552,10 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                             )
                             if ok:
                                 n_shadow += 1
-                                if _visible(
-                                    rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)
-                                ):
+                                if _visible_all(
+                                    rtc, fn_occl, ray, log, shp, so, wi0, wi1, wi2,
+                                    np.float32(np.inf),
+                                ):  # fmt: skip
                                     nh = _add_or_hold(
                                         direct, gi, held, row, nh, pend, to_direct_dl, fo,
                                         suns[j, 3], suns[j, 4], suns[j, 5], c,
@@ -1452,7 +1566,7 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                             )
                             if ok:
                                 n_shadow += 1
-                                if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
+                                if _visible_all(rtc, fn_occl, ray, log, shp, so, wi0, wi1, wi2, tf):
                                     nh = _add_or_hold(
                                         direct, gi, held, row, nh, pend, to_direct_dl, fo,
                                         ii[0], ii[1], ii[2], g,
@@ -1467,14 +1581,21 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                                 ul = _u01(base_d, salts[dim0 + 2])
                                 ra = _u01(base_d, salts[dim0 + 3])
                                 rb = _u01(base_d, salts[dim0 + 4])
-                            lf, y = _emitter_point(tri, emit_faces, emit_cdf, ul, ra, rb, use_ld)
-                            nl = (fn[lf, 0], fn[lf, 1], fn[lf, 2])
-                            ok, wi0, wi1, wi2, tf, g = _emitter_sample(
-                                y, nl, face_light_pmf[lf], face_area[lf], diag, x, nf, ns, eps
-                            )
+                            lf, ra = _emitter_pick(emit_faces, emit_cdf, ul, ra, use_ld)
+                            if lf >= n_tri:  # an analytic emitter (icbtool.trace.shapes)
+                                ok, wi0, wi1, wi2, tf, g = _shape_light_sample(
+                                    shp, lf - n_tri, face_light_pmf[lf], diag, x, nf, ns, eps,
+                                    ra, rb,
+                                )  # fmt: skip
+                            else:
+                                y = _triangle_point(tri, lf, ra, rb)
+                                nl = (fn[lf, 0], fn[lf, 1], fn[lf, 2])
+                                ok, wi0, wi1, wi2, tf, g = _emitter_sample(
+                                    y, nl, face_light_pmf[lf], face_area[lf], diag, x, nf, ns, eps
+                                )
                             if ok:
                                 n_shadow += 1
-                                if _visible(rtc, fn_occl, ray, log, so, wi0, wi1, wi2, tf):
+                                if _visible_all(rtc, fn_occl, ray, log, shp, so, wi0, wi1, wi2, tf):
                                     me = face_mat[lf]
                                     nh = _add_or_hold(
                                         direct, gi, held, row, nh, pend,
@@ -1496,9 +1617,10 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                             ok, g = _sky_light_weight(psk, wi0, wi1, wi2, nf, ns)
                             if ok:
                                 n_shadow += 1
-                                if _visible(
-                                    rtc, fn_occl, ray, log, so, wi0, wi1, wi2, np.float32(np.inf)
-                                ):
+                                if _visible_all(
+                                    rtc, fn_occl, ray, log, shp, so, wi0, wi1, wi2,
+                                    np.float32(np.inf),
+                                ):  # fmt: skip
                                     le = _sky(sky_kind, sky, env, rot, scale, wi0, wi1, wi2)
                                     nh = _add_or_hold(
                                         direct, gi, held, row, nh, pend, False, fo,
@@ -1604,9 +1726,20 @@ def _log_ray(log, kind, ox, oy, oz, dx, dy, dz, tf):
 
 
 @nb.njit(inline="always", **_JIT)
+def _visible_all(rtc, fn_occl, ray, log, shp, so, dx, dy, dz, tf):
+    """:func:`_visible`, the analytic shapes ``shp`` (icbtool.trace.shapes) blocking too."""
+    if shp.shape[0] > 0 and shapes_occluded(
+        shp, np.float64(so[0]), np.float64(so[1]), np.float64(so[2]), dx, dy, dz, np.float64(tf)
+    ):
+        _log_ray(log, 1, so[0], so[1], so[2], dx, dy, dz, tf)
+        return False
+    return _visible(rtc, fn_occl, ray, log, so, dx, dy, dz, tf)
+
+
+@nb.njit(inline="always", **_JIT)
 def _visible(rtc, fn_occl, ray, log, so, dx, dy, dz, tf):
     """Shadow ray from the float32 origin ``so`` (3-tuple) along the unit (dx, dy, dz) up to
-    ``tf``: unblocked?"""
+    ``tf``: unblocked by the triangles?"""
     ox, oy, oz = so
     _log_ray(log, 1, ox, oy, oz, dx, dy, dz, tf)
     dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)

@@ -187,14 +187,26 @@ class RtcScene:
             pass
 
     @classmethod
-    def of(cls, scene: Scene, robust: bool = True) -> RtcScene:
+    def of(cls, scene: Scene, robust: bool = True, skip_shapes: bool = False) -> RtcScene:
         """The self-checked Embree scene of ``scene``'s mesh (cached:
-        :mod:`icbtool.scene.derived`)."""
+        :mod:`icbtool.scene.derived`).
+
+        With ``skip_shapes`` the tessellations of the scene's analytic shapes are left out (made
+        degenerate, which Embree never hits: face indices stay those of the scene), for a tracer
+        that intersects the exact shapes itself (:mod:`icbtool.trace.shapes`)."""
         from icbtool.scene.derived import derived
+
+        skip = bool(skip_shapes) and len(scene.shapes) > 0
 
         def build() -> RtcScene:
             t0 = time.perf_counter()
-            rs = cls(scene.vertices, scene.faces, robust=robust)
+            faces = scene.faces
+            if skip:
+                faces = faces.copy()
+                for sh in scene.shapes:
+                    a, b = sh.faces
+                    faces[a:b] = faces[a:b, :1]  # (v, v, v): no area, never hit
+            rs = cls(scene.vertices, faces, robust=robust)
             _self_check()
             log.info(
                 "scene '%s': Embree BVH of %d triangles built in %.1f s",
@@ -204,7 +216,7 @@ class RtcScene:
             )
             return rs
 
-        return derived(scene, f"rtc_robust={bool(robust)}", build)
+        return derived(scene, f"rtc_robust={bool(robust)}_skip={skip}", build)
 
 
 _CHECKED = False

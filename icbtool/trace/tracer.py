@@ -589,23 +589,45 @@ class _SceneData:
         self.mat_emission = np.stack([m.emission for m in scene.materials]).astype(np.float64)
         self.textures = {i: m.texture for i, m in enumerate(scene.materials) if m.is_textured}
         self.diag = max(scene.diagonal, 1e-30)
-        # emitters: all emissive faces with positive area, sampled by power (the (F, 3)
-        # per-face emission is a temporary: 24 bytes a face the kernels never read)
-        area = scene.face_areas
-        power = area * (self.mat_emission[self.face_material] @ _LUM)
+        # analytic shapes (icbtool.trace.shapes): primitive F + k; their tessellations are left
+        # out of Embree's scene and of the emitters. The general (BSDF) kernel does not take
+        # them yet: a scene with declared BSDFs renders the tessellations
+        from icbtool.scene.emitters import light_faces
+        from icbtool.trace.shapes import pack_shapes
+
+        general = any(getattr(m, "bsdf", None) is not None for m in scene.materials)
+        shapes = () if general else tuple(scene.shapes)
+        self.shapes = shapes
+        F, S = len(f), len(shapes)
+        self.shape_table = pack_shapes(shapes)
+        tess = np.zeros(F, bool)
+        for sh in shapes:
+            tess[sh.faces[0] : sh.faces[1]] = True
+        # emitters: all emissive faces with positive area and emissive shapes, sampled by power
+        # (the per-face emission is a temporary: 24 bytes a face the kernels never read)
+        face_power = scene.face_areas * (self.mat_emission[self.face_material] @ _LUM)
+        power = np.concatenate(
+            [face_power, [sh.area * (self.mat_emission[sh.material] @ _LUM) for sh in shapes]]
+        )
+        power[:F][tess] = 0.0
+        area = np.concatenate([scene.face_areas, [sh.area for sh in shapes]])
         emit = np.flatnonzero((power > 0) & np.isfinite(power))
         self.emit_faces = emit
-        self.face_light_pmf = np.zeros(len(f))  # float64, contiguous
+        # emissive faces the camera can see (the edge probes' screen boxes): tessellations too
+        self.seen_emit_faces = np.flatnonzero((face_power > 0) & np.isfinite(face_power))
+        self.face_light_pmf = np.zeros(F + S)  # float64, contiguous
         if len(emit):
             p = power[emit] / power[emit].sum()
             self.face_light_pmf[emit] = p
             self.emit_cdf = np.cumsum(p)
             self.emit_cdf[-1] = 1.0
         self.face_area = np.ascontiguousarray(area, np.float64)
-        # faces belonging to an AreaLight (their light is "direct"); others' light is GI
-        from icbtool.scene.emitters import light_faces
-
-        self.face_is_area_light = np.array(light_faces(scene))
+        # faces belonging to an AreaLight (their light is "direct"); others' light is GI; a
+        # shape's light is direct when its tessellation is (the raster's DL has it then)
+        lf = np.asarray(light_faces(scene))
+        self.face_is_area_light = np.concatenate(
+            [lf, [bool(lf[sh.faces[0] : sh.faces[1]].all()) for sh in shapes]]
+        ).astype(bool)
         self.suns = scene.lights_of("directional")
         self.points = scene.lights_of("point")
         self.spots = scene.lights_of("spot")
@@ -618,7 +640,9 @@ class _SceneData:
     def _pack(self, scene: Scene) -> None:
         """Contiguous arrays for the numba kernels."""
         F = len(scene.faces)
-        self.k_face_mat = np.ascontiguousarray(self.face_material, np.int64)
+        self.k_face_mat = np.ascontiguousarray(
+            np.concatenate([self.face_material, [sh.material for sh in self.shapes]]), np.int64
+        )
         # per-face geometry as the scene stores it (float32: half the memory the kernel reads at
         # random); albedo and emission per material (a tiny, cached table)
         f = scene.faces
@@ -734,8 +758,8 @@ class _Tracer:
 
         t0 = time.perf_counter()
         self.scene, self.cam, self.cfg, self.stats = scene, cam, cfg, stats
-        self.rtc = RtcScene.of(scene, robust=cfg.robust)
         self.sd = _SceneData.of(scene)
+        self.rtc = RtcScene.of(scene, robust=cfg.robust, skip_shapes=len(self.sd.shapes) > 0)
         sd = self.sd
         sk = stats.skipped
         if sd.general is None:
@@ -820,8 +844,8 @@ class _Tracer:
         H, W = cam.height, cam.width
         probe = np.zeros((H + 1, W + 1), np.int32)  # corners to probe (> 0), painted by boxes
         anywhere = sd.sky is not None
-        if len(sd.emit_faces):
-            uv, z = cam.project(self.scene.vertices[self.scene.faces[sd.emit_faces]])
+        if len(sd.seen_emit_faces):
+            uv, z = cam.project(self.scene.vertices[self.scene.faces[sd.seen_emit_faces]])
             front = (z > 0).all(1)
             anywhere |= bool(((z > 0).any(1) & ~front).any())  # a face crossing the camera plane
             uv = uv[front]
@@ -885,6 +909,7 @@ class _Tracer:
                 int(cfg.texture_filter == "nearest"),
                 int(bool(cfg.shading_normals)),
                 float(sd.diag),
+                sd.shape_table,
             ),
             K.Lights(
                 sd.k_suns,
