@@ -1058,10 +1058,14 @@ class Rasterizer:
             self._set(prog, "u_spot_dir", np.stack([x.direction for x in s]), "v3")
             self._set(prog, "u_spot_I", np.stack([x.intensity for x in s]), "v3")
             cs = [
-                (math.cos(math.radians(x.inner_deg)), math.cos(math.radians(x.outer_deg)))
+                (
+                    math.cos(math.radians(x.inner_deg)),
+                    math.cos(math.radians(x.outer_deg)),
+                    float(x.profile == "linear"),
+                )
                 for x in s
             ]
-            self._set(prog, "u_spot_cos", cs, "v2")
+            self._set(prog, "u_spot_cos", cs, "v3")
         a = sc.lights_of("area")
         if a:
             self._set(prog, "u_area_v", area_polygons(a), "v3")

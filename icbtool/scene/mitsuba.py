@@ -26,7 +26,7 @@ refused). What is read, element by element:
 * ``<bsdf>``: ``diffuse`` and ``twosided`` exactly; every other type by the rule below.
 * ``<texture type="bitmap">``: an sRGB 8-bit image as the diffuse texture (``raw``: linear).
 * ``<emitter>``: ``area`` (in a shape: its faces' emission, promoted to area lights on load),
-  ``point``, ``spot``, ``directional``, ``constant`` (a uniform
+  ``point``, ``spot`` (Mitsuba's falloff), ``directional``, ``constant`` (a uniform
   :class:`~icbtool.scene.types.Sky`), ``envmap`` (``Sky.from_envmap`` with ``scale`` and the
   rotation of ``to_world``). A file whose only emitters are of other types (``sunsky``...) is
   an error unless ``default_light=True`` (:func:`load_mitsuba`).
@@ -1319,10 +1319,12 @@ class _Reader(_Materials):
                 cutoff = float(self.float_(props, "cutoff_angle", 20.0))
                 beam = float(self.float_(props, "beam_width", cutoff * 0.75))
                 inten = self.reflectance(props.get("intensity"), 1.0, emitter=True)[0]
+                # Mitsuba's profile: linear in the angle from beam_width to cutoff_angle (a hard
+                # edge, beam_width = cutoff_angle, within 0.1 % of it)
+                inner = min(beam, cutoff * 0.999)
                 self.lights.append(
-                    SpotLight(m[:3, 3], m[:3, 2], inten, min(beam, cutoff * 0.999), cutoff, name)
+                    SpotLight(m[:3, 3], m[:3, 2], inten, inner, cutoff, name, profile="linear")
                 )
-                log.info("%s: spot falloff is smoothstep in cos (Mitsuba: linear in angle)", name)
             elif kind == "directional":
                 d = props.get("direction")
                 direction = self.vec(d, "direction") if d is not None else m[:3, 2]

@@ -156,8 +156,11 @@ class PointLight:
 
 @dataclass(frozen=True)
 class SpotLight:
-    """A spot light: ``intensity`` (W/sr) on its axis, full inside ``inner_deg``, smoothly
-    (smoothstep in cos) falling to zero at ``outer_deg`` (half-angles from the axis)."""
+    """A spot light: ``intensity`` (W/sr) on its axis, full inside ``inner_deg``, falling to
+    zero at ``outer_deg`` (half-angles from the axis): smoothly (``profile="smoothstep"``,
+    smoothstep in cos, as glTF viewers draw it), or linearly in the angle
+    (``profile="linear"``: Mitsuba 3's spot, ``inner_deg`` its ``beam_width`` and
+    ``outer_deg`` its ``cutoff_angle``)."""
 
     position: np.ndarray
     direction: np.ndarray
@@ -165,6 +168,7 @@ class SpotLight:
     inner_deg: float = 20.0
     outer_deg: float = 30.0
     name: str = "spot"
+    profile: Literal["smoothstep", "linear"] = "smoothstep"
     kind: Literal["spot"] = "spot"
 
     def __post_init__(self) -> None:
@@ -176,12 +180,20 @@ class SpotLight:
                 f"{self.name}: need 0 <= inner_deg < outer_deg <= 90, "
                 f"got {self.inner_deg}, {self.outer_deg}"
             )
+        if self.profile not in SPOT_PROFILES:
+            raise ValueError(
+                f"{self.name}.profile must be one of {list(SPOT_PROFILES)}, got {self.profile!r}"
+            )
 
     def falloff(self, cos_angle: np.ndarray) -> np.ndarray:
         """Angular falloff in [0, 1] for the cosine between the axis and the light-to-point ray."""
+        c = np.asarray(cos_angle, np.float64)
+        if self.profile == "linear":
+            a = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+            return np.clip((self.outer_deg - a) / (self.outer_deg - self.inner_deg), 0.0, 1.0)
         c_in = math.cos(math.radians(self.inner_deg))
         c_out = math.cos(math.radians(self.outer_deg))
-        x = np.clip((np.asarray(cos_angle) - c_out) / (c_in - c_out), 0.0, 1.0)
+        x = np.clip((c - c_out) / (c_in - c_out), 0.0, 1.0)
         return x * x * (3.0 - 2.0 * x)
 
 
@@ -286,6 +298,9 @@ class AreaLight:
             inside &= np.all(st <= 1 + eps, axis=-1)
         return on_plane & inside
 
+
+#: A :class:`SpotLight`'s falloff profiles.
+SPOT_PROFILES = ("smoothstep", "linear")
 
 #: The shapes an :class:`AreaLight` can take.
 AREA_SHAPES = ("parallelogram", "triangle")
@@ -894,8 +909,8 @@ _ENVMAP_FIELDS = ("envmap", "envmap_scale", "world_from_map")
 def _light_key(obj: Any) -> tuple:
     items = []
     for k, v in sorted(vars(obj).items()):
-        if k == "shape" and v == "parallelogram":
-            continue  # the default shape: the light hashes of older scenes stay valid
+        if (k, v) in (("shape", "parallelogram"), ("profile", "smoothstep")):
+            continue  # the defaults: the light hashes of older scenes stay valid
         if k in _ENVMAP_FIELDS and getattr(obj, "envmap", 0) is None:
             continue  # a sky without a map hashes as before maps existed: stores stay valid
         if isinstance(v, np.ndarray) and v.size > 64:  # an envmap: its content's digest

@@ -63,6 +63,7 @@ from icbtool.trace.kernels import (
     _sky_pdf,
     _sky_sample,
     _sobol2,
+    _spot_falloff,
     _stack_words,
     _take_block,
     _tex_coords,
@@ -391,11 +392,7 @@ def _nee(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps, diag, t0, t1, t2, to_dl
         w0, w1, w2, dist = _towards(x[0], x[1], x[2], punct[j, 0], punct[j, 1], punct[j, 2])
         if not dist > 0:
             continue
-        fall = 1.0
-        if punct[j, 11] > 0:
-            ca = -(w0 * punct[j, 6] + w1 * punct[j, 7] + w2 * punct[j, 8])
-            xf = min(max((ca - punct[j, 10]) / (punct[j, 9] - punct[j, 10]), 0.0), 1.0)
-            fall = xf * xf * (3.0 - 2.0 * xf)
+        fall = _spot_falloff(punct, j, w0, w1, w2)
         if not fall > 0:
             continue
         f0, f1, f2, _, so = _light(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps, (w0, w1, w2),

@@ -768,7 +768,8 @@ Surfaces = namedtuple(
     ],
 )  # fmt: skip
 #: Lights: suns (S, 6) direction, irradiance; punct (Q, 12) position, intensity, axis, cos_in,
-#: cos_out, is_spot; emissive triangles: pmf (F,), area (F,), part of an AreaLight (F,),
+#: cos_out, is_spot (see :func:`_spot_falloff`: 2 = Mitsuba's profile, angles in place of the
+#: cosines); emissive triangles: pmf (F,), area (F,), part of an AreaLight (F,),
 #: emissive faces (E,) and their CDF (1, E).
 Lights = namedtuple(
     "Lights", ["suns", "punct", "face_light_pmf", "face_area", "face_is_area", "emit_faces",
@@ -1068,16 +1069,28 @@ def _sun_sample(d0, d1, d2, nf, ns):
 
 
 @nb.njit(inline="always", **_JIT)
+def _spot_falloff(punct, j, wi0, wi1, wi2):
+    """Falloff of point or spot light j of ``punct`` towards the unit wi (from the shading
+    point to the light): 1 for a point light; a spot's profile (column 11: 1 smoothstep in cos
+    between the cosines in columns 9 (inner) and 10 (outer); 2 linear in the angle between the
+    angles in radians in columns 9 and 10, Mitsuba 3's spot)."""
+    if punct[j, 11] == 0:
+        return 1.0
+    ca = -(wi0 * punct[j, 6] + wi1 * punct[j, 7] + wi2 * punct[j, 8])
+    if punct[j, 11] > 1.5:
+        a = math.acos(min(max(ca, -1.0), 1.0))
+        return min(max((punct[j, 10] - a) / (punct[j, 10] - punct[j, 9]), 0.0), 1.0)
+    xf = min(max((ca - punct[j, 10]) / (punct[j, 9] - punct[j, 10]), 0.0), 1.0)
+    return xf * xf * (3.0 - 2.0 * xf)
+
+
+@nb.njit(inline="always", **_JIT)
 def _punctual_sample(punct, j, x, nf, ns, eps):
     """Point or spot light j of ``punct`` (Q, 12) from x: (usable, wi, shadow-ray length,
     intensity towards x (spot falloff applied), geometry cos / r^2)."""
     wi0, wi1, wi2, dist = _towards(x[0], x[1], x[2], punct[j, 0], punct[j, 1], punct[j, 2])
     c = min(ns[0] * wi0 + ns[1] * wi1 + ns[2] * wi2, 1.0)
-    fall = 1.0
-    if punct[j, 11] > 0:
-        ca = -(wi0 * punct[j, 6] + wi1 * punct[j, 7] + wi2 * punct[j, 8])
-        xf = min(max((ca - punct[j, 10]) / (punct[j, 9] - punct[j, 10]), 0.0), 1.0)
-        fall = xf * xf * (3.0 - 2.0 * xf)
+    fall = _spot_falloff(punct, j, wi0, wi1, wi2)
     i0 = punct[j, 3] * fall
     i1 = punct[j, 4] * fall
     i2 = punct[j, 5] * fall

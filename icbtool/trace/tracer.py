@@ -680,7 +680,10 @@ class _SceneData:
         ).reshape(-1, 6)
         rows = []
         for lt in [*self.points, *self.spots]:
-            if lt.kind == "spot":
+            if lt.kind == "spot" and lt.profile == "linear":  # angles (radians), kind 2
+                a_in, a_out = math.radians(lt.inner_deg), math.radians(lt.outer_deg)
+                rows.append([*lt.position, *lt.intensity, *lt.direction, a_in, a_out, 2.0])
+            elif lt.kind == "spot":
                 c_in = math.cos(math.radians(lt.inner_deg))
                 c_out = math.cos(math.radians(lt.outer_deg))
                 rows.append([*lt.position, *lt.intensity, *lt.direction, c_in, c_out, 1.0])

@@ -174,7 +174,7 @@ uniform vec3 u_point_I[N_POINT]; // intensity, W/sr
 uniform vec3 u_spot_pos[N_SPOT];
 uniform vec3 u_spot_dir[N_SPOT];
 uniform vec3 u_spot_I[N_SPOT];
-uniform vec2 u_spot_cos[N_SPOT]; // cos(inner), cos(outer)
+uniform vec3 u_spot_cos[N_SPOT]; // cos(inner), cos(outer), profile (0 smoothstep, 1 linear)
 #endif
 #if N_AREA > 0
 // Polygon i: vertices u_area_v[4 i .. 4 i + 3], counter-clockwise seen from the emitting side;
@@ -254,7 +254,11 @@ float area_irradiance(int i, vec3 p, vec3 ns, vec3 ng, inout bool partial) {
 }
 #endif
 
-float spot_falloff(float c, vec2 cs) {
+float spot_falloff(float c, vec3 cs) {
+    if (cs.z > 0.5) {  // linear in the angle (Mitsuba's spot)
+        float a_in = acos(cs.x), a_out = acos(cs.y);
+        return clamp((a_out - acos(clamp(c, -1.0, 1.0))) / (a_out - a_in), 0.0, 1.0);
+    }
     float x = clamp((c - cs.y) / (cs.x - cs.y), 0.0, 1.0);
     return x * x * (3.0 - 2.0 * x);
 }
