@@ -31,6 +31,7 @@ EXTRAS: dict[str, tuple[str, str]] = {
     "zstandard": ("net", "zstandard"),
     "dask": ("cloud", "dask[distributed]"),
     "distributed": ("cloud", "dask[distributed]"),
+    "tornado": ("cloud", "dask[distributed]"),  # distributed's web server, installed with it
 }
 
 

@@ -126,14 +126,17 @@ def join_security(scheduler: str, how: JoinSecurity) -> Any:
         log.warning("joining %s without TLS (--dask-insecure): no authentication", scheduler)
         return security_mod.Security()
     if how.config is not None:
-        import dask
-        import yaml
-
-        with open(how.config) as f:
-            loaded = yaml.safe_load(f) or {}
-        if not isinstance(loaded, dict):
+        dask = require("dask", "render workers on Dask distributed")
+        if not Path(how.config).is_file():
+            raise ValueError(f"--dask-config {how.config!r}: no such file")
+        try:  # dask's own YAML reader (an empty file is no settings)
+            loaded = list(dask.config.collect_yaml([str(how.config)]))
+        except Exception as e:  # the YAML parser's error, whatever its class
+            raise ValueError(f"--dask-config {how.config!r}: not readable as YAML: {e}") from None
+        settings = loaded[0] if loaded else {}
+        if not isinstance(settings, dict):
             raise ValueError(f"--dask-config {how.config!r}: not a mapping of Dask settings")
-        with dask.config.set(loaded):
+        with dask.config.set(_dotted(settings)):
             sec = security_mod.Security(require_encryption=True)
     else:
         sec = security_mod.Security(
@@ -151,17 +154,28 @@ def join_security(scheduler: str, how: JoinSecurity) -> Any:
     return sec
 
 
+def _dotted(settings: dict, prefix: str = "") -> dict[str, Any]:
+    """Nested Dask settings as dotted keys: ``dask.config.set`` given a nested mapping replaces
+    whole subtrees (the TLS cipher defaults beside a file's CA would be lost)."""
+    out: dict[str, Any] = {}
+    for k, v in settings.items():
+        if isinstance(v, dict):
+            out.update(_dotted(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
 def _quiet(cls: type) -> type:
     """``cls`` with an HTTP server that is made (Dask's code reads its attributes) but never
     listens."""
 
     class Quiet(cls):  # type: ignore[misc, valid-type]
         def start_http_server(self, routes: Any, dashboard_address: Any, *a: Any, **k: Any) -> None:
-            from distributed.http.routing import RoutingApplication
-            from tornado.httpserver import HTTPServer
-
-            self.http_application = RoutingApplication(routes)
-            self.http_server = HTTPServer(self.http_application)
+            routing = require("distributed.http.routing", "render workers on Dask distributed")
+            httpserver = require("tornado.httpserver", "render workers on Dask distributed")
+            self.http_application = routing.RoutingApplication(routes)
+            self.http_server = httpserver.HTTPServer(self.http_application)
             self.http_server.address, self.http_server.port = None, None
 
     Quiet.__name__ = Quiet.__qualname__ = f"Quiet{cls.__name__}"
@@ -170,7 +184,7 @@ def _quiet(cls: type) -> type:
 
 def _nanny(worker: type) -> type:
     """A :class:`distributed.Nanny` whose worker processes are ``worker``."""
-    from distributed import Nanny
+    Nanny = require("distributed", "render workers on Dask distributed").Nanny
 
     class QuietNanny(Nanny):  # type: ignore[misc]
         def __init__(self, *a: Any, **k: Any) -> None:
@@ -182,9 +196,7 @@ def _nanny(worker: type) -> type:
 
 
 def _classes() -> dict[str, type]:
-    from distributed import Worker
-
-    worker = _quiet(Worker)
+    worker = _quiet(require("distributed", "render workers on Dask distributed").Worker)
     return {
         "QuietWorker": worker,
         "QuietNanny": _nanny(worker),
@@ -215,7 +227,7 @@ def local_cluster(
         ``.scheduler_address`` is ``tls://127.0.0.1:PORT``).
     """
     distributed = require("distributed", "render workers on Dask distributed")
-    from distributed.security import Security
+    Security = require("distributed.security", "render workers on Dask distributed").Security
 
     if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
         raise ValueError(f"local_cluster: workers must be an integer >= 1, got {workers!r}")
