@@ -325,3 +325,15 @@ def test_mitsuba_ply_shapes_read_fast_equal_the_general_reader(tmp_path, monkeyp
     for key in ("vertices", "faces", "face_material", "uvs"):
         np.testing.assert_array_equal(fast[key], general[key], err_msg=key)
     np.testing.assert_allclose(fast["normals"], general["normals"], atol=2e-6)
+
+
+def test_rough_tables_are_computed_once_per_parameters():
+    """A scene's rough BSDFs share a few (alpha, eta): the tables are cached, read-only, and
+    equal to a fresh computation."""
+    from icbtool.trace import bsdfs
+
+    a = bsdfs.rough_tables(True, 0.3, 1.5)
+    assert bsdfs.rough_tables(True, 0.3, 1.5) is a
+    fresh = bsdfs.rough_tables.__wrapped__(True, 0.3, 1.5)
+    np.testing.assert_array_equal(a[0], fresh[0])
+    assert a[1] == fresh[1] and not a[0].flags.writeable

@@ -25,6 +25,7 @@ root node, nodes' types, constants, texture ids and children; ``twosided``, ``bl
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import namedtuple
 from dataclasses import dataclass
@@ -964,15 +965,17 @@ def _np_g1(ggx: bool, a: float, v: np.ndarray, m: np.ndarray) -> np.ndarray:
     return np.where((v * m).sum(-1) * v[..., 2] <= 0, 0.0, r)
 
 
+@functools.lru_cache(maxsize=512)  # a scene's rough BSDFs share a few (alpha, eta): 0.5 s each
 def rough_tables(ggx: bool, alpha: float, eta: float, n: int = 96) -> tuple[np.ndarray, float]:
     """roughplastic's precomputed terms (Mitsuba's ``parameters_changed``): the external
     transmittance 1 - (reflected fraction) of a rough interface at
     :data:`ROUGH_TRANSMITTANCE_RES` cosines in [0, 1], and the internal diffuse reflectance
     ``2 * mean(R(1 / eta) * mu)``. Integrated over microfacet normals (Gauss-Legendre in
     (cos theta_m^2 mapped, phi)) rather than Mitsuba's visible-normal quadrature: the same
-    integrals to ~1e-4."""
+    integrals to ~1e-4. Cached by its arguments (the table is read-only)."""
     mu = np.maximum(1e-6, np.linspace(0, 1, ROUGH_TRANSMITTANCE_RES))
     ext = np.clip(_transmitted(ggx, alpha, eta, mu, n), 0, 1)
+    ext.setflags(write=False)
     internal = float(np.mean(_reflected(ggx, alpha, 1 / eta, mu, n) * mu) * 2)
     return ext, internal
 
