@@ -18,7 +18,8 @@ The parts (subpackages, imported on first use: ``import icbtool as icb`` stays c
   ``pipeline``: the whole loop (``icb.pipeline.run_loop``, what ``make demo`` runs).
 - ``gan``: the GAN pre-renderer; ``radiance``: world-space GI models (torch).
 - ``lpm``: the lightweight progressive mesh; ``net``: the networked system (protocol, server,
-  client); ``metrics``, ``imageio``, ``buffers``, ``provenance``, ``configdoc``: shared pieces.
+  client); ``metrics``, ``imageio``, ``buffers``, ``provenance``, ``configdoc``, ``runs`` (the
+  trainers' run directories): shared pieces.
 - ``cli``: the ``icbtool`` command (``icbtool --help``); ``icbtool_gui`` (a package beside this
   one) is the desktop app, ``icbtool gui``.
 
@@ -45,6 +46,7 @@ _SUBMODULES = (
     "system",
     "buffers",
     "provenance",
+    "runs",
     "configdoc",
     "warp",
     "prefetch",
