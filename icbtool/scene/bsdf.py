@@ -333,6 +333,18 @@ def _check_alpha(a: object, what: str) -> None:
         raise ValueError(f"{what} must be >= 0, got {a!r}")
 
 
+def _check_interface(bsdf: object, spectra: tuple[str, ...]) -> None:
+    """Resolve and check a dielectric interface's ``int_ior``/``ext_ior`` (names or numbers,
+    which must differ) and its ``spectra`` fields, in place on the frozen ``bsdf``."""
+    kind = type(bsdf).__name__.lower()
+    for k in ("int_ior", "ext_ior"):
+        object.__setattr__(bsdf, k, ior_value(getattr(bsdf, k), f"{kind} {k}"))
+    if bsdf.int_ior == bsdf.ext_ior:  # type: ignore[attr-defined]
+        raise ValueError(f"{kind}: int_ior and ext_ior must differ")
+    for k in spectra:
+        object.__setattr__(bsdf, k, _spectrum(getattr(bsdf, k), f"{kind} {k}"))
+
+
 @dataclass(frozen=True, eq=False)
 class Diffuse:
     """Mitsuba's ``diffuse``: one-sided Lambertian ``reflectance`` (default 0.5)."""
@@ -352,13 +364,7 @@ class _Coated:
     nonlinear: bool = False
 
     def __post_init__(self) -> None:
-        kind = type(self).__name__.lower()
-        object.__setattr__(self, "int_ior", ior_value(self.int_ior, f"{kind} int_ior"))
-        object.__setattr__(self, "ext_ior", ior_value(self.ext_ior, f"{kind} ext_ior"))
-        if self.int_ior == self.ext_ior:
-            raise ValueError(f"{kind}: int_ior and ext_ior must differ")
-        for k in ("diffuse_reflectance", "specular_reflectance"):
-            object.__setattr__(self, k, _spectrum(getattr(self, k), f"{kind} {k}"))
+        _check_interface(self, ("diffuse_reflectance", "specular_reflectance"))
 
     @property
     def eta(self) -> float:
@@ -444,13 +450,7 @@ class Dielectric:
     specular_transmittance: Spectrum = 1.0
 
     def __post_init__(self) -> None:
-        kind = type(self).__name__.lower()
-        object.__setattr__(self, "int_ior", ior_value(self.int_ior, f"{kind} int_ior"))
-        object.__setattr__(self, "ext_ior", ior_value(self.ext_ior, f"{kind} ext_ior"))
-        if self.int_ior == self.ext_ior:
-            raise ValueError(f"{kind}: int_ior and ext_ior must differ")
-        for k in ("specular_reflectance", "specular_transmittance"):
-            object.__setattr__(self, k, _spectrum(getattr(self, k), f"{kind} {k}"))
+        _check_interface(self, ("specular_reflectance", "specular_transmittance"))
 
     @property
     def eta(self) -> float:
