@@ -501,6 +501,11 @@ class _Values:
                 self.ids[node.attrs["id"]] = node
             self.collect_ids(node.children)
 
+    def nested_bsdfs(self, node: _Node) -> list[_Node]:
+        """The BSDFs inside ``node`` (a blend's, a twosided's...), references resolved."""
+        found = [self.deref(c) for c in node.children if c.tag in ("bsdf", "ref")]
+        return [c for c in found if c.tag == "bsdf"]
+
     def deref(self, node: _Node) -> _Node:
         if node.tag != "ref":
             return node
@@ -832,8 +837,7 @@ class _Materials(_Values):
     def _bsdf_body(self, node: _Node, props: _Props, notes: list[str]) -> _Bsdf:
         kind = node.attrs.get("type", "")
         name = node.attrs.get("id") or f"{kind}@{node.line}"
-        nested = [self.deref(c) for c in node.children if c.tag in ("bsdf", "ref")]
-        nested = [c for c in nested if c.tag == "bsdf"]
+        nested = self.nested_bsdfs(node)
 
         def ior(key: str, default: float) -> float:
             n = props.get(key)
@@ -931,8 +935,7 @@ class _Materials(_Values):
 
         kind = node.attrs.get("type", "")
         props = self.props(node)
-        nested = [self.deref(c) for c in node.children if c.tag in ("bsdf", "ref")]
-        nested = [c for c in nested if c.tag == "bsdf"]
+        nested = self.nested_bsdfs(node)
 
         def spec(key: str, default: Any) -> Any:
             n = props.get(key)
