@@ -307,22 +307,25 @@ def add_out_argument(
         p.add_argument("--out", default=default, metavar="DIR", help=text)
 
 
-def scene_time(text: str) -> float:
-    """argparse type of ``--time``: a finite number of seconds."""
+def finite_float(text: str) -> float:
+    """argparse type: a finite number (NaN and infinities are refused)."""
     try:
-        t = float(text)
+        v = float(text)
     except ValueError:
-        t = math.nan
-    if not math.isfinite(t):
-        raise argparse.ArgumentTypeError(f"must be a finite number of seconds, got {text!r}")
-    return t
+        v = math.nan
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return v
+
+
+finite_float.__name__ = "float"
 
 
 def add_time_argument(p: argparse.ArgumentParser) -> None:
     """``--time T``: the scene time of an animated scene (keyframed lights and meshes)."""
     p.add_argument(
         "--time",
-        type=scene_time,
+        type=finite_float,
         default=0.0,
         metavar="T",
         help="scene time in seconds for an animated scene (keyframes; see "

@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import sys
 import types
 import typing
@@ -26,7 +25,14 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Literal, get_args, get_origin
 
-from icbtool.cli._common import UsageError, float_in, int_at_least, positive_float, positive_int
+from icbtool.cli._common import (
+    UsageError,
+    finite_float,
+    float_in,
+    int_at_least,
+    positive_float,
+    positive_int,
+)
 from icbtool.configdoc import field_docs
 
 
@@ -90,17 +96,7 @@ def _integer(text: str) -> int:
 _integer.__name__ = "int"
 
 
-def _number(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = math.nan
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
-    return v
-
-
-_number.__name__ = "float"
+_number = finite_float
 
 
 def _json(text: str) -> Any:
