@@ -175,21 +175,29 @@ def _ports(cluster, watcher) -> list[str]:
 
 
 def test_a_process_without_the_clusters_key_cannot_connect(cluster, watcher):
+    from distributed.comm import connect
     from distributed.security import Security
 
     _wait_workers(watcher, 2)
     addrs = _ports(cluster, watcher)
     assert len(addrs) == 5 and all(a.startswith("tls://127.0.0.1:") for a in addrs)
     stranger = Security.temporary()  # a valid certificate, of another cluster
+
+    async def attempt(address, **connection_args):
+        # what a Client does first; the outer bound holds even where a handshake never answers
+        comm = await asyncio.wait_for(connect(address, timeout=5, **connection_args), 30)
+        await comm.close()
+
     for addr in addrs:
-        for attempt in (
-            {"address": addr},  # a plain Client, as any local process could write
-            {"address": addr.replace("tls://", "tcp://")},
-            {"address": addr, "security": stranger},
+        asyncio.run(attempt(addr, **cluster.security.get_connection_args("client")))  # the key opens
+        for address, args in (
+            (addr, {}),  # a plain connection, as any local process could open
+            (addr.replace("tls://", "tcp://"), {}),
+            (addr, stranger.get_connection_args("client")),
         ):
+            # TimeoutError is an OSError: a connection still unanswered is not a connection
             with pytest.raises((OSError, TypeError, AssertionError)):
-                c = distributed.Client(**attempt, timeout=5, set_as_default=False)
-                c.close()  # not reached: connecting failed
+                asyncio.run(attempt(address, **args))
 
 
 def test_the_cluster_listens_on_its_dask_ports_only_no_http(cluster, watcher):
