@@ -25,7 +25,7 @@ DEB_PEER := libllvm19
 # Lint only the folders that exist.
 LINT_DIRS := $(wildcard icbtool tests benchmarks icbtool_gui)
 
-.PHONY: gui demo test test-all lint format bench sysdeps install clean wheel-smoke pytest web
+.PHONY: gui demo test test-all lint format bench sysdeps install clean wheel-smoke pytest web kernels
 
 sysdeps:
 	@dpkg -s $(DEB_PKGS) >/dev/null 2>&1 || { \
@@ -55,7 +55,12 @@ icbtool/web/bundle/app.js: node_modules/.package-lock.json $(WEB_SRC)
 # the browser client's bundle (shipped inside the Python package: setup.cfg package_data)
 web: icbtool/web/bundle/app.js
 
-install: sysdeps .venv/.installed web
+# the tracer's numba kernels compiled into their on-disk cache, both at once (minutes on a fresh
+# checkout, seconds when cached): the first trace, a user's or a test's, only loads them
+kernels: .venv/.installed
+	$(PY) -m icbtool.trace.warm
+
+install: sysdeps .venv/.installed web kernels
 
 # The in-process loop, then the same across processes (server subprocess + client on loopback).
 demo: install

@@ -189,7 +189,8 @@ def test_a_process_without_the_clusters_key_cannot_connect(cluster, watcher):
         await comm.close()
 
     for addr in addrs:
-        asyncio.run(attempt(addr, **cluster.security.get_connection_args("client")))  # the key opens
+        # the cluster's own key opens each port: the attempts below fail for their key alone
+        asyncio.run(attempt(addr, **cluster.security.get_connection_args("client")))
         for address, args in (
             (addr, {}),  # a plain connection, as any local process could open
             (addr.replace("tls://", "tcp://"), {}),

@@ -1028,8 +1028,8 @@ class _Tracer:
 def _note_first_use(kernel: Any) -> None:
     """Say (once, as a warning) that the tracer's kernels are being compiled when ``kernel`` (a
     numba dispatcher) has nothing compiled in this process and nothing valid in numba's disk
-    cache: the first render after an install or an update of the kernels then takes about a
-    minute (docs/benchmarks.md gives the measured time), which would otherwise look like a hang."""
+    cache: the first render after an install or an update of the kernels then takes minutes
+    (docs/benchmarks.md gives the measured time), which would otherwise look like a hang."""
     if kernel.signatures:
         return  # compiled or loaded in this process already
     try:  # numba's cache index for the kernel: empty when missing or made for other source
@@ -1038,8 +1038,9 @@ def _note_first_use(kernel: Any) -> None:
         return
     if not cached:
         log.warning(
-            "compiling the path tracer's kernels (numba): about a minute on 2 cores, once per "
-            "install or update of icbtool; later runs load them from numba's cache"
+            "compiling the path tracer's kernels (numba): a few minutes on 2 cores, once per "
+            "install or update of icbtool (`python -m icbtool.trace.warm` compiles both kernels "
+            "at once); later runs load them from numba's cache"
         )
 
 
