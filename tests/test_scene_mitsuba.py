@@ -1246,3 +1246,22 @@ def test_diffuse_twin_renders_what_icbtool_renders(tmp_path):
     assert 'type="box"' in twin.read_text()
     frag = (twin.parent / "fragments" / "bsdfs.xml").read_text()
     assert 'type="plastic"' in frag and 'type="bumpmap"' not in frag
+
+
+def test_shapes_without_a_bsdf_share_one_default_material_whatever_came_before(tmp_path):
+    # Mitsuba gives each such shape its default diffuse BSDF (0.5): one material for all of
+    # them, however many shapes and whatever the process loaded before (materials are keyed by
+    # the BSDF object, which must be one object, not a temporary whose id may be reused)
+    shapes = "".join(
+        f'<shape type="rectangle"><transform name="to_world"><translate x="{3 * i}"/>'
+        "</transform></shape>"
+        for i in range(4)
+    )
+    (tmp_path / "s.xml").write_text(f'<scene version="3.0.0">{shapes}</scene>')
+    for _ in range(3):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            s = load(tmp_path / "s.xml")
+        assert [m.name for m in s.materials] == ["default"]
+        np.testing.assert_allclose(s.materials[0].albedo, 0.5)
+        assert np.all(s.face_material == 0)

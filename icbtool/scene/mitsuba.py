@@ -401,6 +401,9 @@ class _Values:
         self.geo_cache: dict[int, tuple | None] = {}  # id(shape node) -> its geometry
         self.version = (3, 0, 0)
         self.progress = False  # a tqdm bar over the shapes while they load
+        # every shape without a BSDF shares this one (Mitsuba's default: diffuse 0.5), so they
+        # share one material: materials are keyed by the BSDF object's identity
+        self.default_bsdf = _Bsdf("default", np.full(3, 0.5))
 
     # ---------------------------------------------------------------- helpers
     def skip(self, node: _Node, why: str) -> None:
@@ -795,7 +798,7 @@ class _Materials(_Values):
     def bsdf(self, node: _Node | None) -> _Bsdf:
         """The rendered form of a BSDF element (one warning per approximated material)."""
         if node is None:
-            return _Bsdf("default", np.full(3, 0.5))
+            return self.default_bsdf
         key = id(node)
         if key not in self.bsdfs:
             notes: list[str] = []
