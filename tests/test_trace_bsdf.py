@@ -215,6 +215,14 @@ def _blur(img, sigma=1.5):
 
 def peer_compare(tmp_path, name, size=48, spp=64):
     """(bias (3,), blurred relative RMSE, Mitsuba's own seed-to-seed blurred relative RMSE)."""
+    xml = tmp_path / f"{name}.xml"
+    xml.write_text(_PEER_XML.format(size=size, bsdf=PEER_BSDFS[name]))
+    return peer_compare_file(xml, spp)
+
+
+def peer_compare_file(xml, spp=64, max_depth=16):
+    """:func:`peer_compare` of any scene file: icbtool against Mitsuba 3 (``scalar_rgb``, seeds 1
+    and 2) at equal spp and depth."""
     mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is the tracer's peer (make install)")
     import warnings
 
@@ -222,13 +230,11 @@ def peer_compare(tmp_path, name, size=48, spp=64):
     from icbtool.trace.tracer import TraceConfig, render
 
     mi.set_variant("scalar_rgb")
-    xml = tmp_path / f"{name}.xml"
-    xml.write_text(_PEER_XML.format(size=size, bsdf=PEER_BSDFS[name]))
     ref = [np.array(mi.render(mi.load_file(str(xml)), spp=spp, seed=s))[..., :3] for s in (1, 2)]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         scene = load(xml)
-    r = render(scene, scene.default_camera, TraceConfig(spp=spp, max_depth=16, seed=3))
+    r = render(scene, scene.default_camera, TraceConfig(spp=spp, max_depth=max_depth, seed=3))
     ours = r.gi + r.direct
     mean_ref = ref[0].reshape(-1, 3).mean(0)
     bias = ours.reshape(-1, 3).mean(0) / mean_ref - 1

@@ -9,12 +9,14 @@ it; the material's ``albedo``/``texture`` then only stand in for it where no BSD
 
 Names, parameters and defaults are Mitsuba 3's (``diffuse``, ``plastic``, ``roughplastic``,
 ``conductor``, ``roughconductor``, ``dielectric``, ``thindielectric``, ``roughdielectric``,
-``twosided``, ``blendbsdf``, ``mask``), and so are its conventions: every BSDF but
-``twosided``, the dielectrics and ``mask`` is one-sided (black seen from behind); IORs are
-numbers or names of :data:`NAMED_IOR`; a conductor's ``material`` names a row of
-:data:`CONDUCTOR_ETA_K` (the RGB eta and k Mitsuba's RGB variants use). A reflectance, ``alpha``,
-a blend ``weight`` or a mask ``opacity`` may be a :class:`Bitmap` or :class:`Checkerboard`
-texture instead of a constant.
+``twosided``, ``blendbsdf``, ``mask``, ``normalmap``, ``bumpmap``), and so are its conventions:
+every BSDF but ``twosided``, the dielectrics and ``mask`` is one-sided (black seen from behind);
+IORs are numbers or names of :data:`NAMED_IOR`; a conductor's ``material`` names a row of
+:data:`CONDUCTOR_ETA_K` (the RGB eta and k Mitsuba's RGB variants use). A reflectance,
+``alpha``, a blend ``weight`` or a mask ``opacity`` may be a :class:`Bitmap` or
+:class:`Checkerboard` texture instead of a constant. ``normalmap`` and ``bumpmap`` evaluate
+their nested BSDF in a shading frame tilted by a texture (the uv parametrisation's dp/du,
+dp/dv), as Mitsuba 3.9 does.
 """
 
 from __future__ import annotations
@@ -521,21 +523,91 @@ class Mask:
             raise ValueError(f"mask: nested BSDF must be a BSDF, got {type(self.bsdf).__name__}")
 
 
+@dataclass(frozen=True, eq=False)
+class NormalMap:
+    """Mitsuba's ``normalmap``: ``bsdf`` evaluated in the shading frame tilted to the normal
+    the ``normalmap`` texture encodes, ``2 * rgb - 1`` relative to the unperturbed shading frame
+    (x along dp/du, z the shading normal): (0.5, 0.5, 1) leaves the surface as it is.
+
+    Attributes:
+        normalmap: the encoded normals, a texture (read as stored: Mitsuba asks for ``raw``
+            bitmaps, with no sRGB decoding) or a constant colour.
+        bsdf: the nested BSDF.
+        flip_invalid_normals: mirror the perturbed normal's tangent part where the incident
+            direction lies below it (Mitsuba's default, Schuessler et al. 2017).
+        use_shadowing_function: scale the result by the microfacet shadowing term of Estevez
+            et al. 2019, which softens the bump terminator (Mitsuba's default).
+    """
+
+    normalmap: Spectrum
+    bsdf: BSDF
+    flip_invalid_normals: bool = True
+    use_shadowing_function: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "normalmap", _spectrum(self.normalmap, "normalmap normalmap"))
+        _check_mapped(self.bsdf, "normalmap")
+
+
+@dataclass(frozen=True, eq=False)
+class BumpMap:
+    """Mitsuba's ``bumpmap``: ``bsdf`` evaluated in the shading frame of the surface displaced
+    along its shading normal by ``scale`` times ``texture`` (a height field over uv).
+
+    The perturbed normal is ``dp_du' x dp_dv'`` with ``dp_du' = dp_du + n (scale * dh/du -
+    n . dp_du)`` (and the same for v), ``dh/du`` the derivative of the texture's bilinear
+    interpolant (of its luminance), as Mitsuba's ``eval_1_grad``; a ``nearest`` bitmap has no
+    gradient.
+
+    Attributes:
+        texture: the height field, a bitmap.
+        bsdf: the nested BSDF.
+        scale: height scale (Mitsuba's default 1).
+        flip_invalid_normals, use_shadowing_function: as :class:`NormalMap`.
+    """
+
+    texture: Bitmap
+    bsdf: BSDF
+    scale: float = 1.0
+    flip_invalid_normals: bool = True
+    use_shadowing_function: bool = True
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.texture, Bitmap):
+            raise ValueError(
+                f"bumpmap texture must be a bitmap (Mitsuba has no gradient of other "
+                f"textures), got {type(self.texture).__name__}"
+            )
+        s = float(self.scale)
+        if not math.isfinite(s):
+            raise ValueError(f"bumpmap scale must be finite, got {self.scale!r}")
+        object.__setattr__(self, "scale", s)
+        _check_mapped(self.bsdf, "bumpmap")
+
+
+def _check_mapped(b: object, kind: str) -> None:
+    if not isinstance(b, BSDF_TYPES):
+        raise ValueError(f"{kind}: nested BSDF must be a BSDF, got {type(b).__name__}")
+
+
 BSDF = (
     Diffuse | Plastic | RoughPlastic | Conductor | RoughConductor | Dielectric | ThinDielectric
-    | RoughDielectric | TwoSided | BlendBSDF | Mask
+    | RoughDielectric | TwoSided | BlendBSDF | Mask | NormalMap | BumpMap
 )  # fmt: skip
 BSDF_TYPES = (
     Diffuse, Plastic, RoughPlastic, Conductor, RoughConductor, Dielectric, ThinDielectric,
-    RoughDielectric, TwoSided, BlendBSDF, Mask,
+    RoughDielectric, TwoSided, BlendBSDF, Mask, NormalMap, BumpMap,
 )  # fmt: skip
+#: BSDFs that tilt the shading frame of the one they nest.
+MAPPED_TYPES = (NormalMap, BumpMap)
 
 #: Mitsuba plugin name of each BSDF class.
 PLUGIN_NAMES: dict[type, str] = {
     Diffuse: "diffuse", Plastic: "plastic", RoughPlastic: "roughplastic",
     Conductor: "conductor", RoughConductor: "roughconductor", Dielectric: "dielectric",
     ThinDielectric: "thindielectric", RoughDielectric: "roughdielectric",
-    TwoSided: "twosided", BlendBSDF: "blendbsdf", Mask: "mask",
+    TwoSided: "twosided", BlendBSDF: "blendbsdf", Mask: "mask", NormalMap: "normalmap",
+    BumpMap: "bumpmap",
 }  # fmt: skip
 
 
@@ -586,7 +658,7 @@ def approximate_albedo(b: BSDF) -> RGB:
         w = b.weight if isinstance(b.weight, float) else float(np.mean(b.weight.mean))
         a0, a1 = approximate_albedo(b.bsdf0), approximate_albedo(b.bsdf1)
         return tuple((1 - w) * x + w * y for x, y in zip(a0, a1))  # type: ignore[return-value]
-    if isinstance(b, Mask):
+    if isinstance(b, Mask | NormalMap | BumpMap):
         return approximate_albedo(b.bsdf)
     raise TypeError(f"not a BSDF: {type(b).__name__}")
 
@@ -606,8 +678,9 @@ def fingerprint(b: object) -> bytes:
 
 
 __all__ = [
-    "BSDF", "BSDF_TYPES", "CONDUCTOR_ETA_K", "NAMED_IOR", "PLUGIN_NAMES", "BlendBSDF", "Bitmap",
-    "Checkerboard", "Conductor", "Dielectric", "Diffuse", "Mask", "Plastic", "RoughConductor",
+    "BSDF", "BSDF_TYPES", "CONDUCTOR_ETA_K", "MAPPED_TYPES", "NAMED_IOR", "PLUGIN_NAMES",
+    "BlendBSDF", "Bitmap", "BumpMap", "Checkerboard", "Conductor", "Dielectric", "Diffuse",
+    "Mask", "NormalMap", "Plastic", "RoughConductor",
     "RoughDielectric", "RoughPlastic", "Spectrum", "Texture", "ThinDielectric", "TwoSided",
     "approximate_albedo", "fingerprint", "fresnel_dielectric", "ior_value", "mean_of",
     "plugin_name",

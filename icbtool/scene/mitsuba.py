@@ -58,7 +58,8 @@ never >= 1) applied to what the material reflects or transmits at normal inciden
 * ``dielectric``/``thindielectric``/``roughdielectric``: ``F * specular_reflectance +
   (1 - F) * specular_transmittance``;
 * ``principled``: ``base_color``; ``blendbsdf``: the ``weight`` blend of its two BSDFs;
-* ``mask`` (opacity dropped), ``bumpmap``/``normalmap`` (map dropped): their nested BSDF;
+* ``mask`` (opacity dropped), ``bumpmap``/``normalmap`` (map dropped; traced exactly when their
+  nested BSDF is): their nested BSDF;
 * ``null``: black (Mitsuba's is invisible); an unknown type: 0.5 grey.
 
 Conventions: Mitsuba's world coordinates are kept as they are (no up-axis change; ``Scene.up`` is
@@ -1033,7 +1034,38 @@ class _Materials(_Values):
             if len(nested) != 1:
                 raise _Unsupported
             return sb.Mask(self._decl(nested[0]), scalar("opacity", 0.5))
+        if kind in ("normalmap", "bumpmap"):
+            return self._decl_map(node, props, nested)
         raise _Unsupported
+
+    def _decl_map(self, node: _Node, props: _Props, nested: list[_Node]) -> Any:
+        """A ``normalmap`` (its texture named ``normalmap``) or ``bumpmap`` (its one texture,
+        any name) over its one nested BSDF, as Mitsuba 3 declares them."""
+        from icbtool.scene import bsdf as sb
+
+        kind = node.attrs.get("type", "")
+        if len(nested) != 1:
+            raise SceneError(f"{node.where}: {kind} needs one nested BSDF, got {len(nested)}")
+        keys = ("flip_invalid_normals", "use_shadowing_function")
+        flags = {k: self.bool_(props, k, True) for k in keys}
+        inner = self._decl(nested[0])
+        if kind == "normalmap":
+            n = props.get("normalmap")
+            if n is None:
+                raise SceneError(f"{node.where}: normalmap needs a texture named 'normalmap'")
+            m = self._decl_texture(n) if n.tag == "texture" else tuple(self.colour(n))
+            return sb.NormalMap(m, inner, **flags)
+        found = [self.deref(c) for c in node.children if c.tag in ("texture", "ref")]
+        tex = [c for c in found if c.tag == "texture"]
+        if len(tex) != 1:
+            raise SceneError(f"{node.where}: bumpmap needs one texture, got {len(tex)}")
+        t = self._decl_texture(tex[0])
+        if not isinstance(t, sb.Bitmap):
+            raise SceneError(
+                f"{tex[0].where}: a bumpmap's texture must be a bitmap (Mitsuba has no gradient "
+                f"of a {tex[0].attrs.get('type')!r} texture)"
+            )
+        return sb.BumpMap(t, inner, float(self.float_(props, "scale", 1.0)), **flags)
 
     def _decl_texture(self, node: _Node) -> Any:
         """A ``bitmap`` or ``checkerboard`` texture as :mod:`icbtool.scene.bsdf` declares it."""

@@ -18,9 +18,14 @@ the visible-normal distribution for GGX (Heitz 2018) and from D(m) cos(m) for Be
 different (valid) importance sampling than Mitsuba's Beckmann VNDF (noisier at grazing angles
 and for sharp anisotropic lobes), so images agree in expectation, not sample for sample.
 
+``normalmap`` and ``bumpmap`` nodes (at a material's root or as a ``twosided`` side) tilt the
+local frame as Mitsuba 3.9 does (:func:`map_frame`, Estevez et al.'s shadowing term); the
+kernel hands :func:`bsdf_eval` and :func:`bsdf_sample` the vertex's dp/du, dp/dv and geometric
+normal in the local frame for them.
+
 The scene's BSDFs are one node table (:class:`BsdfTable`, built by :func:`pack`): a material's
-root node, nodes' types, constants, texture ids and children; ``twosided``, ``blendbsdf`` and
-``mask`` nest leaves (``mask`` is resolved by the kernel: a stochastic pass-through).
+root node, nodes' types, constants, texture ids and children; ``twosided``, ``blendbsdf``,
+``mask`` and the maps nest leaves (``mask`` is resolved by the kernel: a stochastic pass-through).
 """
 
 from __future__ import annotations
@@ -53,6 +58,8 @@ ROUGHDIELECTRIC = 8
 TWOSIDED = 9
 BLEND = 10
 MASK = 11
+NORMALMAP = 12
+BUMPMAP = 13
 
 TEX_BITMAP = 0
 TEX_CHECKER = 1
@@ -143,6 +150,49 @@ def value1(B, node, slot, uu, vv, nearest):
         return B.nv[node, slot, 0]
     r, g, b = value(B, node, slot, uu, vv, nearest)
     return 0.212671 * r + 0.715160 * g + 0.072169 * b
+
+
+@nb.njit(inline="always", **_JIT)
+def _lum(texels, p):
+    return (
+        0.212671 * np.float64(texels[p])
+        + 0.715160 * np.float64(texels[p + 1])
+        + 0.072169 * np.float64(texels[p + 2])
+    )
+
+
+@nb.njit(**_JIT)
+def tex_grad1(tk, tf, ti, texels, t, uu, vv):
+    """Mitsuba's ``eval_1_grad`` of bitmap ``t`` at the scene uv (uu, vv): the gradient
+    (d/du, d/dv) of its bilinear interpolant's luminance in Mitsuba's uv (v = 1 - vv), through
+    ``to_uv`` (as Mitsuba: the transform's transpose, then the resolution); (0, 0) for a
+    nearest-filtered bitmap or a checkerboard."""
+    if tk[t] != TEX_BITMAP or ti[t, 3] == 1:
+        return 0.0, 0.0
+    um = uu
+    vm = 1.0 - vv
+    u = tf[t, 0] * um + tf[t, 1] * vm + tf[t, 2]
+    v = tf[t, 3] * um + tf[t, 4] * vm + tf[t, 5]
+    off = ti[t, 0]
+    th = ti[t, 1]
+    tw = ti[t, 2]
+    xx = u * tw - 0.5
+    yy = v * th - 0.5
+    fx0 = math.floor(xx)
+    fy0 = math.floor(yy)
+    w1x = xx - fx0
+    w1y = yy - fy0
+    xa = np.int64(fx0) % tw
+    ya = np.int64(fy0) % th
+    xb = xa + 1 if xa + 1 < tw else 0
+    yb = ya + 1 if ya + 1 < th else 0
+    f00 = _lum(texels, off + (ya * tw + xa) * 3)
+    f10 = _lum(texels, off + (ya * tw + xb) * 3)
+    f01 = _lum(texels, off + (yb * tw + xa) * 3)
+    f11 = _lum(texels, off + (yb * tw + xb) * 3)
+    dfx = (1.0 - w1y) * (f10 - f00) + w1y * (f11 - f01)
+    dfy = (1.0 - w1x) * (f01 - f00) + w1x * (f11 - f10)
+    return tw * (tf[t, 0] * dfx + tf[t, 3] * dfy), th * (tf[t, 1] * dfx + tf[t, 4] * dfy)
 
 
 # ---------------------------------------------------------------------------------- fresnel
@@ -626,13 +676,8 @@ def node_sample(B, node, uu, vv, nearest, wi, u0, u1, u2):
 
 
 @nb.njit(**_JIT)
-def bsdf_eval(B, root, uu, vv, nearest, wi, wo):
-    """Value times |cos(wo)| and density of a material's root node (twosided, blend of two
-    nodes, or a leaf): (f0, f1, f2, pdf)."""
-    node, flip = _side(B, root, wi[2])
-    if flip:
-        wi = (wi[0], wi[1], -wi[2])
-        wo = (wo[0], wo[1], -wo[2])
+def _blend_eval(B, node, uu, vv, nearest, wi, wo):
+    """A blend of two nodes or a (twosided) leaf: (f0, f1, f2, pdf)."""
     if B.nt[node] == BLEND:
         w = min(max(value1(B, node, 0, uu, vv, nearest), 0.0), 1.0)
         a = node_eval(B, B.ni[node, 0], uu, vv, nearest, wi, wo)
@@ -647,40 +692,242 @@ def bsdf_eval(B, root, uu, vv, nearest, wi, wo):
 
 
 @nb.njit(**_JIT)
-def bsdf_sample(B, root, uu, vv, nearest, wi, u0, u1, u2):
-    """Sample a material's root node: (ok, wo, weight rgb, pdf, delta). A blend picks a node by
-    its weight and weights the direction by the mixture (Mitsuba's ``blendbsdf::sample``)."""
-    node, flip = _side(B, root, wi[2])
+def _blend_sample(B, node, uu, vv, nearest, wi, u0, u1, u2):
+    """Sample a blend of two nodes or a (twosided) leaf: a blend picks a node by its weight and
+    weights the direction by the mixture (Mitsuba's ``blendbsdf::sample``)."""
+    if B.nt[node] != BLEND:
+        return node_sample(B, node, uu, vv, nearest, wi, u0, u1, u2)
+    w = min(max(value1(B, node, 0, uu, vv, nearest), 0.0), 1.0)
+    pick1 = u0 <= w
+    if pick1:
+        u0 = u0 / w
+        c, o = B.ni[node, 1], B.ni[node, 0]
+        wc = w
+    else:
+        u0 = (u0 - w) / (1.0 - w)
+        c, o = B.ni[node, 0], B.ni[node, 1]
+        wc = 1.0 - w
+    ok, wo, r, pdf, delta = node_sample(B, c, uu, vv, nearest, wi, u0, u1, u2)
+    if ok and not delta:
+        e = node_eval(B, o, uu, vv, nearest, wi, wo)
+        pw = (1.0 - wc) * e[3] + wc * pdf
+        if pw > 0:
+            r = (
+                ((1.0 - wc) * e[0] + wc * r[0] * pdf) / pw,
+                ((1.0 - wc) * e[1] + wc * r[1] * pdf) / pw,
+                ((1.0 - wc) * e[2] + wc * r[2] * pdf) / pw,
+            )
+            pdf = pw
+        else:
+            ok = False
+    return ok, wo, r, pdf, delta
+
+
+# ---------------------------------------------------------------------------------- maps
+#: The local geometry of a vertex without a normal or bump map (see :func:`map_frame`).
+NO_GEO = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
+_IDENTITY = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+
+@nb.njit(inline="always", **_JIT)
+def is_map(B, node):
+    """Whether ``node`` is a ``normalmap`` or ``bumpmap``."""
+    return B.nt[node] == NORMALMAP or B.nt[node] == BUMPMAP
+
+
+@nb.njit(**_JIT)
+def has_map(B, root):
+    """Whether a (mask-resolved) root node tilts its frame: a map at the root or as a
+    ``twosided`` side (:func:`map_frame` needs the vertex's local geometry then)."""
+    if is_map(B, root):
+        return True
+    if B.nt[root] == TWOSIDED:
+        return is_map(B, B.ni[root, 0]) or is_map(B, B.ni[root, 1])
+    return False
+
+
+@nb.njit(**_JIT)
+def leaf_of(B, root):
+    """The front leaf (or blend) of a (mask-resolved) root node: through maps and twosided."""
+    node = root
+    if is_map(B, node):
+        node = B.ni[node, 0]
+    if B.nt[node] == TWOSIDED:
+        node = B.ni[node, 0]
+    if is_map(B, node):
+        node = B.ni[node, 0]
+    return node
+
+
+@nb.njit(inline="always", **_JIT)
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@nb.njit(inline="always", **_JIT)
+def _to_frame(fr, v):
+    return _dot(fr[0], v), _dot(fr[1], v), _dot(fr[2], v)
+
+
+@nb.njit(inline="always", **_JIT)
+def _from_frame(fr, v):
+    s, t, n = fr
+    return (
+        s[0] * v[0] + t[0] * v[1] + n[0] * v[2],
+        s[1] * v[0] + t[1] * v[1] + n[1] * v[2],
+        s[2] * v[0] + t[2] * v[1] + n[2] * v[2],
+    )
+
+
+@nb.njit(**_JIT)
+def map_frame(B, node, uu, vv, nearest, geo, wi):
+    """The shading frame a ``normalmap``/``bumpmap`` node tilts to, in the local (unperturbed)
+    shading frame, for the incident direction wi: (ok, (s, t, n)) as Mitsuba 3.9's ``frame()``.
+
+    ``geo`` is the vertex's geometry in the local frame: (dp/du, dp/dv, geometric normal) and
+    dp/du in world space (Mitsuba builds a bump map's tangent by projecting the world-space
+    dp/du against the local normal; only an anisotropic nested BSDF sees that choice). A normal
+    map's normal is ``2 * rgb - 1``; a bump map's is ``dp_du' x dp_dv'`` with the height
+    gradient as their normal components, turned to the geometric normal's side. With
+    ``flip_invalid_normals`` a normal that wi lies below has its tangent part mirrored.
+    """
+    if B.nt[node] == NORMALMAP:
+        c = value(B, node, 0, uu, vv, nearest)
+        nx = 2.0 * c[0] - 1.0
+        ny = 2.0 * c[1] - 1.0
+        nz = 2.0 * c[2] - 1.0
+    else:
+        t = B.ntex[node, 0]
+        gu, gv = tex_grad1(B.tk, B.tf, B.ti, B.texels, t, uu, vv)
+        k = B.nf[node, 0]
+        du, dv, ng, _ = geo
+        ax, ay, az = du[0], du[1], k * gu
+        bx, by, bz = dv[0], dv[1], k * gv
+        nx = ay * bz - az * by
+        ny = az * bx - ax * bz
+        nz = ax * by - ay * bx
+        if ng[0] * nx + ng[1] * ny + ng[2] * nz < 0:
+            nx, ny, nz = -nx, -ny, -nz
+    ln = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if not ln > 0:
+        return False, _IDENTITY
+    nx /= ln
+    ny /= ln
+    nz /= ln
+    if B.nf[node, 1] != 0 and wi[2] * (wi[0] * nx + wi[1] * ny + wi[2] * nz) <= 0:
+        nx, ny = -nx, -ny
+    if B.nt[node] == NORMALMAP:
+        sx, sy, sz = 1.0 - nx * nx, -ny * nx, -nz * nx
+    else:
+        d = geo[3]
+        p = nx * d[0] + ny * d[1] + nz * d[2]
+        sx, sy, sz = d[0] - nx * p, d[1] - ny * p, d[2] - nz * p
+    ls = math.sqrt(sx * sx + sy * sy + sz * sz)
+    if not ls > 0:
+        return False, _IDENTITY
+    sx /= ls
+    sy /= ls
+    sz /= ls
+    n = (nx, ny, nz)
+    s = (sx, sy, sz)
+    return True, (s, (ny * sz - nz * sy, nz * sx - nx * sz, nx * sy - ny * sx), n)
+
+
+@nb.njit(inline="always", **_JIT)
+def _tan2(z):
+    return max(1.0 - z * z, 0.0) / (z * z)
+
+
+@nb.njit(inline="always", **_JIT)
+def shadow_terminator(n_z, w_z):
+    """Estevez et al.'s shadowing of a perturbed normal with cosine ``n_z`` for a direction with
+    cosine ``w_z`` (both in the unperturbed frame): Mitsuba's ``eval_shadow_terminator``."""
+    a2 = min(0.125 * _tan2(n_z), 1.0)
+    return 2.0 / (1.0 + math.sqrt(1.0 + a2 * _tan2(w_z)))
+
+
+@nb.njit(inline="always", **_JIT)
+def _enter_eval(B, node, uu, vv, nearest, geo, wi, wo):
+    """A map node's evaluation step: (ok, node below, wi, wo in its frame, shadowing factor);
+    any other node passes through. wo must lie on the same side of both frames (Mitsuba)."""
+    if not is_map(B, node):
+        return True, node, wi, wo, 1.0
+    ok, fr = map_frame(B, node, uu, vv, nearest, geo, wi)
+    wo_p = _to_frame(fr, wo)
+    if not ok or not wo[2] * wo_p[2] > 0:
+        return False, node, wi, wo, 0.0
+    k = shadow_terminator(fr[2][2], wo[2]) if B.nf[node, 2] != 0 else 1.0
+    return True, B.ni[node, 0], _to_frame(fr, wi), wo_p, k
+
+
+@nb.njit(inline="always", **_JIT)
+def _leave_sample(B, node, fr, ok, wo, r):
+    """A map node's sampling step back: wo out of the map's frame, checked to lie on the same
+    side of both frames, the weight shadowed (Mitsuba's ``bumpmap``/``normalmap::sample``)."""
+    wo_u = _from_frame(fr, wo)
+    if not ok or not wo[2] * wo_u[2] > 0:
+        return False, wo_u, (0.0, 0.0, 0.0)
+    if B.nf[node, 2] != 0:
+        k = shadow_terminator(fr[2][2], wo_u[2])
+        r = (r[0] * k, r[1] * k, r[2] * k)
+    return True, wo_u, r
+
+
+# ---------------------------------------------------------------------------------- roots
+@nb.njit(**_JIT)
+def bsdf_eval(B, root, uu, vv, nearest, wi, wo, geo):
+    """Value times |cos(wo)| and density of a material's (mask-resolved) root node: an optional
+    map, twosided (each side with an optional map), a blend of two nodes, or a leaf:
+    (f0, f1, f2, pdf). ``geo``: the vertex's local geometry (:func:`map_frame`; :data:`NO_GEO`
+    where the root has no map)."""
+    ok, node, wi, wo, k1 = _enter_eval(B, root, uu, vv, nearest, geo, wi, wo)
+    if not ok:
+        return 0.0, 0.0, 0.0, 0.0
+    node, flip = _side(B, node, wi[2])
     if flip:
         wi = (wi[0], wi[1], -wi[2])
-    if B.nt[node] == BLEND:
-        w = min(max(value1(B, node, 0, uu, vv, nearest), 0.0), 1.0)
-        pick1 = u0 <= w
-        if pick1:
-            u0 = u0 / w
-            c, o = B.ni[node, 1], B.ni[node, 0]
-            wc = w
-        else:
-            u0 = (u0 - w) / (1.0 - w)
-            c, o = B.ni[node, 0], B.ni[node, 1]
-            wc = 1.0 - w
-        ok, wo, r, pdf, delta = node_sample(B, c, uu, vv, nearest, wi, u0, u1, u2)
-        if ok and not delta:
-            e = node_eval(B, o, uu, vv, nearest, wi, wo)
-            pw = (1.0 - wc) * e[3] + wc * pdf
-            if pw > 0:
-                r = (
-                    ((1.0 - wc) * e[0] + wc * r[0] * pdf) / pw,
-                    ((1.0 - wc) * e[1] + wc * r[1] * pdf) / pw,
-                    ((1.0 - wc) * e[2] + wc * r[2] * pdf) / pw,
-                )
-                pdf = pw
-            else:
-                ok = False
-    else:
-        ok, wo, r, pdf, delta = node_sample(B, node, uu, vv, nearest, wi, u0, u1, u2)
+        wo = (wo[0], wo[1], -wo[2])
+    ok, node, wi, wo, k2 = _enter_eval(B, node, uu, vv, nearest, geo, wi, wo)
+    if not ok:
+        return 0.0, 0.0, 0.0, 0.0
+    f0, f1, f2, pdf = _blend_eval(B, node, uu, vv, nearest, wi, wo)
+    k = k1 * k2
+    return f0 * k, f1 * k, f2 * k, pdf
+
+
+@nb.njit(**_JIT)
+def bsdf_sample(B, root, uu, vv, nearest, wi, u0, u1, u2, geo):
+    """Sample a material's (mask-resolved) root node (see :func:`bsdf_eval`): (ok, wo,
+    weight rgb, pdf, delta)."""
+    zero = (0.0, 0.0, 0.0)
+    node = root
+    m1 = is_map(B, node)
+    fr1 = _IDENTITY
+    if m1:
+        ok, fr1 = map_frame(B, node, uu, vv, nearest, geo, wi)
+        if not ok:
+            return False, zero, zero, 0.0, False
+        wi = _to_frame(fr1, wi)
+        node = B.ni[node, 0]
+    node, flip = _side(B, node, wi[2])
+    if flip:
+        wi = (wi[0], wi[1], -wi[2])
+    map2 = node
+    m2 = is_map(B, node)
+    fr2 = _IDENTITY
+    if m2:
+        ok, fr2 = map_frame(B, node, uu, vv, nearest, geo, wi)
+        if not ok:
+            return False, zero, zero, 0.0, False
+        wi = _to_frame(fr2, wi)
+        node = B.ni[node, 0]
+    ok, wo, r, pdf, delta = _blend_sample(B, node, uu, vv, nearest, wi, u0, u1, u2)
+    if m2:
+        ok, wo, r = _leave_sample(B, map2, fr2, ok, wo, r)
     if flip:
         wo = (wo[0], wo[1], -wo[2])
+    if m1:
+        ok, wo, r = _leave_sample(B, root, fr1, ok, wo, r)
     return ok, wo, r, pdf, delta
 
 
@@ -690,9 +937,7 @@ def is_smooth(B, root):
     node = root
     if B.nt[node] == MASK:
         node = B.ni[node, 0]
-    if B.nt[node] == TWOSIDED:
-        node = B.ni[node, 0]
-    t = B.nt[node]
+    t = B.nt[leaf_of(B, node)]
     return t == CONDUCTOR or t == DIELECTRIC or t == THINDIELECTRIC
 
 
@@ -702,7 +947,7 @@ def eval_batch(B, roots, uv, wi, wo, out):
     for n in range(len(roots)):
         r = bsdf_eval(
             B, roots[n], uv[n, 0], uv[n, 1], 0,
-            (wi[n, 0], wi[n, 1], wi[n, 2]), (wo[n, 0], wo[n, 1], wo[n, 2]),
+            (wi[n, 0], wi[n, 1], wi[n, 2]), (wo[n, 0], wo[n, 1], wo[n, 2]), NO_GEO,
         )  # fmt: skip
         out[n, 0], out[n, 1], out[n, 2], out[n, 3] = r
 
@@ -714,7 +959,7 @@ def sample_batch(B, roots, uv, wi, u, out_wo, out_w, out_pdf, out_flags):
     for n in range(len(roots)):
         ok, wo, w, pdf, delta = bsdf_sample(
             B, roots[n], uv[n, 0], uv[n, 1], 0, (wi[n, 0], wi[n, 1], wi[n, 2]),
-            u[n, 0], u[n, 1], u[n, 2],
+            u[n, 0], u[n, 1], u[n, 2], NO_GEO,
         )  # fmt: skip
         out_wo[n, 0], out_wo[n, 1], out_wo[n, 2] = wo
         out_w[n, 0], out_w[n, 1], out_w[n, 2] = w
@@ -733,7 +978,7 @@ class BsdfTable:
 
 
 class _Packer:
-    def __init__(self) -> None:
+    def __init__(self, maps: bool = True) -> None:
         self.nt: list[int] = []
         self.nf: list[np.ndarray] = []
         self.ni: list[list[int]] = []
@@ -747,6 +992,7 @@ class _Packer:
         self.ttab: list[np.ndarray] = []
         self.tex_ids: dict[int, int] = {}
         self.kinds: set[str] = set()
+        self.maps = maps
 
     def node(self, typ: int) -> int:
         self.nt.append(typ)
@@ -795,6 +1041,8 @@ class _Packer:
 
     def bsdf(self, b: sb.BSDF) -> int:
         self.kinds.add(sb.plugin_name(b))
+        if isinstance(b, sb.NormalMap | sb.BumpMap):
+            return self.mapped(b)
         if isinstance(b, sb.Mask):
             n = self.node(MASK)
             self.slot(n, 0, b.opacity)
@@ -811,6 +1059,8 @@ class _Packer:
                 return self.bsdf(sb.Mask(sb.TwoSided(m.bsdf), m.opacity))
             n = self.node(TWOSIDED)
             kids = [self.bsdf(x) for x in inner]
+            if any(self.has_map(k) and self.nt[self.ni[k][0]] == TWOSIDED for k in kids):
+                raise ValueError("twosided: a twosided inside a map inside it is not supported")
             self.ni[n][0], self.ni[n][1] = kids
             return n
         if isinstance(b, sb.BlendBSDF):
@@ -823,6 +1073,11 @@ class _Packer:
                     t == TWOSIDED and self.nt[self.ni[c][0]] in (BLEND, MASK)
                 ):
                     raise ValueError("blendbsdf: nested blendbsdf or mask is not supported")
+                if self.has_map(c):
+                    raise ValueError(
+                        "blendbsdf: a normalmap or bumpmap inside a blendbsdf is not supported "
+                        "(put the map around the blendbsdf)"
+                    )
                 self.ni[n][k] = c
             return n
         if isinstance(b, sb.Diffuse):
@@ -879,6 +1134,36 @@ class _Packer:
             return n
         raise TypeError(f"not a BSDF: {type(b).__name__}")
 
+    def has_map(self, n: int) -> bool:
+        """Whether node ``n`` is a map or a twosided with a map side."""
+        if self.nt[n] in (NORMALMAP, BUMPMAP):
+            return True
+        return self.nt[n] == TWOSIDED and any(
+            self.nt[self.ni[n][k]] in (NORMALMAP, BUMPMAP) for k in (0, 1)
+        )
+
+    def mapped(self, b: sb.NormalMap | sb.BumpMap) -> int:
+        """A ``normalmap``/``bumpmap`` node over its nested BSDF (or that BSDF alone when the
+        scene has no uvs to look the map up at)."""
+        kind = sb.plugin_name(b)
+        c = self.bsdf(b.bsdf)
+        if self.nt[c] == MASK:
+            raise ValueError(f"{kind}: a mask inside a {kind} is not supported (put it outside)")
+        if self.has_map(c):
+            raise ValueError(f"{kind}: one normalmap or bumpmap per material is supported")
+        if not self.maps:
+            return c
+        n = self.node(NORMALMAP if isinstance(b, sb.NormalMap) else BUMPMAP)
+        if isinstance(b, sb.NormalMap):
+            self.slot(n, 0, b.normalmap)
+        else:
+            self.ntex[n][0] = self.texture(b.texture)
+            self.nf[n][0] = b.scale
+        self.nf[n][1] = float(b.flip_invalid_normals)
+        self.nf[n][2] = float(b.use_shadowing_function)
+        self.ni[n][0] = c
+        return n
+
     def params(self) -> Any:
         N = max(len(self.nt), 1)
         T = max(len(self.tk), 1)
@@ -906,15 +1191,20 @@ class _Packer:
         )
 
 
-def pack(materials: Any) -> BsdfTable:
+def pack(materials: Any, maps: bool = True) -> BsdfTable:
     """The node table of a scene's materials: a declared ``bsdf``, or icbtool's two-sided
     Lambert (albedo times its texture) for a material without one.
 
+    Args:
+        materials: the scene's materials.
+        maps: keep ``normalmap``/``bumpmap`` nodes (False: their nested BSDFs stand alone, for
+            a scene without uvs to look the maps up at).
+
     Raises:
         ValueError: a nesting the kernel cannot evaluate (a mask in a blend, a blend in a
-            blend), naming it.
+            blend, a map in a blend or in a map), naming it.
     """
-    p = _Packer()
+    p = _Packer(maps)
     roots = []
     for m in materials:
         if getattr(m, "bsdf", None) is None:

@@ -133,19 +133,38 @@ def _offset(x, nf, eps, dx, dy, dz):
 
 
 @nb.njit(inline="always", **_JIT)
-def _light(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps, d, dist):
+def _light(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps, d, dist):
     """BSDF at a light direction d (world) and the offset shadow-ray origin and length:
     (f0, f1, f2, bsdf pdf, origin, tfar)."""
     s, t, n = fr
     wo_l = _to_local(s, t, n, d[0], d[1], d[2])
-    f0, f1, f2, pb = bs.bsdf_eval(B, root, uu, vv, nearest, wi_l, wo_l)
+    f0, f1, f2, pb = bs.bsdf_eval(B, root, uu, vv, nearest, wi_l, wo_l, geo)
     so = _offset(x, nf, eps, d[0], d[1], d[2])
     return f0, f1, f2, pb, so
 
 
+@nb.njit(inline="always", **_JIT)
+def _geo(B, root, fr, face_t, face_b, fn, prim):
+    """The local geometry a normal or bump map tilts the frame with (bsdfs.map_frame): dp/du,
+    dp/dv and the geometric normal in the frame fr, and dp/du in world space; bsdfs.NO_GEO
+    where the material has no map."""
+    if not bs.has_map(B, root):
+        return bs.NO_GEO
+    s, t, n = fr
+    du = (np.float64(face_t[prim, 0]), np.float64(face_t[prim, 1]), np.float64(face_t[prim, 2]))
+    dv = (np.float64(face_b[prim, 0]), np.float64(face_b[prim, 1]), np.float64(face_b[prim, 2]))
+    g = (np.float64(fn[prim, 0]), np.float64(fn[prim, 1]), np.float64(fn[prim, 2]))
+    return (
+        _to_local(s, t, n, du[0], du[1], du[2]),
+        _to_local(s, t, n, dv[0], dv[1], dv[2]),
+        _to_local(s, t, n, g[0], g[1], g[2]),
+        du,
+    )
+
+
 @nb.njit(**_JIT)
-def trace_paths_general(p, B, mat_root, face_t, out, acc, counts, log, part, queue, pix, sid,
-                        bounds):  # fmt: skip
+def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, part, queue, pix,
+                        sid, bounds):  # fmt: skip
     """:func:`icbtool.trace.kernels.trace_paths` with any BSDF: one whole path per sample.
 
     Args:
@@ -153,6 +172,8 @@ def trace_paths_general(p, B, mat_root, face_t, out, acc, counts, log, part, que
         B: :data:`~icbtool.trace.bsdfs.BsdfParams`, the scene's BSDF nodes.
         mat_root: (M,) int64 root node of each material.
         face_t: (F, 3) float32 tangent (dp/du) per face, zeros where the face has no uvs.
+        face_b: (F, 3) float32 dp/dv per face where the scene has a normal or bump map, else
+            (1, 3) (never read).
         out, acc, counts, log, part, queue, pix, sid, bounds: as ``trace_paths``.
     """
     rtc, fn_isect, fn_occl = p.embree
@@ -305,12 +326,11 @@ def trace_paths_general(p, B, mat_root, face_t, out, acc, counts, log, part, que
                 fr_s, fr_t = _frame(n_sh, (face_t[prim, 0], face_t[prim, 1], face_t[prim, 2]))
                 fr = (fr_s, fr_t, n_sh)
                 wi_l = _to_local(fr_s, fr_t, n_sh, -dx, -dy, -dz)
+                geo = _geo(B, root, fr, face_t, face_b, fn, prim)
                 if depth == 1:
                     first_hit[row] = True
                     if want_aux:
-                        leaf = root
-                        if B.nt[leaf] == bs.TWOSIDED:
-                            leaf = B.ni[leaf, 0]
+                        leaf = bs.leaf_of(B, root)
                         if B.nt[leaf] == bs.LAMBERT2 or B.nt[leaf] == bs.DIFFUSE:
                             al = bs.value(B, leaf, 0, uu, vv, nearest)
                         else:
@@ -324,7 +344,7 @@ def trace_paths_general(p, B, mat_root, face_t, out, acc, counts, log, part, que
                 pair0 = 1 + 3 * depth
                 if not bs.is_smooth(B, root):
                     n_shadow += _nee(
-                        B, root, uu, vv, nearest, fr, wi_l, x, nf, eps, diag, t0, t1, t2,
+                        B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps, diag, t0, t1, t2,
                         to_dl, row, direct, gi, rtc, fn_occl, ray, log, suns, n_s, punct,
                         n_q, tri, fn, face_mat, mat_emission, face_light_pmf, face_area,
                         face_is_area, emit_faces, emit_cdf, n_e, sky_mis, sky_kind, sky, env,
@@ -339,7 +359,7 @@ def trace_paths_general(p, B, mat_root, face_t, out, acc, counts, log, part, que
                     u2 = _u01(base, salts[dim0 + 1])
                 u0 = _u01(base, salts[dim0 + 5] ^ _LOBE_SALT)
                 ok, wo_l, wgt, pdf, delta = bs.bsdf_sample(
-                    B, root, uu, vv, nearest, wi_l, u0, u1, u2
+                    B, root, uu, vv, nearest, wi_l, u0, u1, u2, geo
                 )
                 if not ok:
                     break
@@ -371,7 +391,7 @@ def trace_paths_general(p, B, mat_root, face_t, out, acc, counts, log, part, que
 
 
 @nb.njit(**_JIT)
-def _nee(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps, diag, t0, t1, t2, to_dl, row, direct,
+def _nee(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps, diag, t0, t1, t2, to_dl, row, direct,
          gi, rtc, fn_occl, ray, log, suns, n_s, punct, n_q, tri, fn, face_mat, mat_emission,
          face_light_pmf, face_area, face_is_area, emit_faces, emit_cdf, n_e, sky_mis, sky_kind,
          sky, env, rot, scale, frame, marg, cond, spdf, rows, phi0, use_ld, pixel_seed, sid_s,
@@ -382,7 +402,7 @@ def _nee(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps, diag, t0, t1, t2, to_dl
     n_shadow = 0
     for j in range(n_s):  # directional lights (delta)
         d = (-suns[j, 0], -suns[j, 1], -suns[j, 2])
-        f0, f1, f2, _, so = _light(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps, d, 0.0)
+        f0, f1, f2, _, so = _light(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps, d, 0.0)
         if f0 > 0 or f1 > 0 or f2 > 0:
             n_shadow += 1
             if _visible(rtc, fn_occl, ray, log, so, d[0], d[1], d[2], np.float32(np.inf)):
@@ -395,8 +415,8 @@ def _nee(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps, diag, t0, t1, t2, to_dl
         fall = _spot_falloff(punct, j, w0, w1, w2)
         if not fall > 0:
             continue
-        f0, f1, f2, _, so = _light(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps, (w0, w1, w2),
-                                   dist)  # fmt: skip
+        f0, f1, f2, _, so = _light(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps,
+                                   (w0, w1, w2), dist)  # fmt: skip
         if f0 > 0 or f1 > 0 or f2 > 0:
             n_shadow += 1
             tf = np.float32(dist * (1 - 1e-5) - eps)
@@ -416,7 +436,7 @@ def _nee(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps, diag, t0, t1, t2, to_dl
         w0, w1, w2, dist = _towards(x[0], x[1], x[2], y[0], y[1], y[2])
         cl = -(fn[lf, 0] * w0 + fn[lf, 1] * w1 + fn[lf, 2] * w2)
         if cl > 0 and dist > 0:
-            f0, f1, f2, pb, so = _light(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps,
+            f0, f1, f2, pb, so = _light(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps,
                                         (w0, w1, w2), dist)  # fmt: skip
             if f0 > 0 or f1 > 0 or f2 > 0:
                 pl = face_light_pmf[lf] / face_area[lf] * dist * dist / cl
@@ -442,7 +462,7 @@ def _nee(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps, diag, t0, t1, t2, to_dl
             us2 = _u01(base, salts[dim0 + 7])
         w0, w1, w2, psk = _sky_sample(frame, marg, cond, spdf, rows, phi0, us1, us2)
         if psk > 0:
-            f0, f1, f2, pb, so = _light(B, root, uu, vv, nearest, fr, wi_l, x, nf, eps,
+            f0, f1, f2, pb, so = _light(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps,
                                         (w0, w1, w2), 0.0)  # fmt: skip
             if f0 > 0 or f1 > 0 or f2 > 0:
                 n_shadow += 1

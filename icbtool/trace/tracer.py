@@ -714,14 +714,46 @@ class _SceneData:
         return derived(scene, "trace_data", build)
 
 
-def _general_data(scene: Scene, face_uv: np.ndarray | None) -> tuple[Any, np.ndarray, list]:
-    """(BSDF params, material roots, per-face tangents (F, 3) float32, plugin names) of the
-    general kernel: the tangent is dp/du (Mitsuba's shading frame) where a face has uvs."""
+@dataclass(frozen=True)
+class _General:
+    """What the general (BSDF) kernel reads beyond the Lambert kernel's parameters."""
+
+    params: Any  # icbtool.trace.bsdfs.BsdfParams
+    mat_root: np.ndarray  # (M,) int64
+    face_t: np.ndarray  # (F, 3) float32 dp/du
+    face_b: np.ndarray  # (F, 3) float32 dp/dv where the scene has a normal or bump map, else (1, 3)
+    kinds: list[str]  # the BSDF plugins present
+
+    @property
+    def kernel_args(self) -> tuple:
+        return self.params, self.mat_root, self.face_t, self.face_b
+
+
+def _general_data(scene: Scene, face_uv: np.ndarray | None) -> _General:
+    """The general kernel's BSDF table and per-face tangents: dp/du (Mitsuba's shading frame)
+    where a face has uvs, and dp/dv too where the scene has a normal or bump map (a face whose
+    uvs are degenerate takes Mitsuba's fallback, the two axes of ``coordinate_system`` of its
+    normal). A scene without uvs cannot look maps up: they are dropped, with a warning."""
+    from icbtool.scene.bsdf import MAPPED_TYPES
     from icbtool.trace.bsdfs import pack
 
-    table = pack(scene.materials)
+    def mapped(b: Any) -> bool:
+        if isinstance(b, MAPPED_TYPES):
+            return True
+        kids = [getattr(b, k, None) for k in ("front", "back", "bsdf", "bsdf0", "bsdf1")]
+        return any(mapped(k) for k in kids if k is not None)
+
+    maps = any(m.bsdf is not None and mapped(m.bsdf) for m in scene.materials)
+    if maps and face_uv is None:
+        log.warning(
+            "scene '%s': normal/bump maps need texture coordinates and the scene has none: "
+            "their nested BSDFs are traced without them",
+            scene.name,
+        )
+    table = pack(scene.materials, maps=face_uv is not None)
     F = len(scene.faces)
     face_t = np.zeros((F, 3), np.float32)
+    face_b = np.zeros((F if maps and face_uv is not None else 1, 3), np.float32)
     if face_uv is not None:
         p = scene.vertices[scene.faces].astype(np.float64)
         uv = face_uv.astype(np.float64).copy()
@@ -730,10 +762,25 @@ def _general_data(scene: Scene, face_uv: np.ndarray | None) -> tuple[Any, np.nda
         d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
         det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
         ok = np.abs(det) > 1e-20
-        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        dpdu = (d2[:, 1:2] * e1 - d1[:, 1:2] * e2) * inv[:, None]
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)[:, None]
+        dpdu = (d2[:, 1:2] * e1 - d1[:, 1:2] * e2) * inv
         face_t[:] = np.where(ok[:, None], dpdu, 0.0)
-    return table.params, table.mat_root, np.ascontiguousarray(face_t), table.kinds
+        if len(face_b) == F:
+            dpdv = (d1[:, 0:1] * e2 - d2[:, 0:1] * e1) * inv
+            s, t = _coordinate_system(np.asarray(scene.face_normals, np.float64))
+            face_t[:] = np.where(ok[:, None], dpdu, s)
+            face_b[:] = np.where(ok[:, None], dpdv, t)
+    return _General(table.params, table.mat_root, np.ascontiguousarray(face_t), face_b, table.kinds)
+
+
+def _coordinate_system(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mitsuba's ``coordinate_system`` (Duff et al. 2017) of unit normals (N, 3): (s, t)."""
+    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[:, 2])
+    b = n[:, 0] * n[:, 1] * a
+    s = np.stack([n[:, 0] ** 2 * a * sign + 1, b * sign, -n[:, 0] * sign], 1)
+    t = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], 1)
+    return s, t
 
 
 # ---------------------------------------------------------------------------------- tracer
@@ -769,7 +816,7 @@ class _Tracer:
             sk.append("general BSDF kernel: every material is Lambertian (the Lambert kernel)")
         else:
             sk.append(
-                "Lambert kernel: declared BSDFs (" + ", ".join(sd.general[3]) + ") need the "
+                "Lambert kernel: declared BSDFs (" + ", ".join(sd.general.kinds) + ") need the "
                 "general kernel (no gi_splits, no deferred texel loads)"
             )
         if not sd.textures:
@@ -1004,7 +1051,7 @@ class _Tracer:
         else:
             from icbtool.trace.general import trace_paths_general
 
-            kernel, extra = trace_paths_general, gen[:3]
+            kernel, extra = trace_paths_general, gen.kernel_args
         t0 = time.perf_counter()
         if parts == 1:
             kernel(prm, *extra, out, acc, counts[0], log, 0, queue, pix, sid, bounds)
