@@ -1373,6 +1373,12 @@ TRACE_SPEED_AB = (
         True,
     ),
     (
+        "cameras",
+        "camera rays from one helper that also gives thin-lens and orthographic cameras an "
+        "origin per sample (a pinhole: one branch on the camera kind)",
+        True,
+    ),
+    (
         "fastmath",
         "LLVM fast-math flags but NaN/Inf semantics (contract, arcp, nsz, afn, reassoc; images "
         "not bit-identical)",

@@ -162,7 +162,7 @@ def packet_fns(W: int = 8) -> tuple[int, int]:
 
 # ------------------------------------------------------------------------------ stage replays
 @nb.njit(nogil=True)
-def _raygen(intr, r_wc, width, jitter, sampling, pix, sid):
+def _raygen(cam, sampling, pix, sid):
     salts, seed_mix, pixseed0, sampler = (
         sampling.salts,
         sampling.seed_mix,
@@ -176,12 +176,11 @@ def _raygen(intr, r_wc, width, jitter, sampling, pix, sid):
         base_s = K._sample_base(seed_mix, pix[s], sid[s])
         zkey = K._U0
         if zshift >= 0:
-            zkey = K._zkey(pix[s] % width, pix[s] // width, sid[s], log2spp, zshift)
-        dx, dy, dz = K._camera_ray(
-            intr, r_wc, width, jitter, sampler, salts, pix[s], sid[s], pixel_seed, base_s,
-            (pixseed0, zkey, zshift),
-        )  # fmt: skip
-        acc += dx + dy + dz
+            zkey = K._zkey(pix[s] % cam.width, pix[s] // cam.width, sid[s], log2spp, zshift)
+        ox, _, _, dx, dy, dz = K._camera_ray(
+            cam, sampler, salts, pix[s], sid[s], pixel_seed, base_s, (pixseed0, zkey, zshift)
+        )
+        acc += ox + dx + dy + dz
     return acc
 
 
@@ -489,7 +488,7 @@ def profile(scene, cam, cfg: TraceConfig, repeats: int) -> dict:
     sid = np.concatenate([ss for _, ss in passes])
     c, s = prm.cam, prm.sampling
     stages["ray_generation"] = cpu_min(
-        lambda: _raygen(c.intr, c.r_wc, c.width, c.jitter, s, pix, sid),
+        lambda: _raygen(c, s, pix, sid),
         repeats,
     )
     # per-vertex shading on the replayed hits (primary and bounce), cumulative levels

@@ -230,7 +230,9 @@ def render_crt_buffer(
 
     Args:
         scene: an :class:`icbtool.scene.Scene`.
-        cam: the cloud camera.
+        cam: the cloud camera; a thin lens or an orthographic camera renders as its
+            :meth:`~icbtool.camera.Camera.pinhole` (the ICB pipeline's G-buffers, GI and warps
+            assume one).
         trace_config: an :class:`icbtool.trace.TraceConfig` for the GI map.
         rasterizer: an open :class:`icbtool.raster.Rasterizer` for ``scene``; None: the
             G-buffers come from a primary Embree ray cast and DL from the tracer (no OpenGL).
@@ -243,6 +245,7 @@ def render_crt_buffer(
     from icbtool import trace
 
     t0 = time.perf_counter()
+    cam = cam.pinhole()
     if rasterizer is not None:
         rb = rasterizer.render(cam, buffers=tuple(b for b in buffers if b != "mask"))
         maps = {n: getattr(rb, n) for n in (*buffers, "mask")}

@@ -327,3 +327,26 @@ def test_random_walk_matches_the_stored_paths(key):
     ref = np.load(Path(__file__).parent / "data" / "random_walk_ref.npz")[key]
     p = random_walk(_room(), Camera.from_fov(60, 16, 16), **REF_WALKS[key])
     np.testing.assert_allclose(p.world_from_cam, ref, rtol=0, atol=WALK_ATOL)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(-3, 3), st.floats(-3, 3), st.floats(0.1, 20), st.floats(0.5, 40), st.floats(0, 1))
+def test_orthographic_and_thin_lens_project_unproject_round_trip(x, y, z, f, near):
+    """An orthographic camera's project/unproject invert each other (u = fx x + cx, depth
+    kept) and a thin lens's are its pinhole's; sample_rays at the lens centre is ``rays``."""
+    pose = look_at_pose((0.5, 1, 6), (0, 0, 0))
+    ortho = Camera(30, 40, f, f, 20, 15, pose, projection="orthographic", near_clip=near)
+    p = np.array([x, y, z]) @ pose[:3, :3].T + pose[:3, 3]
+    uv, depth = ortho.project(p)
+    assert depth == pytest.approx(z)
+    if z >= near:
+        np.testing.assert_allclose(uv, [f * x + 20, f * y + 15], atol=1e-9)
+        np.testing.assert_allclose(ortho.unproject(uv, depth), p, atol=1e-9)
+    else:
+        assert np.isnan(uv).all()
+    lens = Camera(30, 40, f, f, 20, 15, pose, aperture_radius=0.2, focus_distance=3)
+    np.testing.assert_allclose(lens.project(p)[0], lens.pinhole().project(p)[0], atol=1e-9)
+    o, d = lens.sample_rays([[x + 20, y + 15]], [0.5, 0.5])
+    o2, d2, _ = lens.rays(np.array([[x + 20, y + 15]]))
+    np.testing.assert_allclose(d, d2, atol=1e-12)
+    np.testing.assert_allclose(o, o2, atol=1e-12)  # no near clip: from the centre

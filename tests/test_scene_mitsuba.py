@@ -844,42 +844,6 @@ def test_camera_intrinsics_and_crops_equal_mitsubas(tmp_path, sensor, film):
         assert cam.fov_x_deg == pytest.approx(34.02204, abs=1e-4)  # Mitsuba's parse_fov test
 
 
-def test_thinlens_and_orthographic_are_named_approximations(tmp_path):
-    """thinlens renders as its pinhole, orthographic as a distant pinhole whose rays are
-    within 1.5 deg of Mitsuba's parallel ones and cover the same width; each warns once."""
-    mi = _mitsuba()
-    for kind, extra, scale in (
-        (
-            "thinlens",
-            '<float name="aperture_radius" value="0.1"/><float name="fov" value="40"/>',
-            "",
-        ),
-        ("orthographic", "", '<scale x="2" y="2"/>'),
-    ):
-        (tmp_path / "c.xml").write_text(
-            f'<scene version="3.0.0"><sensor type="{kind}">{extra}<transform name="to_world">'
-            f'{scale}<lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/>'
-            '</transform><film type="hdrfilm"><integer name="width" value="40"/>'
-            '<integer name="height" value="30"/></film></sensor><shape type="cube"/></scene>'
-        )
-        s, msgs, _ = _load(tmp_path / "c.xml")
-        assert sum(f"{kind} sensor" in x for x in msgs) == 1, msgs
-        cam = s.default_camera
-        sensor_mi = mi.load_file(str(tmp_path / "c.xml")).sensors()[0]
-        for fx, fy in [(0.5, 0.5), (0.0, 0.0), (1.0, 0.6)]:
-            ray, _ = sensor_mi.sample_ray(
-                0.0, 0.5, mi.ScalarPoint2f(fx, fy), mi.ScalarPoint2f(0.5, 0.5)
-            )
-            o, d, _ = cam.rays(np.array([[fx * 40, fy * 30]]))
-            if kind == "thinlens":  # the lens centre's ray
-                np.testing.assert_allclose(d[0], np.array(ray.d), atol=2e-6)
-                continue
-            assert math.degrees(math.acos(min(1.0, d[0] @ np.array(ray.d)))) < 1.5
-            # the pinhole ray crosses the sensor's plane (z = 5) where Mitsuba's ray starts
-            t = (5.0 - o[0][2]) / d[0][2]
-            np.testing.assert_allclose((o[0] + t * d[0])[:2], np.array(ray.o)[:2], atol=1e-6)
-
-
 _REFS = """<scene version="3.0.0">
   <bsdf type="diffuse" id="red"><rgb name="reflectance" value="0.8, 0.1, 0.1"/></bsdf>
   <bsdf type="diffuse" id="green"><rgb name="reflectance" value="0.1, 0.8, 0.1"/></bsdf>

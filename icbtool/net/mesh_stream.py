@@ -44,7 +44,7 @@ def scene_base(scene: st.Scene) -> dict[str, Any]:
         "sky": None if scene.sky is None else _fields(scene.sky),
         "paths": {k: p.to_dict() for k, p in scene.paths.items()},
         "default_camera": (
-            None if scene.default_camera is None else scene.default_camera.to_dict()
+            None if scene.default_camera is None else scene.default_camera.pinhole().to_dict()
         ),
         "up": _plain(np.asarray(scene.up)),
     }

@@ -961,12 +961,14 @@ def raise_for_error(msg: Message) -> Message:
 
 # ---------------------------------------------------------------------------------- helpers
 def camera_to_json(cam: Camera) -> dict[str, Any]:
-    """A camera as the protocol's camera object (exact: floats keep every bit through JSON).
+    """A camera as the protocol's camera object (exact: floats keep every bit through JSON); a
+    thin lens or an orthographic camera as its :meth:`~icbtool.camera.Camera.pinhole`.
 
     Returns:
         ``{height, width, fx, fy, cx, cy, world_from_cam}``: OpenCV axes (+x right, +y down,
         +z forward), pixel centres at half-integers, ``world_from_cam`` 4x4 row-major.
     """
+    cam = cam.pinhole()
     d = cam.to_dict()
     return {
         "height": int(d["height"]),

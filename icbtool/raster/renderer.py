@@ -783,7 +783,8 @@ class Rasterizer:
         and dl with the shadow-map lookups and the sky on the background).
 
         Args:
-            camera: the camera (any size up to the GL limit).
+            camera: the camera (any size up to the GL limit); a thin lens or an orthographic
+                camera renders as its :meth:`~icbtool.camera.Camera.pinhole`.
             buffers: names from :data:`icbtool.raster.BUFFER_NAMES` (or a comma-separated string);
                 only these are rendered, the others are None in the result; mask is always there.
 
@@ -798,6 +799,7 @@ class Rasterizer:
 
         if not isinstance(camera, Camera):
             raise TypeError(f"camera must be an icbtool Camera, got {type(camera).__name__}")
+        camera = camera.pinhole()
         names = check_buffers(buffers)
         k = self.config.dl_supersample
         if k == 1 or "dl" not in names:

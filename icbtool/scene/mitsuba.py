@@ -31,9 +31,10 @@ refused). What is read, element by element:
   rotation of ``to_world``). A file whose only emitters are of other types (``sunsky``...) is
   an error unless ``default_light=True`` (:func:`load_mitsuba`).
 * ``<sensor>``: ``perspective`` (``fov`` on every ``fov_axis``, ``focal_length``, film size and
-  crop, principal point offsets, ``to_world``): the scene's default camera, exactly as Mitsuba
-  casts its rays; ``thinlens`` (its pinhole) and ``orthographic`` (a distant pinhole) with a
-  warning.
+  crop, principal point offsets, ``to_world``, ``near_clip``), ``thinlens`` (``aperture_radius``,
+  ``focus_distance``) and ``orthographic`` (extent = the ``to_world`` scale): the scene's default
+  camera, exactly as Mitsuba casts its rays (``far_clip`` is not applied); the ICB pipeline
+  renders a thin lens's or an orthographic sensor's pinhole, with one warning.
 * ``<integrator>``: ``max_depth`` (Mitsuba's depth convention is the tracer's) becomes
   ``Scene.max_depth``, the trace default; a path integrator without one means -1 (Mitsuba's
   default, unbounded), ``direct`` means 2; a file without an integrator leaves the tracer's own
@@ -115,8 +116,6 @@ log = logging.getLogger(__name__)
 
 #: Longitudinal segments of a tessellated sphere (latitudinal: half), disk and cylinder.
 SPHERE_SEGMENTS = 64
-#: An orthographic sensor is read as a pinhole this many half-widths behind it.
-_ORTHO_DISTANCE = 50.0
 #: Deepest ``<include>`` nesting (a cycle stops here with an error).
 MAX_INCLUDE_DEPTH = 16
 #: Normal-incidence reflectance (linear RGB) of the metals Mitsuba's ``conductor`` names
@@ -149,7 +148,7 @@ NAMED_IOR = {
 }
 #: Properties and elements read without effect on icbtool's images (no warning).
 _IGNORED_PROPERTIES = {
-    "near_clip", "far_clip", "focus_distance", "sample_count", "pixel_format", "file_format",
+    "far_clip", "sample_count", "pixel_format", "file_format",
     "component_format", "rfilter", "sampler", "banner", "high_quality_edges", "id", "seed",
     "srgb_gamma", "shutter_open", "shutter_close", "mis_compensation", "hide_emitters",
     "rr_depth", "sample_emitters", "filter_type", "wrap_mode", "samples_per_pass",
@@ -1402,10 +1401,13 @@ class _Reader(_Materials):
         return Sky.from_envmap(path, scale=scale, world_from_map=rot)
 
     def sensor(self, node: _Node) -> None:
-        """The first sensor becomes the default camera: ``perspective`` exactly (every
-        ``fov_axis``, ``focal_length``, film crops, principal point offsets); ``thinlens`` as its
-        pinhole and ``orthographic`` as a distant pinhole, each with one warning."""
+        """The first sensor becomes the default camera, as Mitsuba casts its rays:
+        ``perspective`` (every ``fov_axis``, ``focal_length``, film crops, principal point
+        offsets), ``thinlens`` (aperture disk, focus plane) and ``orthographic`` (extent = the
+        ``to_world`` scale), each with its near clip; a thin lens or an orthographic sensor warns
+        once that the ICB pipeline renders its pinhole (:meth:`Camera.pinhole`)."""
         from icbtool.camera import Camera
+        from icbtool.camera.camera import MITSUBA_NEAR_CLIP
 
         kind = node.attrs.get("type", "")
         if self.camera is not None:
@@ -1428,42 +1430,65 @@ class _Reader(_Materials):
         if np.linalg.det(r) < 0:
             repair_warning(node.where, "sensor to_world mirrors the image: rendered unmirrored")
             r[:, 0] = -r[:, 0]
-        origin = m[:3, 3].copy()
+        near, far = self.clip_range(node, props, MITSUBA_NEAR_CLIP)
+        lens: dict[str, Any] = {"near_clip": near}
         if kind == "orthographic":
-            # a pinhole far behind, seeing the orthographic view's width at the sensor's plane
-            half_w = float(norms[0])
-            back = _ORTHO_DISTANCE * half_w
-            origin = origin - back * r[:, 2]
-            fov_x = math.degrees(2 * math.atan(half_w / back))
-            repair_warning(
-                node.where,
-                f"orthographic sensor approximated by a pinhole {back:.4g} units behind it "
-                f"(rays within {math.degrees(math.atan(1 / _ORTHO_DISTANCE)):.2g} deg of "
-                "parallel; geometry behind the sensor can occlude)",
-            )
-            props.used.update(("fov", "fov_axis", "focal_length"))
+            # Mitsuba's camera space sees x in [-1, 1], y in [-1 / aspect, 1 / aspect] (full
+            # film), scaled by to_world; its rays start at z = near_clip before that scale
+            focal_x, focal_y = 0.5 * w / float(norms[0]), 0.5 * w / float(norms[1])
+            cx, cy = w / 2 - ox, h / 2 - oy
+            lens.update(projection="orthographic", near_clip=near * float(norms[2]))
         else:
             fov_x = self.fov_x(node, props, w / h)
-            if kind == "thinlens":
-                radius = self.float_(props, "aperture_radius", None)
-                repair_warning(
-                    node.where,
-                    f"thinlens sensor rendered as its pinhole (aperture_radius {radius}: no "
-                    "depth of field)",
-                )
-                props.used.add("focus_distance")
-        focal = 0.5 * w / math.tan(math.radians(fov_x) / 2)
-        ppx = float(self.float_(props, "principal_point_offset_x", 0.0))
-        ppy = float(self.float_(props, "principal_point_offset_y", 0.0))
-        cx, cy = w / 2 - ox - ppx * w, h / 2 - oy - ppy * h
+            focal_x = focal_y = 0.5 * w / math.tan(math.radians(fov_x) / 2)
+            cx, cy = w / 2 - ox, h / 2 - oy
+            if kind == "perspective":
+                ppx = float(self.float_(props, "principal_point_offset_x", 0.0))
+                ppy = float(self.float_(props, "principal_point_offset_y", 0.0))
+                cx, cy = cx - ppx * w, cy - ppy * h
+            else:
+                lens.update(self.thin_lens(node, props, far))
         pose = np.eye(4)
         pose[:3, 0], pose[:3, 1], pose[:3, 2] = -r[:, 0], -r[:, 1], r[:, 2]
-        pose[:3, 3] = origin
-        self.camera = Camera(ch, cw, focal, focal, cx, cy, pose)
+        pose[:3, 3] = m[:3, 3]
+        self.camera = Camera(ch, cw, focal_x, focal_y, cx, cy, pose, **lens)
+        if kind != "perspective":
+            repair_warning(
+                node.where,
+                f"{kind} sensor: `icbtool trace` renders it exactly; the ICB pipeline (G-buffers, "
+                "raster, warping, LPM) renders its pinhole",
+            )
         self.cam_up = r[:, 1]
         self.finish(node, props)
         if film is not None:
             self.finish(film, fp)
+
+    def clip_range(self, node: _Node, props: _Props, default_near: float) -> tuple[float, float]:
+        """(near_clip, far_clip) of a sensor, Mitsuba's defaults (0.01, 1e4) and checks."""
+        near = float(self.float_(props, "near_clip", default_near))
+        far = float(self.float_(props, "far_clip", 1e4))
+        if not (math.isfinite(near) and near > 0):
+            raise SceneError(f"{node.where}: near_clip must be > 0, got {near}")
+        if not near < far:
+            raise SceneError(f"{node.where}: near_clip ({near}) must be < far_clip ({far})")
+        return near, far
+
+    def thin_lens(self, node: _Node, props: _Props, far: float) -> dict[str, float]:
+        """``aperture_radius`` (required, as Mitsuba's) and ``focus_distance`` (default: the far
+        clip, as Mitsuba's) of a ``thinlens`` sensor; a bad value is an error naming its line."""
+        if "aperture_radius" not in props:
+            raise SceneError(f"{node.where}: a thinlens sensor needs 'aperture_radius'")
+        radius = float(self.float_(props, "aperture_radius", 0.0))
+        focus = float(self.float_(props, "focus_distance", far))
+        where = lambda k: self.where(props[k]) if k in props else node.where  # noqa: E731
+        if not (math.isfinite(radius) and radius >= 0):
+            raise SceneError(f"{where('aperture_radius')}: aperture_radius must be >= 0, got "
+                             f"{radius}")  # fmt: skip
+        if not (math.isfinite(focus) and focus > 0):
+            raise SceneError(f"{where('focus_distance')}: focus_distance must be > 0, got {focus}")
+        if radius == 0:
+            repair_warning(node.where, "thinlens aperture_radius 0: rendered as a pinhole")
+        return {"aperture_radius": radius, "focus_distance": focus}
 
     def film(self, film: _Node | None, fp: _Props) -> tuple[int, int, tuple[int, int, int, int]]:
         """(width, height, (crop width, crop height, crop offset x, crop offset y)) of a film

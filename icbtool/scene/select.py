@@ -82,7 +82,8 @@ def select_cameras(
         every: keep every K-th camera of a path (>= 1).
         height, width: output size. Given alone, the other side follows the camera's aspect
             ratio; with both, the view is resized to exactly that (the FOV follows the image).
-        fov_y_deg: replace the vertical field of view.
+        fov_y_deg: replace the vertical field of view (of an orthographic camera's
+            :meth:`~icbtool.camera.Camera.pinhole`).
 
     Returns:
         The (name, camera) pairs.
@@ -114,8 +115,8 @@ def select_cameras(
         raise ValueError(f"--camera must be 'default' or 'path:NAME', got {spec!r}")
     out = []
     for n, c in cams:
-        if fov_y_deg is not None:
-            c = c.with_fov(fov_y_deg)
+        if fov_y_deg is not None:  # an orthographic camera has none: its pinhole's changes
+            c = (c if c.projection == "perspective" else c.pinhole()).with_fov(fov_y_deg)
         if height is not None or width is not None:
             h = height or max(1, round(c.height * (width / c.width)))
             w = width or max(1, round(c.width * (height / c.height)))

@@ -177,7 +177,8 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
         out, acc, counts, log, part, queue, pix, sid, bounds: as ``trace_paths``.
     """
     rtc, fn_isect, fn_occl = p.embree
-    intr, r_wc, pos, width, jitter, edge_extra = p.cam
+    cam = p.cam
+    width, edge_extra = cam.width, cam.edge_extra
     sf = p.surf
     tri, fn, vn, face_mat, face_uv = sf.tri, sf.face_n, sf.vn, sf.face_mat, sf.face_uv
     mat_albedo, mat_emission = sf.mat_albedo, sf.mat_emission
@@ -223,12 +224,9 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
             if zshift >= 0:
                 zkey = _zkey(pix_x, pix_y, sid[s], log2spp, zshift)
             zk = (pixseed0, zkey, zshift)
-            dx, dy, dz = _camera_ray(
-                intr, r_wc, width, jitter, sampler, salts, pix[s], sid[s], pixel_seed, base, zk
+            ox, oy, oz, dx, dy, dz = _camera_ray(
+                cam, sampler, salts, pix[s], sid[s], pixel_seed, base, zk
             )
-            ox = np.float32(pos[0])
-            oy = np.float32(pos[1])
-            oz = np.float32(pos[2])
             w_seen = 1.0
             k_extra = edge_extra[pix[s]] if any_extra else 0
             if k_extra > 0:  # extra emission samples on an edge pixel (as trace_paths)
@@ -241,7 +239,7 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
                         jx = _u01(bj, salts[0])
                         jy = _u01(bj, salts[1])
                     le = _emission_through(
-                        rtc, fn_isect, ray, log, (ox, oy, oz), intr, r_wc,
+                        rtc, fn_isect, ray, log, cam,
                         np.float64(pix_x) + jx, np.float64(pix_y) + jy,
                         (fn, face_mat, mat_emission), (sky_kind, sky, env, rot, scale),
                     )  # fmt: skip

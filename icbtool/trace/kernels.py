@@ -748,8 +748,10 @@ def sky_radiance_batch(sk, d, out):
 EmbreeFns = namedtuple("EmbreeFns", ["scene", "fn_intersect", "fn_occluded"])
 #: Camera: (fx, fy, cx, cy), world_from_cam rotation (3, 3), centre (3,), image width, jitter
 #: (1: box-filter the pixel, 0: its centre), extra emission samples per sample of each pixel
-#: (N,) int32 (on the pixels an emitter's or the sky's edge crosses; empty: none anywhere).
-View = namedtuple("View", ["intr", "r_wc", "pos", "width", "jitter", "edge_extra"])
+#: (N,) int32 (on the pixels an emitter's or the sky's edge crosses; empty: none anywhere),
+#: kind (CAM_*), lens (3,) float64: aperture radius, focus distance, near clip (see
+#: :class:`icbtool.camera.Camera`; read unless kind is CAM_PINHOLE).
+View = namedtuple("View", ["intr", "r_wc", "pos", "width", "jitter", "edge_extra", "kind", "lens"])
 #: Surfaces: per face (F) float32 corners (F, 3, 3), geometric normal (F, 3), corner normals
 #: (F, 3, 3), material (F,), corner uvs (F, 3, 2); per material (M) albedo and emission (M, 3)
 #: float64, texture offset into the texels (-1: untextured) and (h, w); texels: uint8 codes into
@@ -813,6 +815,18 @@ PixelStats = namedtuple(
     ["lum_w", "n", "mean_g", "m2_g", "mean_d", "m2_d", "hit_sum", "alb_sum", "nrm_sum"],
 )
 
+#: Camera kinds: a pinhole (every ray from the centre), a perspective camera with a thin lens
+#: or a near clip (an origin per sample), an orthographic camera (an origin per image point).
+CAM_PINHOLE = 0
+CAM_PERSPECTIVE = 1
+CAM_ORTHOGRAPHIC = 2
+#: The lens sample's dimensions (independent sampler: LENS_DIM, LENS_DIM + 1; dimensions 2 .. 9
+#: are free, the first bounce starts at 2 + DIMS_PER_BOUNCE) and Sobol pair (pairs 1 .. 3 are
+#: free, the first bounce starts at 4): its own, so the aperture point correlates neither with
+#: the pixel jitter (dimensions 0 - 1, pair 0) nor with any vertex's numbers.
+LENS_DIM = 2
+LENS_PAIR = 1
+
 SKY_NONE = 0
 SKY_UNIFORM = 1
 SKY_GRADIENT = 2
@@ -835,10 +849,11 @@ EDGE_PAIR = SKY_PAIR0 + LD_MAX_DEPTH + 1
 
 # ---------------------------------------------------------------------------------- path steps
 @nb.njit(inline="always", **_JIT)
-def _camera_ray(intr, r_wc, width, jitter, sampler, salts, pix_s, sid_s, ps_pix, base_s, zk):
-    """Unit world direction of the camera ray through pixel ``pix_s`` (jittered or centred);
-    ``zk``: (zseed, zkey, zshift) of :func:`_ld2`."""
-    if jitter:
+def _camera_ray(cam, sampler, salts, pix_s, sid_s, ps_pix, base_s, zk):
+    """Float32 origin and unit world direction (ox, oy, oz, dx, dy, dz) of the camera ray of
+    sample ``sid_s`` through pixel ``pix_s`` (jittered or centred; a thin lens's from its own
+    lens sample); ``cam``: :data:`View`; ``zk``: (zseed, zkey, zshift) of :func:`_ld2`."""
+    if cam.jitter:
         if sampler == SAMPLER_SOBOL:
             jx, jy = _ld2(ps_pix, sid_s, 0, zk[0], zk[1], zk[2])
         else:
@@ -847,7 +862,63 @@ def _camera_ray(intr, r_wc, width, jitter, sampler, salts, pix_s, sid_s, ps_pix,
     else:
         jx = 0.5
         jy = 0.5
-    return _ray_through(intr, r_wc, np.float64(pix_s % width) + jx, np.float64(pix_s // width) + jy)
+    px = np.float64(pix_s % cam.width) + jx
+    py = np.float64(pix_s // cam.width) + jy
+    lu1 = 0.5
+    lu2 = 0.5
+    if cam.kind == CAM_PERSPECTIVE and cam.lens[0] > 0:
+        if sampler == SAMPLER_SOBOL:
+            lu1, lu2 = _ld2(ps_pix, sid_s, LENS_PAIR, zk[0], zk[1], zk[2])
+        else:
+            lu1 = _u01(base_s, salts[LENS_DIM])
+            lu2 = _u01(base_s, salts[LENS_DIM + 1])
+    return _point_ray(cam, px, py, lu1, lu2)
+
+
+@nb.njit(inline="always", **_JIT)
+def _point_ray(cam, px, py, lu1, lu2):
+    """Float32 origin and unit world direction of the camera ray through the image point
+    (px, py) (pixels, from the top-left corner) from the lens sample (lu1, lu2) (Mitsuba's
+    ``sample_ray``; see :class:`icbtool.camera.Camera`): a pinhole's from its centre, else
+    from its own origin on the near clip plane."""
+    pos = cam.pos
+    if cam.kind == CAM_PINHOLE:
+        dx, dy, dz = _ray_through(cam.intr, cam.r_wc, px, py)
+        return np.float32(pos[0]), np.float32(pos[1]), np.float32(pos[2]), dx, dy, dz
+    intr = cam.intr
+    r = cam.r_wc
+    x = (px - intr[2]) / intr[0]
+    y = (py - intr[3]) / intr[1]
+    near = cam.lens[2]
+    if cam.kind == CAM_ORTHOGRAPHIC:
+        ocx, ocy, ocz = x, y, near
+        dcx, dcy, dcz = 0.0, 0.0, 1.0
+    else:
+        ax = 0.0
+        ay = 0.0
+        rad = cam.lens[0]
+        if rad > 0:  # Mitsuba's camera x and y are icbtool's negated: so is its disk point
+            ux, uy = _concentric_disk(lu1, lu2)
+            ax = -rad * ux
+            ay = -rad * uy
+        fd = cam.lens[1]  # aim at the pinhole ray's point at depth fd
+        dcx = x * fd - ax
+        dcy = y * fd - ay
+        nrm = math.sqrt(dcx * dcx + dcy * dcy + fd * fd)
+        dcx /= nrm
+        dcy /= nrm
+        dcz = fd / nrm
+        t = near / dcz
+        ocx = ax + dcx * t
+        ocy = ay + dcy * t
+        ocz = dcz * t
+    ox = pos[0] + r[0, 0] * ocx + r[0, 1] * ocy + r[0, 2] * ocz
+    oy = pos[1] + r[1, 0] * ocx + r[1, 1] * ocy + r[1, 2] * ocz
+    oz = pos[2] + r[2, 0] * ocx + r[2, 1] * ocy + r[2, 2] * ocz
+    dx = r[0, 0] * dcx + r[0, 1] * dcy + r[0, 2] * dcz
+    dy = r[1, 0] * dcx + r[1, 1] * dcy + r[1, 2] * dcz
+    dz = r[2, 0] * dcx + r[2, 1] * dcy + r[2, 2] * dcz
+    return np.float32(ox), np.float32(oy), np.float32(oz), dx, dy, dz
 
 
 @nb.njit(inline="always", **_JIT)
@@ -895,14 +966,13 @@ def _emission_seen(
 
 
 @nb.njit(inline="always", **_JIT)
-def _emission_through(rtc, fn_isect, ray, log, p0, intr, r_wc, px, py, surf, sky_p):
-    """Emission seen (:func:`_emission_seen`) along the camera ray from the float32 origin
-    ``p0`` (3-tuple) through the image point (px, py): one closest hit, logged as a camera ray.
-    ``surf`` = (face normals, face materials, material emission), ``sky_p`` = the first five
-    fields of :data:`SkyParams`. Triangles only: :func:`_emission_through_all` sees the
+def _emission_through(rtc, fn_isect, ray, log, cam, px, py, surf, sky_p):
+    """Emission seen (:func:`_emission_seen`) along the camera ray of ``cam`` (:data:`View`,
+    the lens centre's) through the image point (px, py): one closest hit, logged as a camera
+    ray. ``surf`` = (face normals, face materials, material emission), ``sky_p`` = the first
+    five fields of :data:`SkyParams`. Triangles only: :func:`_emission_through_all` sees the
     analytic shapes too."""
-    ox, oy, oz = p0
-    dx, dy, dz = _ray_through(intr, r_wc, px, py)
+    ox, oy, oz, dx, dy, dz = _point_ray(cam, px, py, 0.5, 0.5)
     _log_ray(log, 0, ox, oy, oz, dx, dy, dz, np.float32(np.inf))
     dx32, dy32, dz32 = np.float32(dx), np.float32(dy), np.float32(dz)
     _, prim, _, _ = _intersect(rtc, fn_isect, ray, ox, oy, oz, dx32, dy32, dz32)
@@ -914,10 +984,9 @@ def _emission_through(rtc, fn_isect, ray, log, p0, intr, r_wc, px, py, surf, sky
 
 
 @nb.njit(inline="always", **_JIT)
-def _emission_through_all(rtc, fn_isect, ray, log, p0, intr, r_wc, px, py, surf, sky_p, shp):
+def _emission_through_all(rtc, fn_isect, ray, log, cam, px, py, surf, sky_p, shp):
     """:func:`_emission_through` among the triangles and the analytic shapes ``shp``."""
-    ox, oy, oz = p0
-    dx, dy, dz = _ray_through(intr, r_wc, px, py)
+    ox, oy, oz, dx, dy, dz = _point_ray(cam, px, py, 0.5, 0.5)
     _log_ray(log, 0, ox, oy, oz, dx, dy, dz, np.float32(np.inf))
     fn, face_mat, mat_emission = surf
     n_tri = fn.shape[0]
@@ -938,17 +1007,16 @@ def emission_at(p, lum_w, pts, out, lo, hi):
     the image points ``pts[lo:hi]`` ((N, 2) x, y in pixels) into ``out``: the tracer compares a
     pixel's four corners to find the pixels an emitter's or the sky's edge crosses."""
     rtc, fn_isect, _ = p.embree
-    intr, r_wc, pos = p.cam[:3]
+    cam = p.cam
     surf = (p.surf.face_n, p.surf.face_mat, p.surf.mat_emission)
     shp = p.surf.shapes
     pw, pf = _stack_words()
     ray = (pw, pf, np.int64(0), _address(pw))
     no_log = (np.zeros((1, 3), np.float32), np.zeros((1, 3), np.float32),
               np.zeros(1, np.float32), np.zeros(1, np.int8), np.zeros(1, np.int64))  # fmt: skip
-    p0 = (np.float32(pos[0]), np.float32(pos[1]), np.float32(pos[2]))
     for n in range(lo, hi):
         e0, e1, e2 = _emission_through_all(
-            rtc, fn_isect, ray, no_log, p0, intr, r_wc, pts[n, 0], pts[n, 1], surf, p.sky[:5], shp
+            rtc, fn_isect, ray, no_log, cam, pts[n, 0], pts[n, 1], surf, p.sky[:5], shp
         )
         out[n] = e0 * lum_w[0] + e1 * lum_w[1] + e2 * lum_w[2]
 
@@ -1319,7 +1387,8 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
     """
     # the struct's fields as locals, once (see the note above the shading helpers)
     rtc, fn_isect, fn_occl = p.embree
-    intr, r_wc, pos, width, jitter, edge_extra = p.cam
+    cam = p.cam
+    width, edge_extra = cam.width, cam.edge_extra
     sf = p.surf
     tri, fn, vn, face_mat, face_uv = sf.tri, sf.face_n, sf.vn, sf.face_mat, sf.face_uv
     mat_albedo, mat_emission = sf.mat_albedo, sf.mat_emission
@@ -1368,12 +1437,9 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
             if zshift >= 0:
                 zkey = _zkey(pix_x, pix_y, sid[s], log2spp, zshift)
             zk = (pixseed0, zkey, zshift)
-            dx, dy, dz = _camera_ray(
-                intr, r_wc, width, jitter, sampler, salts, pix[s], sid[s], pixel_seed, base_s, zk
+            ox, oy, oz, dx, dy, dz = _camera_ray(
+                cam, sampler, salts, pix[s], sid[s], pixel_seed, base_s, zk
             )
-            ox = np.float32(pos[0])
-            oy = np.float32(pos[1])
-            oz = np.float32(pos[2])
             # ---- extra emission samples on an edge pixel: the emission seen directly is the
             # mean over them and this path's camera ray (each uniform over the pixel: unbiased)
             w_seen = 1.0
@@ -1390,7 +1456,7 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
                     px = np.float64(pix_x) + jx
                     py = np.float64(pix_y) + jy
                     le = _emission_through_all(
-                        rtc, fn_isect, ray, log, (ox, oy, oz), intr, r_wc, px, py,
+                        rtc, fn_isect, ray, log, cam, px, py,
                         (fn, face_mat, mat_emission), (sky_kind, sky, env, rot, scale), shp,
                     )  # fmt: skip
                     n_prim += 1

@@ -26,6 +26,13 @@ light at the first hit, light from other emissive geometry, all light that bounc
 once) is ``gi``.
 Camera rays that miss: ``direct`` = sky radiance, ``gi`` = 0.
 
+Cameras (:class:`~icbtool.camera.Camera`, as Mitsuba 3's sensors): a pinhole's rays start at its
+centre; a thin lens's (``aperture_radius > 0``) from a point of its aperture disk drawn from a
+lens sample of its own (two dimensions, or one Sobol pair, that nothing else uses), aimed at the
+focus plane; an orthographic camera's parallel to its axis from its image plane; all of them, and
+a pinhole with a ``near_clip``, from where they cross the near clip plane. The rest of the ICB
+pipeline renders :meth:`~icbtool.camera.Camera.pinhole` of a camera.
+
 Depth convention (as Mitsuba's ``max_depth``): a path of ``k`` segments has depth ``k``; depth 1 is
 an emitter seen directly, depth 2 direct lighting; ``max_depth = -1`` is unbounded (Russian
 roulette ends paths; a hard cap of :data:`HARD_MAX_DEPTH` guards against hangs).
@@ -797,6 +804,14 @@ def _z_layout(cfg: TraceConfig, width: int, height: int) -> tuple[int, int]:
     return log2spp, 32 - used + log2split
 
 
+def _camera_kind(cam: Camera) -> int:
+    """The kernels' camera kind (``CAM_*`` of :mod:`icbtool.trace.kernels`) of ``cam``."""
+    K = _kernels()
+    if cam.projection == "orthographic":
+        return K.CAM_ORTHOGRAPHIC
+    return K.CAM_PINHOLE if cam.is_pinhole else K.CAM_PERSPECTIVE
+
+
 def _log2_splits(cfg: TraceConfig) -> int:
     """Bits of a branch's slot within its sample (``gi_splits`` rounded up to a power of 2)."""
     return (int(cfg.gi_splits) - 1).bit_length()
@@ -891,6 +906,9 @@ class _Tracer:
         if not cfg.pixel_jitter:
             st.skipped.append("edge samples: pixel_jitter=False (every sample sees the centre)")
             return None
+        if cam.aperture_radius > 0:
+            st.skipped.append("edge samples: a thin lens (the edges are blurred, not sharp)")
+            return None
         H, W = cam.height, cam.width
         probe = np.zeros((H + 1, W + 1), np.int32)  # corners to probe (> 0), painted by boxes
         anywhere = sd.sky is not None
@@ -943,6 +961,8 @@ class _Tracer:
                 int(cam.width),
                 int(bool(cfg.pixel_jitter)),
                 np.zeros(0, np.int32),  # edge_extra: set by _edge_extra
+                _camera_kind(cam),
+                np.array([cam.aperture_radius, cam.focus_distance, cam.near_clip], np.float64),
             ),
             K.Surfaces(
                 sd.k_tri,
