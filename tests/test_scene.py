@@ -350,6 +350,17 @@ def test_description_full(tmp_path):
     s2 = load(p, height=12, width=12, with_paths=False, scale=1.0)
     assert s2.default_camera.width == 12 and not s2.paths
     np.testing.assert_allclose(s2.bounds[1], [1.0, 1.9, 1.0])
+    assert s.default_camera.aperture_radius == 0 and s.default_camera.is_pinhole
+
+
+def test_description_thin_lens_focuses_on_the_target_by_default(tmp_path):
+    _write_obj(tmp_path)
+    cams = []
+    for lens in ("aperture_radius = 0.05", "aperture_radius = 0.05\nfocus_distance = 2.5"):
+        text = '[scene]\nmesh = "m.obj"\n[default_camera]\neye = [0, 3, 4]\ntarget = [0, 0, 0]\n'
+        cams.append(load(_desc(tmp_path, text + lens + "\n")).default_camera)
+    assert cams[0].aperture_radius == 0.05 and cams[0].focus_distance == pytest.approx(5.0)
+    assert cams[1].focus_distance == 2.5 and cams[1].pinhole().is_pinhole
 
 
 @pytest.mark.parametrize(
@@ -368,6 +379,11 @@ def test_description_full(tmp_path):
         ('[scene]\nmesh = "m.obj"\n[paths.x]\ntype = "teleport"\n', "needs a 'type'"),
         ("[scene]\nscale = 1.0\n", r"no mesh: give \[scene\] mesh"),
         ('[scene]\nmesh = "m.obj"\n[sky]\nzenith = [-1, 0, 0]\n', r"\[sky\]"),
+        (
+            '[scene]\nmesh = "m.obj"\n[default_camera]\neye = [0, 0, 5]\ntarget = [0, 0, 0]\n'
+            "aperture_radius = -0.1\n",
+            r"\[default_camera\]: Camera aperture_radius must be >= 0",
+        ),
         ("[scene\nmesh = 1\n", "not valid TOML"),
         ('[scene]\nmesh = "${ICBTOOL_TEST_UNSET_VAR}/m.obj"\n', "ICBTOOL_TEST_UNSET_VAR"),
     ],

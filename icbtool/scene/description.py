@@ -60,6 +60,8 @@ description file; ``${VAR}`` and ``${VAR:-default}`` expand environment variable
     [default_camera]                    # optional; also fov_y_deg, height, width, up
     eye = [-10.0, 1.8, 0.0]
     target = [10.0, 4.0, 0.0]
+    # a thin lens (depth of field in `icbtool trace`; the ICB pipeline renders its pinhole):
+    # aperture_radius = 0.05 (world units), focus_distance (default: the target's depth)
 
     [paths.train]                       # any number of named paths; type: flythrough | orbit |
     type = "flythrough"                 #   random_walk; each may set fov_y_deg, image_height,
@@ -117,7 +119,9 @@ _TOP_KEYS = {"scene", "meshes", "camera", "lights", "sky", "default_camera", "pa
 _LIGHT_KEYS = {kind: light_parameters(kind) for kind in LIGHT_TYPES}
 _SKY_KEYS = {"type", "zenith", "horizon", "ground", "up"}
 _ENVMAP_KEYS = {"type", "map", "scale", "rotation"}
-_DEFAULT_CAMERA_KEYS = {"eye", "target", "up"} | _CAMERA_KEYS
+#: A thin lens (rendered by icbtool trace; the ICB pipeline renders its pinhole).
+_LENS_KEYS = {"aperture_radius", "focus_distance"}
+_DEFAULT_CAMERA_KEYS = {"eye", "target", "up"} | _CAMERA_KEYS | _LENS_KEYS
 #: Per-path intrinsics keys (``height`` is an orbit parameter, so image sizes are spelled out).
 _PATH_CAMERA_KEYS = {"fov_y_deg": "fov_y_deg", "image_height": "height", "image_width": "width"}
 _PATH_KEYS = {
@@ -596,9 +600,17 @@ def _default_camera(spec: dict, intr: Intrinsics, size_override: dict, where: st
     cam = _intr_for(spec, intr, size_override, where, "[default_camera]", keys)
     try:
         pose = look_at_pose(spec["eye"], spec["target"], spec.get("up", (0.0, 1.0, 0.0)))
+        cam = cam.with_pose(pose)
+        if "aperture_radius" in spec or "focus_distance" in spec:
+            target_depth = float(np.linalg.norm(np.subtract(spec["target"], spec["eye"])))
+            cam = dataclasses.replace(
+                cam,
+                aperture_radius=float(spec.get("aperture_radius", 0.0)),
+                focus_distance=float(spec.get("focus_distance", target_depth)),
+            )
     except (ValueError, TypeError) as e:
         raise SceneError(f"{where}: [default_camera]: {e}") from None
-    return cam.with_pose(pose)
+    return cam
 
 
 def _build_path(scene: Scene, pname: str, spec: dict, intr, size_override: dict, where: str):
