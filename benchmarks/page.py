@@ -1454,6 +1454,30 @@ TRACE_SPEED_WALL = {
 }
 
 
+def block_trace_cameras(results: Path) -> str:
+    d = load("trace/cameras.json", results)
+    a, s = d["args"], d["summary"]
+    loads = d["load_1min"]
+    lines = [
+        "**Camera models** (`benchmarks.trace_cameras`): the Cornell box through the scene's "
+        "pinhole, a thin lens focused\non the box's centre (aperture 5 % of that distance) and an "
+        "orthographic camera framing the box, alternating in\none process; median rays per "
+        "second of process CPU time and median per-round ratio to the pinhole (the views\n"
+        "differ, so the ratio bounds the camera's cost rather than isolating it), "
+        f"{a['size']}^2, {a['spp']} spp, {a['threads']} thread(s),\n{a['rounds']} rounds, "
+        f"1-minute load {min(loads):.1f}-{max(loads):.1f}.",
+        "",
+        "| camera | Mrays / CPU s | ratio to pinhole | rays per render |",
+        "|---|---|---|---|",
+    ]
+    for name, row in s.items():
+        lines.append(
+            f"| {name} | {row['median_mrays_per_cpu_s']:.3f} | "
+            f"{row['median_cpu_ratio_to_pinhole']:.3f} | {row['rays_per_render']} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def block_trace_speed(results: Path) -> str:
     lines = [
         "**Tracer speed changes** (`benchmarks.trace_ab`, paired A/B: one process per "
@@ -2178,6 +2202,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "trace-time-error": block_trace_time_error,
     "trace-profile": block_trace_profile,
     "trace-speed": block_trace_speed,
+    "trace-cameras": block_trace_cameras,
     "denoise": block_denoise,
     "store": block_store,
     "warp": block_warp,
@@ -2214,6 +2239,7 @@ OWNERS: dict[str, str] = {
     "trace-time-error": "trace_time_error",
     "trace-profile": "trace_profile",
     "trace-speed": "trace_ab",
+    "trace-cameras": "trace_cameras",
     "denoise": "denoise_quality",
     "store": "store_bench",
     "warp": "warp_bench",

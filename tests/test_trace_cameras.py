@@ -137,7 +137,7 @@ def test_pipeline_gets_the_pinhole_and_dicts_round_trip():
 
 
 # ------------------------------------------------------------------ the tracer's camera rays
-@pytest.mark.parametrize("sampler", ["independent", "sobol"])
+@pytest.mark.parametrize("sampler", ["independent", "sobol", "zsobol"])
 def test_traced_lens_rays_fill_the_aperture_uniformly(sampler):
     """The kernel's camera rays (ray log): start on the near plane, come from the aperture disk
     (uniform: E|a|^2 = r^2 / 2), aim at the focus plane inside the image, and the aperture
