@@ -64,6 +64,34 @@ def test_fresnel_at_normal_incidence_and_total_internal_reflection():
     assert bs.fresnel_conductor(0.3, 0.0, 1.0) == pytest.approx(1.0)
 
 
+def test_microfacet_sampling_is_mitsubas_visible_normal_sampling():
+    """Beckmann normals equal Mitsuba 3's ``sample_visible`` draws sample for sample (the same
+    inversion), and both distributions' densities equal Mitsuba's ``pdf`` (GGX is drawn by a
+    different mapping of the same distribution)."""
+    mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is the tracer's peer (make install)")
+    from icbtool.trace import bsdfs as bs
+
+    mi.set_variant("scalar_rgb")
+    rng = np.random.default_rng(1)
+    for kind, ggx in ((mi.MicrofacetType.Beckmann, False), (mi.MicrofacetType.GGX, True)):
+        for au, av in ((0.3, 0.3), (0.1, 0.5)):
+            d = mi.MicrofacetDistribution(kind, au, av, True)
+            for _ in range(100):
+                ct = rng.uniform(0.05, 1.0)
+                ph = rng.uniform(0, 2 * math.pi)
+                st = math.sqrt(1 - ct * ct)
+                wi = (st * math.cos(ph), st * math.sin(ph), ct)
+                u = rng.random(2)
+                mx, my, mz, pdf = bs.mf_sample(ggx, au, av, *wi, *u)
+                if not ggx:
+                    m_ref, _ = d.sample(mi.Vector3f(wi), mi.Point2f(u))
+                    np.testing.assert_allclose([mx, my, mz], np.array(m_ref), atol=1e-5)
+                ref = float(d.pdf(mi.Vector3f(wi), mi.Vector3f(mx, my, mz)))
+                assert pdf == pytest.approx(ref, rel=1e-3), (kind, au, av, wi, u)
+    assert bs.erfinv(0.5) == pytest.approx(0.4769362762044699, rel=1e-14)
+    assert bs.erfinv(-(1 - 1e-12)) == pytest.approx(-5.042031898572696, rel=1e-10)
+
+
 def _batch(name, wi_z, n=200_000, seed=0):
     from icbtool.trace import bsdfs as bs
 

@@ -14,9 +14,10 @@ conductor, Egan-Hilgeman / d'Eon-Irving diffuse Fresnel), Smith G1 (Beckmann's r
 GGX exact), ``plastic``'s and ``roughplastic``'s internal scattering (``nonlinear``) and lobe
 probabilities, ``dielectric``'s radiance scaling by 1 / eta^2 on refraction, ``thindielectric``'s
 series of inter-reflections, ``blendbsdf``'s mixture density. Microfacet normals are drawn from
-the visible-normal distribution for GGX (Heitz 2018) and from D(m) cos(m) for Beckmann: a
-different (valid) importance sampling than Mitsuba's Beckmann VNDF (noisier at grazing angles
-and for sharp anisotropic lobes), so images agree in expectation, not sample for sample.
+the distribution of normals visible from wi, with Mitsuba's density: for Beckmann by Mitsuba's
+own numerical inversion, for GGX by Heitz 2018's hemisphere projection (Mitsuba uses Heitz
+2014's slope mapping: the same distribution), so images agree in expectation, not sample for
+sample.
 
 ``normalmap`` and ``bumpmap`` nodes (at a material's root or as a ``twosided`` side) tilt the
 local frame as Mitsuba 3.9 does (:func:`map_frame`, Estevez et al.'s shadowing term); the
@@ -83,41 +84,59 @@ def _texel3(texels, p):
     return np.float64(texels[p]), np.float64(texels[p + 1]), np.float64(texels[p + 2])
 
 
+@nb.njit(inline="always", **_JIT)
+def _tex_uv(tf, t, uu, vv):
+    """Mitsuba's uv of texture ``t`` (its ``to_uv`` applied) at the scene uv (v = 1 - vv)."""
+    vm = 1.0 - vv
+    return tf[t, 0] * uu + tf[t, 1] * vm + tf[t, 2], tf[t, 3] * uu + tf[t, 4] * vm + tf[t, 5]
+
+
+@nb.njit(inline="always", **_JIT)
+def _cell(ti, t, u, v):
+    """The bilinear cell of bitmap ``t`` at uv (u, v), repeated: the flat texel offsets of its
+    corners (x0 y0, x1 y0, x0 y1, x1 y1) and the weights (fx, fy) of x1 and y1."""
+    off = ti[t, 0]
+    th = ti[t, 1]
+    tw = ti[t, 2]
+    xx = u * tw - 0.5
+    yy = v * th - 0.5
+    fx0 = math.floor(xx)
+    fy0 = math.floor(yy)
+    xa = np.int64(fx0) % tw
+    ya = np.int64(fy0) % th
+    xb = xa + 1 if xa + 1 < tw else 0
+    yb = ya + 1 if ya + 1 < th else 0
+    corners = (
+        off + (ya * tw + xa) * 3,
+        off + (ya * tw + xb) * 3,
+        off + (yb * tw + xa) * 3,
+        off + (yb * tw + xb) * 3,
+    )
+    return corners, xx - fx0, yy - fy0
+
+
 @nb.njit(**_JIT)
 def tex_eval(tk, tf, ti, texels, t, uu, vv, nearest_default):
     """Texture ``t`` at the scene uv (uu, vv) (v up; Mitsuba's v = 1 - vv): (r, g, b)."""
-    um = uu
-    vm = 1.0 - vv
-    u = tf[t, 0] * um + tf[t, 1] * vm + tf[t, 2]
-    v = tf[t, 3] * um + tf[t, 4] * vm + tf[t, 5]
+    u, v = _tex_uv(tf, t, uu, vv)
     if tk[t] == TEX_CHECKER:
         mx = (u - math.floor(u)) > 0.5
         my = (v - math.floor(v)) > 0.5
         if mx == my:
             return tf[t, 6], tf[t, 7], tf[t, 8]
         return tf[t, 9], tf[t, 10], tf[t, 11]
-    off = ti[t, 0]
-    th = ti[t, 1]
-    tw = ti[t, 2]
     nearest = ti[t, 3] if ti[t, 3] >= 0 else nearest_default
     if nearest:
+        th = ti[t, 1]
+        tw = ti[t, 2]
         xi = np.int64(math.floor(u * tw)) % tw
         yi = np.int64(math.floor(v * th)) % th
-        return _texel3(texels, off + (yi * tw + xi) * 3)
-    xx = u * tw - 0.5
-    yy = v * th - 0.5
-    fx0 = math.floor(xx)
-    fy0 = math.floor(yy)
-    fx = xx - fx0
-    fy = yy - fy0
-    xa = np.int64(fx0) % tw
-    ya = np.int64(fy0) % th
-    xb = xa + 1 if xa + 1 < tw else 0
-    yb = ya + 1 if ya + 1 < th else 0
-    a = _texel3(texels, off + (ya * tw + xa) * 3)
-    b = _texel3(texels, off + (ya * tw + xb) * 3)
-    c = _texel3(texels, off + (yb * tw + xa) * 3)
-    d = _texel3(texels, off + (yb * tw + xb) * 3)
+        return _texel3(texels, ti[t, 0] + (yi * tw + xi) * 3)
+    (pa, pb, pc, pd), fx, fy = _cell(ti, t, u, v)
+    a = _texel3(texels, pa)
+    b = _texel3(texels, pb)
+    c = _texel3(texels, pc)
+    d = _texel3(texels, pd)
     ga = (1 - fy) * (1 - fx)
     gb = (1 - fy) * fx
     gc = fy * (1 - fx)
@@ -169,29 +188,16 @@ def tex_grad1(tk, tf, ti, texels, t, uu, vv):
     nearest-filtered bitmap or a checkerboard."""
     if tk[t] != TEX_BITMAP or ti[t, 3] == 1:
         return 0.0, 0.0
-    um = uu
-    vm = 1.0 - vv
-    u = tf[t, 0] * um + tf[t, 1] * vm + tf[t, 2]
-    v = tf[t, 3] * um + tf[t, 4] * vm + tf[t, 5]
-    off = ti[t, 0]
-    th = ti[t, 1]
-    tw = ti[t, 2]
-    xx = u * tw - 0.5
-    yy = v * th - 0.5
-    fx0 = math.floor(xx)
-    fy0 = math.floor(yy)
-    w1x = xx - fx0
-    w1y = yy - fy0
-    xa = np.int64(fx0) % tw
-    ya = np.int64(fy0) % th
-    xb = xa + 1 if xa + 1 < tw else 0
-    yb = ya + 1 if ya + 1 < th else 0
-    f00 = _lum(texels, off + (ya * tw + xa) * 3)
-    f10 = _lum(texels, off + (ya * tw + xb) * 3)
-    f01 = _lum(texels, off + (yb * tw + xa) * 3)
-    f11 = _lum(texels, off + (yb * tw + xb) * 3)
+    u, v = _tex_uv(tf, t, uu, vv)
+    (p00, p10, p01, p11), w1x, w1y = _cell(ti, t, u, v)
+    f00 = _lum(texels, p00)
+    f10 = _lum(texels, p10)
+    f01 = _lum(texels, p01)
+    f11 = _lum(texels, p11)
     dfx = (1.0 - w1y) * (f10 - f00) + w1y * (f11 - f01)
     dfy = (1.0 - w1x) * (f01 - f00) + w1x * (f11 - f10)
+    tw = ti[t, 2]
+    th = ti[t, 1]
     return tw * (tf[t, 0] * dfx + tf[t, 3] * dfy), th * (tf[t, 1] * dfx + tf[t, 4] * dfy)
 
 
@@ -283,19 +289,74 @@ def mf_g1(ggx, au, av, vx, vy, vz, mx, my, mz):
     return (3.535 * a + 2.181 * a * a) / (1.0 + 2.276 * a + 2.577 * a * a)
 
 
+_INV_SQRT_PI = 1.0 / math.sqrt(math.pi)
+
+
+@nb.njit(**_JIT)
+def erfinv(x):
+    """Inverse error function on (-1, 1): Giles' (2010) approximation refined by three Newton
+    steps (on erf, or on log(erfc) near +-1): double precision; +-inf at +-1."""
+    if x <= -1.0 or x >= 1.0:
+        return math.copysign(math.inf, x)
+    a = abs(x)
+    w = -math.log((1.0 - a) * (1.0 + a))
+    if w < 5.0:
+        w -= 2.5
+        p = 2.81022636e-08
+        for c in (3.43273939e-07, -3.5233877e-06, -4.39150654e-06, 0.00021858087,
+                  -0.00125372503, -0.00417768164, 0.246640727, 1.50140941):  # fmt: skip
+            p = c + p * w
+    else:
+        w = math.sqrt(w) - 3.0
+        p = -0.000200214257
+        for c in (0.000100950558, 0.00134934322, -0.00367342844, 0.00573950773,
+                  -0.0076224613, 0.00943887047, 1.00167406, 2.83297682):  # fmt: skip
+            p = c + p * w
+    y = p * a
+    for _ in range(3):
+        d = 2.0 * _INV_SQRT_PI * math.exp(-y * y)
+        if a < 0.5:
+            y -= (math.erf(y) - a) / d
+        else:  # on log(erfc): no cancellation near 1, nearly linear in the tail
+            c = math.erfc(y)
+            y += (math.log(c) - math.log1p(-a)) * c / d
+    return math.copysign(y, x)
+
+
+@nb.njit(**_JIT)
+def _beckmann_slopes_11(cos_i, u1, u2):
+    """Slopes of a Beckmann (alpha 1) normal visible from the direction with cosine cos_i (> 0):
+    the CDF inverted numerically in the erf domain as Mitsuba does (an analytic start and three
+    Newton steps, Jakob 2014)."""
+    tan_i = math.sqrt(max(1.0 - cos_i * cos_i, 0.0)) / cos_i
+    cot_i = 1.0 / tan_i
+    top = math.erf(cot_i)
+    u1 = min(max(u1, 1e-6), 1.0 - 1e-6)
+    u2 = min(max(u2, 1e-6), 1.0 - 1e-6)
+    x = top - (top + 1.0) * math.erf(math.sqrt(-math.log(u1)))
+    target = u1 * (1.0 + top + _INV_SQRT_PI * tan_i * math.exp(-cot_i * cot_i))
+    for _ in range(3):
+        slope = erfinv(x)
+        x -= (1.0 + x + _INV_SQRT_PI * tan_i * math.exp(-slope * slope) - target) / (
+            1.0 - slope * tan_i
+        )
+    return erfinv(x), erfinv(2.0 * u2 - 1.0)
+
+
 @nb.njit(**_JIT)
 def mf_sample(ggx, au, av, wx, wy, wz, u1, u2):
-    """A microfacet normal for the direction w (upper hemisphere) and its density: GGX from the
-    normals visible from w (Heitz 2018), Beckmann from D(m) cos(m). (mx, my, mz, pdf)."""
+    """A microfacet normal visible from the direction w (upper hemisphere) and its density
+    (Mitsuba's ``sample_visible``): GGX by Heitz 2018's hemisphere projection, Beckmann by
+    Mitsuba's stretch, 1D slope inversion, rotation and unstretch. (mx, my, mz, pdf)."""
+    vx = au * wx
+    vy = av * wy
+    vz = wz
+    ln = math.sqrt(vx * vx + vy * vy + vz * vz)
+    vx /= ln
+    vy /= ln
+    vz /= ln
+    lensq = vx * vx + vy * vy
     if ggx:
-        vx = au * wx
-        vy = av * wy
-        vz = wz
-        ln = math.sqrt(vx * vx + vy * vy + vz * vz)
-        vx /= ln
-        vy /= ln
-        vz /= ln
-        lensq = vx * vx + vy * vy
         if lensq > 0:
             il = 1.0 / math.sqrt(lensq)
             t1x, t1y, t1z = -vy * il, vx * il, 0.0
@@ -317,10 +378,16 @@ def mf_sample(ggx, au, av, wx, wy, wz, u1, u2):
         mx = au * nx
         my = av * ny
         mz = max(nz, 1e-9)
-    else:  # Beckmann: slopes from the (stretched Gaussian) slope distribution, density D cos
-        rr = math.sqrt(-math.log(max(1.0 - u1, 1e-300)))
-        phi = 2.0 * _PI * u2
-        mx, my, mz = -au * rr * math.cos(phi), -av * rr * math.sin(phi), 1.0
+    else:
+        if lensq > 0:
+            il = 1.0 / math.sqrt(lensq)
+            cp, sp = vx * il, vy * il
+        else:
+            cp, sp = 1.0, 0.0
+        sx, sy = _beckmann_slopes_11(vz, u1, u2)
+        mx = -(cp * sx - sp * sy) * au
+        my = -(sp * sx + cp * sy) * av
+        mz = 1.0
     ln = math.sqrt(mx * mx + my * my + mz * mz)
     mx /= ln
     my /= ln
@@ -330,15 +397,48 @@ def mf_sample(ggx, au, av, wx, wy, wz, u1, u2):
 
 @nb.njit(**_JIT)
 def mf_pdf(ggx, au, av, wx, wy, wz, mx, my, mz):
-    """Density of :func:`mf_sample`'s normal m for the direction w (upper hemisphere)."""
+    """Density of :func:`mf_sample`'s normal m for the direction w (upper hemisphere): the
+    visible-normal density D(m) G1(w, m) |w.m| / cos(w)."""
+    if wz <= 0:
+        return 0.0
     d = mf_d(ggx, au, av, mx, my, mz)
-    if ggx:
-        if wz <= 0:
-            return 0.0
-        return (
-            d * mf_g1(ggx, au, av, wx, wy, wz, mx, my, mz) * abs(wx * mx + wy * my + wz * mz) / wz
-        )
-    return d * mz
+    return d * mf_g1(ggx, au, av, wx, wy, wz, mx, my, mz) * abs(wx * mx + wy * my + wz * mz) / wz
+
+
+@nb.njit(inline="always", **_JIT)
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@nb.njit(inline="always", **_JIT)
+def _half(a, b, k):
+    """The unit normal along a + k b (the reflection half-vector for k = 1, the refraction one
+    for k = eta), on the upper side: (ok, m)."""
+    mx = a[0] + b[0] * k
+    my = a[1] + b[1] * k
+    mz = a[2] + b[2] * k
+    ln = math.sqrt(mx * mx + my * my + mz * mz)
+    if ln == 0:
+        return False, (0.0, 0.0, 1.0)
+    if mz < 0:
+        ln = -ln
+    return True, (mx / ln, my / ln, mz / ln)
+
+
+@nb.njit(inline="always", **_JIT)
+def _reflect(w, m):
+    """w mirrored about the normal m."""
+    d = 2.0 * (w[0] * m[0] + w[1] * m[1] + w[2] * m[2])
+    return d * m[0] - w[0], d * m[1] - w[1], d * m[2] - w[2]
+
+
+@nb.njit(inline="always", **_JIT)
+def _dg(ggx, au, av, wi, wo, m):
+    """D(m) G1(wi, m) G1(wo, m): the microfacet terms every rough BSDF shares."""
+    d = mf_d(ggx, au, av, m[0], m[1], m[2])
+    gi = mf_g1(ggx, au, av, wi[0], wi[1], wi[2], m[0], m[1], m[2])
+    go = mf_g1(ggx, au, av, wo[0], wo[1], wo[2], m[0], m[1], m[2])
+    return d, gi * go
 
 
 # ---------------------------------------------------------------------------------- lobes
@@ -406,18 +506,9 @@ def leaf_eval(B, node, uu, vv, nearest, wi, wo):
         eta = B.nf[node, 0]
         ggx = B.nf[node, 5] != 0
         a = max(B.nf[node, 7], 1e-4)
-        hx = wi[0] + wo[0]
-        hy = wi[1] + wo[1]
-        hz = wi[2] + wo[2]
-        ln = math.sqrt(hx * hx + hy * hy + hz * hz)
-        hx /= ln
-        hy /= ln
-        hz /= ln
-        D = mf_d(ggx, a, a, hx, hy, hz)
-        F = fresnel(wi[0] * hx + wi[1] * hy + wi[2] * hz, eta)[0]
-        G = mf_g1(ggx, a, a, wi[0], wi[1], wi[2], hx, hy, hz) * mf_g1(
-            ggx, a, a, wo[0], wo[1], wo[2], hx, hy, hz
-        )
+        _, h = _half(wi, wo, 1.0)
+        D, G = _dg(ggx, a, a, wi, wo, h)
+        F = fresnel(_dot(wi, h), eta)[0]
         spec = F * D * G / (4.0 * ci)
         s = value(B, node, 1, uu, vv, nearest)
         t_i = _rough_t(B, node, ci)
@@ -434,41 +525,28 @@ def leaf_eval(B, node, uu, vv, nearest, wi, wo):
         pd = t_i * (1.0 - sw)
         ps = ps / (ps + pd)
         pd = 1.0 - ps
-        pdf = (
-            ps
-            * mf_pdf(ggx, a, a, wi[0], wi[1], wi[2], hx, hy, hz)
-            / (4.0 * (wo[0] * hx + wo[1] * hy + wo[2] * hz))
-            + pd * co * _INV_PI
-        )
+        pm = mf_pdf(ggx, a, a, wi[0], wi[1], wi[2], h[0], h[1], h[2])
+        pdf = ps * pm / (4.0 * _dot(wo, h)) + pd * co * _INV_PI
         return out0, out1, out2, pdf
     if typ == ROUGHCONDUCTOR:
         if not (ci > 0 and co > 0):
             return 0.0, 0.0, 0.0, 0.0
         ggx = B.nf[node, 6] != 0
         au, av = _alpha_uv(B, node, uu, vv, nearest)
-        hx = wi[0] + wo[0]
-        hy = wi[1] + wo[1]
-        hz = wi[2] + wo[2]
-        ln = math.sqrt(hx * hx + hy * hy + hz * hz)
-        hx /= ln
-        hy /= ln
-        hz /= ln
-        D = mf_d(ggx, au, av, hx, hy, hz)
+        _, h = _half(wi, wo, 1.0)
+        D, G = _dg(ggx, au, av, wi, wo, h)
         if D == 0:
             return 0.0, 0.0, 0.0, 0.0
-        G = mf_g1(ggx, au, av, wi[0], wi[1], wi[2], hx, hy, hz) * mf_g1(
-            ggx, au, av, wo[0], wo[1], wo[2], hx, hy, hz
-        )
         base = D * G / (4.0 * ci)
-        cih = wi[0] * hx + wi[1] * hy + wi[2] * hz
-        coh = wo[0] * hx + wo[1] * hy + wo[2] * hz
+        cih = _dot(wi, h)
+        coh = _dot(wo, h)
         s = value(B, node, 1, uu, vv, nearest)
         f0 = fresnel_conductor(cih, B.nf[node, 0], B.nf[node, 3])
         f1 = fresnel_conductor(cih, B.nf[node, 1], B.nf[node, 4])
         f2 = fresnel_conductor(cih, B.nf[node, 2], B.nf[node, 5])
         pdf = 0.0
         if cih > 0 and coh > 0:
-            pdf = mf_pdf(ggx, au, av, wi[0], wi[1], wi[2], hx, hy, hz) / (4.0 * coh)
+            pdf = mf_pdf(ggx, au, av, wi[0], wi[1], wi[2], h[0], h[1], h[2]) / (4.0 * coh)
         return base * f0 * s[0], base * f1 * s[1], base * f2 * s[2], pdf
     if typ == ROUGHDIELECTRIC:
         return _rough_dielectric_eval(B, node, uu, vv, nearest, wi, wo)
@@ -487,24 +565,13 @@ def _rough_dielectric_eval(B, node, uu, vv, nearest, wi, wo):
     refl = ci * co > 0
     eta = eta0 if ci > 0 else 1.0 / eta0
     inv_eta = 1.0 / eta
-    k = 1.0 if refl else eta
-    mx = wi[0] + wo[0] * k
-    my = wi[1] + wo[1] * k
-    mz = wi[2] + wo[2] * k
-    ln = math.sqrt(mx * mx + my * my + mz * mz)
-    if ln == 0:
+    ok, m = _half(wi, wo, 1.0 if refl else eta)
+    if not ok:
         return 0.0, 0.0, 0.0, 0.0
-    sg = 1.0 if mz >= 0 else -1.0
-    mx = mx / ln * sg
-    my = my / ln * sg
-    mz = mz / ln * sg
-    D = mf_d(ggx, au, av, mx, my, mz)
-    cim = wi[0] * mx + wi[1] * my + wi[2] * mz
-    com = wo[0] * mx + wo[1] * my + wo[2] * mz
+    D, G = _dg(ggx, au, av, wi, wo, m)
+    cim = _dot(wi, m)
+    com = _dot(wo, m)
     F = fresnel(cim, eta0)[0]
-    G = mf_g1(ggx, au, av, wi[0], wi[1], wi[2], mx, my, mz) * mf_g1(
-        ggx, au, av, wo[0], wo[1], wo[2], mx, my, mz
-    )
     # density (Mitsuba's roughdielectric::pdf)
     pdf = 0.0
     if cim * ci > 0 and com * co > 0:
@@ -514,7 +581,7 @@ def _rough_dielectric_eval(B, node, uu, vv, nearest, wi, wo):
             den = cim + eta * com
             dwh = eta * eta * com / (den * den)
         sgi = 1.0 if ci >= 0 else -1.0
-        pm = mf_pdf(ggx, au, av, wi[0] * sgi, wi[1] * sgi, wi[2] * sgi, mx, my, mz)
+        pm = mf_pdf(ggx, au, av, wi[0] * sgi, wi[1] * sgi, wi[2] * sgi, m[0], m[1], m[2])
         pdf = abs(pm * (F if refl else 1.0 - F) * dwh)
     if refl:
         v = F * D * G / (4.0 * abs(ci))
@@ -579,8 +646,7 @@ def leaf_sample(B, node, uu, vv, nearest, wi, u0, u1, u2):
         if u0 < ps:
             a = max(B.nf[node, 7], 1e-4)
             mx, my, mz, _ = mf_sample(B.nf[node, 5] != 0, a, a, wi[0], wi[1], wi[2], u1, u2)
-            d = wi[0] * mx + wi[1] * my + wi[2] * mz
-            wo = (2 * d * mx - wi[0], 2 * d * my - wi[1], 2 * d * mz - wi[2])
+            wo = _reflect(wi, (mx, my, mz))
         else:
             wo = _cos_hemi(u1, u2)
         return _weighted(B, node, uu, vv, nearest, wi, wo)
@@ -589,8 +655,7 @@ def leaf_sample(B, node, uu, vv, nearest, wi, u0, u1, u2):
             return False, zero, zero, 0.0, False
         au, av = _alpha_uv(B, node, uu, vv, nearest)
         mx, my, mz, _ = mf_sample(B.nf[node, 6] != 0, au, av, wi[0], wi[1], wi[2], u1, u2)
-        d = wi[0] * mx + wi[1] * my + wi[2] * mz
-        wo = (2 * d * mx - wi[0], 2 * d * my - wi[1], 2 * d * mz - wi[2])
+        wo = _reflect(wi, (mx, my, mz))
         return _weighted(B, node, uu, vv, nearest, wi, wo)
     if typ == DIELECTRIC:
         if ci == 0:
@@ -626,7 +691,7 @@ def leaf_sample(B, node, uu, vv, nearest, wi, u0, u1, u2):
         cim = wi[0] * mx + wi[1] * my + wi[2] * mz
         F, cos_t, eta_it, eta_ti = fresnel(cim, eta0)
         if u0 <= F:
-            wo = (2 * cim * mx - wi[0], 2 * cim * my - wi[1], 2 * cim * mz - wi[2])
+            wo = _reflect(wi, (mx, my, mz))
         else:
             k = cim * eta_ti + cos_t
             wo = (mx * k - wi[0] * eta_ti, my * k - wi[1] * eta_ti, mz * k - wi[2] * eta_ti)
@@ -760,11 +825,6 @@ def leaf_of(B, root):
 
 
 @nb.njit(inline="always", **_JIT)
-def _dot(a, b):
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-@nb.njit(inline="always", **_JIT)
 def _to_frame(fr, v):
     return _dot(fr[0], v), _dot(fr[1], v), _dot(fr[2], v)
 
@@ -808,12 +868,7 @@ def map_frame(B, node, uu, vv, nearest, geo, wi):
         nz = ax * by - ay * bx
         if ng[0] * nx + ng[1] * ny + ng[2] * nz < 0:
             nx, ny, nz = -nx, -ny, -nz
-    ln = math.sqrt(nx * nx + ny * ny + nz * nz)
-    if not ln > 0:
-        return False, _IDENTITY
-    nx /= ln
-    ny /= ln
-    nz /= ln
+    ok_n, (nx, ny, nz) = _unit(nx, ny, nz)
     if B.nf[node, 1] != 0 and wi[2] * (wi[0] * nx + wi[1] * ny + wi[2] * nz) <= 0:
         nx, ny = -nx, -ny
     if B.nt[node] == NORMALMAP:
@@ -822,15 +877,20 @@ def map_frame(B, node, uu, vv, nearest, geo, wi):
         d = geo[3]
         p = nx * d[0] + ny * d[1] + nz * d[2]
         sx, sy, sz = d[0] - nx * p, d[1] - ny * p, d[2] - nz * p
-    ls = math.sqrt(sx * sx + sy * sy + sz * sz)
-    if not ls > 0:
+    ok_s, s = _unit(sx, sy, sz)
+    if not (ok_n and ok_s):
         return False, _IDENTITY
-    sx /= ls
-    sy /= ls
-    sz /= ls
-    n = (nx, ny, nz)
-    s = (sx, sy, sz)
-    return True, (s, (ny * sz - nz * sy, nz * sx - nx * sz, nx * sy - ny * sx), n)
+    sx, sy, sz = s
+    return True, (s, (ny * sz - nz * sy, nz * sx - nx * sz, nx * sy - ny * sx), (nx, ny, nz))
+
+
+@nb.njit(inline="always", **_JIT)
+def _unit(x, y, z):
+    """(ok, the vector scaled to length 1); not ok for a zero or non-finite length."""
+    ln = math.sqrt(x * x + y * y + z * z)
+    if not (ln > 0 and ln < math.inf):
+        return False, (0.0, 0.0, 1.0)
+    return True, (x / ln, y / ln, z / ln)
 
 
 @nb.njit(inline="always", **_JIT)
@@ -847,17 +907,27 @@ def shadow_terminator(n_z, w_z):
 
 
 @nb.njit(inline="always", **_JIT)
+def _enter_sample(B, node, uu, vv, nearest, geo, wi):
+    """A map node's sampling step: (ok, node below, wi in its frame, the frame); any other node
+    passes through with the identity frame."""
+    if not is_map(B, node):
+        return True, node, wi, _IDENTITY
+    ok, fr = map_frame(B, node, uu, vv, nearest, geo, wi)
+    return ok, B.ni[node, 0], _to_frame(fr, wi), fr
+
+
+@nb.njit(inline="always", **_JIT)
 def _enter_eval(B, node, uu, vv, nearest, geo, wi, wo):
     """A map node's evaluation step: (ok, node below, wi, wo in its frame, shadowing factor);
     any other node passes through. wo must lie on the same side of both frames (Mitsuba)."""
+    ok, below, wi_p, fr = _enter_sample(B, node, uu, vv, nearest, geo, wi)
     if not is_map(B, node):
         return True, node, wi, wo, 1.0
-    ok, fr = map_frame(B, node, uu, vv, nearest, geo, wi)
     wo_p = _to_frame(fr, wo)
     if not ok or not wo[2] * wo_p[2] > 0:
         return False, node, wi, wo, 0.0
     k = shadow_terminator(fr[2][2], wo[2]) if B.nf[node, 2] != 0 else 1.0
-    return True, B.ni[node, 0], _to_frame(fr, wi), wo_p, k
+    return True, below, wi_p, wo_p, k
 
 
 @nb.njit(inline="always", **_JIT)
@@ -900,33 +970,21 @@ def bsdf_sample(B, root, uu, vv, nearest, wi, u0, u1, u2, geo):
     """Sample a material's (mask-resolved) root node (see :func:`bsdf_eval`): (ok, wo,
     weight rgb, pdf, delta)."""
     zero = (0.0, 0.0, 0.0)
-    node = root
-    m1 = is_map(B, node)
-    fr1 = _IDENTITY
-    if m1:
-        ok, fr1 = map_frame(B, node, uu, vv, nearest, geo, wi)
-        if not ok:
-            return False, zero, zero, 0.0, False
-        wi = _to_frame(fr1, wi)
-        node = B.ni[node, 0]
+    ok, node, wi, fr1 = _enter_sample(B, root, uu, vv, nearest, geo, wi)
+    if not ok:
+        return False, zero, zero, 0.0, False
     node, flip = _side(B, node, wi[2])
     if flip:
         wi = (wi[0], wi[1], -wi[2])
-    map2 = node
-    m2 = is_map(B, node)
-    fr2 = _IDENTITY
-    if m2:
-        ok, fr2 = map_frame(B, node, uu, vv, nearest, geo, wi)
-        if not ok:
-            return False, zero, zero, 0.0, False
-        wi = _to_frame(fr2, wi)
-        node = B.ni[node, 0]
-    ok, wo, r, pdf, delta = _blend_sample(B, node, uu, vv, nearest, wi, u0, u1, u2)
-    if m2:
-        ok, wo, r = _leave_sample(B, map2, fr2, ok, wo, r)
+    ok, leaf, wi, fr2 = _enter_sample(B, node, uu, vv, nearest, geo, wi)
+    if not ok:
+        return False, zero, zero, 0.0, False
+    ok, wo, r, pdf, delta = _blend_sample(B, leaf, uu, vv, nearest, wi, u0, u1, u2)
+    if is_map(B, node):
+        ok, wo, r = _leave_sample(B, node, fr2, ok, wo, r)
     if flip:
         wo = (wo[0], wo[1], -wo[2])
-    if m1:
+    if is_map(B, root):
         ok, wo, r = _leave_sample(B, root, fr1, ok, wo, r)
     return ok, wo, r, pdf, delta
 
