@@ -82,8 +82,11 @@ docs/images/web.png: install
 # CI (.ci/run) runs exactly this: lint, the wheel-install smoke test, then the quick tests.
 test: lint wheel-smoke pytest
 
+# TEST_JOBS test processes (pytest-xdist; 0: one process), a test file each at a time, in file
+# order (the desktop app's tests first: tests/conftest.py says why)
+TEST_JOBS ?= 2
 pytest: install
-	ICBTOOL_GL_BACKEND=osmesa $(PY) -m pytest -m "not slow" -q
+	ICBTOOL_GL_BACKEND=osmesa $(PY) -m pytest -m "not slow" -q -n $(TEST_JOBS) --dist loadfile --no-loadscope-reorder
 
 wheel-smoke: install
 	PY=$(abspath $(PY)) bash .ci/wheel_smoke.sh

@@ -36,5 +36,7 @@ def pytest_collection_modifyitems(config, items):
     (GLX), and once PyOpenGL is bound to OSMesa / EGL in a process (any test that rasterizes in
     this one), a window's 3D view may stay blank. Running the gui tests before every other test
     makes the order, not the luck of the load, decide (icbtool_gui.app.check_gl_owner refuses
-    a window in a process that already holds headless OpenGL)."""
+    a window in a process that already holds headless OpenGL). With several test processes
+    (``make test``: pytest-xdist, ``--dist loadfile --no-loadscope-reorder``) the files are
+    handed out in this order, so the first process starts with the desktop app's file."""
     items.sort(key=lambda item: item.get_closest_marker("gui") is None)  # stable: gui first
