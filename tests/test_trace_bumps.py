@@ -133,6 +133,30 @@ def test_reader_builds_maps_and_names_a_missing_map(tmp_path):
         load(xml)
 
 
+def test_reader_folds_a_scale_texture_and_drops_a_map_without_gradient(tmp_path):
+    """Mitsuba 0.6 files (Bitterli's bedroom) scale a bump map's bitmap with a ``scale``
+    texture, which Mitsuba 3 lacks: its factor multiplies the bump scale. A texture without a
+    gradient (a checkerboard) drops the map, with a warning naming file:line, and keeps the
+    nested BSDF exact."""
+    from icbtool.scene import load
+    from icbtool.scene.validate import SceneRepairWarning
+
+    _write_maps(tmp_path)
+    xml = tmp_path / "s.xml"
+    scaled = (
+        '<bsdf type="bumpmap"><float name="scale" value="2"/><texture type="scale">'
+        '<float name="scale" value="0.2"/><texture type="bitmap">'
+        f'<string name="filename" value="height.png"/></texture></texture>{_ROUGH}</bsdf>'
+    )
+    xml.write_text(_xml(scaled))
+    b = load(xml).materials[-1].bsdf
+    assert isinstance(b, sb.BumpMap) and b.scale == pytest.approx(0.4)
+    xml.write_text(_xml(f'<bsdf type="bumpmap"><texture type="checkerboard"/>{_ROUGH}</bsdf>'))
+    with pytest.warns(SceneRepairWarning, match=r"s\.xml:\d+.*no gradient.*bump map is dropped"):
+        b = load(xml).materials[-1].bsdf
+    assert isinstance(b, sb.RoughPlastic)
+
+
 # ---------------------------------------------------------------------------------- peer suite
 _MAP_XML = """<scene version="3.0.0">
   <integrator type="path"><integer name="max_depth" value="8"/></integrator>

@@ -60,7 +60,8 @@ never >= 1) applied to what the material reflects or transmits at normal inciden
   (1 - F) * specular_transmittance``;
 * ``principled``: ``base_color``; ``blendbsdf``: the ``weight`` blend of its two BSDFs;
 * ``mask`` (opacity dropped), ``bumpmap``/``normalmap`` (map dropped; traced exactly when their
-  nested BSDF is): their nested BSDF;
+  nested BSDF is, a Mitsuba 0.6 ``scale`` texture around a bump map's bitmap multiplying its
+  ``scale``): their nested BSDF;
 * ``null``: black (Mitsuba's is invisible); an unknown type: 0.5 grey.
 
 Conventions: Mitsuba's world coordinates are kept as they are (no up-axis change; ``Scene.up`` is
@@ -1054,17 +1055,27 @@ class _Materials(_Values):
                 raise SceneError(f"{node.where}: normalmap needs a texture named 'normalmap'")
             m = self._decl_texture(n) if n.tag == "texture" else tuple(self.colour(n))
             return sb.NormalMap(m, inner, **flags)
-        found = [self.deref(c) for c in node.children if c.tag in ("texture", "ref")]
-        tex = [c for c in found if c.tag == "texture"]
+        tex = self._textures_in(node)
         if len(tex) != 1:
             raise SceneError(f"{node.where}: bumpmap needs one texture, got {len(tex)}")
-        t = self._decl_texture(tex[0])
-        if not isinstance(t, sb.Bitmap):
-            raise SceneError(
-                f"{tex[0].where}: a bumpmap's texture must be a bitmap (Mitsuba has no gradient "
-                f"of a {tex[0].attrs.get('type')!r} texture)"
+        height, k = tex[0], float(self.float_(props, "scale", 1.0))
+        if height.attrs.get("type") == "scale" and len(self._textures_in(height)) == 1:
+            # Mitsuba 0.6's scale texture (Mitsuba 3 has none): a factor on the bump scale
+            k *= float(self.float_(self.props(height), "scale", 1.0))
+            height = self._textures_in(height)[0]
+        if height.attrs.get("type") != "bitmap":
+            repair_warning(
+                height.where,
+                f"bumpmap: a {height.attrs.get('type')!r} texture has no gradient in Mitsuba 3: "
+                "the bump map is dropped, its nested BSDF traced",
             )
-        return sb.BumpMap(t, inner, float(self.float_(props, "scale", 1.0)), **flags)
+            return inner
+        return sb.BumpMap(self._decl_texture(height), inner, k, **flags)
+
+    def _textures_in(self, node: _Node) -> list[_Node]:
+        """The textures inside ``node``, references resolved."""
+        found = [self.deref(c) for c in node.children if c.tag in ("texture", "ref")]
+        return [c for c in found if c.tag == "texture"]
 
     def _decl_texture(self, node: _Node) -> Any:
         """A ``bitmap`` or ``checkerboard`` texture as :mod:`icbtool.scene.bsdf` declares it."""
