@@ -183,6 +183,30 @@ def test_params_override_defaults():
         load(FIXTURE, scale=2.0)
 
 
+def test_shapes_without_a_bsdf_reflect_as_mitsubas_default(tmp_path):
+    """A shape without a BSDF gets Mitsuba's default diffuse: reflectance 0.5, and 0 (black)
+    when the shape is an area emitter; each albedo equals the one Mitsuba 3 builds."""
+    mi = _mitsuba()
+    p = tmp_path / "s.xml"
+    p.write_text(
+        '<scene version="3.0.0">\n'
+        '  <shape type="rectangle" id="plain"/>\n'
+        '  <shape type="rectangle" id="light"><transform name="to_world">'
+        '<translate z="1"/></transform>\n'
+        '    <emitter type="area"><rgb name="radiance" value="2"/></emitter></shape>\n'
+        "</scene>\n"
+    )
+    s, _, _ = _load(p)
+    theirs = {
+        sh.id(): float(mi.traverse(sh.bsdf())["reflectance.value"])
+        for sh in mi.load_file(str(p)).shapes()
+    }
+    ours = {("light" if np.any(m.emission > 0) else "plain"): m.albedo for m in s.materials}
+    assert theirs == {"plain": 0.5, "light": 0.0}
+    for k, v in theirs.items():
+        np.testing.assert_allclose(ours[k], v)
+
+
 def test_unknown_property_and_missing_parameter(tmp_path):
     p = tmp_path / "s.xml"
     p.write_text(

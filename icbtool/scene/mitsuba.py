@@ -403,8 +403,10 @@ class _Values:
         self.version = (3, 0, 0)
         self.progress = False  # a tqdm bar over the shapes while they load
         # every shape without a BSDF shares this one (Mitsuba's default: diffuse 0.5), so they
-        # share one material: materials are keyed by the BSDF object's identity
+        # share one material: materials are keyed by the BSDF object's identity; an area
+        # emitter's shape without a BSDF reflects nothing (Mitsuba's default there: diffuse 0)
         self.default_bsdf = _Bsdf("default", np.full(3, 0.5))
+        self.default_emitter_bsdf = _Bsdf("default", np.zeros(3))
 
     # ---------------------------------------------------------------- helpers
     def skip(self, node: _Node, why: str) -> None:
@@ -1196,6 +1198,8 @@ class _Reader(_Materials):
                 if tex is not None:
                     repair_warning(em.where, "textured radiance: its mean colour is emitted")
                 emission = np.maximum(emission, 0.0)
+                if props.get("bsdf") is None:
+                    bsdf = self.default_emitter_bsdf
         mat = self.material(bsdf, emission)
         exact = None
         if kind in ("sphere", "disk", "cylinder"):
