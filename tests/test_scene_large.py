@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import icbtool.scene.bsdf as sb
 import icbtool.scene.mitsuba as mitsuba
 import icbtool.scene.types as types
 from icbtool.scene import Material, SceneBuilder, Sky, load
@@ -145,7 +146,7 @@ def _reference_encode(texels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("kinds", [("8bit", "8bit"), ("8bit", "float"), ()])
 def test_texels_encoded_in_pieces_equal_the_one_pass_encoding(monkeypatch, kinds):
-    from icbtool.trace import tracer
+    from icbtool.trace import texels
 
     rng = np.random.default_rng(4)
     texs = [
@@ -156,19 +157,40 @@ def test_texels_encoded_in_pieces_equal_the_one_pass_encoding(monkeypatch, kinds
     ]
     whole = np.concatenate(texs) if texs else np.zeros(1, np.float32)
     ref_codes, ref_lut = _reference_encode(whole)
-    monkeypatch.setattr(tracer, "TEXEL_PIECE", 10)  # pieces across texture boundaries
-    codes, lut = tracer._encode_texels(texs)
+    monkeypatch.setattr(texels, "TEXEL_PIECE", 10)  # pieces across texture boundaries
+    codes, lut = texels.encode_texels(texs)
     assert codes.dtype == np.uint8 and lut.dtype == np.float32
     np.testing.assert_array_equal(codes, ref_codes)
     np.testing.assert_array_equal(lut, ref_lut)
 
 
 def test_every_srgb_level_gets_its_own_code():
-    from icbtool.trace import tracer
+    from icbtool.trace import texels
 
     lut = decode_texture(np.arange(256, dtype=np.uint8).reshape(1, 256))[0, :, 0]
-    codes, _ = tracer._encode_texels([np.ascontiguousarray(lut[::-1])])
+    codes, _ = texels.encode_texels([np.ascontiguousarray(lut[::-1])])
     np.testing.assert_array_equal(codes, np.arange(256)[::-1])
+
+
+def test_texel_sets_code_each_texture_into_the_table_holding_it(monkeypatch):
+    """sRGB-decoded and raw (code / 255) textures coded into their own table, across piece
+    boundaries; a texture of neither gives the float texels."""
+    from icbtool.trace import texels
+
+    rng = np.random.default_rng(8)
+    k = [rng.integers(0, 256, n, dtype=np.uint8) for n in (33, 20, 17)]
+    srgb, lin = texels.srgb_levels(), texels.linear_levels()
+    texs = [srgb[k[0]], lin[k[1]], srgb[k[2]]]
+    monkeypatch.setattr(texels, "TEXEL_PIECE", 8)
+    codes, lut, base = texels.encode_texel_sets(texs, [srgb, lin])
+    np.testing.assert_array_equal(base, [0, 256, 0])
+    np.testing.assert_array_equal(codes, np.concatenate(k))
+    off = np.repeat(base, [33, 20, 17])
+    np.testing.assert_array_equal(lut[off + codes], np.concatenate(texs))
+    other = [*texs, rng.uniform(0, 1, 9).astype(np.float32)]
+    codes, lut, base = texels.encode_texel_sets(other, [srgb, lin])
+    assert codes.size == 0 and not base.any()
+    np.testing.assert_array_equal(lut, np.concatenate(other))
 
 
 def _textured_emitting_scene():
@@ -190,7 +212,7 @@ def test_packing_in_pieces_renders_the_same_image_bit_for_bit(monkeypatch):
     give identical images; the emitter pmf is the per-face power's."""
     from icbtool.camera import Camera
     from icbtool.scene.derived import forget
-    from icbtool.trace import TraceConfig, render, tracer
+    from icbtool.trace import TraceConfig, render, texels, tracer
 
     scene = _textured_emitting_scene()
     cam = Camera.look_at((0, 3, 2), (0, 0, 0), (0, 1, 0), fov_y_deg=60, height=10, width=12)
@@ -204,10 +226,94 @@ def test_packing_in_pieces_renders_the_same_image_bit_for_bit(monkeypatch):
     )
     np.testing.assert_allclose(sd.face_light_pmf, power / power.sum(), rtol=1e-12)
     forget(scene)
-    monkeypatch.setattr(tracer, "TEXEL_PIECE", 7)
+    monkeypatch.setattr(texels, "TEXEL_PIECE", 7)
     many = render(scene, cam, cfg)
     for key in ("full", "gi", "direct"):
         np.testing.assert_array_equal(getattr(one, key), getattr(many, key))
+
+
+def test_materials_of_one_image_share_its_texels_and_user_arrays_are_copied(tmp_path):
+    """Two Mitsuba BSDFs of one bitmap file: one decoded array, held by both materials and
+    their bitmaps (not a copy each); a writable array a user gives is copied and clipped."""
+    from PIL import Image
+
+    rng = np.random.default_rng(6)
+    Image.fromarray(rng.integers(0, 256, (5, 7, 3), dtype=np.uint8)).save(tmp_path / "t.png")
+    quad = '<shape type="rectangle"><bsdf type="{}"><texture type="bitmap" name="{}">' \
+        '<string name="filename" value="t.png"/></texture></bsdf>{}</shape>'  # fmt: skip
+    xml = tmp_path / "s.xml"
+    xml.write_text(
+        '<scene version="3.0.0">'
+        + quad.format("diffuse", "reflectance", "")
+        + quad.format(
+            "roughplastic",
+            "diffuse_reflectance",
+            '<transform name="to_world"><translate x="3"/></transform>',
+        )  # fmt: skip
+        + "</scene>"
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = load(xml)
+    texs = [m.texture for m in scene.materials if m.is_textured]
+    assert len(texs) == 2 and texs[0] is texs[1] and not texs[0].flags.writeable
+    bitmaps = [
+        m.bsdf.diffuse_reflectance for m in scene.materials if isinstance(m.bsdf, sb.RoughPlastic)
+    ]
+    assert bitmaps and np.shares_memory(bitmaps[0].data, texs[0])
+    with Image.open(tmp_path / "t.png") as im:
+        np.testing.assert_array_equal(texs[0], decode_texture(im))
+    mine = np.full((2, 2, 3), 1.5, np.float32)
+    m = Material("m", texture=mine)
+    assert not np.shares_memory(m.texture, mine) and mine.flags.writeable
+    np.testing.assert_array_equal(m.texture, 1.0)
+
+
+def _general_textured_scene():
+    """Three quads under a sky: a diffuse BSDF and a bump-mapped roughplastic of 8-bit sRGB
+    bitmaps and a raw one, and a Lambert material of the diffuse's image."""
+    rng = np.random.default_rng(7)
+    a = decode_texture(rng.integers(0, 256, (6, 5, 3), dtype=np.uint8))
+    c = decode_texture(rng.integers(0, 256, (4, 9, 3), dtype=np.uint8))
+    b = SceneBuilder("general_textured")
+    m0 = b.add_material(Material("d", bsdf=sb.Diffuse(sb.Bitmap(a))))
+    raw = rng.integers(0, 256, (5, 4, 3)).astype(np.float32) / np.float32(255)  # a raw bitmap
+    plastic = sb.RoughPlastic(diffuse_reflectance=sb.Bitmap(c), alpha=0.3)
+    m1 = b.add_material(Material("p", bsdf=sb.BumpMap(sb.Bitmap(raw), plastic, scale=0.5)))
+    m2 = b.add_material(Material("l", albedo=(1, 1, 1), texture=a))
+    b.add_quad((-1.5, 0, -1), (0, 0, 2), (1, 0, 0), m0)  # facing +y
+    b.add_quad((-0.5, 0, -1), (0, 0, 2), (1, 0, 0), m1)
+    b.add_quad((0.5, 0, -1), (0, 0, 2), (1, 0, 0), m2)
+    b.sky = Sky((0.7, 0.8, 0.9))
+    return b.build()
+
+
+def test_general_kernel_texel_codes_render_the_float_texels_image_bit_for_bit(monkeypatch):
+    """The general (BSDF) kernel's textures stored as uint8 sRGB codes give the very image of
+    the float32 texels (the codes decode to the same floats), and each image is stored once."""
+    from icbtool.camera import Camera
+    from icbtool.scene.derived import forget
+    from icbtool.trace import TraceConfig, render, texels, tracer
+
+    scene = _general_textured_scene()
+    cam = Camera.look_at((0, 3, 2), (0, 0, 0), (0, 1, 0), fov_y_deg=60, height=10, width=14)
+    cfg = TraceConfig(spp=4, max_depth=3, seed=5)
+    coded = render(scene, cam, cfg)
+    params = tracer._SceneData.of(scene).general.params
+    n = (6 * 5 + 4 * 9 + 5 * 4) * 3  # the shared image once
+    assert params.texels.dtype == np.uint8 and params.texels.size == n
+    assert params.texel_lut.shape == (512,)  # sRGB levels, then code / 255 (the raw bitmap)
+    assert sorted(params.ti[:, 4]) == [0, 0, 0, 256]  # the Lambert quad: its own bitmap
+    forget(scene)
+    for name in ("srgb_levels", "linear_levels"):
+        levels = getattr(texels, name)()
+        monkeypatch.setattr(texels, name, lambda lv=levels: lv[::-1].copy())  # no codes
+    floats = render(scene, cam, cfg)
+    params = tracer._SceneData.of(scene).general.params
+    assert params.texels.size == 0 and params.texel_lut.size == n
+    assert coded.full.std() > 0
+    for key in ("full", "gi", "direct"):
+        np.testing.assert_array_equal(getattr(coded, key), getattr(floats, key))
 
 
 def test_face_normals_and_areas_from_one_pass_equal_their_formulas():

@@ -480,6 +480,7 @@ class _MaterialTable:
 
                     with Image.open(file) as im:
                         tex = decode_texture(im)
+                    tex.setflags(write=False)  # shared by the materials that use it, not copied
                 except Exception as e:  # noqa: BLE001 - any decoder failure = unreadable image
                     repair_warning(
                         str(self.path),

@@ -386,7 +386,7 @@ class _Values:
         self.dropped_lights: list[str] = []  # "<emitter kind> (file:line)" of emitters not read
         self.materials: list[Material] = []
         self.mat_keys: dict[Any, int] = {}
-        self.bsdfs: dict[int, _Bsdf] = {}
+        self.bsdfs: dict[int | str, _Bsdf] = {}
         self.rendered: dict[str, _Bsdf] = {}  # "file:line" of a shape's BSDF -> what renders
         self.checkers: list[str] = []  # "file:line" of the checkerboard textures read
         self.files: list[Path] = [path]  # the scene file and the files it includes
@@ -795,6 +795,8 @@ class _Materials(_Values):
                     raise SceneError(
                         f"{self.where(node)}: texture {path} is not a readable image ({e})"
                     ) from None
+                if tex is not None:
+                    tex.setflags(write=False)  # shared by its materials and bitmaps, not copied
             self.tex_cache[key] = tex
         return self.tex_cache[key]
 

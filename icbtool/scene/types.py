@@ -66,7 +66,8 @@ class Material:
         name: material name (from the file, or given).
         albedo: (3,) linear diffuse reflectance in [0, 1] (multiplies the texture).
         emission: (3,) emitted radiance, >= 0.
-        texture: optional (h, w, 3) float32 linear albedo texture in [0, 1].
+        texture: optional (h, w, 3) float32 linear albedo texture in [0, 1], read-only (a
+            read-only float32 array in range is kept as given, shared; anything else is copied).
         texture_path: where the texture came from (for messages and hashing), if a file.
         bsdf: a declared BSDF (:mod:`icbtool.scene.bsdf`, Mitsuba 3's plugins) the tracer
             evaluates instead of the Lambertian ``albedo``/``texture``, which then stand in
@@ -97,8 +98,11 @@ class Material:
                 raise ValueError(f"material '{self.name}' texture must be (h, w, 3), got {t.shape}")
             if not np.all(np.isfinite(t)):
                 raise ValueError(f"material '{self.name}' texture has NaN/Inf texels")
-            t = np.clip(t, 0.0, 1.0)
-            t.setflags(write=False)
+            # a read-only float32 texture already in [0, 1] (a loader's decoded image, another
+            # material's texture) is shared, not copied: materials of one image hold it once
+            if t.flags.writeable or t.min() < 0.0 or t.max() > 1.0:
+                t = np.clip(t, 0.0, 1.0)
+                t.setflags(write=False)
             object.__setattr__(self, "texture", t)
         if self.bsdf is not None:
             from icbtool.scene.bsdf import BSDF_TYPES

@@ -72,16 +72,27 @@ ROUGH_TRANSMITTANCE_RES = 64
 #: The node table the kernel reads: types (N,), float parameters (N, 12), children / table rows
 #: (N, 4), constant values (N, 4, 3) and their texture ids (N, 4) (-1: constant); textures: kind
 #: (T,), parameters (T, 12) (to_uv 2x3, color0, color1), (offset, h, w, nearest (-1: the render's
-#: filter)) (T, 4), linear float32 texels; roughplastic transmittance tables (R, 64).
+#: filter), the start of its level table in ``texel_lut``) (T, 5), texels as uint8 codes into
+#: ``texel_lut`` (or empty, ``texel_lut`` then the linear float32 texels:
+#: :mod:`icbtool.trace.texels`); roughplastic transmittance tables (R, 64).
 BsdfParams = namedtuple(
-    "BsdfParams", ["nt", "nf", "ni", "nv", "ntex", "tk", "tf", "ti", "texels", "ttab"]
+    "BsdfParams",
+    ["nt", "nf", "ni", "nv", "ntex", "tk", "tf", "ti", "texels", "ttab", "texel_lut"],
 )
 
 
 # ---------------------------------------------------------------------------------- textures
 @nb.njit(inline="always", **_JIT)
-def _texel3(texels, p):
-    return np.float64(texels[p]), np.float64(texels[p + 1]), np.float64(texels[p + 2])
+def _texel3(texels, lut, lb, p):
+    """Texel p's RGB: ``lut[lb + code]`` (uint8 codes into a level table starting at ``lb``),
+    or ``lut[p]`` when there are no codes (``lut`` then holds the float texels)."""
+    if len(texels) > 0:
+        return (
+            np.float64(lut[lb + np.int64(texels[p])]),
+            np.float64(lut[lb + np.int64(texels[p + 1])]),
+            np.float64(lut[lb + np.int64(texels[p + 2])]),
+        )
+    return np.float64(lut[p]), np.float64(lut[p + 1]), np.float64(lut[p + 2])
 
 
 @nb.njit(inline="always", **_JIT)
@@ -116,7 +127,7 @@ def _cell(ti, t, u, v):
 
 
 @nb.njit(**_JIT)
-def tex_eval(tk, tf, ti, texels, t, uu, vv, nearest_default):
+def tex_eval(tk, tf, ti, texels, lut, t, uu, vv, nearest_default):
     """Texture ``t`` at the scene uv (uu, vv) (v up; Mitsuba's v = 1 - vv): (r, g, b)."""
     u, v = _tex_uv(tf, t, uu, vv)
     if tk[t] == TEX_CHECKER:
@@ -125,18 +136,19 @@ def tex_eval(tk, tf, ti, texels, t, uu, vv, nearest_default):
         if mx == my:
             return tf[t, 6], tf[t, 7], tf[t, 8]
         return tf[t, 9], tf[t, 10], tf[t, 11]
+    lb = ti[t, 4]
     nearest = ti[t, 3] if ti[t, 3] >= 0 else nearest_default
     if nearest:
         th = ti[t, 1]
         tw = ti[t, 2]
         xi = np.int64(math.floor(u * tw)) % tw
         yi = np.int64(math.floor(v * th)) % th
-        return _texel3(texels, ti[t, 0] + (yi * tw + xi) * 3)
+        return _texel3(texels, lut, lb, ti[t, 0] + (yi * tw + xi) * 3)
     (pa, pb, pc, pd), fx, fy = _cell(ti, t, u, v)
-    a = _texel3(texels, pa)
-    b = _texel3(texels, pb)
-    c = _texel3(texels, pc)
-    d = _texel3(texels, pd)
+    a = _texel3(texels, lut, lb, pa)
+    b = _texel3(texels, lut, lb, pb)
+    c = _texel3(texels, lut, lb, pc)
+    d = _texel3(texels, lut, lb, pd)
     ga = (1 - fy) * (1 - fx)
     gb = (1 - fy) * fx
     gc = fy * (1 - fx)
@@ -157,7 +169,7 @@ def value(B, node, slot, uu, vv, nearest):
     c2 = B.nv[node, slot, 2]
     if t < 0:
         return c0, c1, c2
-    r, g, b = tex_eval(B.tk, B.tf, B.ti, B.texels, t, uu, vv, nearest)
+    r, g, b = tex_eval(B.tk, B.tf, B.ti, B.texels, B.texel_lut, t, uu, vv, nearest)
     return c0 * r, c1 * g, c2 * b
 
 
@@ -172,16 +184,13 @@ def value1(B, node, slot, uu, vv, nearest):
 
 
 @nb.njit(inline="always", **_JIT)
-def _lum(texels, p):
-    return (
-        0.212671 * np.float64(texels[p])
-        + 0.715160 * np.float64(texels[p + 1])
-        + 0.072169 * np.float64(texels[p + 2])
-    )
+def _lum(texels, lut, lb, p):
+    r, g, b = _texel3(texels, lut, lb, p)
+    return 0.212671 * r + 0.715160 * g + 0.072169 * b
 
 
 @nb.njit(**_JIT)
-def tex_grad1(tk, tf, ti, texels, t, uu, vv):
+def tex_grad1(tk, tf, ti, texels, lut, t, uu, vv):
     """Mitsuba's ``eval_1_grad`` of bitmap ``t`` at the scene uv (uu, vv): the gradient
     (d/du, d/dv) of its bilinear interpolant's luminance in Mitsuba's uv (v = 1 - vv), through
     ``to_uv`` (as Mitsuba: the transform's transpose, then the resolution); (0, 0) for a
@@ -189,11 +198,12 @@ def tex_grad1(tk, tf, ti, texels, t, uu, vv):
     if tk[t] != TEX_BITMAP or ti[t, 3] == 1:
         return 0.0, 0.0
     u, v = _tex_uv(tf, t, uu, vv)
+    lb = ti[t, 4]
     (p00, p10, p01, p11), w1x, w1y = _cell(ti, t, u, v)
-    f00 = _lum(texels, p00)
-    f10 = _lum(texels, p10)
-    f01 = _lum(texels, p01)
-    f11 = _lum(texels, p11)
+    f00 = _lum(texels, lut, lb, p00)
+    f10 = _lum(texels, lut, lb, p10)
+    f01 = _lum(texels, lut, lb, p01)
+    f11 = _lum(texels, lut, lb, p11)
     dfx = (1.0 - w1y) * (f10 - f00) + w1y * (f11 - f01)
     dfy = (1.0 - w1x) * (f01 - f00) + w1x * (f11 - f10)
     tw = ti[t, 2]
@@ -858,7 +868,7 @@ def map_frame(B, node, uu, vv, nearest, geo, wi):
         nz = 2.0 * c[2] - 1.0
     else:
         t = B.ntex[node, 0]
-        gu, gv = tex_grad1(B.tk, B.tf, B.ti, B.texels, t, uu, vv)
+        gu, gv = tex_grad1(B.tk, B.tf, B.ti, B.texels, B.texel_lut, t, uu, vv)
         k = B.nf[node, 0]
         du, dv, ng, _ = geo
         ax, ay, az = du[0], du[1], k * gu
@@ -1047,6 +1057,7 @@ class _Packer:
         self.ti: list[list[int]] = []
         self.texels: list[np.ndarray] = []
         self.n_texels = 0
+        self.texel_off: dict[int, int] = {}  # id of a bitmap's data -> its offset (shared)
         self.ttab: list[np.ndarray] = []
         self.tex_ids: dict[int, int] = {}
         self.kinds: set[str] = set()
@@ -1065,7 +1076,7 @@ class _Packer:
             return self.tex_ids[id(t)]
         f = np.zeros(12)
         f[:6] = np.asarray(t.to_uv)[:2].ravel()
-        i = [0, 1, 1, nearest]
+        i = [0, 1, 1, nearest, 0]
         if isinstance(t, sb.Checkerboard):
             self.tk.append(TEX_CHECKER)
             f[6:9] = t.color0
@@ -1073,11 +1084,14 @@ class _Packer:
         else:
             self.tk.append(TEX_BITMAP)
             d = np.ascontiguousarray(t.data, np.float32)
-            i = [self.n_texels, d.shape[0], d.shape[1], nearest]
+            if id(t.data) not in self.texel_off:  # bitmaps of one image share its texels
+                self.texel_off[id(t.data)] = self.n_texels
+                self.texels.append(d.ravel())
+                self.n_texels += d.size
+            # the level table (column 4) is filled in by params(), once texels are coded
+            i = [self.texel_off[id(t.data)], d.shape[0], d.shape[1], nearest, 0]
             if t.filter_type == "nearest":
                 i[3] = 1
-            self.texels.append(d.ravel())
-            self.n_texels += d.size
         self.tf.append(f)
         self.ti.append(i)
         self.tex_ids[id(t)] = len(self.tk) - 1
@@ -1233,6 +1247,14 @@ class _Packer:
                 else np.zeros(shape, dtype)
             )
 
+        from icbtool.trace import texels as tx
+
+        # colour images code into the sRGB levels, raw ones (bump, normal maps) into code / 255
+        codes, lut, base = tx.encode_texel_sets(self.texels, [tx.srgb_levels(), tx.linear_levels()])
+        chunk_at = {off: j for j, off in enumerate(self.texel_off.values())}
+        for k, row in zip(self.tk, self.ti):
+            if k == TEX_BITMAP:
+                row[4] = int(base[chunk_at[row[0]]])
         return BsdfParams(
             arr(self.nt, (N,), np.int64),
             arr(self.nf, (N, 12), np.float64),
@@ -1241,11 +1263,10 @@ class _Packer:
             arr(self.ntex, (N, 4), np.int64),
             arr(self.tk, (T,), np.int64),
             arr(self.tf, (T, 12), np.float64),
-            arr(self.ti, (T, 4), np.int64),
-            np.ascontiguousarray(np.concatenate(self.texels), np.float32)
-            if self.texels
-            else np.zeros(3, np.float32),
+            arr(self.ti, (T, 5), np.int64),
+            codes,
             arr(self.ttab, (max(len(self.ttab), 1), ROUGH_TRANSMITTANCE_RES), np.float64),
+            lut,
         )
 
 

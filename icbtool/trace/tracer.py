@@ -64,6 +64,8 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from icbtool.trace.texels import encode_texels
+
 if TYPE_CHECKING:  # pragma: no cover
     from icbtool.camera import Camera
     from icbtool.scene import Scene
@@ -315,70 +317,6 @@ def _mix_int(x: int) -> int:
 #: dimensions per bounce of the independent sampler: 0-1 bsdf direction, 2 light pick,
 #: 3-4 point on light, 5 rr
 _DIMS_PER_BOUNCE = 8
-
-
-#: Texels per piece when :func:`_encode_texels` encodes (bounds its temporary memory).
-TEXEL_PIECE = 1 << 20
-
-
-def _encode_texels(textures: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(codes, lut) with ``lut[codes] == concatenate(textures)`` exactly: uint8 codes into the
-    256 sRGB-decoded levels when every texel is one of them (textures loaded from 8-bit images),
-    which cuts the texture memory the tracer reads at random 4x (Sponza: 53 -> 13 MB); else no
-    codes and the float32 texels as ``lut``. The dtypes are the same either way, so the
-    tracer's kernel is compiled once for both (a second specialisation cost about 35 s of
-    compilation).
-
-    Args:
-        textures: the textures' float32 texels, each flattened.
-
-    Encoding goes piece by piece (:data:`TEXEL_PIECE` texels) straight into the codes, so the
-    float32 texels are never copied whole (a scene with 200 MB of textures peaked 0.8 GB above
-    its textures when they were concatenated and searched at once).
-    """
-    from icbtool.scene.load import decode_texture
-
-    lut = decode_texture(np.arange(256, dtype=np.uint8).reshape(1, 256))[0, :, 0]
-    lut = np.ascontiguousarray(lut, np.float32)
-    if not textures:  # a placeholder texel: the kernels' arrays are never empty
-        textures = [np.zeros(1, np.float32)]
-    total = sum(t.size for t in textures)
-    if np.all(np.diff(lut) > 0) and np.all(lut >= 0):
-        first = _first_level_by_bucket(lut)
-        codes = np.empty(total, np.uint8)
-        off, exact = 0, True
-        for t in textures:
-            for s in range(0, t.size, TEXEL_PIECE):
-                piece = t[s : s + TEXEL_PIECE]
-                c = _level_codes(piece, lut, first)
-                if not np.array_equal(lut[c], piece):
-                    exact = False
-                    break
-                codes[off + s : off + s + piece.size] = c
-            if not exact:
-                break
-            off += t.size
-        if exact:
-            return codes, lut
-    return np.zeros(0, np.uint8), np.ascontiguousarray(np.concatenate(textures), np.float32)
-
-
-def _first_level_by_bucket(lut: np.ndarray) -> np.ndarray:
-    """(65536,) uint8: for each value of a float32's upper 16 bits (sign, exponent, 7 mantissa
-    bits: a bucket 0.8 % wide), the first of the increasing, non-negative ``lut`` levels whose
-    bucket is not below it."""
-    buckets = lut.view(np.uint32) >> 16
-    return np.clip(np.searchsorted(buckets, np.arange(1 << 16)), 0, 255).astype(np.uint8)
-
-
-def _level_codes(x: np.ndarray, lut: np.ndarray, first: np.ndarray) -> np.ndarray:
-    """(N,) uint8 codes ``c`` with ``lut[c] == x`` wherever ``x`` is one of the sRGB levels
-    (elsewhere a near level: the caller checks). Adjacent sRGB levels differ by more than
-    0.8 %, so a bucket holds at most two of them: the bucket's first level, one step up when
-    it is below the texel. Exactly the binary search's answer, about 4x faster."""
-    c = first[x.view(np.uint32) >> 16]
-    up = (lut[c] < x) & (c < 255)
-    return c + up.astype(np.uint8)
 
 
 def _salts(seed: int, n_dims: int) -> np.ndarray:
@@ -665,18 +603,23 @@ class _SceneData:
             else np.zeros((1, 3, 2), np.float32)
         )
         M = len(scene.materials)
+        general = any(m.bsdf is not None for m in scene.materials)
         self.k_tex_off = np.full(M, -1, np.int64)
         self.k_tex_hw = np.ones((M, 2), np.int64)
-        chunks, off = [], 0
+        chunks, off, at = [], 0, {}
         for m, tex in self.textures.items():
-            if not has_uv:
-                continue  # no uvs: the texture cannot be looked up (the material albedo is used)
-            t = np.ascontiguousarray(tex, np.float32)
-            self.k_tex_off[m] = off
-            self.k_tex_hw[m] = t.shape[:2]
-            chunks.append(t.reshape(-1))
-            off += t.size
-        self.k_tex, self.k_tex_lut = _encode_texels(chunks)
+            if not has_uv or general:
+                # no uvs: the texture cannot be looked up (the material albedo is used); the
+                # general kernel reads its own texels (BsdfParams), never these
+                continue
+            if id(tex) not in at:  # materials sharing one texture array share its texels
+                t = np.ascontiguousarray(tex, np.float32)
+                at[id(tex)] = off
+                chunks.append(t.reshape(-1))
+                off += t.size
+            self.k_tex_off[m] = at[id(tex)]
+            self.k_tex_hw[m] = tex.shape[:2]
+        self.k_tex, self.k_tex_lut = encode_texels(chunks)
         self.k_face_is_area = np.ascontiguousarray(self.face_is_area_light, np.bool_)
         self.k_emit_faces = np.ascontiguousarray(self.emit_faces, np.int64)
         self.k_emit_cdf = (
@@ -703,7 +646,7 @@ class _SceneData:
         assert self.k_tri.shape == (F, 3, 3)
         # declared BSDFs (icbtool.scene.bsdf): the general kernel's node table, else None
         self.general = None
-        if any(m.bsdf is not None for m in scene.materials):
+        if general:
             self.general = _general_data(scene, self.k_face_uv if has_uv else None)
 
     @classmethod
