@@ -191,14 +191,15 @@ class ChildFailed(Exception):
         super().__init__(f"child failed: see {log}")
 
 
-def run_child(code: str, args: list[str], log: Path) -> dict:
-    """Run ``python -c code args``; its wall time, peak RSS (MB) and the machine load around
-    it, and what it reported (JSON objects on stdout)."""
+def run_child(code: str, args: list[str], log: Path, cwd: Path = REPO) -> dict:
+    """Run ``python -c code args`` in ``cwd`` (first on its ``sys.path``: the ``icbtool`` it
+    imports); its wall time, peak RSS (MB) and the machine load around it, and what it
+    reported (JSON objects on stdout)."""
     cmd = [sys.executable, "-c", _PEAK_AT_EXIT + code, *args]
     load0 = os.getloadavg()
     t0 = time.perf_counter()
     with open(log, "w") as f:
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=f, text=True, cwd=REPO)
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=f, text=True, cwd=cwd)
         out = proc.stdout.read() if proc.stdout else ""
         _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
@@ -218,11 +219,14 @@ def run_child(code: str, args: list[str], log: Path) -> dict:
     return rec
 
 
-def icbtool_trace(xml: Path, spp: int, seed: int, out: Path, max_depth: int) -> dict:
+def icbtool_trace(
+    xml: Path, spp: int, seed: int, out: Path, max_depth: int, checkout: Path = REPO
+) -> dict:
+    """``icbtool trace`` of ``checkout`` (default this one) in a child (see run_child)."""
     out.mkdir(parents=True, exist_ok=True)
     cmd = ["trace", str(xml), "--out", str(out)]
     cmd += ["--spp", str(spp), "--seed", str(seed), "--max-depth", str(max_depth)]
-    rec = run_child(_ICBTOOL_CLI_CHILD, cmd, out / "log.txt")
+    rec = run_child(_ICBTOOL_CLI_CHILD, cmd, out / "log.txt", cwd=checkout)
     summary = json.loads((out / "summary.json").read_text())
     rec["stats_times_s"] = summary["views"][0]["stats"].get("time_s")
     return rec
