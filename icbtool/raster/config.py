@@ -66,6 +66,11 @@ class RasterConfig:
             hidden, some not) are shaded again at s x s stratified points of the pixel's
             footprint on its face's plane and box-filtered, the tracer's pixel filter where one
             point per pixel is biased (a penumbra's profile is curved); 1: pixel centres.
+        glossy_area_samples: n: the glossy BSDFs (:mod:`icbtool.raster.glossy`) integrate each
+            area light by the midpoint rule at n x n points of the polygon (unshadowed, then
+            times its visibility fraction); the Lambertian materials keep the exact polygon
+            formula. More points resolve sharper lobes (alpha well below the light's angular
+            size over n) at n^2 BSDF evaluations per glossy pixel and light.
         max_frustum_half_angle_deg: half-angle cap of the perspective shadow frusta of area-light
             samples (a frustum is fitted to the scene bounds, then capped: a wider one wastes
             resolution); receivers farther off the light's axis count as unshadowed (they get at
@@ -99,6 +104,7 @@ class RasterConfig:
     normal_offset: float = 1.5
     area_offset: float = 2.0
     penumbra_samples: int = 2
+    glossy_area_samples: int = 8
     max_frustum_half_angle_deg: float = 60.0
     texture_size: int = 512
     near: float | None = None
@@ -119,6 +125,7 @@ class RasterConfig:
             ("texture_size", 1, 8192),
             ("dl_supersample", 1, 8),
             ("penumbra_samples", 1, 8),
+            ("glossy_area_samples", 1, 32),
         ):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or not lo <= v <= hi:

@@ -46,6 +46,7 @@ from icbtool.raster.config import (
     check_buffers,
 )
 from icbtool.raster.context import GLContext, create_context
+from icbtool.raster.glossy import has_glossy, pack_bsdfs
 from icbtool.raster.shaders import with_defines
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -509,6 +510,11 @@ class Rasterizer:
             mats[2 * i, 3] = layers.get(i, -1)
             mats[2 * i + 1, :3] = m.emission
         self._mat_tex, _ = self._buffer_texture(mats)
+        # glossy BSDFs (icbtool.raster.glossy): their table only when some material has one, so
+        # a Lambertian scene's shader and uploads are unchanged
+        self._bsdf_tex = None
+        if has_glossy(sc.materials):
+            self._bsdf_tex, _ = self._buffer_texture(pack_bsdfs(sc.materials))
         self._tex_array = None
         if self._has_tex:
             self._upload_textures([sc.materials[i].texture for i in layers])
@@ -965,6 +971,9 @@ class Rasterizer:
             )
             if shadows:
                 defines["SHADOWS"] = True
+            if self._bsdf_tex is not None:
+                defines["GLOSSY"] = True
+                defines["GLOSSY_N"] = cfg.glossy_area_samples
             if sky is not None:
                 defines[
                     {"gradient": "SKY_GRADIENT", "envmap": "SKY_ENVMAP"}.get(
@@ -990,6 +999,8 @@ class Rasterizer:
             units.append((0, GL.GL_TEXTURE_2D_ARRAY, self._tex_array, "u_textures"))
         if "SKY_ENVMAP" in defines:
             units.append((9, GL.GL_TEXTURE_2D, self._env_tex, "u_env"))
+        if "GLOSSY" in defines:
+            units.append((10, GL.GL_TEXTURE_BUFFER, self._bsdf_tex, "u_bsdf"))
         if shadows:
             st = self._shadow_state
             assert st is not None

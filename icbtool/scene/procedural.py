@@ -115,16 +115,32 @@ def cornell_box(
     white = b.material("white", albedo=CORNELL_WHITE)
     red = b.material("red", albedo=CORNELL_RED)
     green = b.material("green", albedo=CORNELL_GREEN)
+    blocks = {"short": white, "tall": white} if with_blocks else {}
+    return _cornell(b, {"red": red, "green": green}, white, blocks, light_radiance, height, width)
+
+
+def _cornell(
+    b: SceneBuilder,
+    walls: dict[str, int],
+    default: int,
+    blocks: dict[str, int],
+    light_radiance: tuple[float, float, float],
+    height: int,
+    width: int,
+) -> Scene:
+    """The Cornell box's geometry, light, camera and paths into ``b``: the walls ``walls``
+    names (floor, ceiling, back, green, red) get that material, the others ``default``; the
+    blocks named in ``blocks`` (short, tall) are added with theirs."""
     inside = _cb_to_world((278.0, 274.4, 279.6))
     for name, quad in _CB_QUADS.items():
-        mat = {"red": red, "green": green}.get(name, white)
-        _oriented_quad(b, quad, mat, inside)
-    if with_blocks:
-        for block in (_CB_SHORT, _CB_TALL):
-            # faces point away from the block's centre
-            centre = _cb_to_world(np.mean([p for q in block for p in q], axis=0))
-            for quad in block:
-                _oriented_quad(b, quad, white, ("away", centre))
+        _oriented_quad(b, quad, walls.get(name, default), inside)
+    for name, block in (("short", _CB_SHORT), ("tall", _CB_TALL)):
+        if name not in blocks:
+            continue
+        # faces point away from the block's centre
+        centre = _cb_to_world(np.mean([p for q in block for p in q], axis=0))
+        for quad in block:
+            _oriented_quad(b, quad, blocks[name], ("away", centre))
     lq = _cb_to_world(_CB_LIGHT)
     # edges chosen so that cross(edge_u, edge_v) points down (-y)
     corner = lq[0]
@@ -155,8 +171,42 @@ def cornell_box(
         name="test",
     )
     return b.build(
-        default_camera=cam, paths={"train": train, "test": test}, source="procedural:cornell_box"
+        default_camera=cam, paths={"train": train, "test": test}, source=f"procedural:{b.name}"
     )
+
+
+def cornell_box_glossy(height: int = 256, width: int = 256) -> Scene:
+    """The Cornell box with glossy materials (Mitsuba 3's BSDFs, traced by the general kernel):
+
+    * the tall block: ``roughplastic`` (GGX, alpha 0.3, the box's white under a polypropylene
+      coating, ``nonlinear``);
+    * the short block: ``roughconductor`` gold (``material="Au"``, GGX, alpha 0.25);
+    * the back wall: ``roughplastic`` (Beckmann, alpha 0.1, white): the ceiling light's
+      highlight is seen near its top from the default camera.
+
+    The rest, the light, the camera and the ``train``/``test`` paths are :func:`cornell_box`'s.
+
+    Args:
+        height, width: size of the default camera and of the paths' cameras.
+    """
+    from icbtool.scene.bsdf import RoughConductor, RoughPlastic, approximate_albedo
+
+    b = SceneBuilder("cornell_box_glossy")
+    white = b.material("white", albedo=CORNELL_WHITE)
+    red = b.material("red", albedo=CORNELL_RED)
+    green = b.material("green", albedo=CORNELL_GREEN)
+    tall = RoughPlastic(
+        distribution="ggx", alpha=0.3, diffuse_reflectance=CORNELL_WHITE, nonlinear=True
+    )
+    short = RoughConductor(material="Au", distribution="ggx", alpha_u=0.25, alpha_v=0.25)
+    back = RoughPlastic(distribution="beckmann", alpha=0.1, diffuse_reflectance=CORNELL_WHITE)
+
+    def glossy(name: str, bsdf: object) -> int:  # albedo: the stand-in where no BSDF is seen
+        return b.material(name, albedo=approximate_albedo(bsdf), bsdf=bsdf)
+
+    walls = {"red": red, "green": green, "back": glossy("back_glossy", back)}
+    blocks = {"short": glossy("short_gold", short), "tall": glossy("tall_plastic", tall)}
+    return _cornell(b, walls, white, blocks, CORNELL_LIGHT_RADIANCE, height, width)
 
 
 # --------------------------------------------------------------------------- known answers
@@ -277,6 +327,7 @@ def cornell_box_moving_light(height: int = 256, width: int = 256) -> Scene:
 
 PROCEDURAL = {
     "cornell_box": cornell_box,
+    "cornell_box_glossy": cornell_box_glossy,
     "cornell_box_moving_light": cornell_box_moving_light,
     "white_furnace": white_furnace,
     "plane": plane,

@@ -14,6 +14,8 @@
 //   SHADOWS         shadow lookups on;  AREA_K  k x k shadow samples per area light
 //   AREA_SUB        s x s points per pixel for area light in penumbrae (1: the pixel centre)
 //   SKY_UNIFORM / SKY_GRADIENT / SKY_ENVMAP   the scene's sky (none: background DL is 0)
+//   GLOSSY          some material has a BSDF evaluated here (icbtool.raster.glossy's table)
+//   GLOSSY_N        n x n quadrature points per area light for glossy materials
 // Every output is 0 on background pixels except DL's colour; a non-zero alpha marks coverage.
 const float PI = 3.14159265358979;
 
@@ -113,6 +115,173 @@ vec3 sky_radiance() {
 #endif
 
 #ifdef LOC_DL
+#ifdef GLOSSY
+// Mitsuba 3's plastic, roughplastic, conductor and roughconductor, as icbtool.trace.bsdfs
+// evaluates them (BSDF times cos(wo), local frame, wi towards the camera, wo towards the light;
+// delta lobes give 0 here). Per material BSDF_ROWS texels of u_bsdf (icbtool.raster.glossy).
+#define BSDF_ROWS 20
+#define K_LAMBERT 0
+#define K_PLASTIC 1
+#define K_ROUGHPLASTIC 2
+#define K_CONDUCTOR 3
+#define K_ROUGHCONDUCTOR 4
+uniform samplerBuffer u_bsdf;
+
+struct Surf {
+    int kind;    // K_*
+    int base;    // first texel of the material's rows
+    vec3 brdf;   // Lambert: albedo / pi
+    vec3 ns;     // shading normal (facing the camera)
+    mat3 local;  // world -> local shading frame (rows: s, t, n)
+    vec3 wi;     // local direction towards the camera
+    bool front;  // seen from the side the surface faces (one-sided BSDFs are black behind)
+};
+
+// Mitsuba's coordinate_system(n) (Duff et al. 2017): the frame the tracer builds from n.
+mat3 frame_from(vec3 n) {
+    float sgn = n.z >= 0.0 ? 1.0 : -1.0;
+    float a = -1.0 / (sgn + n.z);
+    float b = n.x * n.y * a;
+    vec3 s = vec3(1.0 + sgn * n.x * n.x * a, sgn * b, -sgn * n.x);
+    vec3 t = vec3(b, sgn + n.y * n.y * a, -n.y);
+    return transpose(mat3(s, t, n));
+}
+
+// Unpolarised Fresnel reflectance of a dielectric interface seen from outside (cos_i >= 0).
+float fresnel_dielectric(float ci, float eta) {
+    if (eta == 1.0) return 0.0;
+    float ct2 = 1.0 - (1.0 - ci * ci) / (eta * eta);
+    if (ct2 <= 0.0 || ci <= 0.0) return 1.0;
+    float ct = sqrt(ct2);
+    float a_s = (ci - eta * ct) / (ci + eta * ct);
+    float a_p = (ct - eta * ci) / (ct + eta * ci);
+    return 0.5 * (a_s * a_s + a_p * a_p);
+}
+
+// Mitsuba's fresnel_conductor (complex IOR eta_r + i eta_i), one channel.
+float fresnel_conductor(float ci, float er, float ei) {
+    float c2 = ci * ci;
+    float s2 = 1.0 - c2;
+    float s4 = s2 * s2;
+    float t1 = er * er - ei * ei - s2;
+    float a2pb2 = sqrt(max(t1 * t1 + 4.0 * ei * ei * er * er, 0.0));
+    float a = sqrt(max(0.5 * (a2pb2 + t1), 0.0));
+    float term1 = a2pb2 + c2;
+    float term2 = 2.0 * ci * a;
+    float rs = (term1 - term2) / (term1 + term2);
+    float term3 = a2pb2 * c2 + s4;
+    float term4 = term2 * s2;
+    float rp = rs * (term3 - term4) / (term3 + term4);
+    return 0.5 * (rs + rp);
+}
+
+float mf_d(bool ggx, vec2 a, vec3 m) {
+    if (m.z <= 0.0) return 0.0;
+    float c2 = m.z * m.z;
+    vec2 xa = m.xy / a;
+    float q = dot(xa, xa);
+    if (ggx) {
+        float t = q + c2;
+        return 1.0 / (PI * a.x * a.y * t * t);
+    }
+    return exp(-q / c2) / (PI * a.x * a.y * c2 * c2);
+}
+
+// Smith's G1: Beckmann's rational fit, GGX exact (Mitsuba's smith_g1).
+float mf_g1(bool ggx, vec2 a, vec3 v, vec3 m) {
+    if (dot(v, m) * v.z <= 0.0) return 0.0;
+    float xy = dot(a * v.xy, a * v.xy);
+    if (xy == 0.0) return 1.0;
+    float t2 = xy / (v.z * v.z);
+    if (ggx) return 2.0 / (1.0 + sqrt(1.0 + t2));
+    float b = inversesqrt(t2);
+    if (b >= 1.6) return 1.0;
+    return (3.535 * b + 2.181 * b * b) / (1.0 + 2.276 * b + 2.577 * b * b);
+}
+
+// roughplastic's external transmittance at cos c (linear in its 64-entry table).
+float rough_t(int base, float c) {
+    float x = clamp(c, 0.0, 1.0) * 63.0;
+    int i = min(int(x), 62);
+    float f = x - float(i);
+    vec4 r0 = texelFetch(u_bsdf, base + 4 + i / 4);
+    vec4 r1 = texelFetch(u_bsdf, base + 4 + (i + 1) / 4);
+    return mix(r0[i % 4], r1[(i + 1) % 4], f);
+}
+
+// The surface of material ``mat`` at p (shading normal ns facing the camera) seen from the camera.
+Surf make_surf(int mat, vec3 brdf, vec3 p, vec3 ns, bool front) {
+    Surf s;
+    s.base = BSDF_ROWS * mat;
+    s.kind = int(texelFetch(u_bsdf, s.base).x + 0.5);
+    s.brdf = brdf;
+    s.ns = ns;
+    s.local = frame_from(ns);
+    s.wi = s.local * normalize(u_cam_pos - p);
+    s.front = front;
+    return s;
+}
+
+// BSDF times cos(wo) of a glossy surface for the local light direction wo (delta lobes: 0).
+vec3 glossy_eval(Surf s, vec3 wo) {
+    vec3 wi = s.wi;
+    if (!s.front || wi.z <= 0.0 || wo.z <= 0.0 || s.kind == K_CONDUCTOR) return vec3(0.0);
+    vec4 r0 = texelFetch(u_bsdf, s.base);
+    vec4 r1 = texelFetch(u_bsdf, s.base + 1);
+    vec4 r2 = texelFetch(u_bsdf, s.base + 2);
+    vec4 r3 = texelFetch(u_bsdf, s.base + 3);
+    bool ggx = r0.y != 0.0;
+    vec2 a = r0.zw;
+    if (s.kind == K_PLASTIC || s.kind == K_ROUGHPLASTIC) {
+        float eta = r1.w;
+        vec3 d = r1.rgb;
+        vec3 denom = 1.0 - (r3.y != 0.0 ? d * r3.x : vec3(r3.x));
+        if (s.kind == K_PLASTIC) {
+            float k = r2.w * (1.0 - fresnel_dielectric(wi.z, eta))
+                      * (1.0 - fresnel_dielectric(wo.z, eta)) * wo.z / PI;
+            return d / denom * k;
+        }
+        vec3 h = normalize(wi + wo);
+        float spec = fresnel_dielectric(dot(wi, h), eta) * mf_d(ggx, a, h)
+                     * mf_g1(ggx, a, wi, h) * mf_g1(ggx, a, wo, h) / (4.0 * wi.z);
+        float k = r2.w * wo.z * rough_t(s.base, wi.z) * rough_t(s.base, wo.z) / PI;
+        return spec * r2.rgb + d / denom * k;
+    }
+    // roughconductor
+    vec3 h = normalize(wi + wo);
+    float base = mf_d(ggx, a, h) * mf_g1(ggx, a, wi, h) * mf_g1(ggx, a, wo, h) / (4.0 * wi.z);
+    float c = dot(wi, h);
+    vec3 f = vec3(fresnel_conductor(c, r1.x, r2.x), fresnel_conductor(c, r1.y, r2.y),
+                  fresnel_conductor(c, r1.z, r2.z));
+    return base * f * r3.rgb;
+}
+
+// Reflected light per unit incident radiance/irradiance from the world direction l (unit,
+// towards the light): Lambert's albedo / pi * cos, or the glossy BSDF times cos.
+vec3 reflect_cos(Surf s, vec3 l) {
+    if (s.kind == K_LAMBERT) return s.brdf * max(dot(s.ns, l), 0.0);
+    return glossy_eval(s, s.local * l);
+}
+
+// The delta lobe's reflectance towards the mirror direction (smooth conductor: its Fresnel;
+// smooth plastic: the coating's Fresnel times specular_reflectance); 0 for the others.
+vec3 mirror_weight(Surf s) {
+    if (!s.front || s.wi.z <= 0.0) return vec3(0.0);
+    if (s.kind == K_CONDUCTOR) {
+        vec4 r1 = texelFetch(u_bsdf, s.base + 1);
+        vec4 r2 = texelFetch(u_bsdf, s.base + 2);
+        vec4 r3 = texelFetch(u_bsdf, s.base + 3);
+        float c = s.wi.z;
+        return r3.rgb * vec3(fresnel_conductor(c, r1.x, r2.x), fresnel_conductor(c, r1.y, r2.y),
+                             fresnel_conductor(c, r1.z, r2.z));
+    }
+    if (s.kind == K_PLASTIC) {
+        return texelFetch(u_bsdf, s.base + 2).rgb
+               * fresnel_dielectric(s.wi.z, texelFetch(u_bsdf, s.base + 1).w);
+    }
+    return vec3(0.0);
+}
+#endif
 #ifdef SHADOWS
 #if (N_DIR + N_POINT + N_SPOT) > 0
 uniform sampler2DArrayShadow u_shadow;       // sharp shadow maps (sun, point cube faces, spot)
@@ -209,20 +378,11 @@ float polygon_irradiance(vec3 v0, vec3 v1, vec3 v2, vec3 v3, vec3 p, vec3 n) {
     return 0.5 * abs(sum);
 }
 
-// Irradiance / radiance of area light i at p (shading normal ns, geometric ng), shadowed: the
-// exact polygon irradiance times the visibility fraction, from shadow tests towards AREA_K^2
-// stratified points on the light (equal cells) weighted by their unshadowed contribution
-// cos * cos' / r^2. ``partial`` is set when some sample is (partly) hidden and some not.
-float area_irradiance(int i, vec3 p, vec3 ns, vec3 ng, inout bool partial) {
-    vec3 v0 = u_area_v[4 * i];
-    vec3 v1 = u_area_v[4 * i + 1];
-    vec3 v2 = u_area_v[4 * i + 2];
-    vec3 v3 = u_area_v[4 * i + 3];
-    vec3 nl = normalize(cross(v1 - v0, v3 - v0));
-    float w0 = dot(p - v0, nl);  // depth in every sample's view (axis nl)
-    if (w0 <= 0.0) return 0.0;  // behind the emitter (one-sided)
-    float e = polygon_irradiance(v0, v1, v2, v3, p, ns);
-    if (e <= 0.0) return 0.0;
+// Visibility fraction of area light i (vertices v0..v3, emitting normal nl) at p (shading normal
+// ns, geometric ng; w0 its depth along nl): shadow tests towards AREA_K^2 stratified points on
+// the light (equal cells) weighted by their unshadowed contribution cos * cos' / r^2 (1 without
+// shadows). ``partial`` is set when some sample is (partly) hidden and some not.
+float area_visibility(int i, vec3 p, vec3 ns, vec3 ng, vec3 nl, float w0, inout bool partial) {
 #ifdef SHADOWS
     float wsum = 0.0;
     float vsum = 0.0;
@@ -247,11 +407,73 @@ float area_irradiance(int i, vec3 p, vec3 ns, vec3 ng, inout bool partial) {
         vmax = max(vmax, v);
     }
     partial = partial || vmax - vmin > 1e-3;
-    return wsum > 0.0 ? e * vsum / wsum : e;
+    return wsum > 0.0 ? vsum / wsum : 1.0;
 #else
-    return e;
+    return 1.0;
 #endif
 }
+
+// Irradiance / radiance of area light i at p (shading normal ns, geometric ng), shadowed: the
+// exact polygon irradiance times the visibility fraction (area_visibility).
+float area_irradiance(int i, vec3 p, vec3 ns, vec3 ng, inout bool partial) {
+    vec3 v0 = u_area_v[4 * i];
+    vec3 v1 = u_area_v[4 * i + 1];
+    vec3 v2 = u_area_v[4 * i + 2];
+    vec3 v3 = u_area_v[4 * i + 3];
+    vec3 nl = normalize(cross(v1 - v0, v3 - v0));
+    float w0 = dot(p - v0, nl);  // depth in every sample's view (axis nl)
+    if (w0 <= 0.0) return 0.0;  // behind the emitter (one-sided)
+    float e = polygon_irradiance(v0, v1, v2, v3, p, ns);
+    if (e <= 0.0) return 0.0;
+    return e * area_visibility(i, p, ns, ng, nl, w0, partial);
+}
+
+#ifdef GLOSSY
+// Reflected radiance of area light i off a glossy surface at p: the BSDF integrated over the
+// polygon by the midpoint rule at GLOSSY_N x GLOSSY_N points of its bilinear parametrisation
+// (unshadowed), plus the delta lobe's mirror image of the light (exact), both times the light's
+// visibility fraction (area_visibility, as the Lambertian path).
+vec3 area_glossy(int i, vec3 p, vec3 ng, Surf s, inout bool partial) {
+    vec3 v0 = u_area_v[4 * i];
+    vec3 v1 = u_area_v[4 * i + 1];
+    vec3 v2 = u_area_v[4 * i + 2];
+    vec3 v3 = u_area_v[4 * i + 3];
+    vec3 nl = normalize(cross(v1 - v0, v3 - v0));
+    float w0 = dot(p - v0, nl);
+    if (w0 <= 0.0) return vec3(0.0);
+    vec3 sum = vec3(0.0);
+    for (int y = 0; y < GLOSSY_N; ++y) {
+        for (int x = 0; x < GLOSSY_N; ++x) {
+            vec2 uv = (vec2(x, y) + 0.5) / float(GLOSSY_N);
+            vec3 q = mix(mix(v0, v1, uv.x), mix(v3, v2, uv.x), uv.y);
+            vec3 du = mix(v1 - v0, v2 - v3, uv.y);
+            vec3 dv = mix(v3 - v0, v2 - v1, uv.x);
+            vec3 d = q - p;
+            float r2 = dot(d, d);
+            vec3 l = d * inversesqrt(r2);
+            float cl = -dot(nl, l);
+            if (cl <= 0.0 || dot(ng, l) <= 0.0) continue;
+            sum += glossy_eval(s, s.local * l) * (cl * length(cross(du, dv)) / r2);
+        }
+    }
+    sum /= float(GLOSSY_N * GLOSSY_N);
+    vec3 mw = mirror_weight(s);
+    if (max(mw.r, max(mw.g, mw.b)) > 0.0) {  // the mirror ray meets the polygon?
+        vec3 r = reflect(-normalize(u_cam_pos - p), s.ns);
+        float dn = dot(r, nl);
+        if (dn < 0.0) {
+            vec3 x = p + r * (dot(v0 - p, nl) / dn);
+            vec3 q[4] = vec3[4](v0, v1, v2, v3);
+            bool inside = true;
+            for (int k = 0; k < 4; ++k)
+                inside = inside && dot(cross(q[(k + 1) % 4] - q[k], x - q[k]), nl) >= 0.0;
+            if (inside) sum += mw;
+        }
+    }
+    if (max(sum.r, max(sum.g, sum.b)) <= 0.0) return vec3(0.0);
+    return u_area_L[i] * sum * area_visibility(i, p, s.ns, ng, nl, w0, partial);
+}
+#endif
 #endif
 
 float spot_falloff(float c, vec3 cs) {
@@ -338,6 +560,13 @@ void main() {
     vec3 ng = front ? face.xyz : -face.xyz;
     vec3 dl = front ? texelFetch(u_materials, 2 * mat + 1).rgb : vec3(0.0);
     vec3 brdf = albedo / PI;
+#ifdef GLOSSY
+    Surf surf = make_surf(mat, brdf, p, ns, front);
+    bool glossy = surf.kind != K_LAMBERT;
+#define REFLECT_COS(l) reflect_cos(surf, l)
+#else
+#define REFLECT_COS(l) (brdf * max(dot(ns, l), 0.0))
+#endif
 #if N_DIR > 0
     for (int i = 0; i < N_DIR; ++i) {
         vec3 l = -u_dir_dir[i];
@@ -347,7 +576,7 @@ void main() {
 #ifdef SHADOWS
         vis = shadow_lookup(u_shadow, u_shadow_mat[i], u_shadow_texel[i], i, p, ng, cg, 1.0);
 #endif
-        dl += brdf * u_dir_E[i] * max(dot(ns, l), 0.0) * vis;
+        dl += REFLECT_COS(l) * u_dir_E[i] * vis;
     }
 #endif
 #if N_POINT > 0
@@ -367,7 +596,7 @@ void main() {
         vis = shadow_lookup(u_shadow, u_shadow_mat[layer], u_shadow_texel[layer], layer, p, ng, cg,
                             (u_shadow_mat[layer] * vec4(p, 1.0)).w);
 #endif
-        dl += brdf * u_point_I[i] / r2 * max(dot(ns, l), 0.0) * vis;
+        dl += REFLECT_COS(l) * u_point_I[i] / r2 * vis;
     }
 #endif
 #if N_SPOT > 0
@@ -384,7 +613,7 @@ void main() {
         vis = shadow_lookup(u_shadow, u_shadow_mat[layer], u_shadow_texel[layer], layer, p, ng, cg,
                             (u_shadow_mat[layer] * vec4(p, 1.0)).w);
 #endif
-        dl += brdf * u_spot_I[i] * fall / r2 * max(dot(ns, l), 0.0) * vis;
+        dl += REFLECT_COS(l) * u_spot_I[i] * fall / r2 * vis;
     }
 #endif
 #if N_AREA > 0
@@ -394,6 +623,12 @@ void main() {
     // it; at one point per pixel the penumbra's curved profile is biased (dark at its umbra side).
     bool partial = false;
     vec3 area = vec3(0.0);
+    // glossy materials: the reflected radiance itself (area_glossy); Lambert: the irradiance
+#ifdef GLOSSY
+    if (glossy) {
+        for (int i = 0; i < N_AREA; ++i) area += area_glossy(i, p, ng, surf, partial);
+    } else
+#endif
     for (int i = 0; i < N_AREA; ++i) area += u_area_L[i] * area_irradiance(i, p, ns, ng, partial);
 #if AREA_SUB > 1
     if (partial) {
@@ -406,6 +641,13 @@ void main() {
                 vec3 nss = normalize((1.0 - bs.x - bs.y) * n0.xyz + bs.x * n1.xyz + bs.y * n2.xyz);
                 if (!front) nss = -nss;
                 bool unused = false;
+#ifdef GLOSSY
+                if (glossy) {
+                    Surf ss = make_surf(mat, brdf, ps, nss, front);
+                    for (int i = 0; i < N_AREA; ++i) area += area_glossy(i, ps, ng, ss, unused);
+                    continue;
+                }
+#endif
                 for (int i = 0; i < N_AREA; ++i)
                     area += u_area_L[i] * area_irradiance(i, ps, nss, ng, unused);
             }
@@ -413,7 +655,11 @@ void main() {
         area /= float(AREA_SUB * AREA_SUB);
     }
 #endif
+#ifdef GLOSSY
+    dl += glossy ? area : brdf * area;
+#else
     dl += brdf * area;
+#endif
 #endif
     o_dl = vec4(dl, 1.0);
 #endif
