@@ -17,13 +17,15 @@ Mitsuba's RMSE is its load plus its render time times ``(rmse_icbtool / rmse_mit
 Carlo variance falls as 1/spp; the bias does not, so it is reported beside it).
 
 What both render (the approximations taken): each scene is first prepared once (a copy in the
-output folder, file names made absolute): shapes whose mesh file is missing are dropped (public
+output folder, file names made absolute, a Mitsuba 0.6 ``scale`` texture on a bump map folded
+into the bumpmap's ``scale``): shapes whose mesh file is missing are dropped (public
 snapshots of scenes lack their largest files: named in the results), the integrator becomes
 ``path`` with ``--max-depth``, the sampler ``independent``, the film ``--width`` x ``--height``.
-Mitsuba then renders the prepared file's diffuse twin
-(:func:`icbtool.scene.mitsuba.diffuse_twin`): every BSDF becomes the two-sided diffuse BSDF
-icbtool renders for it (icbtool approximates non-diffuse BSDFs by one rule; its warnings are
-counted) and every pixel filter ``box``.
+Mitsuba then renders the prepared file's twin
+(:func:`icbtool.scene.mitsuba.diffuse_twin`): a BSDF icbtool traces exactly (its general
+kernel: Mitsuba's own plugins, :mod:`icbtool.scene.bsdf`) stays as written, so both render the
+same BSDFs; only a BSDF icbtool approximates becomes the two-sided diffuse BSDF icbtool renders
+for it (its warnings are listed in the results), and every pixel filter ``box``.
 
 The machine may be shared: the load average is recorded before and after every child, and the
 ratios reported are those of runs made back to back (icbtool then Mitsuba, ``--repeats`` times,
@@ -101,6 +103,9 @@ def prepare(
                 parent.remove(c)
             if c.tag == "srgb":  # Mitsuba 0.5's sRGB colour, which Mitsuba 3 does not read
                 c.tag, c.attrib["value"] = "rgb", _linear_rgb(c.get("value", "0"))
+    for bump in root.iter("bsdf"):
+        if bump.get("type") == "bumpmap":
+            _fold_scale_texture(bump)
     integ = ET.SubElement(root, "integrator", {"type": "path"})
     old = tuple(int(x) for x in root.get("version", "3.0.0").split(".")[:1])
     depth_name = "maxDepth" if old < (2,) else "max_depth"
@@ -118,6 +123,24 @@ def prepare(
     dst = out_dir / f"{xml.stem.split('.')[0]}.xml"
     tree.write(dst)
     return {"file": dst, "dropped": dropped}
+
+
+def _fold_scale_texture(bump: ET.Element) -> None:
+    """Mitsuba 0.6's ``scale`` texture around a bump map's height field (a plugin Mitsuba 3
+    lacks) becomes the bumpmap's own ``scale``: the same displacement, read alike by both."""
+    for tex in list(bump.findall("texture")):
+        inner = tex.find("texture")
+        if tex.get("type") != "scale" or inner is None:
+            continue
+        f = tex.find("float[@name='scale']")
+        s = float(f.get("value", "1")) if f is not None else 1.0
+        old = bump.find("float[@name='scale']")
+        if old is None:
+            old = ET.SubElement(bump, "float", {"name": "scale", "value": "1"})
+        old.set("value", repr(float(old.get("value", "1")) * s))
+        idx = list(bump).index(tex)
+        bump.remove(tex)
+        bump.insert(idx, inner)
 
 
 def _linear_rgb(srgb: str) -> str:

@@ -1073,6 +1073,37 @@ def block_mitsuba_xml(results: Path) -> str:
     )
 
 
+def block_interiors(results: Path) -> str:
+    d = load("interiors/interiors.json", results)
+    c = d["config"]
+    rows, loads = [], list(walk_load_averages(d["scenes"]))
+    for key, r in d["scenes"].items():
+        runs, ra, lo = r["runs"], r["ratios"], r["icbtool_load"]
+        icb = [p["icbtool"] for p in runs]
+        mi = [p["mitsuba"] for p in runs]
+        rows.append(
+            f"| {key} ({lo['triangles'] / 1e3:.0f}k tris, {lo['texels'] / 1e6:.1f}M texels over "
+            "its materials) "
+            f"| {span([x['wall_s'] for x in icb])} | {span([x['wall_s'] for x in mi])} "
+            f"| {ra['whole_run_time']:.2f}x | {span([x['peak_rss_mb'] for x in icb])} "
+            f"| {span([x['peak_rss_mb'] for x in mi])} | {ra['peak_memory']:.2f}x "
+            f"| {lo['load_s']:.1f} / {r['mitsuba_load']['load_s']:.1f} |"
+        )
+    return (
+        "**Interiors against Mitsuba 3** (`benchmarks.interiors`): icbtool's whole `trace` "
+        "(load, BVH, packing, render,\noutputs) and Mitsuba "
+        f"{d.get('mitsuba_version', '?')} (`{c['variant']}`: import, load, render) in child "
+        "processes, back to back, on\nthe same prepared file (the BSDFs icbtool traces exactly "
+        f"kept on both sides), {c['width']}x{c['height']}, {c['spp']} spp,\nmax depth "
+        f"{c['max_depth']}, {c['repeats']} pair(s); peak memory: each child's VmHWM; 1-minute "
+        f"load {min(loads):.1f}-{max(loads):.1f}\n(2 shared cores: compare the ratios, not the "
+        "times).\n\n"
+        "| scene | icbtool (s) | Mitsuba (s) | time ratio | icbtool peak (MB) | Mitsuba peak "
+        "(MB) | memory ratio | load alone (s), icbtool / Mitsuba |\n"
+        "|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n"
+    )
+
+
 def _baseline_line(results: Path, tag: str = "train", paths: tuple[str, ...] = ("test",)) -> str:
     """One line: the trivial baselines on the current store's ``paths`` (gan/baselines_TAG.json:
     fitted on the train path, or on train + cover with ``tag="cover"``), appended to every GAN
@@ -2210,6 +2241,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "loop": block_loop,
     "emitters": block_emitters,
     "mitsuba-xml": block_mitsuba_xml,
+    "interiors": block_interiors,
     "envmap": block_envmap,
     "dl-accuracy": block_dl_accuracy,
     "shadow-accuracy": block_shadow_accuracy,
@@ -2247,6 +2279,7 @@ OWNERS: dict[str, str] = {
     "loop": "loop_demo",
     "emitters": "emitter_split",
     "mitsuba-xml": "mitsuba_xml_compare",
+    "interiors": "interiors",
     "envmap": "envmap_mitsuba",
     "dl-accuracy": "raster_dl_accuracy",
     "shadow-accuracy": "raster_shadow_accuracy",
