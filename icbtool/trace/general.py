@@ -20,7 +20,8 @@ Not done here (the Lambert kernel's performance features): ``gi_splits`` (one br
 sample) and deferred texel loads.
 
 numba's disk cache of a function is keyed on its own file only, but this kernel compiles in the
-helpers of :mod:`icbtool.trace.kernels` and :mod:`icbtool.trace.bsdfs`:
+helpers of :mod:`icbtool.trace.kernels`, :mod:`icbtool.trace.bsdfs` and
+:mod:`icbtool.trace.shapes`:
 :func:`_drop_stale_cache` empties its cache when either file changed since it was written.
 """
 
@@ -35,6 +36,7 @@ import numpy as np
 
 from icbtool.trace import bsdfs as bs
 from icbtool.trace import kernels as _kernels
+from icbtool.trace import shapes as _shapes
 from icbtool.trace.kernels import (
     _GOLD,
     _JIT,
@@ -49,12 +51,12 @@ from icbtool.trace.kernels import (
     _add_to,
     _address,
     _camera_ray,
+    _closest,
     _emission_mis_weight,
-    _emission_through,
-    _emitter_point,
+    _emission_through_all,
+    _emitter_pick,
     _eps,
     _hit_frame,
-    _intersect,
     _ld2,
     _log_ray,
     _mix,
@@ -68,10 +70,12 @@ from icbtool.trace.kernels import (
     _take_block,
     _tex_coords,
     _towards,
+    _triangle_point,
     _u01,
-    _visible,
+    _visible_all,
     _zkey,
 )
+from icbtool.trace.shapes import shape_frame, shape_pdf, shape_sample
 
 #: salts of the lobe choice and of a mask's pass-through decision (xor-ed into a dimension's)
 _LOBE_SALT = np.uint64(0x632BE59BD9B4E019)
@@ -183,6 +187,8 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
     tri, fn, vn, face_mat, face_uv = sf.tri, sf.face_n, sf.vn, sf.face_mat, sf.face_uv
     mat_albedo, mat_emission = sf.mat_albedo, sf.mat_emission
     nearest, shading_normals, diag = sf.nearest, sf.shading_normals, sf.diag
+    shp = sf.shapes  # analytic shapes: primitive n_tri + k (icbtool.trace.shapes)
+    n_tri = tri.shape[0]
     suns, punct, face_light_pmf, face_area, face_is_area, emit_faces, emit_cdf = p.lights
     sky_kind, sky, env, rot, scale, frame, marg, cond, spdf, rows, phi0, mis = p.sky
     smp = p.sampling
@@ -238,10 +244,10 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
                         bj = _mix(base + np.uint64(j + 1) * _GOLD)
                         jx = _u01(bj, salts[0])
                         jy = _u01(bj, salts[1])
-                    le = _emission_through(
+                    le = _emission_through_all(
                         rtc, fn_isect, ray, log, cam,
                         np.float64(pix_x) + jx, np.float64(pix_y) + jy,
-                        (fn, face_mat, mat_emission), (sky_kind, sky, env, rot, scale),
+                        (fn, face_mat, mat_emission), (sky_kind, sky, env, rot, scale), shp,
                     )  # fmt: skip
                     n_prim += 1
                     direct[row, 0] += le[0] * w_seen
@@ -257,8 +263,8 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
             n_pass = 0
             while depth <= limit:
                 _log_ray(log, 0 if depth == 1 else 2, ox, oy, oz, dx, dy, dz, np.float32(np.inf))
-                h_t, prim, h_u, h_v = _intersect(
-                    rtc, fn_isect, ray, ox, oy, oz, np.float32(dx), np.float32(dy), np.float32(dz)
+                th, prim, h_u, h_v = _closest(
+                    rtc, fn_isect, ray, shp, n_tri, ox, oy, oz, dx, dy, dz
                 )
                 if depth == 1:
                     n_prim += 1
@@ -284,10 +290,16 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
                             gi[row, 1] += le[1] * t1 * w
                             gi[row, 2] += le[2] * t2 * w
                     break
-                th = np.float64(h_t)
-                x, bary, cos_o, front, nf, ns = _hit_frame(
-                    tri, fn, vn, shading_normals, prim, h_u, h_v, dx, dy, dz
-                )
+                on_shape = prim >= n_tri
+                if on_shape:  # exact: point, normal; no uvs, the Duff frame (isotropic BSDFs)
+                    x, bary, cos_o, front, nf, ns = shape_frame(
+                        shp, prim - n_tri, np.float64(ox), np.float64(oy), np.float64(oz),
+                        dx, dy, dz, th,
+                    )  # fmt: skip
+                else:
+                    x, bary, cos_o, front, nf, ns = _hit_frame(
+                        tri, fn, vn, shading_normals, prim, h_u, h_v, dx, dy, dz
+                    )
                 m = face_mat[prim]
                 e0 = mat_emission[m, 0]
                 e1 = mat_emission[m, 1]
@@ -299,14 +311,20 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
                         direct[row, 2] += e2 * w_seen
                     else:
                         w = 1.0
-                        if not delta_prev:
+                        if not delta_prev and on_shape:  # the density shape_sample used
+                            pl = face_light_pmf[prim] * shape_pdf(
+                                shp, prim - n_tri, np.float64(ox), np.float64(oy),
+                                np.float64(oz), dx, dy, dz, th, cos_o,
+                            )  # fmt: skip
+                            w = pdf_prev * pdf_prev / max(pdf_prev * pdf_prev + pl * pl, 1e-300)
+                        elif not delta_prev:
                             w = _emission_mis_weight(
                                 face_light_pmf[prim], face_area[prim], th, cos_o, pdf_prev
                             )
                         _add_to(direct, gi, from_first and face_is_area[prim], row,
                                 e0 * t0 * w, e1 * t1 * w, e2 * t2 * w)  # fmt: skip
                 eps = _eps(x[0], x[1], x[2], th, diag)
-                uu, vv = _tex_coords(face_uv, prim, bary) if has_uv else (0.0, 0.0)
+                uu, vv = _tex_coords(face_uv, prim, bary) if has_uv and not on_shape else (0.0, 0.0)
                 root = mat_root[m]
                 dim0 = 2 + depth * DIMS_PER_BOUNCE
                 if B.nt[root] == bs.MASK:  # pass through with probability 1 - opacity
@@ -321,10 +339,14 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
                 # the local shading frame: z = the shading normal on the face's front side
                 sgn = 1.0 if front else -1.0
                 n_sh = (ns[0] * sgn, ns[1] * sgn, ns[2] * sgn)
-                fr_s, fr_t = _frame(n_sh, (face_t[prim, 0], face_t[prim, 1], face_t[prim, 2]))
+                tg = (0.0, 0.0, 0.0)
+                if not on_shape:
+                    tg = (np.float64(face_t[prim, 0]), np.float64(face_t[prim, 1]),
+                          np.float64(face_t[prim, 2]))  # fmt: skip
+                fr_s, fr_t = _frame(n_sh, tg)
                 fr = (fr_s, fr_t, n_sh)
                 wi_l = _to_local(fr_s, fr_t, n_sh, -dx, -dy, -dz)
-                geo = _geo(B, root, fr, face_t, face_b, fn, prim)
+                geo = bs.NO_GEO if on_shape else _geo(B, root, fr, face_t, face_b, fn, prim)
                 if depth == 1:
                     first_hit[row] = True
                     if want_aux:
@@ -343,7 +365,7 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
                 if not bs.is_smooth(B, root):
                     n_shadow += _nee(
                         B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps, diag, t0, t1, t2,
-                        to_dl, row, direct, gi, rtc, fn_occl, ray, log, suns, n_s, punct,
+                        to_dl, row, direct, gi, rtc, fn_occl, ray, log, shp, suns, n_s, punct,
                         n_q, tri, fn, face_mat, mat_emission, face_light_pmf, face_area,
                         face_is_area, emit_faces, emit_cdf, n_e, sky_mis, sky_kind, sky, env,
                         rot, scale, frame, marg, cond, spdf, rows, phi0, use_ld, pixel_seed,
@@ -390,7 +412,7 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
 
 @nb.njit(**_JIT)
 def _nee(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps, diag, t0, t1, t2, to_dl, row, direct,
-         gi, rtc, fn_occl, ray, log, suns, n_s, punct, n_q, tri, fn, face_mat, mat_emission,
+         gi, rtc, fn_occl, ray, log, shp, suns, n_s, punct, n_q, tri, fn, face_mat, mat_emission,
          face_light_pmf, face_area, face_is_area, emit_faces, emit_cdf, n_e, sky_mis, sky_kind,
          sky, env, rot, scale, frame, marg, cond, spdf, rows, phi0, use_ld, pixel_seed, sid_s,
          pair0, pixseed0, zkey, zshift, base, salts, dim0, depth):  # fmt: skip
@@ -403,7 +425,7 @@ def _nee(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps, diag, t0, t1, t2, 
         f0, f1, f2, _, so = _light(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps, d, 0.0)
         if f0 > 0 or f1 > 0 or f2 > 0:
             n_shadow += 1
-            if _visible(rtc, fn_occl, ray, log, so, d[0], d[1], d[2], np.float32(np.inf)):
+            if _visible_all(rtc, fn_occl, ray, log, shp, so, d[0], d[1], d[2], np.float32(np.inf)):
                 _add_to(direct, gi, to_dl, row, t0 * f0 * suns[j, 3], t1 * f1 * suns[j, 4],
                         t2 * f2 * suns[j, 5])  # fmt: skip
     for j in range(n_q):  # point and spot lights (delta)
@@ -418,7 +440,7 @@ def _nee(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps, diag, t0, t1, t2, 
         if f0 > 0 or f1 > 0 or f2 > 0:
             n_shadow += 1
             tf = np.float32(dist * (1 - 1e-5) - eps)
-            if _visible(rtc, fn_occl, ray, log, so, w0, w1, w2, tf):
+            if _visible_all(rtc, fn_occl, ray, log, shp, so, w0, w1, w2, tf):
                 g = fall / (dist * dist)
                 _add_to(direct, gi, to_dl, row, t0 * f0 * punct[j, 3] * g,
                         t1 * f1 * punct[j, 4] * g, t2 * f2 * punct[j, 5] * g)  # fmt: skip
@@ -430,14 +452,22 @@ def _nee(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps, diag, t0, t1, t2, 
             ul = _u01(base, salts[dim0 + 2])
             ra = _u01(base, salts[dim0 + 3])
             rb = _u01(base, salts[dim0 + 4])
-        lf, y = _emitter_point(tri, emit_faces, emit_cdf, ul, ra, rb, use_ld)
-        w0, w1, w2, dist = _towards(x[0], x[1], x[2], y[0], y[1], y[2])
-        cl = -(fn[lf, 0] * w0 + fn[lf, 1] * w1 + fn[lf, 2] * w2)
-        if cl > 0 and dist > 0:
+        lf, ra = _emitter_pick(emit_faces, emit_cdf, ul, ra, use_ld)
+        if lf >= tri.shape[0]:  # an analytic emitter, drawn as Mitsuba draws it
+            ok, w0, w1, w2, dist, pdf, y, _ = shape_sample(
+                shp, lf - tri.shape[0], x[0], x[1], x[2], ra, rb
+            )
+            pl = face_light_pmf[lf] * pdf
+        else:
+            y = _triangle_point(tri, lf, ra, rb)
+            w0, w1, w2, dist = _towards(x[0], x[1], x[2], y[0], y[1], y[2])
+            cl = -(fn[lf, 0] * w0 + fn[lf, 1] * w1 + fn[lf, 2] * w2)
+            ok = cl > 0
+            pl = face_light_pmf[lf] / face_area[lf] * dist * dist / cl if ok else 0.0
+        if ok and dist > 0:
             f0, f1, f2, pb, so = _light(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps,
                                         (w0, w1, w2), dist)  # fmt: skip
             if f0 > 0 or f1 > 0 or f2 > 0:
-                pl = face_light_pmf[lf] / face_area[lf] * dist * dist / cl
                 g = pl / (pl * pl + pb * pb)  # w / pl, w = power heuristic
                 n_shadow += 1
                 eps_l = _eps(y[0], y[1], y[2], dist, diag)
@@ -447,7 +477,7 @@ def _nee(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps, diag, t0, t1, t2, 
                     np.float64(so[0]), np.float64(so[1]), np.float64(so[2]), y[0], y[1], y[2]
                 )
                 tf = np.float32(max(sdist - eps_l, 0.0))
-                if _visible(rtc, fn_occl, ray, log, so, s0, s1, s2, tf):
+                if _visible_all(rtc, fn_occl, ray, log, shp, so, s0, s1, s2, tf):
                     me = face_mat[lf]
                     _add_to(direct, gi, to_dl and face_is_area[lf], row,
                             t0 * f0 * mat_emission[me, 0] * g, t1 * f1 * mat_emission[me, 1] * g,
@@ -464,7 +494,7 @@ def _nee(B, root, uu, vv, nearest, fr, wi_l, geo, x, nf, eps, diag, t0, t1, t2, 
                                         (w0, w1, w2), 0.0)  # fmt: skip
             if f0 > 0 or f1 > 0 or f2 > 0:
                 n_shadow += 1
-                if _visible(rtc, fn_occl, ray, log, so, w0, w1, w2, np.float32(np.inf)):
+                if _visible_all(rtc, fn_occl, ray, log, shp, so, w0, w1, w2, np.float32(np.inf)):
                     le = _sky(sky_kind, sky, env, rot, scale, w0, w1, w2)
                     g = psk / (psk * psk + pb * pb)
                     _add_to(direct, gi, False, row, t0 * f0 * le[0] * g, t1 * f1 * le[1] * g,
@@ -478,7 +508,7 @@ def _drop_stale_cache() -> None:
     beside the cache); a read-only or missing cache is left alone."""
     try:
         deps = hashlib.sha256(
-            b"".join(Path(m.__file__).read_bytes() for m in (_kernels, bs))
+            b"".join(Path(m.__file__).read_bytes() for m in (_kernels, bs, _shapes))
         ).hexdigest()
         cache = trace_paths_general._cache
         stamp = Path(cache._cache_path) / "general_deps.sha256"

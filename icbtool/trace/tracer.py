@@ -535,13 +535,15 @@ class _SceneData:
         self.textures = {i: m.texture for i, m in enumerate(scene.materials) if m.is_textured}
         self.diag = max(scene.diagonal, 1e-30)
         # analytic shapes (icbtool.trace.shapes): primitive F + k; their tessellations are left
-        # out of Embree's scene and of the emitters. The general (BSDF) kernel does not take
-        # them yet: a scene with declared BSDFs renders the tessellations
+        # out of Embree's scene and of the emitters. The general (BSDF) kernel shades an exact
+        # shape without uvs and in the Duff frame of its normal: where a shape's BSDF needs
+        # them (a texture, a normal or bump map, anisotropy) the tessellations are traced
         from icbtool.scene.emitters import light_faces
         from icbtool.trace.shapes import pack_shapes
 
-        general = any(getattr(m, "bsdf", None) is not None for m in scene.materials)
-        shapes = () if general else tuple(scene.shapes)
+        shapes = tuple(scene.shapes)
+        if any(_needs_surface_frame(scene.materials[sh.material].bsdf) for sh in shapes):
+            shapes = ()
         self.shapes = shapes
         F, S = len(f), len(shapes)
         self.shape_table = pack_shapes(shapes)
@@ -662,6 +664,24 @@ class _SceneData:
             return sd
 
         return derived(scene, "trace_data", build)
+
+
+def _needs_surface_frame(b: Any) -> bool:
+    """Whether a declared BSDF reads uvs or the tangent frame: a texture, a normal or bump map,
+    or anisotropic roughness anywhere in it (None: a Lambert material, which does not)."""
+    import dataclasses
+
+    from icbtool.scene.bsdf import MAPPED_TYPES, Bitmap, Checkerboard
+
+    if b is None:
+        return False
+    if isinstance(b, (*MAPPED_TYPES, Bitmap, Checkerboard)):
+        return True
+    if getattr(b, "alpha_u", None) is not None and b.alpha_u != b.alpha_v:
+        return True
+    if not dataclasses.is_dataclass(b):
+        return False
+    return any(_needs_surface_frame(getattr(b, f.name)) for f in dataclasses.fields(b))
 
 
 @dataclass(frozen=True)
