@@ -39,9 +39,9 @@ def main() -> None:
 
     import icbtool.store as S
     from icbtool import metrics
-    from icbtool._optional import require
     from icbtool.gan import Generator
     from icbtool.imageio import to_display, write_png
+    from icbtool.optional import require
     from icbtool.provenance import run_info, write_json
 
     flip_evaluator = require("flip_evaluator", "the FLIP metric of Figure 8")

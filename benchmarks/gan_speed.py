@@ -162,21 +162,23 @@ def profile_nodes(path: Path, channels: int, side: int, calls: int = 10) -> dict
 def iteration_ms(store_dir: str, scene: str, names: list[str], n: int = 100) -> dict:
     """Training cost per iteration of ablation variants on a store: wall and CPU ms of one
     generator update (median conditions: one torch thread, after 5 warm-up updates, mean of
-    ``n``), from the training loop's own state (``icbtool.gan.training._Run``)."""
+    ``n``), from the training loop's own state (``icbtool.gan.training.TrainingRun``)."""
     import tempfile as tf
 
     import torch
 
     import icbtool.store as S
     from benchmarks.gan_ablation import config
-    from icbtool.gan.training import _Run
+    from icbtool.gan.training import TrainingRun
 
     torch.set_num_threads(1)
     out = {}
     ro = S.StoreConfig(readonly=True, record_hits=False)
     with S.open(store_dir, ro) as st:
         for name in names:
-            run = _Run(st, config(name, 3000, 500), Path(tf.mkdtemp(prefix="icb-it-")), scene)
+            run = TrainingRun(
+                st, config(name, 3000, 500), Path(tf.mkdtemp(prefix="icb-it-")), scene
+            )
             for _ in range(5):
                 run.iteration()
             load0, c0, t0 = os.getloadavg()[0], time.process_time(), time.perf_counter()

@@ -66,9 +66,9 @@ def main() -> None:
 
     import icbtool.store as S
     from icbtool import metrics, trace
-    from icbtool._optional import require
     from icbtool.gan import Generator
     from icbtool.gan.baselines import equal_quality
+    from icbtool.optional import require
     from icbtool.provenance import run_info, write_json
     from icbtool.scene import load
 

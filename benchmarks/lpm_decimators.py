@@ -34,7 +34,7 @@ def _input(scene_path: str):
     import icbtool as icb
     from icbtool.lpm import LPMConfig
     from icbtool.lpm import build as _b  # noqa: F401
-    from icbtool.lpm.build import _sub_mesh, _weld, group_targets
+    from icbtool.lpm.build import group_targets, sub_mesh, weld
 
     s = icb.scene.load(scene_path)
     cfg = LPMConfig()
@@ -44,8 +44,8 @@ def _input(scene_path: str):
         idx = np.flatnonzero(s.face_material == m)
         if len(idx) == 0 or targets[m] >= len(idx):
             continue
-        part = _sub_mesh(s, idx, m)
-        w, wm = _weld(part.vertices, cfg.weld_tolerance * s.diagonal)
+        part = sub_mesh(s, idx, m)
+        w, wm = weld(part.vertices, cfg.weld_tolerance * s.diagonal)
         wf = wm[part.faces]
         ok = (wf[:, 0] != wf[:, 1]) & (wf[:, 1] != wf[:, 2]) & (wf[:, 0] != wf[:, 2])
         verts.append(w)

@@ -35,8 +35,8 @@ import numpy as np
 
 import icbtool as icb
 from benchmarks.common import add_out_argument, run_info, write_json
-from icbtool._optional import require
 from icbtool.imageio import to_display
+from icbtool.optional import require
 from icbtool.scene.mitsuba import diffuse_twin
 from icbtool.scene.obj import MaterialApproximationWarning
 from icbtool.trace import TraceConfig

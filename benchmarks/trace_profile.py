@@ -63,8 +63,8 @@ from benchmarks.common import add_out_argument
 from benchmarks.trace_throughput import ray_log, sponza, write_profile_results
 from icbtool.trace import TraceConfig
 from icbtool.trace import kernels as K
-from icbtool.trace.rtc import RtcScene, _lib
-from icbtool.trace.tracer import TraceStats, _Tracer
+from icbtool.trace.rtc import RtcScene, library
+from icbtool.trace.tracer import Tracer, TraceStats
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -138,7 +138,7 @@ def _packet_batch(rtc, fn, occluded, o, d, tfar, t, prim, lo, hi, W=8):
 def packet_fns(W: int = 8) -> tuple[int, int]:
     """Addresses of rtcIntersectW and rtcOccludedW (W = 8 or 16), checked on known rays (else
     RuntimeError)."""
-    lib = _lib()
+    lib = library()
     fns = []
     for name in (f"rtcIntersect{W}", f"rtcOccluded{W}"):
         getattr(lib, name).restype = None
@@ -388,7 +388,7 @@ def profile(scene, cam, cfg: TraceConfig, repeats: int) -> dict:
     icb.trace.render(scene, cam, TraceConfig(spp=1))  # warm-up (JIT cache, scene data, BVH)
     # the kernel alone: the render's passes (spp_per_pass samples of every pixel) through the
     # tracer's trace(), which calls trace_paths on this thread (threads=1)
-    tr = _Tracer(scene, cam, cfg1, TraceStats())
+    tr = Tracer(scene, cam, cfg1, TraceStats())
     npix = cam.height * cam.width
     passes = []
     for a in range(0, cfg.spp, cfg.spp_per_pass):

@@ -54,7 +54,7 @@ from benchmarks.trace_throughput import ray_log, sponza, write_profile_results
 from icbtool.trace import TraceConfig
 from icbtool.trace import kernels as K
 from icbtool.trace.rtc import RtcScene
-from icbtool.trace.tracer import TraceStats, _Tracer
+from icbtool.trace.tracer import Tracer, TraceStats
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "benchmarks" / "results" / "trace"
@@ -432,7 +432,7 @@ def bound(
 ) -> dict:
     """The scalar helpers against the SoA stages on one render's hits, for each batch size
     (interleaved rounds, the fastest of each); the bound takes the most favourable batch."""
-    tr = _Tracer(scene, cam, TraceConfig(**{**cfg.__dict__, "threads": 1}), TraceStats())
+    tr = Tracer(scene, cam, TraceConfig(**{**cfg.__dict__, "threads": 1}), TraceStats())
     p = tr._params
     sf = p.surf
     suns, _, pmf, area, _, emit_faces, emit_cdf = p.lights

@@ -56,8 +56,8 @@ from tqdm import tqdm
 import icbtool as icb
 from benchmarks.common import add_out_argument, bench_scene, run_info, write_json
 from benchmarks.trace_throughput import n_rays, record, replay_direct
-from icbtool._optional import require
 from icbtool.imageio import to_display
+from icbtool.optional import require
 from icbtool.trace import TraceConfig
 from icbtool.trace.rtc import RtcScene
 

@@ -19,7 +19,8 @@ The parts (subpackages, imported on first use: ``import icbtool as icb`` stays c
 - ``gan``: the GAN pre-renderer; ``radiance``: world-space GI models (torch).
 - ``lpm``: the lightweight progressive mesh; ``net``: the networked system (protocol, server,
   client); ``metrics``, ``imageio``, ``buffers``, ``provenance``, ``configdoc``, ``runs`` (the
-  trainers' run directories): shared pieces.
+  trainers' run directories), ``optional`` (optional libraries, imported so that a missing one
+  names its extra): shared pieces.
 - ``cli``: the ``icbtool`` command (``icbtool --help``); ``icbtool_gui`` (a package beside this
   one) is the desktop app, ``icbtool gui``.
 
@@ -48,6 +49,7 @@ _SUBMODULES = (
     "provenance",
     "runs",
     "configdoc",
+    "optional",
     "warp",
     "prefetch",
     "metrics",

@@ -19,7 +19,7 @@ from typing import Literal
 import numpy as np
 import pytest
 
-from icbtool import _optional
+from icbtool import optional
 from icbtool.cli import _common, main
 
 REPO = Path(__file__).resolve().parents[1]
@@ -217,8 +217,8 @@ def test_trace_height_alone_keeps_the_aspect(tmp_path):
 # ----------------------------------------------------------------------------- optional parts
 def test_require_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "pyoidn", None)  # makes `import pyoidn` raise ImportError
-    with pytest.raises(_optional.MissingOptionalDependency) as e:
-        _optional.require("pyoidn", "denoising")
+    with pytest.raises(optional.MissingOptionalDependency) as e:
+        optional.require("pyoidn", "denoising")
     msg = str(e.value)
     assert msg.startswith("denoising needs the optional package 'pyoidn'")
     assert 'pip install ".[denoise]" in the icbtool checkout' in msg
@@ -228,12 +228,12 @@ def test_require_names_the_extra(monkeypatch):
 
 def test_require_rejects_a_module_that_is_not_optional():
     with pytest.raises(ValueError, match="'numpy' is not an optional dependency"):
-        _optional.require("numpy", "x")
+        optional.require("numpy", "x")
 
 
 def test_require_returns_the_installed_module():
     pyoidn = pytest.importorskip("pyoidn")
-    assert _optional.require("pyoidn", "denoising") is pyoidn
+    assert optional.require("pyoidn", "denoising") is pyoidn
 
 
 def test_extras_match_setup_cfg():
@@ -244,7 +244,7 @@ def test_extras_match_setup_cfg():
         k: [r.strip() for r in v.replace("\n", ";").split(";") if r.strip()]
         for k, v in cfg["options.extras_require"].items()
     }
-    for module, (extra, dist) in _optional.EXTRAS.items():
+    for module, (extra, dist) in optional.EXTRAS.items():
         assert extra in extras, (module, extra)
         names = [r.split(">")[0].split("=")[0].split("<")[0].strip().lower() for r in extras[extra]]
         assert dist.lower() in names, (module, extra, extras[extra])

@@ -42,7 +42,7 @@ LAYERS: dict[str, int] = {
     "cli": 8,
     "__main__": 9,
     "__init__": 9,
-    "_optional": 0,
+    "optional": 0,
 }
 
 
@@ -220,18 +220,6 @@ def test_the_import_reader_sees_every_spelling(source, expect, tmp_path):
 #: path has a part starting with ``_`` (``icbtool.cli._common``, ``icbtool.warp._numba``).
 CLIENTS: list[str] = ["icbtool_gui", "benchmarks"]
 
-#: The private parts a benchmark may still use, each with its reason: the profiling scripts
-#: measure the inside of the tracer, the training loop and the mesh decimation, and an optional
-#: peer (Mitsuba 3, FLIP, open3d, onnx) is imported so that a missing one names its extra.
-PRIVATE_FOR_BENCHMARKS: dict[str, str] = {
-    "icbtool._optional.require": "imports an optional peer, naming its extra when missing",
-    "icbtool.trace.tracer._Tracer": "trace_profile / trace_simd_bound time the kernel's stages",
-    "icbtool.trace.rtc._lib": "trace_profile calls Embree's C API directly for its ray rows",
-    "icbtool.gan.training._Run": "gan_speed times one training iteration of the real loop",
-    "icbtool.lpm.build._sub_mesh": "lpm_decimators feeds each decimator the LPM's own groups",
-    "icbtool.lpm.build._weld": "lpm_decimators feeds each decimator the LPM's own groups",
-}
-
 
 def _private_uses(path: Path) -> list[str]:
     """The private modules and names of icbtool that ``path`` imports, however spelled (module
@@ -263,8 +251,6 @@ def _private_uses(path: Path) -> list[str]:
 )
 def test_clients_use_only_the_public_api(path):
     bad = _private_uses(path)
-    if path.parent.name == "benchmarks":
-        bad = [u for u in bad if u not in PRIVATE_FOR_BENCHMARKS]
     assert not bad, f"{path.relative_to(PKG.parent)} imports private parts of icbtool: {bad}"
 
 

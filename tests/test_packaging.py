@@ -1,5 +1,5 @@
 """Packaging: every third-party module the library imports is declared in setup.cfg
-``install_requires`` (optional ones go through :func:`icbtool._optional.require` and are extras),
+``install_requires`` (optional ones go through :func:`icbtool.optional.require` and are extras),
 pyrender is not needed, and the shaders are package data. The wheel itself is checked by
 ``.ci/wheel_smoke.sh`` (run by ``make test``)."""
 
@@ -112,10 +112,10 @@ def test_the_known_imports_are_found():
 
 def test_optional_modules_are_not_imported_directly():
     """Optional packages go through require() so that a missing one names its extra."""
-    from icbtool._optional import EXTRAS
+    from icbtool.optional import EXTRAS
 
     direct = {m: f for m, f in _third_party_imports().items() if m in EXTRAS}
-    assert not direct, f"import these with icbtool._optional.require: {direct}"
+    assert not direct, f"import these with icbtool.optional.require: {direct}"
 
 
 def test_no_pyrender_and_a_working_pyopengl():

@@ -1152,10 +1152,10 @@ def test_an_emitter_seen_edge_on_adds_nothing_rather_than_nan():
 def test_a_pass_with_pixels_out_of_order_is_refused():
     """The kernel's threads share out whole pixels, which needs each pixel's samples together:
     a pass whose pixel indices go back is an error, before any thread starts."""
-    from icbtool.trace.tracer import TraceStats, _Tracer
+    from icbtool.trace.tracer import Tracer, TraceStats
 
     scene = icb.scene.cornell_box()
-    tr = _Tracer(scene, scene.default_camera.resized(8, 8), TraceConfig(spp=1), TraceStats())
+    tr = Tracer(scene, scene.default_camera.resized(8, 8), TraceConfig(spp=1), TraceStats())
     with pytest.raises(ValueError, match="pixel indices must be non-decreasing"):
         tr.trace(np.array([0, 1, 0]), np.array([0, 0, 1]))
     tr.trace(np.array([0, 0, 1]), np.array([0, 1, 0]))  # in order: traced
@@ -1220,9 +1220,9 @@ def _edge_pixels_and_coverage(scene, cam, n=64):
     luminance of the emission seen averaged over an n x n grid of points in it (the known
     answer a render with max_depth=1 converges to, up to the grid's error: n = 64 resolves the
     light's outline to 1/64 of a pixel)."""
-    from icbtool.trace.tracer import TraceStats, _Tracer
+    from icbtool.trace.tracer import Tracer, TraceStats
 
-    tr = _Tracer(scene, cam, TraceConfig(spp=1), TraceStats())
+    tr = Tracer(scene, cam, TraceConfig(spp=1), TraceStats())
     extra = tr._params.cam.edge_extra
     probes = tr.stats.rays["edge_probe"]
     g = (np.arange(n) + 0.5) / n

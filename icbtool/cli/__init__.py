@@ -122,8 +122,8 @@ def main(argv: list[str] | None = None) -> int:
             hint = f" ({'; '.join(renamed)})" if renamed else ""
             chosen.choices[args.command].error(f"unrecognized arguments: {' '.join(extras)}{hint}")
         command = f"icbtool {args.command}"
-        from icbtool._optional import MissingOptionalDependency
         from icbtool.cli._common import UsageError, resolve_store
+        from icbtool.optional import MissingOptionalDependency
 
         with one_line_warnings(args.command):
             rc = 1

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 
-from icbtool._optional import require
 from icbtool.cli._common import (
     UsageError,
     add_command,
@@ -18,6 +17,7 @@ from icbtool.cli._common import (
     store_holds_no_record,
 )
 from icbtool.cli._options import add_config
+from icbtool.optional import require
 
 
 def register(sub: argparse._SubParsersAction) -> None:

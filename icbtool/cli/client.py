@@ -16,7 +16,6 @@ import json
 import os
 import sys
 
-from icbtool._optional import require
 from icbtool.cli._common import (
     UsageError,
     add_command,
@@ -26,6 +25,7 @@ from icbtool.cli._common import (
     scene_spec,
 )
 from icbtool.cli._options import Spelling, add_config
+from icbtool.optional import require
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -15,7 +15,6 @@ import json
 import time
 from pathlib import Path
 
-from icbtool._optional import require
 from icbtool.cli._common import (
     UsageError,
     add_command,
@@ -25,6 +24,7 @@ from icbtool.cli._common import (
     load_scene,
 )
 from icbtool.cli._options import ConfigOptions, add_config
+from icbtool.optional import require
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -14,8 +14,8 @@ import argparse
 import importlib
 from pathlib import Path
 
-from icbtool._optional import require
 from icbtool.cli._common import UsageError, add_scene_argument
+from icbtool.optional import require
 
 
 def register(sub: argparse._SubParsersAction) -> None:

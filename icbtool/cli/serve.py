@@ -24,7 +24,6 @@ import logging
 import os
 from pathlib import Path
 
-from icbtool._optional import require
 from icbtool.cli._common import (
     UsageError,
     add_command,
@@ -34,6 +33,7 @@ from icbtool.cli._common import (
     store_holds_no_record,
 )
 from icbtool.cli._options import add_config
+from icbtool.optional import require
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -6,7 +6,6 @@ import argparse
 import logging
 from dataclasses import asdict, replace
 
-from icbtool._optional import require
 from icbtool.cli._common import (
     add_command,
     add_default_light_argument,
@@ -24,6 +23,7 @@ from icbtool.cli._common import (
     write_json,
 )
 from icbtool.cli._options import Spelling, add_config
+from icbtool.optional import require
 
 
 def _max_depth(text: str) -> int:

@@ -130,7 +130,7 @@ class Generator:
         """
         if height % MULTIPLE or width % MULTIPLE:
             raise ValueError(f"export size must be multiples of {MULTIPLE}, got {height}x{width}")
-        from icbtool._optional import require
+        from icbtool.optional import require
 
         require("onnx", "ONNX export of the generator")  # torch.onnx.export needs it
         p = Path(path)

@@ -458,7 +458,7 @@ def _check_resumable(run_dir: Path, config: TrainConfig) -> None:
         raise ValueError(f"cannot resume {run_dir}: config differs (old, new): {diff}")
 
 
-class _Run:
+class TrainingRun:
     """The state of one training run: data, models, optimisers, RNGs, history (pix2pix's model
     lifecycle: :meth:`critic_step`, :meth:`generator_step`, :meth:`evaluate`, :meth:`save`)."""
 
@@ -783,7 +783,7 @@ def train(
         )
     if resume and ckpt_path.exists():
         _check_resumable(run_dir, config)
-    run = _Run(store, config, run_dir, scene)
+    run = TrainingRun(store, config, run_dir, scene)
     if resume and ckpt_path.exists():
         run.restore()
     (run_dir / "samples").mkdir(parents=True, exist_ok=True)
@@ -835,6 +835,7 @@ __all__ = [
     "TrainConfig",
     "TrainResult",
     "TrainingDivergedError",
+    "TrainingRun",
     "evaluate",
     "learning_rate",
     "train",

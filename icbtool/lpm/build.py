@@ -158,7 +158,7 @@ class _Part:
     material: int
 
 
-def _sub_mesh(scene: Scene, faces_idx: np.ndarray, material: int) -> _Part:
+def sub_mesh(scene: Scene, faces_idx: np.ndarray, material: int) -> _Part:
     """The faces ``faces_idx`` of ``scene`` with their own compact vertex arrays."""
     f = scene.faces[faces_idx]
     used, inv = np.unique(f, return_inverse=True)
@@ -166,7 +166,7 @@ def _sub_mesh(scene: Scene, faces_idx: np.ndarray, material: int) -> _Part:
     return _Part(scene.vertices[used], scene.normals[used], uv, inv.reshape(-1, 3), material)
 
 
-def _weld(vertices: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+def weld(vertices: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
     """(P, 3) welded positions and (V,) index of each input vertex's welded one."""
     v = vertices.astype(np.float64)
     key = np.round(v / tol).astype(np.int64) if tol > 0 else v
@@ -206,10 +206,10 @@ def _affine_weights(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
 
 def _decimate_part(part: _Part, target: int, cfg: LPMConfig, diag: float) -> _Part:
     """``part`` decimated to about ``target`` triangles, uvs and normals transferred."""
-    from icbtool._optional import require
+    from icbtool.optional import require
 
     o3d = require("open3d", "LPM decimation (icbtool.lpm)")
-    welded, wmap = _weld(part.vertices, cfg.weld_tolerance * diag)
+    welded, wmap = weld(part.vertices, cfg.weld_tolerance * diag)
     wf = wmap[part.faces]
     ok = (wf[:, 0] != wf[:, 1]) & (wf[:, 1] != wf[:, 2]) & (wf[:, 0] != wf[:, 2])
     mesh = o3d.geometry.TriangleMesh(
@@ -237,14 +237,14 @@ def _decimate_global(
     :func:`group_targets` share instead. The group of every output vertex travels as its vertex
     colour (open3d averages colours on a collapse, and only equal colours are ever averaged).
     """
-    from icbtool._optional import require
+    from icbtool.optional import require
 
     o3d = require("open3d", "LPM decimation (icbtool.lpm)")
     keys = sorted(parts)
     verts, faces, gid = [], [], []
     off = 0
     for k, m in enumerate(keys):
-        welded, wmap = _weld(parts[m].vertices, cfg.weld_tolerance * diag)
+        welded, wmap = weld(parts[m].vertices, cfg.weld_tolerance * diag)
         wf = wmap[parts[m].faces]
         ok = (wf[:, 0] != wf[:, 1]) & (wf[:, 1] != wf[:, 2]) & (wf[:, 0] != wf[:, 2])
         verts.append(welded)
@@ -396,7 +396,7 @@ def _level_parts(
     scene: Scene, groups: dict[int, np.ndarray], ratio: float, cfg: LPMConfig, diag: float
 ) -> dict[int, _Part]:
     """The decimated (or kept) part of every material group at ``ratio``."""
-    parts = {m: _sub_mesh(scene, idx, m) for m, idx in groups.items()}
+    parts = {m: sub_mesh(scene, idx, m) for m, idx in groups.items()}
     targets = group_targets(scene, ratio, cfg)
     todo = [m for m in groups if targets[m] < len(groups[m])]
     if cfg.budget == "global":
@@ -487,4 +487,6 @@ __all__ = [
     "encode_texture",
     "group_targets",
     "shrink_texture",
+    "sub_mesh",
+    "weld",
 ]

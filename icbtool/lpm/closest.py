@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from icbtool._optional import require
+from icbtool.optional import require
 
 
 def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:

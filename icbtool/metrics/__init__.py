@@ -104,7 +104,7 @@ def flip_map(reference: np.ndarray, test: np.ndarray, exposure: float = 1.0) -> 
     Args:
         reference, test: (H, W, 3) images of the same shape (linear HDR floats or uint8).
     """
-    from icbtool._optional import require
+    from icbtool.optional import require
 
     fe = require("flip_evaluator", "the FLIP metric")
     if np.shape(reference) != np.shape(test):

@@ -40,12 +40,12 @@ from typing import Any
 
 import numpy as np
 
-from icbtool._optional import require
 from icbtool.camera import Camera
 from icbtool.net import codec as codec_mod
 from icbtool.net import crypto, protocol
 from icbtool.net import mesh_stream as ms
 from icbtool.net.shaper import DelayLine, ShaperConfig
+from icbtool.optional import require
 from icbtool.system.messages import GIReply, GIRequest
 from icbtool.system.source import GISource
 

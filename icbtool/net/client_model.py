@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from icbtool._optional import require
+from icbtool.optional import require
 
 log = logging.getLogger(__name__)
 

@@ -42,8 +42,8 @@ from typing import Any
 
 import numpy as np
 
-from icbtool._optional import require
 from icbtool.net.errors import ProtocolError
+from icbtool.optional import require
 
 #: Largest array (elements) a part may decode to: 64 Mi elements (256 MiB of float32).
 MAX_ELEMENTS = 64 * 2**20

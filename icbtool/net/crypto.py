@@ -37,8 +37,8 @@ import threading
 from collections.abc import Sequence
 from typing import Any
 
-from icbtool._optional import require
 from icbtool.net.errors import ProtocolError, b64, unb64
+from icbtool.optional import require
 
 #: Prefix of the transcript and of the HKDF info strings.
 LABEL = b"icbtool/net/v1"

@@ -115,7 +115,7 @@ class MeshStream:
         self.levels: list[MeshLevel] = []
         self._pieces: dict[tuple[int, int], list[tuple[str, str, bytes, str]]] = {}
         from icbtool import lpm as lpm_mod
-        from icbtool._optional import MissingOptionalDependency
+        from icbtool.optional import MissingOptionalDependency
 
         cfg = lpm_config or lpm_mod.LPMConfig()
         cfg = dataclasses.replace(cfg, max_chunk_bytes=min(cfg.max_chunk_bytes, max_chunk_bytes))

@@ -63,12 +63,12 @@ from typing import Any
 
 import numpy as np
 
-from icbtool._optional import require
 from icbtool.net import codec as codec_mod
 from icbtool.net import crypto, protocol
 from icbtool.net.doors import LoginThrottle, exposure_warning, origin_allowed, usable_host
 from icbtool.net.mesh_stream import MeshStream
 from icbtool.net.reply_cache import EncodedReply, ReplyCache
+from icbtool.optional import require
 from icbtool.system.cloud import Cloud, CloudConfig
 from icbtool.system.dask_cluster import DEFAULT_WORKER_MEMORY, JoinSecurity, check_join
 

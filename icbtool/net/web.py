@@ -118,7 +118,7 @@ def http_handler(root: Path = WEB_ROOT) -> Callable[[Any, Any], Any]:
     Raises:
         WebBundleMissing: see :func:`check_bundle` (checked once, here).
     """
-    from icbtool._optional import require
+    from icbtool.optional import require
 
     Headers = require("websockets.datastructures", "icbtool serve --web").Headers
     Response = require("websockets.http11", "icbtool serve --web").Response

@@ -176,7 +176,7 @@ class RadianceModel:
         Raises:
             MissingOptionalDependency: the ``onnx`` package is missing (extra ``gan``).
         """
-        from icbtool._optional import require
+        from icbtool.optional import require
 
         require("onnx", "ONNX export of the world-space radiance model")
         p = Path(path)

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from icbtool._optional import require
+from icbtool.optional import require
 
 log = logging.getLogger(__name__)
 

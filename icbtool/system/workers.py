@@ -39,8 +39,8 @@ import logging
 import threading
 from typing import Any
 
-from icbtool._optional import require
 from icbtool.bake import RenderJob, render_job
+from icbtool.optional import require
 from icbtool.system.dask_cluster import (
     DEFAULT_WORKER_MEMORY,
     JoinSecurity,

@@ -742,7 +742,7 @@ def sky_radiance_batch(sk, d, out):
 
 # ---------------------------------------------------------------------------------- parameters
 # The parameter struct of trace_paths: named tuples (numba types every field; built by
-# icbtool.trace.tracer._Tracer). Arrays are C-contiguous; scalars are int64 or float64.
+# icbtool.trace.tracer.Tracer). Arrays are C-contiguous; scalars are int64 or float64.
 
 #: Embree 4: scene handle, addresses of rtcIntersect1 and rtcOccluded1.
 EmbreeFns = namedtuple("EmbreeFns", ["scene", "fn_intersect", "fn_occluded"])

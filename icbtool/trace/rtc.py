@@ -74,7 +74,9 @@ def device_config() -> str:
     return "verbose=0" + (f",{extra}" if extra else "")
 
 
-def _lib() -> ctypes.CDLL:
+def library() -> ctypes.CDLL:
+    """Embree 4's C library (loaded once, its functions typed): what the kernels call, for
+    profiling code that calls the C API itself."""
     global _LIB
     with _LOCK:
         if _LIB is None:
@@ -139,7 +141,7 @@ class RtcScene:
         f = np.ascontiguousarray(faces, np.uint32)
         if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
             raise ValueError(f"need vertices (V, 3) and faces (F>0, 3), got {v.shape}, {f.shape}")
-        lib = _lib()
+        lib = library()
         self._lib = lib
         self.robust = bool(robust)
         self._device = lib.rtcNewDevice(device_config().encode())
@@ -254,4 +256,4 @@ def _self_check() -> None:
     _CHECKED = True
 
 
-__all__ = ["INVALID_ID", "RAYHIT_WORDS", "RtcScene", "library_path"]
+__all__ = ["INVALID_ID", "RAYHIT_WORDS", "RtcScene", "library", "library_path"]

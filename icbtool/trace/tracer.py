@@ -780,7 +780,11 @@ def _log2_splits(cfg: TraceConfig) -> int:
     return (int(cfg.gi_splits) - 1).bit_length()
 
 
-class _Tracer:
+class Tracer:
+    """One scene prepared for one camera: Embree's scene, the packed arrays, the kernel chosen
+    (Lambert or general), the pixel statistics. :func:`render` builds one and drives its
+    passes; profiling code builds one to time the kernel's stages."""
+
     def __init__(self, scene: Scene, cam: Camera, cfg: TraceConfig, stats: TraceStats) -> None:
         from icbtool.trace.rtc import RtcScene
 
@@ -1287,7 +1291,7 @@ def render(
     t_start = time.perf_counter()
     _note_first_use(_kernels().trace_paths)  # before the edge probes compile their kernel too
     stats = TraceStats()
-    tracer = _Tracer(scene, cam, cfg, stats)
+    tracer = Tracer(scene, cam, cfg, stats)
     H, W = cam.height, cam.width
     npix = H * W
     K = _kernels()
@@ -1432,10 +1436,10 @@ def denoise(
         (H, W, 3) float32.
 
     Raises:
-        icbtool._optional.MissingOptionalDependency: pyoidn is not installed (the message says
+        icbtool.optional.MissingOptionalDependency: pyoidn is not installed (the message says
             ``pip install ".[denoise]"`` in the checkout).
     """
-    from icbtool._optional import require
+    from icbtool.optional import require
 
     pyoidn = require("pyoidn", "denoising (Open Image Denoise)")
     c, a, nn = denoise_inputs(color, albedo, normal)
@@ -1456,6 +1460,7 @@ __all__ = [
     "TraceConfig",
     "TraceResult",
     "TraceStats",
+    "Tracer",
     "denoise",
     "render",
     "render_gi",
