@@ -247,13 +247,17 @@ def soa_emitter_point(cols, diag, ob):
     o9, o10, o11, od, oel, oy0, oy1, oy2 = (
         ob[9], ob[10], ob[11], ob[19], ob[20], ob[21], ob[22], ob[23]
     )  # fmt: skip
+    # two loops: in one, LLVM would need more run-time overlap checks between the 22 arrays
+    # than it makes, and leaves the loop scalar
     for i in range(len(cr)):
         r1 = math.sqrt(cr[i])
         ca = r1 * (1 - crb[i])
         cb = r1 * crb[i]
-        y0 = e0[i] + ca * (e3[i] - e0[i]) + cb * (e6[i] - e0[i])
-        y1 = e1[i] + ca * (e4[i] - e1[i]) + cb * (e7[i] - e1[i])
-        y2 = e2[i] + ca * (e5[i] - e2[i]) + cb * (e8[i] - e2[i])
+        oy0[i] = e0[i] + ca * (e3[i] - e0[i]) + cb * (e6[i] - e0[i])
+        oy1[i] = e1[i] + ca * (e4[i] - e1[i]) + cb * (e7[i] - e1[i])
+        oy2[i] = e2[i] + ca * (e5[i] - e2[i]) + cb * (e8[i] - e2[i])
+    for i in range(len(cr)):
+        y0, y1, y2 = oy0[i], oy1[i], oy2[i]
         v0 = y0 - x0s[i]
         v1 = y1 - x1s[i]
         v2 = y2 - x2s[i]
@@ -263,9 +267,6 @@ def soa_emitter_point(cols, diag, ob):
         o10[i] = v1 / dd
         o11[i] = v2 / dd
         od[i] = dist
-        oy0[i] = y0
-        oy1[i] = y1
-        oy2[i] = y2
         mag = max(abs(y0), max(abs(y1), abs(y2)))
         oel[i] = 3e-5 * (mag + abs(dist)) + 1e-6 * diag
 
