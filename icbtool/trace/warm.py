@@ -12,33 +12,26 @@ the cache is already there, it loads in seconds and nothing is compiled.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import multiprocessing
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 
-#: What each warm-up render compiles: the kernel's name and what it is for.
+#: Each kernel and the built-in scene whose render compiles it.
 KERNELS = {
-    "lambert": "the Lambert kernel (every material Lambertian: the Cornell box)",
-    "general": "the general BSDF kernel (a declared Mitsuba BSDF: a rough plastic wall)",
+    "lambert": "cornell_box",  # every material Lambertian: the Lambert kernel
+    "general": "cornell_box_glossy",  # declared Mitsuba BSDFs: the general BSDF kernel
 }
 
 
 def _render(kernel: str) -> float:
-    """Render a 4x4, 1-spp Cornell box through ``kernel``; the seconds it took."""
+    """Render a 4x4, 1-spp image of ``kernel``'s scene; the seconds it took."""
     from icbtool import scene as sc
-    from icbtool.scene import bsdf as sb
     from icbtool.trace import TraceConfig, render
 
     t0 = time.perf_counter()
-    scene = sc.cornell_box()
-    if kernel == "general":
-        mats = list(scene.materials)
-        mats[0] = dataclasses.replace(mats[0], bsdf=sb.RoughPlastic())
-        scene = dataclasses.replace(scene, materials=tuple(mats))
-    cam = scene.default_camera.resized(4, 4)
-    render(scene, cam, TraceConfig(spp=1))
+    scene = sc.PROCEDURAL[KERNELS[kernel]]()
+    render(scene, scene.default_camera.resized(4, 4), TraceConfig(spp=1))
     return time.perf_counter() - t0
 
 
@@ -56,8 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m icbtool.trace.warm", description=__doc__)
     ap.add_argument("--jobs", type=int, default=2, help="processes at once (default 2)")
     args = ap.parse_args(argv)
-    for k in KERNELS:
-        print(f"compiling or loading {KERNELS[k]} ...", flush=True)
+    for k, scene in KERNELS.items():
+        print(f"compiling or loading the {k} kernel (a render of {scene}) ...", flush=True)
     t0 = time.perf_counter()
     times = warm(jobs=args.jobs)
     for k, s in times.items():
