@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from icbtool.camera import (
@@ -333,7 +333,9 @@ def test_random_walk_matches_the_stored_paths(key):
 @given(st.floats(-3, 3), st.floats(-3, 3), st.floats(0.1, 20), st.floats(0.5, 40), st.floats(0, 1))
 def test_orthographic_and_thin_lens_project_unproject_round_trip(x, y, z, f, near):
     """An orthographic camera's project/unproject invert each other (u = fx x + cx, depth
-    kept) and a thin lens's are its pinhole's; sample_rays at the lens centre is ``rays``."""
+    kept) and a thin lens's are its pinhole's; sample_rays at the lens centre is ``rays``.
+    A point on the near plane itself is left out: rounding in the pose decides its side."""
+    assume(abs(z - near) > 1e-9)
     pose = look_at_pose((0.5, 1, 6), (0, 0, 0))
     ortho = Camera(30, 40, f, f, 20, 15, pose, projection="orthographic", near_clip=near)
     p = np.array([x, y, z]) @ pose[:3, :3].T + pose[:3, 3]
