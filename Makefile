@@ -83,10 +83,12 @@ docs/images/web.png: install
 test: lint wheel-smoke pytest
 
 # TEST_JOBS test processes (pytest-xdist; 0: one process), a test file each at a time, in file
-# order (the desktop app's tests first: tests/conftest.py says why)
+# order (the desktop app's tests first: tests/conftest.py says why); the property tests draw the
+# same examples on every run (the "ci" profile in tests/conftest.py)
 TEST_JOBS ?= 2
 pytest: install
-	ICBTOOL_GL_BACKEND=osmesa $(PY) -m pytest -m "not slow" -q -n $(TEST_JOBS) --dist loadfile --no-loadscope-reorder
+	ICBTOOL_GL_BACKEND=osmesa $(PY) -m pytest -m "not slow" -q -n $(TEST_JOBS) --dist loadfile --no-loadscope-reorder \
+	  --hypothesis-profile=ci
 
 wheel-smoke: install
 	PY=$(abspath $(PY)) bash .ci/wheel_smoke.sh

@@ -7,8 +7,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import settings
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+#: ``make test`` (CI) runs the property tests with ``--hypothesis-profile=ci``: the same examples
+#: on every run, so a green run stays green; a plain ``pytest`` draws new examples each time, which
+#: is how new counterexamples are found.
+settings.register_profile("ci", derandomize=True, database=None, print_blob=True)
 
 
 def sponza_dir() -> Path:
