@@ -868,6 +868,34 @@ def test_camera_intrinsics_and_crops_equal_mitsubas(tmp_path, sensor, film):
         assert cam.fov_x_deg == pytest.approx(34.02204, abs=1e-4)  # Mitsuba's parse_fov test
 
 
+def test_focus_distance_on_a_pinhole_is_read_silently_and_hide_emitters_is_named(tmp_path):
+    """Every Mitsuba projective camera reads focus_distance (Mitsuba's own documentation scenes
+    give it to perspective sensors): no warning, no effect. hide_emitters = true is not applied,
+    which changes the image, so it is named with its line; false is what icbtool renders."""
+    film = '<film type="hdrfilm"><integer name="width" value="8"/></film>'
+    sensor = (
+        '<sensor type="perspective"><float name="focus_distance" value="6"/>'
+        f'<float name="fov" value="40"/>{film}</sensor>'
+    )
+    for hide, named in (("false", False), ("true", True)):
+        (tmp_path / "c.xml").write_text(
+            f'<scene version="3.0.0"><integrator type="path">'
+            f'<boolean name="hide_emitters" value="{hide}"/></integrator>'
+            f'{sensor}<shape type="cube"/></scene>'
+        )
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            cam = load(tmp_path / "c.xml").default_camera
+        texts = [str(w.message) for w in caught if issubclass(w.category, SceneRepairWarning)]
+        assert not any("'focus_distance'" in t for t in texts), texts
+        assert cam.aperture_radius == 0 and cam.fov_x_deg == pytest.approx(40)
+        hidden = [t.split("c.xml:")[1] for t in texts if "hide_emitters" in t]
+        assert hidden == (
+            ["1: hide_emitters is not applied: emitters and the environment the camera sees "
+             "directly stay in icbtool's image"] if named else []
+        )  # fmt: skip
+
+
 _REFS = """<scene version="3.0.0">
   <bsdf type="diffuse" id="red"><rgb name="reflectance" value="0.8, 0.1, 0.1"/></bsdf>
   <bsdf type="diffuse" id="green"><rgb name="reflectance" value="0.1, 0.8, 0.1"/></bsdf>

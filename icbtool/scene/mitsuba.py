@@ -151,7 +151,7 @@ NAMED_IOR = {
 _IGNORED_PROPERTIES = {
     "far_clip", "sample_count", "pixel_format", "file_format",
     "component_format", "rfilter", "sampler", "banner", "high_quality_edges", "id", "seed",
-    "srgb_gamma", "shutter_open", "shutter_close", "mis_compensation", "hide_emitters",
+    "srgb_gamma", "shutter_open", "shutter_close", "mis_compensation",
     "rr_depth", "sample_emitters", "filter_type", "wrap_mode", "samples_per_pass",
 }  # fmt: skip
 _PROPERTY_TAGS = {
@@ -1460,6 +1460,8 @@ class _Reader(_Materials):
             focal_x = focal_y = 0.5 * w / math.tan(math.radians(fov_x) / 2)
             cx, cy = w / 2 - ox, h / 2 - oy
             if kind == "perspective":
+                # every Mitsuba projective camera reads focus_distance; a pinhole never uses it
+                self.float_(props, "focus_distance", far)
                 ppx = float(self.float_(props, "principal_point_offset_x", 0.0))
                 ppy = float(self.float_(props, "principal_point_offset_y", 0.0))
                 cx, cy = cx - ppx * w, cy - ppy * h
@@ -1582,6 +1584,12 @@ class _Reader(_Materials):
                 self.integrator(inner[0])
             else:
                 self.skip(node, "integrator type is not supported (max depth: the tracer's)")
+        if self.bool_(props, "hide_emitters", False):
+            repair_warning(
+                node.where,
+                "hide_emitters is not applied: emitters and the environment the camera sees "
+                "directly stay in icbtool's image",
+            )
         props.used.add("integrator")
         self.finish(node, props)
 
