@@ -353,6 +353,25 @@ def test_spectra_equal_mitsubas_own_conversion(tmp_path):
     assert any(f"s.xml:{line}: spectrum out of the sRGB gamut" in str(w.message) for w in caught)
 
 
+def test_conductor_eta_and_k_spectra_equal_mitsubas_and_are_not_clipped(tmp_path):
+    """A conductor's eta and k given as spectra (gold's, from Mitsuba's own documentation
+    scene) read as Mitsuba's RGB variant reads them: above 1 where they are, no gamut warning."""
+    mi = _mitsuba()
+    (tmp_path / "g.xml").write_text(
+        '<scene version="3.0.0"><shape type="rectangle" id="g"><bsdf type="conductor">'
+        '<spectrum name="eta" value="300:1.8, 400:1.65, 500:0.9, 600:0.2, 700:0.16, 800:0.18"/>'
+        '<spectrum name="k" value="300:1.92, 400:1.95, 500:1.95, 600:2.97, 700:3.8, 800:5.12"/>'
+        "</bsdf></shape></scene>"
+    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        bsdf = read_mitsuba(tmp_path / "g.xml").scene.materials[0].bsdf
+    params = mi.traverse(mi.load_file(str(tmp_path / "g.xml")))
+    np.testing.assert_allclose(bsdf.eta, np.array(params["g.bsdf.eta.value"]), rtol=2e-5)
+    np.testing.assert_allclose(bsdf.k, np.array(params["g.bsdf.k.value"]), rtol=2e-5)
+    assert max(bsdf.k) > 3 and not [w for w in caught if "gamut" in str(w.message)]
+
+
 def test_blackbody_equals_mitsubas_spectral_render(tmp_path):
     """A black body seen directly: icbtool's load-time RGB is what Mitsuba's spectral variant
     renders (4 pixels x 4096 spp of wavelength sampling: within 2 %)."""

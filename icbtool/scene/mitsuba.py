@@ -1008,8 +1008,9 @@ class _Materials(_Values):
             if "eta" in props:
                 if props["eta"].tag == "texture" or props.get("k", props["eta"]).tag == "texture":
                     raise _Unsupported
-                kw["eta"] = tuple(self.colour(props["eta"]))
-                kw["k"] = tuple(self.colour(props["k"])) if "k" in props else (0.0, 0.0, 0.0)
+                kw["eta"] = tuple(self.colour(props["eta"], unbounded=True))
+                k = self.colour(props["k"], unbounded=True) if "k" in props else np.zeros(3)
+                kw["k"] = tuple(k)
             else:
                 metal = self.str_(props, "material", "none")
                 if metal not in sb.CONDUCTOR_ETA_K:
