@@ -199,6 +199,9 @@ class FrameStats:
     ssim_gi_cloud: float | None = None
     """With a generator and ``compare_cloud``: SSIM of the cloud's warped GI against the truth's
     GI on the same frame (``ssim_gi`` is the generated one's)."""
+    stale: bool = False
+    """An animated scene: the GI shown was marked stale (rendered under another scene state
+    that the change since may alter; docs/dynamic.md)."""
 
 
 @dataclass
@@ -238,6 +241,7 @@ class LoopReport:
             "mean_ssim_dl_only_vs_truth": mean("ssim_dl_only"),
             "mean_mse_final_vs_truth": mean("mse_final"),
             "mean_mse_dl_only_vs_truth": mean("mse_dl_only"),
+            "stale_frames": sum(f.stale for f in self.frames),
         }
         misses = [f for f in self.frames if not f.cache_hit]
         for stage, frames in (
@@ -384,7 +388,8 @@ def run_loop(
                 t_req = max(float(t) - cfg.cloud.latency_s, float(path.times[0]))
                 v_t, v_r = path.velocity_cam(t_req)
                 request = system.GIRequest(path.camera_at(t_req), v_t, v_r, t_req, seq=k)
-                fr = client.frame(cam, request)
+                # an animated scene: the client rasterizes it at the frame's time
+                fr = client.frame(cam, request, time_s=float(t) if scene.is_animated else None)
                 ref = fr.reply.reference
                 fs = FrameStats(
                     index=k,
@@ -410,11 +415,12 @@ def run_loop(
                     decode_ms=fr.reply.timings_ms.get("decode", 0.0),
                     mesh_level=level,
                     rx_bytes=sum(getattr(source, "bytes_received", {}).values()) - rx0,
+                    stale=fr.stale,
                 )
                 truth = None
                 if cfg.truth_every and k % cfg.truth_every == 0:
                     truth = trace.render(
-                        scene,
+                        scene.at(float(t)),
                         cam,
                         trace.TraceConfig(
                             spp=cfg.truth_spp,

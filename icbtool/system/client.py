@@ -9,6 +9,11 @@ One :meth:`Client.frame` (docs/design.md section 6):
 3. warp the reply's reference GI to the current camera with the client's depth (backward warp,
    holes by cause), combine it with the previous reference's warp, inpaint what is left;
 4. blend: ``final = DL + gi_weight * GI``.
+
+An animated scene (docs/dynamic.md): ``frame(..., time_s=t)`` rasterizes the scene at time ``t``
+(DL and G-buffers are always current); a reply the cloud marks stale makes the frame stale
+(``ClientFrame.stale``), and the previous reference is combined only when it was rendered under
+the same scene state as the current one (GI is never mixed across a change unmarked).
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import numpy as np
 
 from icbtool.buffers import WRT_BUFFERS
 from icbtool.camera import Camera
+from icbtool.store import invalidation
 from icbtool.system.messages import GIReply, GIRequest
 from icbtool.system.source import GISource
 
@@ -68,6 +74,9 @@ class ClientFrame:
         final: (H, W, 3) float32 ``dl + gi_weight * gi``.
         raster_ms, warp_ms: time of the client's raster and of warp + combine + inpaint.
         request_ms: time of the source's answer (request -> reply, as the client waited).
+        stale: the GI shown was rendered under another scene state that the change since may
+            alter (the reply was marked stale).
+        time_s: the scene time the client rasterized (None: the scene as given).
     """
 
     camera: Camera
@@ -81,6 +90,8 @@ class ClientFrame:
     raster_ms: float
     warp_ms: float
     request_ms: float = 0.0
+    stale: bool = False
+    time_s: float | None = None
 
 
 class Client:
@@ -113,6 +124,7 @@ class Client:
             rasterizer = raster.Rasterizer(scene)
         self.rasterizer = rasterizer
         self._previous: CRTBuffer | None = None
+        self._state = invalidation.state_id(scene)
 
     def use_scene(self, scene: Scene) -> None:
         """Rasterize ``scene`` from now on (a finer mesh level arrived): a new rasterizer of it
@@ -124,19 +136,34 @@ class Client:
         self.scene = scene
         self.rasterizer = raster.Rasterizer(scene)
         self._own_rasterizer = True
+        self._state = invalidation.state_id(scene)
+
+    def set_time(self, t: float) -> None:
+        """Rasterize the (animated) scene at scene time ``t`` from now on; a rasterizer of the
+        new state replaces the old one only when the state changed. A static scene ignores it."""
+        if not self.scene.is_animated:
+            return
+        now = self.scene.at(t)
+        if invalidation.state_id(now) != self._state:
+            self.use_scene(now)
 
     def rasterize(self, camera: Camera) -> RasterBuffers:
         """The WRT-buffer at ``camera``, plus any buffer the GI source needs."""
         extra = tuple(b for b in self.source.needs if b not in WRT_BUFFERS and b != "mask")
         return self.rasterizer.render(camera, buffers=(*WRT_BUFFERS, *extra))
 
-    def frame(self, camera: Camera, request: GIRequest) -> ClientFrame:
+    def frame(
+        self, camera: Camera, request: GIRequest, *, time_s: float | None = None
+    ) -> ClientFrame:
         """Make one frame at ``camera`` with the GI answering ``request`` (see module docstring).
 
-        ``request.depth_range``, if None, is filled from what the client sees now.
+        ``request.depth_range``, if None, is filled from what the client sees now. ``time_s``:
+        the scene time to rasterize an animated scene at (None: as it is).
         """
         from icbtool import warp
 
+        if time_s is not None:
+            self.set_time(time_s)
         t0 = time.perf_counter()
         wrt = self.rasterize(camera)
         raster_ms = 1e3 * (time.perf_counter() - t0)
@@ -151,7 +178,7 @@ class Client:
         w_cur = warp.backward(ref.gi, ref.depth, ref.camera, wrt.depth, camera, ref.mask, wrt.mask)
         results = [w_cur]
         prev = self._previous
-        if cfg.combine_previous and prev is not None and prev is not ref:
+        if cfg.combine_previous and prev is not None and prev is not ref and _same_state(prev, ref):
             results.append(
                 warp.backward(
                     prev.gi, prev.depth, prev.camera, wrt.depth, camera, prev.mask, wrt.mask
@@ -176,6 +203,8 @@ class Client:
             raster_ms=raster_ms,
             warp_ms=warp_ms,
             request_ms=request_ms,
+            stale=reply.stale,
+            time_s=time_s,
         )
 
     def close(self) -> None:
@@ -187,6 +216,14 @@ class Client:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _same_state(a: object, b: object) -> bool:
+    """Whether two references were rendered under one scene state (no metadata: assumed)."""
+    ma, mb = getattr(a, "meta", None), getattr(b, "meta", None)
+    if ma is None or mb is None:
+        return True
+    return invalidation.record_state(ma)[0] == invalidation.record_state(mb)[0]
 
 
 def visible_depth_range(wrt: RasterBuffers) -> tuple[float, float] | None:

@@ -13,6 +13,15 @@ For a :class:`~icbtool.system.messages.GIRequest` (docs/design.md sections 3, 4 
 
 Every step is timed in the reply.
 
+An animated scene (docs/dynamic.md) is answered at the scene time of the request
+(``GIRequest.time_s``): records carry the state they were rendered under
+(:mod:`icbtool.store.invalidation`), and a record whose state differs from the request's is
+judged by the invalidation rule. Under ``invalidation="rule"`` a record the change reaches
+serves *marked stale* (``GIReply.stale``) while a cheap render (``cheap_spp``, denoised) at the
+current state replaces it; a cheap record met again at the state it was rendered under is
+refined (rendered again at ``spp``, replacing it). ``"all"`` (full invalidation) and ``"none"``
+(a stale cache) are the baselines.
+
 The steps are also separate methods (:meth:`Cloud.lookup`, :meth:`Cloud.job`,
 :meth:`Cloud.store_render`) so that a server can run them on different threads and processes:
 lookups on a read-only store (a Cloud over ``StoreConfig(readonly=True)``), renders on render
@@ -25,11 +34,12 @@ import logging
 import math
 import os
 import time
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any, Literal
 
 from icbtool.buffers import WRT_BUFFERS
 from icbtool.camera import Camera
+from icbtool.store import invalidation
 from icbtool.system.messages import GIReply, GIRequest
 from icbtool.system.source import GISource
 from icbtool.trace.tracer import DenoiseQuality, check_denoise_quality
@@ -76,9 +86,21 @@ class CloudConfig:
     """Cache direction threshold on 1 - dot (0.01 = 8.1 degrees)."""
     seed: int = 0
     """Base seed: a render for request ``seq`` uses ``seed + 1000 + seq``."""
+    invalidation: Literal["rule", "all", "none"] = "rule"
+    """Animated scenes: what a record of another scene state does. "rule": if the change
+    reaches it (reach_m), it serves marked stale while a cheap render replaces it, refined
+    later; "all": any change makes it a miss (full invalidation, re-rendered at spp); "none":
+    it serves as it is (a stale cache; still marked stale where the rule says so)."""
+    reach_m: float | None = None
+    """How far (scene units) a change alters GI; None: everywhere (conservative)."""
+    cheap_spp: int = 4
+    """Samples per pixel of the first render after an invalidation (refined to spp later)."""
+    serve_stale: bool = True
+    """Reply a stale record at once and render its replacement for the next request (else wait
+    for the cheap render and reply it)."""
 
     def __post_init__(self) -> None:
-        for k in ("spp", "max_depth"):
+        for k in ("spp", "max_depth", "cheap_spp"):
             v = getattr(self, k)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"CloudConfig.{k} must be an integer >= 1, got {v!r}")
@@ -91,6 +113,14 @@ class CloudConfig:
         if not (self.alpha_pos > 0 and self.alpha_dir > 0):
             raise ValueError("CloudConfig.alpha_pos and alpha_dir must be > 0")
         check_denoise_quality(self.denoise_quality, "CloudConfig.denoise_quality")
+        if self.invalidation not in ("rule", "all", "none"):
+            raise ValueError(
+                f"CloudConfig.invalidation must be 'rule', 'all' or 'none', got "
+                f"{self.invalidation!r}"
+            )
+        r = self.reach_m
+        if r is not None and not (isinstance(r, (int, float)) and math.isfinite(r) and r >= 0):
+            raise ValueError(f"CloudConfig.reach_m must be finite and >= 0 or None, got {r!r}")
 
 
 class Cloud(GISource):
@@ -127,12 +157,26 @@ class Cloud(GISource):
         self._own_store = isinstance(store, (str, os.PathLike))
         scfg = store_mod.StoreConfig(alpha_pos=cfg.alpha_pos, alpha_dir=cfg.alpha_dir)
         self.store = store_mod.open(store, scfg) if self._own_store else store
+        self._keys = invalidation.group_keys(scene)
         if not getattr(self.store, "readonly", False):  # a reader follows the writer's scenes
-            self.store.register_scene(scene)
+            if scene.is_animated:  # every state shares one octree (module docstring)
+                self.store.register_scene(
+                    scene_hash=self._keys[0], bounds=scene.bounds, name=scene.name
+                )
+            else:
+                self.store.register_scene(scene)
         self._rasterizer = rasterizer
         self._own_rasterizer = False
+        self._now = scene
+        self._state_rz: tuple[str, Rasterizer] | None = None
         self.renders = 0
         self.damaged_replaced = 0
+        self.stale_served = 0
+        """Replies of a record the invalidation rule marks stale."""
+        self.invalidated = 0
+        """Records replaced because a scene change reached them."""
+        self.refinements = 0
+        """Cheap records rendered again at full spp."""
 
     # ------------------------------------------------------------------ the prefetch camera
     def reference_camera(self, req: GIRequest) -> Camera:
@@ -147,6 +191,39 @@ class Cloud(GISource):
         ).camera
         return round_fov(cam, self.config.fov_step_deg, self._prefetch_cfg.max_fov_deg)
 
+    # ------------------------------------------------------------------ scene time
+    def scene_at(self, t: float) -> Scene:
+        """The cloud's scene at scene time ``t`` (the scene itself when it is static); the same
+        object while the state does not change, so what is derived from it is kept."""
+        if not self.scene.is_animated or t == self._now.time:
+            return self._now
+        now = self.scene.at(t)
+        if invalidation.state_id(now) != invalidation.state_id(self._now):
+            self._now = now
+        return self._now
+
+    def judge(self, record: CRTBuffer, now: Scene) -> Verdict:
+        """What the invalidation rule says of a stored ``record`` at scene state ``now``."""
+        rec_state, rec_t = invalidation.record_state(record.meta)
+        cur = invalidation.state_id(now)
+        if rec_state == cur:  # a record of an animated scene below the config's spp: refine it
+            cheap = (
+                self.config.invalidation == "rule"
+                and rec_state != invalidation.STATIC_STATE
+                and record.meta.spp < self.config.spp
+            )
+            return Verdict(same_state=True, stale=False, refine=cheap)
+        if rec_t is None:  # no state recorded: nothing to compare with
+            return Verdict(same_state=False, stale=True, refine=False)
+        before = self.scene.at(rec_t)
+        if invalidation.state_id(before) != rec_state:  # another animation made it
+            change = invalidation.Change(everywhere=True)
+        else:
+            change = invalidation.scene_change(before, now)
+        seen = invalidation.seen_bounds(record.camera, record.depth, record.mask)
+        stale = invalidation.is_affected(change, seen, self.config.reach_m)
+        return Verdict(same_state=False, stale=stale, refine=False)
+
     # ------------------------------------------------------------------ the steps
     def lookup(self, ref_cam: Camera) -> tuple[Any, int | None, float]:
         """Look ``ref_cam`` up in the store.
@@ -155,12 +232,18 @@ class Cloud(GISource):
             (record, damaged, lookup_ms): the stored CRT-buffer on a hit (else None); on a miss
             because the similar record is damaged, that record's id (else None).
         """
+        _rid, found, damaged, ms = self._lookup(ref_cam)
+        return found, damaged, ms
+
+    def _lookup(self, ref_cam: Camera) -> tuple[int | None, Any, int | None, float]:
+        """(record id, record, damaged id, lookup_ms): :meth:`lookup` with the hit's id."""
         t0 = time.perf_counter()
         hit = self._covering_hit(ref_cam)
         # a damaged record (payload missing, truncated, checksum) is a miss: get_intact logs it
         found = None if hit is None else self.store.get_intact(hit.record_id)
         damaged = hit.record_id if (hit is not None and found is None) else None
-        return found, damaged, 1e3 * (time.perf_counter() - t0)
+        rid = hit.record_id if found is not None else None
+        return rid, found, damaged, 1e3 * (time.perf_counter() - t0)
 
     def find(self, ref_cam: Camera) -> tuple[Any, float]:
         """Look ``ref_cam`` up in the index only (no payload read): what a server that keeps
@@ -181,7 +264,7 @@ class Cloud(GISource):
         exclude: list[int] = []
         for _ in range(MAX_COARSE_SKIPS + 1):
             hit = self.store.lookup(
-                ref_cam, scene=self.scene, intrinsics="covering", exclude=exclude or None
+                ref_cam, *self._keys, intrinsics="covering", exclude=exclude or None
             )
             if hit is None:
                 return None
@@ -191,24 +274,26 @@ class Cloud(GISource):
             exclude.append(hit.record_id)
         return None
 
-    def trace_config(self, seq: int) -> Any:
-        """The :class:`icbtool.trace.TraceConfig` of the render for request ``seq``."""
+    def trace_config(self, seq: int, spp: int | None = None) -> Any:
+        """The :class:`icbtool.trace.TraceConfig` of the render for request ``seq`` (at ``spp``
+        samples per pixel; default the config's)."""
         from icbtool import trace
 
         cfg = self.config
         return trace.TraceConfig(
-            spp=cfg.spp,
+            spp=cfg.spp if spp is None else spp,
             seed=cfg.seed + 1000 + seq,
             max_depth=cfg.max_depth,
             denoise=cfg.denoise,
             denoise_quality=cfg.denoise_quality,
         )
 
-    def job(self, camera: Camera, seq: int = 0) -> Any:
+    def job(self, camera: Camera, seq: int = 0, spp: int | None = None) -> Any:
         """The :class:`icbtool.bake.RenderJob` of a render at ``camera`` for request ``seq``."""
         from icbtool.bake import RenderJob
 
-        return RenderJob(camera, self.trace_config(seq), "raster", WRT_BUFFERS, {"frame": seq})
+        cfg = self.trace_config(seq, spp)
+        return RenderJob(camera, cfg, "raster", WRT_BUFFERS, {"frame": seq})
 
     def store_render(self, ref: Any, damaged: int | None = None) -> int:
         """Put a rendered reference (replacing the damaged record ``damaged``); its id."""
@@ -219,34 +304,117 @@ class Cloud(GISource):
 
     # ------------------------------------------------------------------ GISource
     def request(self, req: GIRequest, wrt: RasterBuffers | None = None) -> GIReply:
-        """Answer ``req`` from the cache, or render and store a new reference."""
+        """Answer ``req`` from the cache, or render and store a new reference; an animated
+        scene at the scene time ``req.time_s`` (module docstring)."""
         ref_cam = self.reference_camera(req)
-        found, damaged, lookup_ms = self.lookup(ref_cam)
-        if found is not None:
-            return GIReply(found, True, {"lookup": lookup_ms, "render": 0.0}, req.seq)
-        t0 = time.perf_counter()
-        ref = self.render(ref_cam, req.seq)
-        render_ms = 1e3 * (time.perf_counter() - t0)
+        now = self.scene_at(req.time_s)
+        rid, found, damaged, lookup_ms = self._lookup(ref_cam)
+        timings = {"lookup": lookup_ms, "render": 0.0}
+        mode = self.config.invalidation
+        if found is not None and rid is not None:
+            v = self.judge(found, now)
+            if mode == "all" and not v.same_state:  # full invalidation: a miss
+                self.invalidated += 1
+                ref = self._render_timed(ref_cam, req.seq, now, None, timings)
+                self._replace(rid, ref)
+                return GIReply(ref, False, timings, req.seq)
+            if mode == "rule" and (v.stale or v.refine):
+                spp = self.config.cheap_spp if v.stale else None
+                ref = self._render_timed(ref_cam, req.seq, now, spp, timings)
+                self._replace(rid, ref)
+                if v.stale:
+                    self.invalidated += 1
+                else:
+                    self.refinements += 1
+                if not self.config.serve_stale:
+                    return GIReply(ref, False, timings, req.seq)
+            self.stale_served += int(v.stale)
+            return GIReply(found, True, timings, req.seq, stale=v.stale)
+        ref = self._render_timed(ref_cam, req.seq, now, None, timings)
         self.store_render(ref, damaged)
-        return GIReply(ref, False, {"lookup": lookup_ms, "render": render_ms}, req.seq)
+        return GIReply(ref, False, timings, req.seq)
 
-    def render(self, camera: Camera, seq: int = 0) -> CRTBuffer:
-        """Render a CRT-buffer (the client's WRT-buffers + path-traced GI) at ``camera``."""
-        from icbtool import raster
+    def _render_timed(
+        self, camera: Camera, seq: int, scene: Scene, spp: int | None, timings: dict
+    ) -> CRTBuffer:
+        t0 = time.perf_counter()
+        if scene is self.scene and spp is None:  # the static case (subclasses may not take more)
+            ref = self.render(camera, seq)
+        else:
+            ref = self.render(camera, seq, scene=scene, spp=spp)
+        timings["render"] = timings.get("render", 0.0) + 1e3 * (time.perf_counter() - t0)
+        return ref
+
+    def _replace(self, record_id: int, ref: CRTBuffer) -> int:
+        """Put ``ref`` (a fresh or refined render of record ``record_id``), then delete the old."""
+        new_id = self.store.put(ref)
+        self.store.delete([record_id])
+        return new_id
+
+    def render(
+        self, camera: Camera, seq: int = 0, *, scene: Scene | None = None, spp: int | None = None
+    ) -> CRTBuffer:
+        """Render a CRT-buffer (the client's WRT-buffers + path-traced GI) at ``camera``.
+
+        Args:
+            camera: the reference camera.
+            seq: the request's sequence number (the render's seed follows it).
+            scene: the scene state to render (default the cloud's scene); a record of an
+                animated scene is tagged with its state (:mod:`icbtool.store.invalidation`).
+            spp: samples per pixel (default the config's).
+        """
         from icbtool.bake import render_job
 
-        if self._rasterizer is None:
-            self._rasterizer = raster.Rasterizer(self.scene)
-            self._own_rasterizer = True
+        scene = self.scene if scene is None else scene
         self.renders += 1
-        return render_job(self.scene, self.job(camera, seq), self._rasterizer)
+        ref = render_job(scene, self.job(camera, seq, spp), self._raster_for(scene))
+        if scene.is_animated:
+            sh, lh = self._keys
+            tags = {**ref.meta.tags, **invalidation.state_tags(scene)}
+            ref.meta = replace(ref.meta, scene_hash=sh, light_hash=lh, tags=tags)
+        return ref
+
+    def _raster_for(self, scene: Scene) -> Rasterizer:
+        """A rasterizer of ``scene``: the cloud's own for its scene's state, else one per state
+        (the latest kept)."""
+        from icbtool import raster
+
+        state = invalidation.state_id(scene)
+        if scene is self.scene or state == invalidation.state_id(self.scene):
+            if self._rasterizer is None:
+                self._rasterizer = raster.Rasterizer(self.scene)
+                self._own_rasterizer = True
+            return self._rasterizer
+        if self._state_rz is None or self._state_rz[0] != state:
+            if self._state_rz is not None:
+                self._state_rz[1].close()
+            self._state_rz = (state, raster.Rasterizer(scene))
+        return self._state_rz[1]
 
     def close(self) -> None:
+        if self._state_rz is not None:
+            self._state_rz[1].close()
+            self._state_rz = None
         if self._own_rasterizer and self._rasterizer is not None:
             self._rasterizer.close()
             self._rasterizer = None
         if self._own_store:
             self.store.close()
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What the invalidation rule says of a stored record at the current scene state.
+
+    Attributes:
+        same_state: the record was rendered under the current state.
+        stale: a change since its state may alter its GI (it must not serve unmarked).
+        refine: a cheap record at the current state, to render again at full spp.
+    """
+
+    same_state: bool
+    stale: bool
+    refine: bool
 
 
 def round_fov(cam: Camera, step_deg: float, max_fov_deg: float) -> Camera:
@@ -262,4 +430,4 @@ def round_fov(cam: Camera, step_deg: float, max_fov_deg: float) -> Camera:
     return cam.with_fov(fov, h, w)
 
 
-__all__ = ["DEFAULT_DEPTH_RANGE", "Cloud", "CloudConfig", "round_fov"]
+__all__ = ["DEFAULT_DEPTH_RANGE", "Cloud", "CloudConfig", "Verdict", "round_fov"]

@@ -82,12 +82,17 @@ class GIReply:
         timings_ms: where the time went, by stage (e.g. ``lookup``, ``render``; a network source
             adds ``encode``, ``transfer``, ``decode``).
         seq: the request's sequence number.
+        stale: the reference was rendered under another state of an animated scene and the
+            invalidation rule says the change since may alter its GI
+            (:mod:`icbtool.store.invalidation`): it serves while a fresh one renders, and the
+            client must not show it as current.
     """
 
     reference: CRTBuffer
     cache_hit: bool
     timings_ms: dict[str, float] = field(default_factory=dict)
     seq: int = 0
+    stale: bool = False
 
     def __post_init__(self) -> None:
         for name in ("gi", "depth", "camera"):
