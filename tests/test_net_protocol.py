@@ -264,6 +264,12 @@ def test_chunk_hash_and_reply_sizes_are_checked():
     with pytest.raises(ProtocolError, match="add up to 5 but the payload has 4"):
         P.encode(Message("gi_reply", reply, b"abcd"))
     assert P.decode(P.encode(Message("gi_reply", reply, b"abcde"))).payload == b"abcde"
+    # the scene-state fields (section Scene states): optional, typed
+    dyn = {**reply, "stale": True, "state": "0123456789abcdef", "spp": 4, "refining": True}
+    assert P.decode(P.encode(Message("gi_reply", dyn, b"abcde"))).fields == dyn
+    for name, bad in (("stale", "yes"), ("spp", -1), ("state", 3), ("refining", 1)):
+        with pytest.raises(ProtocolError, match=rf"gi_reply\.{name}"):
+            P.encode(Message("gi_reply", {**reply, name: bad}, b"abcde"))
 
 
 def test_reserved_and_unserialisable_fields_are_refused():

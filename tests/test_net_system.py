@@ -266,6 +266,29 @@ def test_identical_concurrent_requests_render_once(scene, tmp_path):
         srv.stop()
 
 
+def test_a_record_of_another_scene_state_arrives_marked_stale(tmp_path):
+    from icbtool.store import invalidation
+
+    moving = sc.PROCEDURAL["cornell_box_moving_light"]()
+    later = system.GIRequest(_camera(moving, 0.5, 16), time_s=1.0, seq=3, depth_range=(0.5, 8.0))
+    with system.Cloud(moving, tmp_path / "store", CLOUD) as cloud:
+        cloud.request(later)  # a record of the box at t = 1 s: its light moved
+    srv = Server(moving, tmp_path / "store", TOKEN, ServerConfig(), CLOUD).start()
+    try:  # the server answers the box at t = 0 s
+        with _client(srv) as src:
+            got = src.request(later)
+            assert got.cache_hit and got.stale
+            msg, _ = asyncio.run_coroutine_threadsafe(src._ask(later), src._loop).result(T)
+            f = msg.fields
+            assert f["stale"] and not f["refining"] and f["spp"] == CLOUD.spp
+            assert f["state"] == invalidation.state_id(moving.at(1.0))
+            fresh = src.request(_request(moving, 0.2, seq=4))  # rendered now, at t = 0
+            assert not fresh.cache_hit and not fresh.stale
+        assert srv.stats.renders == 1
+    finally:
+        srv.stop()
+
+
 def test_shaper_link_arithmetic():
     link = Link(ShaperConfig(latency_ms=100, bandwidth_mbit=8))
     assert link.arrival(1_000_000, now=0.0) == pytest.approx(1.0 + 0.05)

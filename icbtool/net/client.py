@@ -528,7 +528,8 @@ class NetworkSource(GISource):
         timings["decode"] = decode_ms
         timings["request"] = total_ms
         self.remote += 1
-        return GIReply(ref, bool(f["cache_hit"]), timings, req.seq)
+        stale = bool(f.get("stale", False))
+        return GIReply(ref, bool(f["cache_hit"]), timings, req.seq, stale=stale)
 
     async def _ask(self, req: GIRequest) -> tuple[protocol.Message, float]:
         rid = next(self._ids)

@@ -527,6 +527,37 @@ KINDS: dict[str, KindSpec] = {
                     required=False,
                 ),
                 _f(
+                    "stale",
+                    "boolean",
+                    "true: the reference was rendered under another state of an animated scene "
+                    "that the change since may alter (docs/dynamic.md): show it marked as stale; "
+                    "absent: false",
+                    required=False,
+                ),
+                _f(
+                    "state",
+                    "string",
+                    'id of the scene state the reference was rendered under ("static": a '
+                    "static scene); references of different states are not combined",
+                    required=False,
+                ),
+                _f(
+                    "spp",
+                    "integer",
+                    "path-tracing samples per pixel of the GI map (0: unknown); a first render "
+                    "after a change has fewer than the server's and is refined",
+                    required=False,
+                    **_NAT,
+                ),
+                _f(
+                    "refining",
+                    "boolean",
+                    "true: a better reference for this view is being rendered (fresh after a "
+                    "stale one, all samples after a cheap one): a later gi_request for the "
+                    "view gets it (section Scene states); absent: false",
+                    required=False,
+                ),
+                _f(
                     "timings_ms",
                     "object",
                     "server-side time per stage, ms (e.g. lookup, render, encode)",

@@ -69,6 +69,7 @@ from icbtool.net.doors import LoginThrottle, exposure_warning, origin_allowed, u
 from icbtool.net.mesh_stream import MeshStream
 from icbtool.net.reply_cache import EncodedReply, ReplyCache
 from icbtool.optional import require
+from icbtool.store import invalidation
 from icbtool.system.cloud import Cloud, CloudConfig
 from icbtool.system.dask_cluster import DEFAULT_WORKER_MEMORY, JoinSecurity, check_join
 
@@ -849,6 +850,18 @@ class Server:
         return json.dumps({"paths": paths}, separators=(",", ":")).encode() if paths else b""
 
     # ------------------------------------------------------------------ the cloud, coalesced
+    def state_fields(self, ans: Answer) -> dict[str, Any]:
+        """The gi_reply fields of the reference's scene state (docs/protocol.md, section Scene
+        states and progressive refinement). This server answers its scene at one time: a record
+        of another state (a store filled at other times) is stale whatever the change
+        (conservative), and no refinement is under way."""
+        meta = getattr(ans.record, "meta", None) or getattr(ans.reference, "meta", None)
+        if meta is None:
+            return {}
+        state, _t = invalidation.record_state(meta)
+        current = invalidation.state_id(self.scene)
+        return {"stale": state != current, "state": state, "spp": int(meta.spp), "refining": False}
+
     def reference_camera(self, req: Any) -> Any:
         """The camera rendered (or looked up) for ``req``, within the limits.
 
@@ -1275,6 +1288,7 @@ class _Connection:
                     "camera": enc.camera,
                     "cache_hit": bool(ans.cache_hit),
                     "coalesced": coalesced,
+                    **srv.state_fields(ans),
                     "timings_ms": timings,
                     "parts": enc.parts,
                 },

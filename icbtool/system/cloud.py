@@ -296,7 +296,10 @@ class Cloud(GISource):
         return RenderJob(camera, cfg, "raster", WRT_BUFFERS, {"frame": seq})
 
     def store_render(self, ref: Any, damaged: int | None = None) -> int:
-        """Put a rendered reference (replacing the damaged record ``damaged``); its id."""
+        """Put a rendered reference (replacing the damaged record ``damaged``); its id. A render
+        of the cloud's scene made elsewhere (a render worker) is tagged with its state first."""
+        if self.scene.is_animated and ref.meta.scene_hash == self.scene.content_hash:
+            self._tag_state(ref, self.scene)
         if damaged is None:
             return self.store.put(ref)
         self.damaged_replaced += 1
@@ -369,10 +372,15 @@ class Cloud(GISource):
         self.renders += 1
         ref = render_job(scene, self.job(camera, seq, spp), self._raster_for(scene))
         if scene.is_animated:
-            sh, lh = self._keys
-            tags = {**ref.meta.tags, **invalidation.state_tags(scene)}
-            ref.meta = replace(ref.meta, scene_hash=sh, light_hash=lh, tags=tags)
+            self._tag_state(ref, scene)
         return ref
+
+    def _tag_state(self, ref: CRTBuffer, scene: Scene) -> None:
+        """Key a render of an animated ``scene`` by the keys all its states share, and tag it
+        with its state (:mod:`icbtool.store.invalidation`)."""
+        sh, lh = self._keys
+        tags = {**ref.meta.tags, **invalidation.state_tags(scene)}
+        ref.meta = replace(ref.meta, scene_hash=sh, light_hash=lh, tags=tags)
 
     def _raster_for(self, scene: Scene) -> Rasterizer:
         """A rasterizer of ``scene``: the cloud's own for its scene's state, else one per state

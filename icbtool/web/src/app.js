@@ -272,7 +272,10 @@ class WebClient {
     // arrival to its handling here (main thread busy, decryption) is "wait", not the network's
     const arrived = m.arrivedMs ?? tReply;
     if (m.fields.cache_hit) state.hits++; else state.misses++;
+    // an animated scene: a stale reference is shown marked (docs/dynamic.md)
+    if (m.fields.stale === true) state.stale = (state.stale || 0) + 1;
     return {camera: m.fields.camera, parts, cacheHit: m.fields.cache_hit, bytes: m.bytes,
+            stale: m.fields.stale === true, spp: m.fields.spp ?? null,
             timings: {request: requestMs, decode: decodeMs, server,
                       transfer: Math.max(0, arrived - t0 - server),
                       wait: Math.max(0, tReply - arrived),

@@ -41,6 +41,8 @@ export const KINDS = {
   gi_reply: {sender: "server", sealed: true, payload: true, fields: {
     id: ["integer", true, false], camera: ["object", true, false],
     cache_hit: ["boolean", true, false], coalesced: ["boolean", false, false],
+    stale: ["boolean", false, false], state: ["string", false, false],
+    spp: ["integer", false, false], refining: ["boolean", false, false],
     timings_ms: ["object", true, false], parts: ["array", true, false]}},
   generator_request: {sender: "client", sealed: true, payload: false, fields: {
     index: ["integer", false, false]}},
