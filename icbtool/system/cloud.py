@@ -177,6 +177,8 @@ class Cloud(GISource):
         """Records replaced because a scene change reached them."""
         self.refinements = 0
         """Cheap records rendered again at full spp."""
+        self.samples_traced = 0
+        """Path-tracing samples of every render (spp x pixels): render cost free of the load."""
 
     # ------------------------------------------------------------------ the prefetch camera
     def reference_camera(self, req: GIRequest) -> Camera:
@@ -370,7 +372,9 @@ class Cloud(GISource):
 
         scene = self.scene if scene is None else scene
         self.renders += 1
-        ref = render_job(scene, self.job(camera, seq, spp), self._raster_for(scene))
+        job = self.job(camera, seq, spp)
+        ref = render_job(scene, job, self._raster_for(scene))
+        self.samples_traced += job.trace_config.spp * ref.camera.height * ref.camera.width
         if scene.is_animated:
             self._tag_state(ref, scene)
         return ref
