@@ -259,6 +259,7 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
             pdf_prev = 0.0
             delta_prev = True  # what the camera ray finds counts fully
             from_first = False
+            eta_path = 1.0  # relative IOR crossed so far (Mitsuba's eta: RR without 1/eta^2)
             depth = 1
             n_pass = 0
             while depth <= limit:
@@ -388,8 +389,15 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
                 f2 = t2 * wgt[2]
                 if not (f0 > 0 or f1 > 0 or f2 > 0):
                     break
+                if wo_l[2] * wi_l[2] < 0:  # transmitted: into or out of a dielectric
+                    leaf = bs.leaf_of(B, root)
+                    if B.nt[leaf] == bs.DIELECTRIC or B.nt[leaf] == bs.ROUGHDIELECTRIC:
+                        e_rel = B.nf[leaf, 0]
+                        eta_path = eta_path * e_rel if wi_l[2] > 0 else eta_path / e_rel
                 if depth + 1 > rr_depth:
-                    q = min(max(f0, max(f1, f2)), 0.95)
+                    # the throughput carries 1 / eta^2 inside a denser medium: as Mitsuba, the
+                    # survival probability leaves it out, or paths inside glass die young
+                    q = min(max(f0, max(f1, f2)) * eta_path * eta_path, 0.95)
                     if not (_u01(base, salts[dim0 + 5]) < q):
                         break
                     f0 /= q
