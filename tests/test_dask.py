@@ -107,6 +107,26 @@ def test_trace_gbuffers_on_workers_equal_the_local_pool(scene, cluster, creds):
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
 
 
+def _worker_memory_settings(dask_worker=None) -> dict:
+    import os
+
+    return {
+        "arenas": os.environ.get("MALLOC_ARENA_MAX"),
+        "trims": "icb-trim-heap" in dask_worker.periodic_callbacks,
+    }
+
+
+def test_local_workers_run_with_few_arenas_and_trim_their_heap(cluster, watcher):
+    """Set before each worker process starts (glibc reads them once), and a periodic trim that
+    gives a render's result buffers back once the server has fetched them."""
+    from icbtool.system.memory import WORKER_ENVIRON
+
+    got = watcher.run(_worker_memory_settings)
+    assert len(got) == 2
+    for v in got.values():
+        assert v == {"arenas": WORKER_ENVIRON["MALLOC_ARENA_MAX"], "trims": True}
+
+
 def _tcfg():
     from icbtool import trace
 

@@ -80,6 +80,8 @@ log = logging.getLogger(__name__)
 #: test token guesses offline (docs/protocol.md, section Threat model): only a token that cannot
 #: be guessed is safe.
 MIN_TOKEN_CHARS = 32
+#: How often the server looks whether renders finished and trims its heap (seconds).
+TRIM_EVERY_S = 2.0
 
 
 #: The error message of a WebSocket text message (every protocol message is binary).
@@ -683,8 +685,10 @@ class Server:
                 if self.on_listening is not None:
                     self.on_listening(self.url)
                 flusher = asyncio.get_running_loop().create_task(self._flush_hits_every())
+                trimmer = asyncio.get_running_loop().create_task(self._trim_after_renders())
                 await self._stop.wait()
                 await flusher
+                await trimmer
                 self.throttle.flush()
                 log.info("shutting down: closing connections")
                 ws.close(close_connections=True)
@@ -1052,6 +1056,23 @@ class Server:
                 await asyncio.wait_for(self._stop.wait(), self.config.hit_flush_s)
             await self._flush_hits()
             self.throttle.tick()
+
+    async def _trim_after_renders(self) -> None:
+        """Give a burst of renders' memory back: once the renders done have changed and none
+        is running, trim the heap (a render's buffers are freed only after its reply is sent;
+        docs/network.md, section Memory)."""
+        from icbtool.system.memory import trim_heap
+
+        assert self._stop is not None
+        seen, left = self.stats.renders, 0
+        while not self._stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), TRIM_EVERY_S)
+            if self.stats.renders != seen:  # trim on the next two quiet ticks (the replies of
+                seen, left = self.stats.renders, 2  # the last renders may still be encoding)
+            if left and not self._render_tasks:
+                left -= 1
+                await asyncio.to_thread(trim_heap)
 
     async def _flush_hits(self) -> None:
         """Hand the hit counts gathered since the last call to the store's writer (one batch)."""

@@ -19,7 +19,10 @@ whoever reaches one of their ports owns the account. So:
   passed explicitly.
 
 Worker memory: each local worker gets a Dask memory limit (``memory_limit``): Dask's nanny
-restarts a worker whose memory stays above 95 % of it.
+restarts a worker whose memory stays above 95 % of it. Each runs with
+:data:`icbtool.system.memory.WORKER_ENVIRON` (two malloc arenas) and trims its heap every
+:data:`TRIM_EVERY_MS` (``malloc_trim``), so a render's memory goes back to the OS once the server
+has its result (docs/network.md, section Memory).
 
 Dask is imported only inside these functions (the ``cloud`` extra).
 """
@@ -171,6 +174,11 @@ def _quiet(cls: type) -> type:
     listens."""
 
     class Quiet(cls):  # type: ignore[misc, valid-type]
+        def __init__(self, *a: Any, **k: Any) -> None:
+            super().__init__(*a, **k)
+            if hasattr(self, "periodic_callbacks"):  # a worker: trim its heap every few seconds
+                _add_trim_callback(self)
+
         def start_http_server(self, routes: Any, dashboard_address: Any, *a: Any, **k: Any) -> None:
             routing = require("distributed.http.routing", "render workers on Dask distributed")
             httpserver = require("tornado.httpserver", "render workers on Dask distributed")
@@ -182,14 +190,32 @@ def _quiet(cls: type) -> type:
     return Quiet
 
 
+#: How often a local worker trims its heap (ms): the buffers of a render's result are freed
+#: only once the server has fetched it, after the task that could trim has returned.
+TRIM_EVERY_MS = 2000
+
+
+def _add_trim_callback(worker: Any) -> None:
+    from tornado.ioloop import PeriodicCallback
+
+    from icbtool.system.memory import trim_heap
+
+    worker.periodic_callbacks["icb-trim-heap"] = PeriodicCallback(trim_heap, TRIM_EVERY_MS)
+
+
 def _nanny(worker: type) -> type:
     """A :class:`distributed.Nanny` whose worker processes are ``worker``."""
     Nanny = require("distributed", "render workers on Dask distributed").Nanny
 
     class QuietNanny(Nanny):  # type: ignore[misc]
         def __init__(self, *a: Any, **k: Any) -> None:
+            from icbtool.system.memory import WORKER_ENVIRON
+
             k["worker_class"] = worker
             super().__init__(*a, **k)
+            # set before the worker process starts (glibc reads them once, at its start)
+            self.pre_spawn_env.update(WORKER_ENVIRON)
+            self.env.update(WORKER_ENVIRON)
 
     QuietNanny.__qualname__ = "QuietNanny"
     return QuietNanny

@@ -28,6 +28,10 @@ A task whose worker dies is retried by the scheduler on another worker; if the s
 lost with it (every worker holding it died) the pool scatters it again and resubmits the job,
 ``retries`` times at most; after that the job's future raises :class:`RenderError`.
 
+After each render a pool gives its memory back (:func:`icbtool.system.memory.
+release_after_render`: the tracer's kept workspaces dropped, the heap trimmed); docs/network.md,
+section Memory, says where a render's memory goes and the bound.
+
 Dask is imported only here, and only when a :class:`DaskPool` is made (the ``cloud`` extra).
 """
 
@@ -47,6 +51,7 @@ from icbtool.system.dask_cluster import (
     join_security,
     local_cluster,
 )
+from icbtool.system.memory import release_after_render
 
 log = logging.getLogger(__name__)
 
@@ -124,7 +129,10 @@ def run_job(shipped: ShippedScene, job: RenderJob, nice: int = 0) -> Any:
     lower_priority(nice)
     scene = shipped.build()
     rasterizer = _rasterizer_for(scene) if job.gbuffer == "raster" else None
-    return render_job(scene, job, rasterizer)
+    try:
+        return render_job(scene, job, rasterizer)
+    finally:
+        release_after_render()
 
 
 class LocalPool:
@@ -150,7 +158,10 @@ class LocalPool:
             from icbtool import raster
 
             self._rasterizer = raster.Rasterizer(self.scene, raster.RasterConfig())
-        return render_job(self.scene, job, self._rasterizer)
+        try:
+            return render_job(self.scene, job, self._rasterizer)
+        finally:
+            release_after_render()
 
     def submit(self, job: RenderJob) -> concurrent.futures.Future[Any]:
         """Queue ``job``; the future holds its CRT-buffer."""
