@@ -251,3 +251,34 @@ def test_peer_mitsuba_bumpy_floor(tmp_path, name):
     bias, rmse, own = peer_compare_file(xml, spp=64, max_depth=8)
     assert np.all(np.abs(bias) < 0.02), (name, bias)
     assert rmse < max(0.05, 2 * own), (name, rmse, own)
+
+
+def test_face_tangents_known_answer_and_same_bits_in_chunks(monkeypatch):
+    """dp/du and dp/dv (Mitsuba's v) of a quad are its edges; every face's tangents lie in its
+    plane (degenerate uvs: the normal's coordinate system); chunks change no bit."""
+    from icbtool.scene import SceneBuilder
+    from icbtool.trace import tracer
+
+    rng = np.random.default_rng(3)
+    b = SceneBuilder("tangents")
+    flat = sb.Bitmap(np.tile(np.float32([0.5, 0.5, 1.0]), (2, 2, 1)))
+    m = b.add_material(Material("m", bsdf=sb.NormalMap(flat, sb.RoughPlastic(alpha=0.2))))
+    b.add_quad((0, 0, 0), (2, 0, 0), (0, 0, -3), m)
+    uv = rng.uniform(-2, 2, (600, 2))
+    uv[:30] = uv[0]  # ten faces with degenerate uvs
+    b.add_mesh(rng.normal(size=(600, 3)), np.arange(600).reshape(200, 3), m, uvs=uv)
+    scene = b.build()
+    face_uv = scene.uvs[scene.faces]
+    whole = tracer._general_data(scene, face_uv)
+    monkeypatch.setattr(tracer, "TANGENT_CHUNK", 7)
+    parts = tracer._general_data(scene, face_uv)
+    np.testing.assert_array_equal(parts.face_t, whole.face_t)
+    np.testing.assert_array_equal(parts.face_b, whole.face_b)
+    np.testing.assert_allclose(whole.face_t[:2], [[2, 0, 0]] * 2, atol=1e-6)
+    np.testing.assert_allclose(whole.face_b[:2], [[0, 0, 3]] * 2, atol=1e-6)
+    n = scene.face_normals
+    scale = np.linalg.norm(whole.face_t, axis=1) * np.linalg.norm(whole.face_b, axis=1)
+    assert scale.min() > 0
+    for x in (whole.face_t, whole.face_b):
+        cos = np.abs((x * n).sum(1)) / np.linalg.norm(x, axis=1)
+        assert cos.max() < 1e-4

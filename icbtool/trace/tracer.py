@@ -725,22 +725,55 @@ def _general_data(scene: Scene, face_uv: np.ndarray | None) -> _General:
     face_t = np.zeros((F, 3), np.float32)
     face_b = np.zeros((F if maps and face_uv is not None else 1, 3), np.float32)
     if face_uv is not None:
-        p = scene.vertices[scene.faces].astype(np.float64)
-        uv = face_uv.astype(np.float64).copy()
-        uv[:, :, 1] = 1.0 - uv[:, :, 1]  # Mitsuba's v
-        e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-        d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
-        det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
-        ok = np.abs(det) > 1e-20
-        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)[:, None]
-        dpdu = (d2[:, 1:2] * e1 - d1[:, 1:2] * e2) * inv
-        face_t[:] = np.where(ok[:, None], dpdu, 0.0)
-        if len(face_b) == F:
-            dpdv = (d1[:, 0:1] * e2 - d2[:, 0:1] * e1) * inv
-            s, t = _coordinate_system(np.asarray(scene.face_normals, np.float64))
-            face_t[:] = np.where(ok[:, None], dpdu, s)
-            face_b[:] = np.where(ok[:, None], dpdv, t)
+        for s in range(0, F, TANGENT_CHUNK):  # float64 temporaries for one chunk at a time
+            e = min(s + TANGENT_CHUNK, F)
+            _face_tangents(
+                scene.vertices[scene.faces[s:e]],
+                face_uv[s:e],
+                scene.face_normals[s:e],
+                face_t[s:e],
+                face_b[s:e] if len(face_b) == F else None,
+            )
     return _General(table.params, table.mat_root, np.ascontiguousarray(face_t), face_b, table.kinds)
+
+
+#: Faces whose tangents are computed at once (their float64 temporaries: about 350 bytes a face).
+TANGENT_CHUNK = 1 << 16
+
+
+def _face_tangents(
+    tri: np.ndarray,
+    uv: np.ndarray,
+    fn: np.ndarray,
+    out_t: np.ndarray,
+    out_b: np.ndarray | None,
+) -> None:
+    """Per-face dp/du (and dp/dv) of faces, computed in float64, written into float32 arrays.
+
+    Args:
+        tri: (N, 3, 3) corners.
+        uv: (N, 3, 2) texture coordinates (OpenGL's v: flipped to Mitsuba's here).
+        fn: (N, 3) unit face normals (the fallback frame of a face with degenerate uvs).
+        out_t: (N, 3) float32, receives dp/du (zeros where the uvs are degenerate, unless
+            ``out_b`` is given: then the first axis of the normal's ``coordinate_system``).
+        out_b: (N, 3) float32 receiving dp/dv (else its fallback), or None.
+    """
+    p = tri.astype(np.float64)
+    uv = uv.astype(np.float64)  # a copy
+    uv[:, :, 1] = 1.0 - uv[:, :, 1]  # Mitsuba's v
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+    ok = np.abs(det) > 1e-20
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)[:, None]
+    dpdu = (d2[:, 1:2] * e1 - d1[:, 1:2] * e2) * inv
+    if out_b is None:
+        out_t[:] = np.where(ok[:, None], dpdu, 0.0)
+        return
+    dpdv = (d1[:, 0:1] * e2 - d2[:, 0:1] * e1) * inv
+    s, t = _coordinate_system(np.asarray(fn, np.float64))
+    out_t[:] = np.where(ok[:, None], dpdu, s)
+    out_b[:] = np.where(ok[:, None], dpdv, t)
 
 
 def _coordinate_system(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
