@@ -400,6 +400,11 @@ class _Values:
         self.n_shapes = 0
         self.n_instances = 0
         self.geo_cache: dict[int, tuple | None] = {}  # id(shape node) -> its geometry
+        # instancing: id(shapegroup) -> (prototype index, instanceable, its shapes' (v, f,
+        # exact-free) in its own space); per instance (prototype, 3x4, first and end part)
+        self.groups: dict[int, tuple] = {}
+        self.instances: list[tuple] = []
+        self.group_local: list[tuple] = []
         self.version = (3, 0, 0)
         self.progress = False  # a tqdm bar over the shapes while they load
         # every shape without a BSDF shares this one (Mitsuba's default: diffuse 0.5), so they
@@ -1155,9 +1160,8 @@ class _Reader(_Materials):
                     f"{given[1].where}: {node.describe()} at {node.where} has a second "
                     f"<{tag}> (Mitsuba allows one per shape)"
                 )
-        to_world = self.transform(props.get("to_world"))
-        if parent is not None:
-            to_world = parent @ to_world
+        own = self.transform(props.get("to_world"))
+        to_world = own if parent is None else parent @ own
         if parent is None:
             geo = self.geometry(node, kind, props)
         else:  # a shapegroup's shape is read once for all its instances
@@ -1176,7 +1180,9 @@ class _Reader(_Materials):
             local[:3, :3] *= r
             local[:3, 3] = c
             to_world = to_world @ local
+            own = own @ local
         lin = to_world[:3, :3]
+        v_own = None if parent is None else v @ own[:3, :3].T + own[:3, 3]
         if abs(np.linalg.det(lin)) < 1e-300:
             raise SceneError(f"{node.where}: {node.describe()} to_world is singular")
         v = v @ lin.T + to_world[:3, 3]
@@ -1186,6 +1192,8 @@ class _Reader(_Materials):
             n = -n
         if self.bool_(props, "face_normals", False):
             uv = None if uv is None else uv[f].reshape(-1, 2)
+            if v_own is not None:
+                v_own = v_own[f].reshape(-1, 3)
             v, f = v[f].reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3)
             n = np.full_like(v, np.nan)  # computed flat below
         bsdf = self.bsdf(props.get("bsdf"))
@@ -1209,6 +1217,8 @@ class _Reader(_Materials):
             exact = self.exact_shape(node, kind, props, to_world, bsdf)
         self.finish(node, props)
         self.parts.append(_Part(v, f, n, uv, mat, exact))
+        if v_own is not None:  # an instance's shape, in its shapegroup's space
+            self.group_local.append((v_own, f, exact is None))
         self.n_shapes += 1
 
     def check_group(self, node: _Node) -> list[_Node]:
@@ -1246,8 +1256,17 @@ class _Reader(_Materials):
             raise SceneError(f"{node.where}: an instance needs a <ref> to a shapegroup")
         to_world = self.transform(props.get("to_world"))
         self.finish(node, props)
+        first = len(self.parts)
+        self.group_local = []
         for s in self.check_group(group):
             self.shape(s, to_world)
+        if id(group) not in self.groups:  # the prototype: the group's shapes in its own space
+            ok = bool(self.group_local) and all(e for _, _, e in self.group_local)
+            self.groups[id(group)] = (len(self.groups), ok, self.group_local)
+        g, ok, _ = self.groups[id(group)]
+        if ok:  # (a group holding an exact sphere, disk or cylinder stays flattened)
+            self.instances.append((g, to_world[:3, :4].copy(), first, len(self.parts)))
+        self.group_local = []
         self.n_instances += 1
 
     def exact_shape(
@@ -1654,6 +1673,7 @@ class _Reader(_Materials):
                     kind, m, flip, name = exact
                     shapes.append(AnalyticShape(kind, m, mat, (int(lo), int(hi)), flip, name))
         fill_vertex_normals(v, f, n, ~np.isfinite(n).all(axis=1))
+        inst = self.instancing(start, face_id)
         mats = self.materials
         if not any(m.is_textured or m.bsdf is not None for m in mats):
             uv = None  # (declared BSDFs keep them: textures, the anisotropy's tangent frame)
@@ -1679,6 +1699,51 @@ class _Reader(_Materials):
             max_depth=self.max_depth,
             source=where,
             shapes=shapes,
+            instancing=inst,
+        )
+
+    def instancing(self, start: np.ndarray, face_id: np.ndarray) -> Any:
+        """The scene's :class:`~icbtool.scene.instancing.Instancing` (None without instances):
+        each instance is a run of the scene's faces; the faces the mesh checks dropped (e.g.
+        degenerate ones) are dropped from its prototype too, and an instance that lost other
+        faces than its prototype's first instance stays a plain part of the mesh."""
+        from icbtool.scene.instancing import Instancing
+
+        if not self.instances:
+            return None
+        protos: list = [None] * len(self.groups)
+        for g, ok, local in self.groups.values():
+            if ok:
+                offs = np.cumsum([0] + [len(vv) for vv, _, _ in local])
+                protos[g] = (
+                    np.concatenate([vv for vv, _, _ in local]).astype(np.float32),
+                    np.concatenate([ff + o for (_, ff, _), o in zip(local, offs)]).astype(np.int32),
+                )
+        proto, xform, face0 = [], [], []
+        keep: dict[int, np.ndarray] = {}  # per prototype: its faces the mesh checks kept
+        for g, m, pa, pb in self.instances:
+            a, b = int(start[pa]), int(start[pb])
+            if protos[g] is None or b == a or len(protos[g][1]) != b - a:
+                continue
+            lo, hi = np.searchsorted(face_id, [a, b])
+            kept = face_id[lo:hi] - a  # (a degenerate face dropped from every copy: from the
+            if hi == lo or not np.array_equal(keep.setdefault(g, kept), kept):  # prototype too)
+                continue
+            proto.append(g)
+            xform.append(m)
+            face0.append(int(lo))
+        for g, kept in keep.items():
+            if len(kept) != len(protos[g][1]):
+                protos[g] = (protos[g][0], protos[g][1][kept])
+        self.groups, self.instances = {}, []
+        if not proto:
+            return None
+        empty = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
+        return Instancing(
+            tuple(p if p is not None else empty for p in protos),
+            np.array(proto, np.int32),
+            np.array(xform, np.float32).reshape(-1, 3, 4),
+            np.array(face0, np.int64),
         )
 
 

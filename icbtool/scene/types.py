@@ -675,6 +675,10 @@ class Scene:
             lights, rigidly moving meshes), or None for a static scene. The scene's arrays and
             lights are those at :attr:`time`; :meth:`at` gives another time.
         time: the scene time (seconds) this scene's contents are at (0 for a static scene).
+        instancing: which runs of faces are placed copies of a prototype
+            (:class:`icbtool.scene.instancing.Instancing`; a Mitsuba ``instance``), or None. The
+            mesh holds every copy; the tracer may build one BVH per prototype from it. Not part
+            of :attr:`content_hash` (the mesh is the content).
     """
 
     name: str
@@ -694,6 +698,7 @@ class Scene:
     animation: Any = None  # an icbtool.scene.animation.Animation (which imports this module)
     time: float = 0.0
     shapes: Sequence[AnalyticShape] = ()
+    instancing: Any = None  # an icbtool.scene.instancing.Instancing: runs of faces that are copies
 
     def __post_init__(self) -> None:
         where = f"scene '{self.name}'" + (f" ({self.source})" if self.source else "")

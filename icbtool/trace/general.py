@@ -180,7 +180,7 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
             (1, 3) (never read).
         out, acc, counts, log, part, queue, pix, sid, bounds: as ``trace_paths``.
     """
-    rtc, fn_isect, fn_occl = p.embree
+    rtc, fn_isect, fn_occl = p.embree[0], p.embree[1], p.embree[2]
     cam = p.cam
     width, edge_extra = cam.width, cam.edge_extra
     sf = p.surf
@@ -205,7 +205,7 @@ def trace_paths_general(p, B, mat_root, face_t, face_b, out, acc, counts, log, p
     n_q = punct.shape[0]
     n_e = len(emit_faces)
     pw, pf = _stack_words()
-    ray = (pw, pf, np.int64(0), _address(pw))
+    ray = (pw, pf, np.int64(0), _address(pw), p.embree[3])
     n_prim = 0
     n_bounce = 0
     n_shadow = 0

@@ -473,15 +473,18 @@ def call3(typingctx, fn, a, b, c):
 
 _F16 = np.uint64(15)
 _INVALID = np.uint32(0xFFFFFFFF)
+#: The primitive map of a scene without instances (faces are Embree's primIDs).
+_NO_MAP = np.zeros(0, np.int64)
 
 
 @nb.njit(**_JIT)
-def _rayhit():
-    """A 16-byte aligned RTCRayHit: (uint32 words, float32 view, first word, its address)."""
+def _rayhit(prim_map):
+    """A 16-byte aligned RTCRayHit: (uint32 words, float32 view, first word, its address,
+    ``prim_map``: the scene's primitive map, see :func:`_intersect`)."""
     buf = np.zeros(RAYHIT_WORDS + 4, np.uint32)
     addr = np.uint64(buf.ctypes.data)
     off = (np.uint64(16) - (addr & _F16)) & _F16
-    return buf, buf.view(np.float32), np.int64(off >> np.uint64(2)), addr + off
+    return buf, buf.view(np.float32), np.int64(off >> np.uint64(2)), addr + off, prim_map
 
 
 @intrinsic
@@ -551,7 +554,7 @@ def _address(typingctx, ptr):
 
 @nb.njit(inline="always", **_JIT)
 def _set_ray(ray, ox, oy, oz, dx, dy, dz, tfar):
-    w, f, k, _ = ray
+    w, f, k = ray[0], ray[1], ray[2]
     f[k] = ox
     f[k + 1] = oy
     f[k + 2] = oz
@@ -569,21 +572,35 @@ def _set_ray(ray, ox, oy, oz, dx, dy, dz, tfar):
 @nb.njit(inline="always", **_JIT)
 def _intersect(rtc, fn, ray, ox, oy, oz, dx, dy, dz):
     """Closest hit of one float32 ray (in the RTCRayHit ``ray`` of :func:`_rayhit`):
-    (t, prim or -1, u, v)."""
-    w, f, k, addr = ray
+    (t, prim or -1, u, v).
+
+    The prim is the scene's face index. With Embree instancing (:class:`~icbtool.trace.rtc.
+    RtcScene` of an instanced scene) the ray's primitive map ``ray[4]`` is not empty: a hit in
+    instance i (``instID``) is face ``map[i] + primID`` (instance i's faces are one run of the
+    scene's, in its prototype's order), a hit on the top level's triangles (geomID g = the
+    number of instances) is face ``map[g + primID]``."""
+    w, f, k, addr, pm = ray[0], ray[1], ray[2], ray[3], ray[4]
     _set_ray(ray, ox, oy, oz, dx, dy, dz, np.inf)
     w[k + 17] = _INVALID
     w[k + 18] = _INVALID
+    w[k + 19] = _INVALID
     call3(fn, rtc, addr, _U0)
     if w[k + 18] == _INVALID:
         return f[k + 8], -1, np.float32(0.0), np.float32(0.0)
-    return f[k + 8], np.int64(w[k + 17]), f[k + 15], f[k + 16]
+    prim = np.int64(w[k + 17])
+    if pm.shape[0] > 0:
+        inst = w[k + 19]
+        if inst != _INVALID:
+            prim += pm[np.int64(inst)]
+        else:
+            prim = pm[np.int64(w[k + 18]) + prim]
+    return f[k + 8], prim, f[k + 15], f[k + 16]
 
 
 @nb.njit(inline="always", **_JIT)
 def _occluded(rtc, fn, ray, ox, oy, oz, dx, dy, dz, tfar):
     """Whether anything lies on the float32 ray segment 0 < t < tfar."""
-    w, f, k, addr = ray
+    f, k, addr = ray[1], ray[2], ray[3]
     _set_ray(ray, ox, oy, oz, dx, dy, dz, tfar)
     call3(fn, rtc, addr, _U0)
     return f[k + 8] == -np.inf
@@ -611,7 +628,14 @@ def _closest(rtc, fn, ray, shp, n_tri, ox, oy, oz, dx, dy, dz):
 @nb.njit(**_JIT)
 def rtc_intersect_batch(rtc, fn, o, d, t, prim, u, v, lo, hi):
     """Closest hits of float32 rays lo..hi-1 (o, d (N, 3)) into t, prim (-1 = miss), u, v."""
-    ray = _rayhit()
+    rtc_intersect_mapped(rtc, fn, o, d, t, prim, u, v, lo, hi, _NO_MAP)
+
+
+@nb.njit(**_JIT)
+def rtc_intersect_mapped(rtc, fn, o, d, t, prim, u, v, lo, hi, prim_map):
+    """:func:`rtc_intersect_batch` with a BVH's primitive map (an instanced scene's
+    :attr:`~icbtool.trace.rtc.RtcScene.prim_map`): prim is the scene's face index."""
+    ray = _rayhit(prim_map)
     for i in range(lo, hi):
         a, b, c, e = _intersect(rtc, fn, ray, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2])
         t[i] = a
@@ -623,7 +647,7 @@ def rtc_intersect_batch(rtc, fn, o, d, t, prim, u, v, lo, hi):
 @nb.njit(**_JIT)
 def rtc_occluded_batch(rtc, fn, o, d, tfar, out, lo, hi):
     """Occlusion of float32 ray segments lo..hi-1 (0 < t < tfar) into out (True = blocked)."""
-    ray = _rayhit()
+    ray = _rayhit(_NO_MAP)
     for i in range(lo, hi):
         out[i] = _occluded(
             rtc, fn, ray, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], tfar[i]
@@ -745,7 +769,8 @@ def sky_radiance_batch(sk, d, out):
 # icbtool.trace.tracer.Tracer). Arrays are C-contiguous; scalars are int64 or float64.
 
 #: Embree 4: scene handle, addresses of rtcIntersect1 and rtcOccluded1.
-EmbreeFns = namedtuple("EmbreeFns", ["scene", "fn_intersect", "fn_occluded"])
+#: ``prim_map``: (K,) int64, empty unless the BVH instances prototypes (see :func:`_intersect`).
+EmbreeFns = namedtuple("EmbreeFns", ["scene", "fn_intersect", "fn_occluded", "prim_map"])
 #: Camera: (fx, fy, cx, cy), world_from_cam rotation (3, 3), centre (3,), image width, jitter
 #: (1: box-filter the pixel, 0: its centre), extra emission samples per sample of each pixel
 #: (N,) int32 (on the pixels an emitter's or the sky's edge crosses; empty: none anywhere),
@@ -1006,12 +1031,12 @@ def emission_at(p, lum_w, pts, out, lo, hi):
     """Luminance of the emission seen (:func:`_emission_seen`) along the camera rays through
     the image points ``pts[lo:hi]`` ((N, 2) x, y in pixels) into ``out``: the tracer compares a
     pixel's four corners to find the pixels an emitter's or the sky's edge crosses."""
-    rtc, fn_isect, _ = p.embree
+    rtc, fn_isect = p.embree[0], p.embree[1]
     cam = p.cam
     surf = (p.surf.face_n, p.surf.face_mat, p.surf.mat_emission)
     shp = p.surf.shapes
     pw, pf = _stack_words()
-    ray = (pw, pf, np.int64(0), _address(pw))
+    ray = (pw, pf, np.int64(0), _address(pw), p.embree[3])
     no_log = (np.zeros((1, 3), np.float32), np.zeros((1, 3), np.float32),
               np.zeros(1, np.float32), np.zeros(1, np.int8), np.zeros(1, np.int64))  # fmt: skip
     for n in range(lo, hi):
@@ -1386,7 +1411,7 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
     number of parts nor on which part took which block.
     """
     # the struct's fields as locals, once (see the note above the shading helpers)
-    rtc, fn_isect, fn_occl = p.embree
+    rtc, fn_isect, fn_occl = p.embree[0], p.embree[1], p.embree[2]
     cam = p.cam
     width, edge_extra = cam.width, cam.edge_extra
     sf = p.surf
@@ -1411,7 +1436,8 @@ def trace_paths(p, out, acc, counts, log, part, queue, pix, sid, bounds):
     hold_ok = n_s + n_q + 2 < ROW_STRIDE
     # the RTCRayHit record (as _rayhit's) on this function's stack: no allocation
     pw, pf = _stack_words()
-    ray = (pw, pf, np.int64(0), _address(pw))  # pointers index as the arrays of _rayhit do
+    # pointers index as the arrays of _rayhit do
+    ray = (pw, pf, np.int64(0), _address(pw), p.embree[3])
     n_prim = 0
     n_bounce = 0
     n_shadow = 0

@@ -953,7 +953,7 @@ class Tracer:
         sampler = K.SAMPLER_INDEPENDENT if cfg.sampler == "independent" else K.SAMPLER_SOBOL
         log2spp, zshift = _z_layout(cfg, cam.width, cam.height)
         return K.TraceParams(
-            K.EmbreeFns(rs.ptr, rs.fn_intersect, rs.fn_occluded),
+            K.EmbreeFns(rs.ptr, rs.fn_intersect, rs.fn_occluded, rs.prim_map),
             K.View(
                 np.array([cam.fx, cam.fy, cam.cx, cam.cy], np.float64),
                 np.ascontiguousarray(cam.world_from_cam[:3, :3], np.float64),
