@@ -1415,6 +1415,57 @@ def block_shadow_accuracy(results: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def block_raster_glossy(results: Path) -> str:
+    """Client DL cost of the tracer's BSDFs (``benchmarks.raster_glossy``)."""
+    after = load("raster_glossy/results_after.json", results)
+    before = load("raster_glossy/results_before.json", results)
+    rows = (
+        ("cornell_box", "cornell_box (Lambert)", "-"),
+        ("cornell_box_glossy_as_lambert", "cornell_box_glossy, Lambert stand-ins", "-"),
+        ("cornell_box_glossy_n4", "cornell_box_glossy", "4"),
+        ("cornell_box_glossy", "cornell_box_glossy", "8 (default)"),
+        ("cornell_box_glossy_n16", "cornell_box_glossy", "16"),
+    )
+    n = after["size"]
+    lines = [
+        "**Client glossy DL** (`benchmarks.raster_glossy`): ms per `dl` frame of "
+        "`icbtool.raster` (OSMesa) at "
+        f"{n}x{n} from the\ndefault camera, median of {after['frames']} frames after 2 "
+        "warm-up frames, configurations interleaved round by round;\n"
+        "`glossy_area_samples`: points per area light for the glossy lobes; "
+        "`before`: the raster before glossy support\n(Lambert only). 1-minute load "
+        f"{after['load_average_start'][0]:.1f} at the start on 2 cores: times move by "
+        "tens of % between runs (see the repeats).",
+        "",
+        f"| scene | glossy_area_samples | dl ms at {n}^2 | before |",
+        "|---|---|---|---|",
+    ]
+    for key, scene, k in rows:
+        if key not in after["ms_median"]:
+            continue
+        b = before["ms_median"].get(key)
+        was = "-" if b is None else f"{b:.0f}"
+        lines.append(f"| {scene} | {k} | {after['ms_median'][key]:.0f} | {was} |")
+    reps = []
+    for i in (1, 2):
+        path = results / "raster_glossy" / f"results_before_lambert{i}.json"
+        if not path.is_file():
+            continue
+        b = load(f"raster_glossy/results_before_lambert{i}.json", results)
+        a = load(f"raster_glossy/results_after_lambert{i}.json", results)
+        reps.append(
+            f"{b['ms_median']['cornell_box']:.0f} before / "
+            f"{a['ms_median']['cornell_box']:.0f} after"
+        )
+    if reps:
+        lines += [
+            "",
+            "Lambert box alone (`--lambert-only`, before and after back to back, "
+            "median ms): " + "; ".join(reps) + ".",
+        ]
+    return "\n".join(lines) + "\n"
+
+
 def block_trace_refactor(results: Path) -> str:
     rows = []
     for name, label in (("cornell_box", "Cornell box"), ("sponza", "Sponza"), ("aa", "A/A")):
@@ -2322,6 +2373,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "mitsuba-materials": block_mitsuba_materials,
     "dl-accuracy": block_dl_accuracy,
     "shadow-accuracy": block_shadow_accuracy,
+    "raster-glossy": block_raster_glossy,
     "trace-refactor": block_trace_refactor,
     "gan-figure7": block_gan_figure7,
     "gan-figure8": block_gan_figure8,
@@ -2361,6 +2413,7 @@ OWNERS: dict[str, str] = {
     "mitsuba-materials": "mitsuba_materials",
     "dl-accuracy": "raster_dl_accuracy",
     "shadow-accuracy": "raster_shadow_accuracy",
+    "raster-glossy": "raster_glossy",
     "trace-refactor": "trace_ab",
     "gan-figure7": "gan_figure7",
     "gan-figure8": "gan_figure8",
