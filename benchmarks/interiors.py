@@ -19,8 +19,11 @@ Carlo variance falls as 1/spp; the bias does not, so it is reported beside it).
 What both render (the approximations taken): each scene is first prepared once (a copy in the
 output folder, file names made absolute, a Mitsuba 0.6 ``scale`` texture on a bump map folded
 into the bumpmap's ``scale``): shapes whose mesh file is missing are dropped (public
-snapshots of scenes lack their largest files: named in the results), the integrator becomes
-``path`` with ``--max-depth``, the sampler ``independent``, the film ``--width`` x ``--height``.
+snapshots of scenes lack their largest files: named in the results), a bitmap texture whose
+image file is missing becomes the constant ``MISSING_TEXTURE_RGB`` (a bump map missing its
+height field, the BSDF it wraps; named in the results and counted in the table), the
+integrator becomes ``path`` with ``--max-depth``, the sampler ``independent``, the film
+``--width`` x ``--height``.
 Mitsuba then renders the prepared file's twin
 (:func:`icbtool.scene.mitsuba.diffuse_twin`): a BSDF icbtool traces exactly (its general
 kernel: Mitsuba's own plugins, :mod:`icbtool.scene.bsdf`) stays as written, so both render the
@@ -59,6 +62,8 @@ from benchmarks.common import REPO, add_out_argument, load_average, write_result
 
 #: Scene files searched for under --scenes: any .xml up to this many folders down.
 MAX_SCENE_DEPTH = 2
+#: The constant reflectance (linear RGB) that stands for a texture whose image file is missing.
+MISSING_TEXTURE_RGB = "0.5 0.5 0.5"
 #: Most mesh files Mitsuba cannot read that a scene may lose before the benchmark gives up.
 MAX_UNREADABLE = 20
 
@@ -84,19 +89,24 @@ def prepare(
         exclude: names of mesh files whose shapes are dropped too (files Mitsuba cannot read).
 
     Returns:
-        {"file": the copy, "dropped": shapes dropped (their missing files)}.
+        {"file": the copy, "dropped": shapes dropped (their missing files),
+        "replaced_textures": image files missing, their textures made constant}.
     """
     tree = ET.parse(xml)
     root = tree.getroot()
-    dropped = []
+    dropped, replaced = [], []
     for parent in list(root.iter()):
         for c in list(parent):
             fn = c.find("string[@name='filename']")
             if fn is not None and "$" not in fn.get("value", ""):
                 path = (xml.parent / fn.get("value", "").replace("\\", "/")).resolve()
+                rel = str(path.relative_to(xml.parent.resolve()))
                 if c.tag == "shape" and (not path.is_file() or path.name in exclude):
                     parent.remove(c)
-                    dropped.append(str(path.relative_to(xml.parent.resolve())))
+                    dropped.append(rel)
+                    continue
+                if c.tag == "texture" and not path.is_file() and _replace_texture(root, parent, c):
+                    replaced.append(rel)
                     continue
                 fn.set("value", str(path))
             if c.tag in ("integrator", "sampler", "rfilter"):
@@ -122,7 +132,33 @@ def prepare(
     out_dir.mkdir(parents=True, exist_ok=True)
     dst = out_dir / f"{xml.stem.split('.')[0]}.xml"
     tree.write(dst)
-    return {"file": dst, "dropped": dropped}
+    return {"file": dst, "dropped": dropped, "replaced_textures": sorted(set(replaced))}
+
+
+def _replace_texture(root: ET.Element, parent: ET.Element, tex: ET.Element) -> bool:
+    """A bitmap texture whose image file is missing becomes the constant
+    :data:`MISSING_TEXTURE_RGB` in both renderers' files (a named parameter of a BSDF); a
+    bump map whose height field is missing becomes the BSDF it wraps. Returns False (the
+    texture is left as written) where neither applies: a texture declared at the top level."""
+    if parent.tag == "bsdf" and parent.get("type") == "bumpmap" and tex.get("name") is None:
+        inner = parent.find("bsdf")
+        holder = next((p for p in root.iter() if parent in list(p)), None)
+        if inner is None or holder is None:
+            return False
+        idx = list(holder).index(parent)
+        holder.remove(parent)
+        for k in ("id", "name"):
+            if parent.get(k) is not None:
+                inner.set(k, parent.get(k))
+        holder.insert(idx, inner)
+        return True
+    name = tex.get("name")
+    if name is None or parent.tag == "scene":
+        return False
+    idx = list(parent).index(tex)
+    parent.remove(tex)
+    parent.insert(idx, ET.Element("rgb", {"name": name, "value": MISSING_TEXTURE_RGB}))
+    return True
 
 
 def _fold_scale_texture(bump: ET.Element) -> None:
@@ -304,10 +340,15 @@ def measure_scene(xml: Path, args: argparse.Namespace, work: Path) -> dict:
             unreadable.append(Path(m.group(1)).name)
     else:
         raise SystemExit(f"FAIL: more than {MAX_UNREADABLE} mesh files Mitsuba cannot read")
-    print(f"{key}: {len(prep['dropped'])} shapes dropped (missing or unreadable)", flush=True)
+    print(
+        f"{key}: {len(prep['dropped'])} shapes dropped (missing or unreadable), "
+        f"{len(prep['replaced_textures'])} missing textures made constant",
+        flush=True,
+    )
     rec: dict = {
         "file": str(xml),
         "dropped_shapes": prep["dropped"],
+        "replaced_textures": prep["replaced_textures"],
         "unreadable_by_mitsuba": unreadable,
     }
     rec["icbtool_load"] = run_child(_ICBTOOL_LOAD_CHILD, [str(prep["file"])], sdir / "load_icb.log")

@@ -1116,9 +1116,12 @@ def block_interiors(results: Path) -> str:
         runs, ra, lo = r["runs"], r["ratios"], r["icbtool_load"]
         icb = [p["icbtool"] for p in runs]
         mi = [p["mitsuba"] for p in runs]
+        gaps = f", {len(r['dropped_shapes'])} shapes dropped" if r["dropped_shapes"] else ""
+        if r.get("replaced_textures"):
+            gaps += f", {len(r['replaced_textures'])} missing textures made constant"
         rows.append(
             f"| {key} ({lo['triangles'] / 1e3:.0f}k tris, {lo['texels'] / 1e6:.1f}M texels over "
-            "its materials) "
+            f"its materials{gaps}) "
             f"| {span([x['wall_s'] for x in icb])} | {span([x['wall_s'] for x in mi])} "
             f"| {ra['whole_run_time']:.2f}x | {span([x['peak_rss_mb'] for x in icb])} "
             f"| {span([x['peak_rss_mb'] for x in mi])} | {ra['peak_memory']:.2f}x "
@@ -1129,7 +1132,9 @@ def block_interiors(results: Path) -> str:
         "(load, BVH, packing, render,\noutputs) and Mitsuba "
         f"{d.get('mitsuba_version', '?')} (`{c['variant']}`: import, load, render) in child "
         "processes, back to back, on\nthe same prepared file (the BSDFs icbtool traces exactly "
-        f"kept on both sides), {c['width']}x{c['height']}, {c['spp']} spp,\nmax depth "
+        "kept on both sides; shapes whose mesh files a scene\nlacks or Mitsuba cannot read "
+        "dropped, textures whose images it lacks a constant 0.5 grey, on both sides),\n"
+        f"{c['width']}x{c['height']}, {c['spp']} spp, max depth "
         f"{c['max_depth']}, {c['repeats']} pair(s); peak memory: each child's VmHWM; 1-minute "
         f"load {min(loads):.1f}-{max(loads):.1f}\n(2 shared cores: compare the ratios, not the "
         "times).\n\n"
