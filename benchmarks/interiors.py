@@ -396,8 +396,10 @@ def _mitsuba_load(twin: Path, sdir: Path, variant: str) -> dict:
                 raise
             lines = twin.read_text().splitlines(keepends=True)
             start = int(m.group(1)) - 1
-            for name in names:
-                hit = next(i for i in range(start, len(lines)) if f'name="{name}"' in lines[i])
+            for name in names:  # as Mitsuba names it, or as a 0.6 file spells it (camelCase)
+                camel = re.sub(r"_(\w)", lambda c: c.group(1).upper(), name)
+                spelt = (f'name="{name}"', f'name="{camel}"')
+                hit = next(i for i in range(start, len(lines)) if any(x in lines[i] for x in spelt))
                 del lines[hit]
             twin.write_text("".join(lines))
     raise SystemExit(f"FAIL: Mitsuba cannot load {twin}: too many unreferenced properties")
