@@ -2358,6 +2358,39 @@ def block_radiance_world(results: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def block_instances(results: Path) -> str:
+    d = load("instances/instances.json", results)
+    c = d["config"]
+    lines = [
+        "**Instances** (`benchmarks.instances`): N instances of a T-triangle mesh (a Mitsuba",
+        "`shapegroup`), traced with a flat BVH of every copy (`flat`), with Embree instancing",
+        "(`instanced`, one prototype BVH) and by Mitsuba 3 (`scalar_rgb`); each run a fresh",
+        f"process, {c['size']}x{c['size']} px at {c['spp']} spp, depth {c['max_depth']}. "
+        "Load = reading the scene (icbtool's",
+        "mesh holds every copy either way; Mitsuba's load includes its BVH), BVH = icbtool's",
+        "Embree build (instanced: with its check that the mesh still matches), render = the",
+        "render call (the tracer's per-face setup included), peak = the process's peak RSS.",
+        "The load times of one N x T differ by the machine's load, not the mode. Load average "
+        f"{span(list(walk_load_averages(d)), f2)} (a shared machine).",
+        "",
+        "| N x T | mode | triangles in BVH | load s | BVH s | render s | peak RSS MB |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in d["rows"]:
+        if "error" in r:
+            lines.append(f"| {r['instances']} x {r['mesh_triangles']:,} | {r['mode']} | "
+                         f"failed: {r['error'][0][:60]} | | | | |")  # fmt: skip
+            continue
+        bvh = "-" if r["bvh_s"] is None else f"{r['bvh_s']:.2f}"
+        tri = f"{r['triangles_in_bvh']:,}" if "triangles_in_bvh" in r else "-"
+        lines.append(
+            f"| {r['instances']} x {r['mesh_triangles']:,} | {r['mode']} | {tri} | "
+            f"{r['load_s']:.2f} | {bvh} | {r['render_s']:.2f} | {r['peak_rss_mb']:,.0f} |"
+        )
+    lines.append("")
+    return "\n".join(lines)
+
+
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "intro": block_intro,
     "raster": block_raster,
@@ -2394,12 +2427,14 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "net-scale": block_net_scale,
     "radiance-world": block_radiance_world,
     "gi-codec": block_gi_codec,
+    "instances": block_instances,
 }
 
 
 #: The benchmark that owns each block: its module writes the results the block is made from,
 #: and the block names it (tests/test_benchmarks_page.py checks both).
 OWNERS: dict[str, str] = {
+    "instances": "instances",
     "raster": "raster_bench",
     "trace-throughput": "trace_throughput",
     "trace-time-error": "trace_time_error",
