@@ -7,12 +7,14 @@ and checked).
    client's), then hits alone for ``--profile-s`` with 1 and 32 lean clients and 32
    ``NetworkSource`` clients: throughput, latency, CPU per hit of the server (its event-loop
    thread apart) and of the clients.
-1. ``hits``: a server (``icbtool serve`` in a subprocess, ``--workers N`` local Dask workers)
-   with 32 clients replaying cache hits (64 x 64, prewarmed; ``--hit-client lean``: all on one
-   event loop, each reply opened and verified but its codecs not decoded, see
-   :class:`LeanHitClients`) while 2 clients each ask for ``--misses`` cache misses at 1024 x
-   1024: hit latency p50/p99 alone and during the misses, throughput and CPU per hit, miss
-   latency, for N = 1 and 2.
+1. ``hits``: a server (``icbtool serve`` in a subprocess, ``--workers N`` local Dask workers,
+   0: in-process renders) with 32 clients, each replaying a cache hit at its own camera (64 x 64,
+   32 distinct cameras along the test path, prewarmed: every hit is a lookup of its own, none
+   can be a reply shared with another client; replies marked ``coalesced`` are counted apart
+   and never as hits; ``--hit-client lean``: all on one event loop, each reply opened and
+   verified but its codecs not decoded, see :class:`LeanHitClients`) while 2 clients each ask
+   for ``--misses`` cache misses at 1024 x 1024: hit latency p50/p99/max alone and during the
+   misses, throughput and CPU per hit, miss latency, for N = 0, 1 and 2 (``--hit-workers``).
 2. ``bake``: the same path baked single-process, on 1 and 2 local Dask workers, and on a
    scheduler plus two worker processes started separately (``dask scheduler`` / ``dask worker``,
    127.0.0.1): records/min (after one warm-up view per worker, which compiles the tracer there)
@@ -137,10 +139,19 @@ class ServeProcess:
             self.proc.kill()
 
 
-def _request(scene: Any, t: float, size: int, seq: int = 0) -> Any:
+def request_at(scene: Any, t: float, size: int, seq: int = 0) -> Any:
+    """A GI request at time ``t`` of the test path, ``size`` x ``size``."""
     p = scene.paths["test"]
     cam = p.with_intrinsics(p.intrinsics.resized(size, size)).camera_at(t)
     return system.GIRequest(cam, time_s=t, seq=seq, depth_range=(0.5, 8.0))
+
+
+def hit_cameras(scene: Any, n: int, size: int) -> list[Any]:
+    """``n`` distinct hit requests, one per client: cameras spread along the test path (no two
+    alike, so no reply can be shared between clients: every hit is a lookup of its own)."""
+    span = scene.paths["test"].duration
+    ts = [0.2 + (span - 0.4) * k / max(n - 1, 1) for k in range(n)]
+    return [request_at(scene, t, size, seq=k) for k, t in enumerate(ts)]
 
 
 # ------------------------------------------------------------------------------- hit clients
@@ -167,7 +178,8 @@ class LeanHitClients:
              "codec": codec_mod.DEFAULT_GI_CODEC, "depth_codec": codec_mod.DEFAULT_DEPTH_CODEC}
             for i in range(n)
         ]  # fmt: skip
-        self.hits: list[tuple[float, float]] = []  # (sent at, ms)
+        self.hits: list[tuple[float, float]] = []  # (sent at, ms): real hits
+        self.coalesced: list[tuple[float, float]] = []  # replies shared with another request
         self.server_ms: list[dict[str, float]] = []
         self.errors: list[str] = []
         self.loop = asyncio.new_event_loop()
@@ -212,6 +224,9 @@ class LeanHitClients:
             if reply.kind != "gi_reply" or not f["cache_hit"] or f["id"] != rid:
                 self.errors.append(f"{reply.kind}: {str(f)[:80]}")
                 continue
+            if f.get("coalesced"):  # shared with another client's request: not a lookup
+                self.coalesced.append((t0, ms))
+                continue
             self.hits.append((t0, ms))
             self.server_ms.append(f["timings_ms"])
 
@@ -233,6 +248,7 @@ class _FullHitClients:
 
     def __init__(self, url: str, token: str, reqs: list[Any], n: int, max_hits: int) -> None:
         self.hits: list[tuple[float, float]] = []
+        self.coalesced: list[tuple[float, float]] = []
         self.errors: list[str] = []
         self._stop = threading.Event()
         self._srcs = [NetworkSource(url, token, NetClientConfig(timeout_s=T)) for _ in range(n)]
@@ -252,7 +268,8 @@ class _FullHitClients:
                 self.errors.append(repr(e)[:80])
                 continue
             if rep.cache_hit:
-                self.hits.append((t0, 1e3 * (time.perf_counter() - t0)))
+                kept = self.coalesced if getattr(rep, "coalesced", False) else self.hits
+                kept.append((t0, 1e3 * (time.perf_counter() - t0)))
 
     def start(self) -> _FullHitClients:
         for t in self._threads:
@@ -426,7 +443,7 @@ def run_profile(scene: Any, args: argparse.Namespace, tmp: Path) -> dict[str, An
     srv = ServeProcess(store, token, "--workers", "0", "--spp", str(args.spp),
                        repo=args.server_repo)  # fmt: skip
     try:
-        hit_reqs = [_request(scene, 0.5 + 1.2 * k, args.hit_size, seq=k) for k in range(4)]
+        hit_reqs = [request_at(scene, 0.5 + 1.2 * k, args.hit_size, seq=k) for k in range(4)]
         with NetworkSource(srv.url, token, NetClientConfig(timeout_s=T)) as warm:
             for r in hit_reqs:
                 warm.request_remote(r)
@@ -475,7 +492,7 @@ def run_hits(scene: Any, workers: int, args: argparse.Namespace, tmp: Path) -> d
     load_start = _load()
     miss_cfg = NetClientConfig(timeout_s=3 * T)  # niced renders on a loaded machine: slow
     try:
-        hit_reqs = [_request(scene, 0.5 + 1.2 * k, args.hit_size, seq=k) for k in range(4)]
+        hit_reqs = hit_cameras(scene, args.hit_clients, args.hit_size)
         with NetworkSource(srv.url, token, NetClientConfig(timeout_s=T)) as warm:
             for r in hit_reqs:
                 warm.request_remote(r)  # rendered once: hits from now on
@@ -488,7 +505,7 @@ def run_hits(scene: Any, workers: int, args: argparse.Namespace, tmp: Path) -> d
 
         def misser(i: int) -> None:
             for k in range(args.misses):
-                req = _request(scene, 2.0 + 1.7 * i + 0.45 * k, args.miss_size, seq=100 + k)
+                req = request_at(scene, 2.0 + 1.7 * i + 0.45 * k, args.miss_size, seq=100 + k)
                 t0 = time.perf_counter()
                 with lock:
                     window["start"] = min(window["start"], t0)
@@ -508,6 +525,7 @@ def run_hits(scene: Any, workers: int, args: argparse.Namespace, tmp: Path) -> d
         time.sleep(args.idle_s)  # the baseline: the same hits, no miss rendering
         b, n_b = _cpu_window(srv), len(clients.hits)
         idle = [ms for t0, ms in clients.hits if a[0] <= t0 <= b[0]]
+        idle_coalesced = sum(a[0] <= t0 <= b[0] for t0, _ in clients.coalesced)
         idle_cost = _per_hit(a, b, n_b - n_a)
         mthreads = [threading.Thread(target=misser, args=(i,)) for i in range(args.miss_clients)]
         c = _cpu_window(srv)
@@ -523,6 +541,7 @@ def run_hits(scene: Any, workers: int, args: argparse.Namespace, tmp: Path) -> d
             m.close()
         errors += clients.errors
         during = [ms for t0, ms in clients.hits if window["start"] <= t0 <= window["end"]]
+        coalesced = sum(window["start"] <= t0 <= window["end"] for t0, _ in clients.coalesced)
         during_cost = _per_hit(c, d, len(during))
         rss = _rss_mb(srv.proc.pid)
     finally:
@@ -533,11 +552,15 @@ def run_hits(scene: Any, workers: int, args: argparse.Namespace, tmp: Path) -> d
         "hit_client": args.hit_client,
         "hit_clients": args.hit_clients,
         "miss_clients": args.miss_clients,
+        "hit_cameras": len({json.dumps(protocol.request_to_json(r)["camera"]) for r in hit_reqs}),
         "hits_without_misses": len(idle),
+        "coalesced_without_misses": idle_coalesced,
         "idle_hit_p50_ms": pct(idle, 50),
         "idle_hit_p99_ms": pct(idle, 99),
+        "idle_hit_max_ms": float(np.max(idle)) if idle else None,
         "idle": idle_cost,
         "hits_during_misses": len(during),
+        "coalesced_during_misses": coalesced,
         "hit_p50_ms": pct(during, 50),
         "hit_p99_ms": pct(during, 99),
         "hit_max_ms": float(np.max(during)) if during else None,
@@ -560,7 +583,7 @@ def run_ab(scene: Any, args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
     checkout) and this one, alternately, ``ab_rounds`` times each, the same lean hit clients
     for ``profile_s`` seconds (hits alone)."""
     rounds = []
-    hit_reqs = [_request(scene, 0.5 + 1.2 * k, args.hit_size, seq=k) for k in range(4)]
+    hit_reqs = [request_at(scene, 0.5 + 1.2 * k, args.hit_size, seq=k) for k in range(4)]
     for r in range(args.ab_rounds):
         for label, repo in (("before", args.ab_repo), ("after", str(REPO))):
             token = new_token()
@@ -779,9 +802,9 @@ def run_attack(scene: Any, args: argparse.Namespace, tmp: Path) -> dict[str, Any
     cases: dict[str, list[str]] = {}
     try:
         with NetworkSource(srv.url, token, NetClientConfig(timeout_s=T)) as src:
-            src.request_remote(_request(scene, 0.5, 64))  # warm: the server has rendered once
+            src.request_remote(request_at(scene, 0.5, 64))  # warm: the server has rendered once
         before = _rss_mb(srv.proc.pid)
-        req = protocol.request_to_json(_request(scene, 4.0, 32))
+        req = protocol.request_to_json(request_at(scene, 4.0, 32))
 
         def gi(rid: Any, **cam: Any) -> Any:
             r = json.loads(json.dumps(req))
@@ -827,7 +850,7 @@ def run_attack(scene: Any, args: argparse.Namespace, tmp: Path) -> dict[str, Any
             asyncio.run(silent())
             rounds.append(_rss_mb(srv.proc.pid)[0])
         with NetworkSource(srv.url, token, NetClientConfig(timeout_s=T)) as src:
-            still = src.request_remote(_request(scene, 0.5, 64)).cache_hit
+            still = src.request_remote(request_at(scene, 0.5, 64)).cache_hit
         after = _rss_mb(srv.proc.pid)
     finally:
         srv.stop()
@@ -870,7 +893,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parts = ("profile", "ab", "hits", "bake", "attack", "all")
     ap.add_argument("--part", choices=parts, default="all", help="ab: not part of all")
-    ap.add_argument("--hit-clients", type=int, default=32)
+    ap.add_argument("--hit-clients", type=int, default=32, help="each its own camera")
+    ap.add_argument("--hit-workers", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--miss-clients", type=int, default=2)
     ap.add_argument("--misses", type=int, default=1, help="misses per miss client")
     ap.add_argument("--miss-size", type=int, default=1024)
@@ -919,7 +943,7 @@ def main() -> None:
             keys = ("hit_clients", "miss_clients", "misses", "miss_size", "hit_size", "spp",
                     "idle_s", "hit_client")  # fmt: skip
             d["config"]["hits"] = {k: getattr(args, k) for k in keys}
-            d["hits"] = [run_hits(scene, n, args, tmp) for n in (1, 2)]
+            d["hits"] = [run_hits(scene, n, args, tmp) for n in args.hit_workers]
             write_json(path, d)
         if args.part in ("bake", "all"):
             d["bake"] = run_bake(scene, args, tmp)

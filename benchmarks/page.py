@@ -2202,13 +2202,25 @@ def block_net_scale(results: Path) -> str:
         c = h.get(k)
         return f"{c['hits_per_s']:.0f}/s, {c['server_cpu_ms_per_hit']:.2f} ms" if c else "-"
 
+    def ms(h: dict, k: str) -> str:
+        return "-" if h.get(k) is None else f"{h[k]:.0f}"
+
     rows = "\n".join(
-        f"| {h['workers']} | {h['idle_hit_p50_ms']:.0f} / {h['idle_hit_p99_ms']:.0f} ms | "
-        f"{cost(h, 'idle')} | {h['hits_during_misses']} | {h['hit_p50_ms']:.0f} ms | "
-        f"{h['hit_p99_ms']:.0f} ms | {cost(h, 'during')} | "
+        f"| {h['workers']} | {ms(h, 'idle_hit_p50_ms')} / {ms(h, 'idle_hit_p99_ms')} / "
+        f"{ms(h, 'idle_hit_max_ms')} ms | {cost(h, 'idle')} | {h['hits_during_misses']} | "
+        f"{h.get('coalesced_during_misses', '-')} | {ms(h, 'hit_p50_ms')} / "
+        f"{ms(h, 'hit_p99_ms')} / {ms(h, 'hit_max_ms')} ms | {cost(h, 'during')} | "
         f"{h['miss_median_ms'] / 1e3:.1f} s ({h['misses']}) | {h['n_errors']} | "
         f"{h.get('load_average_start', float('nan')):.1f} / {h['load_average_end']:.1f} |"
         for h in d["hits"]
+    )
+    cams = {h.get("hit_cameras") for h in d["hits"]}
+    cams_text = (
+        f"each its own camera ({cams.pop()} distinct cameras along the test path, so every hit "
+        "is a lookup of its own; replies shared with another request (`coalesced`) are counted "
+        "apart, never as hits)"
+        if len(cams) == 1 and None not in cams
+        else "replaying a shared set of 4 cameras (most replies coalesced)"
     )
     client = {
         "lean": "one event loop for all of them: each reply opened and verified, its codecs not "
@@ -2226,14 +2238,17 @@ def block_net_scale(results: Path) -> str:
     rounds = ", ".join(f"{x:.0f}" for x in a["rss_after_each_round_mb"])
     return (
         f"**The cloud at scale** (`benchmarks.net_scale`, cornell_box, `icbtool serve` in its "
-        f"own process, local Dask workers, {hc['spp']} spp denoised GI). {hc['hit_clients']} "
-        f"clients replay cache hits ({hc['hit_size']}^2; {client}) while {hc['miss_clients']} "
-        f"clients ask for {hc['miss_size']}^2 misses; hit latency measured while the misses "
-        "render (before this design a miss held every hit behind it: 32-37 s), "
-        "throughput and server CPU per hit alone and during the misses:\n\n"
-        "| render workers | hits alone p50 / p99 | alone: hits/s, server CPU / hit | "
-        "hits during the misses | hit p50 | hit p99 | during: hits/s, server CPU / hit | "
-        "miss (count) | errors | load avg start / end |\n"
+        f"own process, in-process renders (0 workers) or local Dask workers, {hc['spp']} spp "
+        f"denoised GI). {hc['hit_clients']} clients ask for cache hits, {cams_text} "
+        f"({hc['hit_size']}^2; {client}), while {hc['miss_clients']} clients ask for "
+        f"{hc['miss_size']}^2 misses; hit latency measured while the misses render (before this "
+        "design a miss held every hit behind it: 32-37 s), throughput and server CPU per hit "
+        "alone and during the misses. Measured on a shared 2-core machine under the load "
+        "given (other work ran beside it): the latencies are of that machine, not of a quiet "
+        "one:\n\n"
+        "| render workers | hits alone p50 / p99 / max | alone: hits/s, server CPU / hit | "
+        "hits during the misses | coalesced replies during | hit p50 / p99 / max | during: "
+        "hits/s, server CPU / hit | miss (count) | errors | load avg start / end |\n"
         "|---|---|---|---|---|---|---|---|---|---|\n"
         f"{rows}\n"
         f"{_net_profile(d)}\n"
@@ -2248,6 +2263,48 @@ def block_net_scale(results: Path) -> str:
         f"{a['rss_before_mb']:.0f} MB before, {rounds} MB after each round; still serving: "
         f"{'yes' if a['still_serving_hits'] else 'NO'}. Every socket on 127.0.0.1 "
         f"(`ss -tnp`): {'yes' if loop else 'NO'}.\n"
+    )
+
+
+def block_cloud_memory(results: Path) -> str:
+    """Where a miss's memory goes and whether the cloud gives it back (cloud_memory.json)."""
+    d = load("net/cloud_memory.json", results)
+    b, c = d["breakdown"], d["config"]
+    st = {k: v["rss_mb"] for k, v in b["steps"].items()}
+    w = st["warm"]
+    steps = [
+        ("after the trace (GI denoised)", "trace_render"),
+        ("after the whole CRT-buffer (raster + trace), outputs still held", "crt_buffer"),
+        ("outputs dropped", "crt_dropped"),
+        ("tracer workspace dropped", "workspace_dropped"),
+        ("heap trimmed (`malloc_trim(0)`)", "trimmed"),
+        ("denoiser's device and filter dropped, trimmed again", "denoiser_dropped_trimmed"),
+    ]
+    brows = "\n".join(f"| {what} | {st[k]:.0f} | {st[k] - w:+.0f} |" for what, k in steps)
+    peak = max(v["peak_mb"] for v in b["steps"].values())
+    rows = "\n".join(
+        f"| {r['workers']} | {r['before_mb']:.0f} | {r['peak_mb']:.0f} | {r['after_mb']:.0f} | "
+        f"**{r['delta_mb']:+.0f}** | {r['burst_end_s'] - r['burst_start_s']:.0f} s | "
+        f"{len(r['errors'])} | {r['load_average_start']:.1f} / {r['load_average_end']:.1f} |"
+        for r in d.get("burst", [])
+    )
+    return (
+        f"**Cloud memory** (`benchmarks.cloud_memory`, cornell_box). One {b['size']}^2 miss at "
+        f"{b['spp']} spp rendered in one process as the server's in-process pool does, RSS after "
+        f"each step (MB; {w:.0f} MB before, kernels and GL context loaded; peak {peak:.0f} MB). "
+        f"The tracer's workspace was {b['workspace_mb']:.0f} MB, its outputs "
+        f"{b['trace_outputs_mb']:.0f} MB, the CRT-buffer {b['crt_buffer_mb']:.0f} MB; load "
+        f"average {b['load_average'][0]:.1f}:\n\n"
+        "| step | RSS MB | vs before |\n|---|---|---|\n"
+        f"{brows}\n\n"
+        f"A burst of {c['burst']} misses at {c['size']}^2, {c['spp']} spp from 2 clients to "
+        "`icbtool serve` (RSS of the server and all its worker processes, sampled every "
+        f"{c['sample_s']} s; after: {c['after_s']:.0f} s after the last reply; plot "
+        "`benchmarks/results/net/cloud_memory.png`). Measured on a shared 2-core machine under "
+        "the load given: the renders are slow there, the memory is what it is:\n\n"
+        "| render workers | before MB | peak MB | after MB | after - before | burst took | "
+        "errors | load avg start / end |\n|---|---|---|---|---|---|---|---|\n"
+        f"{rows}\n"
     )
 
 
@@ -2507,6 +2564,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "net": block_net,
     "web": block_web,
     "net-scale": block_net_scale,
+    "cloud-memory": block_cloud_memory,
     "radiance-world": block_radiance_world,
     "gi-codec": block_gi_codec,
     "instances": block_instances,
@@ -2550,6 +2608,7 @@ OWNERS: dict[str, str] = {
     "net": "net_latency",
     "web": "web_client",
     "net-scale": "net_scale",
+    "cloud-memory": "cloud_memory",
     "radiance-world": "radiance_world",
     "gi-codec": "gi_codec",
     "dynamic": "dynamic_recovery",
