@@ -32,6 +32,7 @@ EXTRAS: dict[str, tuple[str, str]] = {
     "dask": ("cloud", "dask[distributed]"),
     "distributed": ("cloud", "dask[distributed]"),
     "tornado": ("cloud", "dask[distributed]"),  # distributed's web server, installed with it
+    "psutil": ("cloud", "dask[distributed]"),  # process memory outside Linux, installed with it
 }
 
 

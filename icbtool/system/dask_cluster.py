@@ -196,11 +196,10 @@ TRIM_EVERY_MS = 2000
 
 
 def _add_trim_callback(worker: Any) -> None:
-    from tornado.ioloop import PeriodicCallback
-
     from icbtool.system.memory import trim_heap
 
-    worker.periodic_callbacks["icb-trim-heap"] = PeriodicCallback(trim_heap, TRIM_EVERY_MS)
+    ioloop = require("tornado.ioloop", "render workers on Dask distributed")
+    worker.periodic_callbacks["icb-trim-heap"] = ioloop.PeriodicCallback(trim_heap, TRIM_EVERY_MS)
 
 
 def _nanny(worker: type) -> type:

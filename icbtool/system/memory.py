@@ -22,6 +22,8 @@ import functools
 import logging
 import os
 
+from icbtool.optional import require
+
 log = logging.getLogger(__name__)
 
 #: Environment of local render workers: at most 2 malloc arenas (a worker renders on one
@@ -54,15 +56,14 @@ def trim_heap() -> bool:
 
 
 def rss_bytes(pid: int | None = None) -> int:
-    """Resident set size of process ``pid`` (None: this one), bytes (``/proc``; psutil
-    elsewhere)."""
+    """Resident set size of process ``pid`` (None: this one), bytes (Linux ``/proc``; elsewhere
+    psutil, which the ``cloud`` extra brings with Dask)."""
     path = f"/proc/{pid or 'self'}/statm"
     try:
         with open(path) as f:
             return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
     except OSError:
-        import psutil
-
+        psutil = require("psutil", "process memory outside Linux")
         return int(psutil.Process(pid).memory_info().rss)
 
 
