@@ -30,7 +30,6 @@ from typing import Any, Literal
 
 import numpy as np
 
-from icbtool import interrupts
 from icbtool.camera import Camera, CameraPath
 from icbtool.store.record import CRTBuffer, RecordMeta
 from icbtool.trace.tracer import DenoiseQuality, check_denoise_quality
@@ -451,7 +450,6 @@ def _render_here(
         if hasattr(rasterizer, "__enter__"):
             rasterizer = stack.enter_context(rasterizer)
     for job in jobs:
-        interrupts.check()  # a Ctrl-C that native code swallowed still stops the bake
         yield render_job(scene, job, rasterizer)
 
 

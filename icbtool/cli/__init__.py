@@ -18,8 +18,6 @@ import warnings
 from collections.abc import Iterator
 from typing import Any
 
-from icbtool import interrupts
-
 #: Options of earlier versions that have another spelling now (one spelling per concept).
 RENAMED = {
     "--size": "--height H --width W",
@@ -112,7 +110,6 @@ def one_line_warnings(command: str) -> Iterator[None]:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``icbtool`` console script. Returns the exit code."""
     command = "icbtool"
-    interrupts.install()
     try:
         parser = build_parser()
         args, extras = parser.parse_known_args(argv)
@@ -145,7 +142,6 @@ def main(argv: list[str] | None = None) -> int:
                 if rc != 0:
                     _discard_empty_outputs()
     except KeyboardInterrupt:  # Ctrl-C: stores were closed on the way out (with blocks)
-        interrupts.ignore_further()  # stopping already: a late second one must not kill it
         lead = "\n" if sys.stderr.isatty() else ""  # off the terminal's ^C / progress bar line
         print(f"{lead}{command}: interrupted", file=sys.stderr)
         return 130
